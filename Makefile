@@ -1,0 +1,38 @@
+# PackPilot: two commands set everything up on a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+OUT    := out
+
+.PHONY: demo test bench lint clean venv
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	mkdir -p $(OUT)
+	$(PY) -m packpilot.cli simulate examples/uav_dual_parallel.toml --no-progress \
+		--db $(OUT)/demo.sqlite --plot $(OUT)/demo.png --trace-csv $(OUT)/demo_trace.csv \
+		--json > $(OUT)/demo_summary.json
+	@echo "demo: wrote $(OUT)/demo.png, $(OUT)/demo_summary.json, $(OUT)/demo.sqlite"
+	@cat $(OUT)/demo_summary.json
+
+test: $(STAMP)
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider
+
+bench: $(STAMP)
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/mypy --strict src
+	$(VENV)/bin/lint-imports
+
+clean:
+	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache

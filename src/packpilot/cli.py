@@ -1,0 +1,169 @@
+"""``packpilot`` command line: simulate, replay, report.
+
+Every user-facing error (bad config, bad log, bad CAN frame) is a :class:`PackPilotError`:
+printed as one line on stderr with exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import typer
+
+from packpilot.errors import PackPilotError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="PackPilot: battery management for multi-battery packs.",
+    pretty_exceptions_enable=False,
+)
+replay_app = typer.Typer(no_args_is_help=True, help="Replay a CSV log through a control method.")
+app.add_typer(replay_app, name="replay")
+
+T = TypeVar("T")
+
+
+def _guard(fn: Callable[[], T]) -> T:
+    try:
+        return fn()
+    except PackPilotError as err:
+        typer.echo(f"error: {err}", err=True)
+        raise typer.Exit(code=2) from None
+
+
+def _json_default(o: Any) -> Any:
+    if hasattr(o, "item"):
+        return o.item()
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    return str(o)
+
+
+@app.command()
+def simulate(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    db: Annotated[Path | None, typer.Option(help="record telemetry to this SQLite file")] = None,
+    trace_csv: Annotated[Path | None, typer.Option(help="write the per-step trace as CSV")] = None,
+    plot: Annotated[Path | None, typer.Option(help="write a PNG of V, I, SOC, T")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
+    duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
+    no_progress: Annotated[bool, typer.Option(help="hide the progress bar")] = False,
+) -> None:
+    """Run a closed-loop simulation of a scenario."""
+
+    def go() -> None:
+        from packpilot.config import load_config
+        from packpilot.sim.runner import Runner
+
+        cfg = load_config(config)
+        if duration is not None:
+            cfg = cfg.model_copy(
+                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
+            )
+        recorder = None
+        if db is not None:
+            from packpilot.io.telemetry import SQLiteRecorder
+
+            recorder = SQLiteRecorder(db)
+        runner = Runner(cfg, recorder=recorder, progress=False if no_progress or as_json else None)
+        result = runner.run()
+        if trace_csv is not None:
+            from packpilot.io.telemetry import trace_to_csv
+
+            trace_to_csv(result, trace_csv)
+        if plot is not None:
+            from packpilot.report.plots import plot_run
+
+            plot_run(result, plot)
+        if as_json:
+            typer.echo(json.dumps(result.metrics, default=_json_default))
+        else:
+            _print_metrics(result.metrics)
+
+    _guard(go)
+
+
+def _print_metrics(m: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="run summary", show_header=True)
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for k, v in m.items():
+        if isinstance(v, float):
+            text = f"{v:.4g}"
+        elif isinstance(v, list):
+            text = ", ".join(f"{x:.4g}" if isinstance(x, float) else str(x) for x in v)
+        else:
+            text = str(v)
+        table.add_row(k, text)
+    Console().print(table)
+
+
+def _replay(
+    method: str, log: Path, config: Path | None, out: Path | None, as_json: bool
+) -> None:
+    def go() -> None:
+        import importlib
+
+        from packpilot.config import load_section
+
+        cfg = load_section(config, method)
+        mod = importlib.import_module(f"packpilot.replay.{method}")
+        result = mod.replay(log, cfg)
+        if out is not None:
+            result.write_csv(out)
+        if as_json:
+            typer.echo(json.dumps(result.summary, default=_json_default))
+        elif out is None:
+            import csv
+
+            writer = csv.writer(sys.stdout)
+            writer.writerow(result.columns)
+            writer.writerows(result.rows)
+
+    _guard(go)
+
+
+LogArg = Annotated[Path, typer.Argument(help="CSV log to replay")]
+ConfigOpt = Annotated[Path | None, typer.Option(help="TOML file with the method's section")]
+OutOpt = Annotated[Path | None, typer.Option(help="write the output table as CSV")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print the summary as JSON")]
+
+
+@replay_app.command("protection")
+def replay_protection(
+    log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
+) -> None:
+    """Replay t_s,current_a,temp_c,min_cell_v through discharge protection."""
+    _replay("protection", log, config, out, as_json)
+
+
+@replay_app.command("sequencing")
+def replay_sequencing(
+    log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
+) -> None:
+    """Replay t_s,v_0..v_{N-1},i_0..i_{N-1} through parallel discharge sequencing."""
+    _replay("sequencing", log, config, out, as_json)
+
+
+@replay_app.command("equalization")
+def replay_equalization(
+    log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
+) -> None:
+    """Replay t_s,current_a,v_0..v_{M-1} through Newton-iterated equalization."""
+    _replay("equalization", log, config, out, as_json)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,278 @@
+"""Scenario configuration: TOML files validated by pydantic.
+
+One file describes a pack (batteries, switches, cells), what loads and charges it, how long to
+simulate, and which control methods run. Each method owns its own config model (in its
+``control`` module); this file only places them as TOML sections. Errors become one line that
+names the file, the field and what is allowed (:class:`packpilot.errors.ConfigError`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from packpilot.errors import ConfigError
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SwitchConfig(_Strict):
+    """Switch between a battery and the bus."""
+
+    kind: Literal["relay", "mosfet_pair"] = "mosfet_pair"
+    on_ohm: NonNegFloat = Field(
+        0.0005, description="relay contact resistance, or channel resistance of one FET"
+    )
+    diode_drop_v: NonNegFloat = Field(0.6, description="body-diode forward drop (spec: 0.5-0.7 V)")
+    diode_ohm: PosFloat = Field(0.002, description="body-diode slope resistance")
+    chg_on: bool = Field(True, description="initial charge-path state (relay: closed iff both)")
+    dsg_on: bool = Field(True, description="initial discharge-path state")
+    welded: bool = Field(False, description="relay contact welded closed (fault)")
+
+
+class BatteryConfig(_Strict):
+    """One battery: ``series_groups`` groups in series, each of ``cells_per_group`` cells."""
+
+    name: str = Field(min_length=1, max_length=32)
+    role: Literal["traction", "aux"] = "traction"
+    cell: str | None = Field(None, description="cell parameter set; default: pack.cell")
+    series_groups: int = Field(1, ge=1, le=64)
+    cells_per_group: int = Field(1, ge=1, le=64)
+    soc0: Fraction | None = Field(None, description="initial SOC (0..1)")
+    ocv0_v: PosFloat | None = Field(
+        None, description="initial rest voltage of the whole battery (alternative to soc0)"
+    )
+    group_soc0: list[Fraction] | None = Field(None, description="per-group initial SOC")
+    capacity_ah: PosFloat | None = Field(None, description="cell capacity; default from cell set")
+    group_capacity_scale: list[PosFloat] | None = None
+    resistance_ohm: PosFloat | None = Field(
+        None,
+        description="battery DC resistance (sum of cell R0 at 25 degC, 50 % SOC); scales the cells",
+    )
+    cell_soc_spread: Annotated[float, Field(ge=0, le=0.2)] = Field(
+        0.0, description="uniform +- spread of cell SOC inside each group"
+    )
+    cell_capacity_spread: Annotated[float, Field(ge=0, le=0.3)] = Field(
+        0.0, description="uniform +- relative spread of cell capacity"
+    )
+    switch: SwitchConfig | None = Field(None, description="default: pack.switch")
+    present_from_s: NonNegFloat = Field(0.0, description="hot insertion time")
+    ambient_offset_c: Finite = 0.0
+
+    @model_validator(mode="after")
+    def _check(self) -> BatteryConfig:
+        if self.soc0 is not None and self.ocv0_v is not None:
+            raise ValueError("give soc0 or ocv0_v, not both")
+        for name in ("group_soc0", "group_capacity_scale"):
+            val = getattr(self, name)
+            if val is not None and len(val) != self.series_groups:
+                raise ValueError(
+                    f"{name} has {len(val)} entries but series_groups is {self.series_groups}"
+                )
+        return self
+
+    @property
+    def n_cells(self) -> int:
+        return self.series_groups * self.cells_per_group
+
+
+class PackConfig(_Strict):
+    name: str = "pack"
+    cell: str = Field("uav_5ah", description="cell parameter set name or path to a set file")
+    ambient_c: Annotated[float, Field(ge=-60, le=80, allow_inf_nan=False)] = 25.0
+    thermal_nodes: Literal[1, 2] = 2
+    switch: SwitchConfig = SwitchConfig()
+    seed: int = 0
+    batteries: list[BatteryConfig] = Field(min_length=1, max_length=32)
+
+    @field_validator("batteries")
+    @classmethod
+    def _unique(cls, v: list[BatteryConfig]) -> list[BatteryConfig]:
+        names = [b.name for b in v]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"battery names must be unique; repeated: {', '.join(sorted(dup))}")
+        if sum(b.role == "aux" for b in v) > 1:
+            raise ValueError("at most one battery may have role 'aux'")
+        if not any(b.role == "traction" for b in v):
+            raise ValueError("at least one battery must have role 'traction'")
+        return v
+
+
+class LoadConfig(_Strict):
+    kind: Literal["current", "power", "resistance", "none"] = "none"
+    value: Finite = Field(0.0, description="constant demand, or the base the profile scales")
+    profile: str | None = Field(
+        None, description="built-in profile (uav_flight, uav_hover, step) or a CSV path"
+    )
+    repeat: bool = False
+    v_min_v: NonNegFloat = Field(0.0, description="under-voltage lock-out of the load")
+    start_s: NonNegFloat = 0.0
+
+    @model_validator(mode="after")
+    def _check(self) -> LoadConfig:
+        if self.kind == "resistance" and self.profile is None and self.value <= 0:
+            raise ValueError("value must be > 0 for a resistance load")
+        if self.kind in ("current", "power") and self.value < 0:
+            raise ValueError("value must be >= 0 (a load draws; use the charger to charge)")
+        return self
+
+
+class ChargerConfig(_Strict):
+    present: bool = False
+    connect_s: NonNegFloat = 0.0
+    disconnect_s: NonNegFloat | None = None
+    rated_v: PosFloat = 500.0
+    rated_a: PosFloat = 100.0
+    r_out_ohm: PosFloat = 0.01
+    heartbeat_timeout_s: PosFloat = 5.0
+    voltage_v: NonNegFloat = Field(0.0, description="setpoint used when no controller commands it")
+    current_a: NonNegFloat = 0.0
+    enable: bool = False
+
+
+class BalancerConfig(_Strict):
+    present: bool = False
+    max_current_a: PosFloat = 2.0
+    bidirectional: bool = False
+    efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
+
+
+class AuxConfig(_Strict):
+    """DC/DC from the bus into the auxiliary battery, and the BMS load it powers."""
+
+    dcdc_max_a: PosFloat = 5.0
+    dcdc_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
+    dcdc_min_input_v: NonNegFloat = 20.0
+    bms_load_w: NonNegFloat = 15.0
+
+
+class SimConfig(_Strict):
+    dt_s: Annotated[float, Field(gt=0, le=10)] = 0.1
+    duration_s: PosFloat = 600.0
+    stop_when_unsupplied_s: NonNegFloat | None = Field(
+        None, description="stop after the load has been unsupplied this long"
+    )
+    progress: bool = True
+
+
+METHOD_SECTIONS: dict[str, str] = {
+    "protection": "packpilot.control.protection:ProtectionConfig",
+    "sequencing": "packpilot.control.sequencing:SequencingConfig",
+    "charging": "packpilot.control.charging:ChargingConfig",
+    "equalization": "packpilot.control.equalization:EqualizationConfig",
+}
+
+
+class ScenarioConfig(_Strict):
+    """A whole scenario file."""
+
+    pack: PackConfig
+    load: LoadConfig = LoadConfig()
+    charger: ChargerConfig = ChargerConfig()
+    balancer: BalancerConfig = BalancerConfig()
+    aux: AuxConfig = AuxConfig()
+    sim: SimConfig = SimConfig()
+    controller: list[Literal["protection", "sequencing", "charging", "equalization"]] = Field(
+        default_factory=list, description="control methods to run, in order"
+    )
+    protection: dict[str, Any] | None = None
+    sequencing: dict[str, Any] | None = None
+    charging: dict[str, Any] | None = None
+    equalization: dict[str, Any] | None = None
+
+
+def method_config_class(section: str) -> type[BaseModel]:
+    """The pydantic model that validates a method's section (imported lazily)."""
+    mod_name, cls_name = METHOD_SECTIONS[section].split(":")
+    cls = getattr(importlib.import_module(mod_name), cls_name)
+    assert isinstance(cls, type) and issubclass(cls, BaseModel)
+    return cls
+
+
+def _fmt_error(source: str, err: ValidationError, prefix: str = "") -> str:
+    first = err.errors()[0]
+    loc = ".".join(str(p) for p in first["loc"] if not str(p).startswith("function-"))
+    loc = f"{prefix}{loc}" if loc else prefix.rstrip(".") or "(top level)"
+    msg = first["msg"]
+    if first["type"] == "extra_forbidden":
+        msg = "unknown key"
+    inp = first.get("input")
+    shown = "" if isinstance(inp, dict | list) or first["type"] == "missing" else f" (got {inp!r})"
+    more = len(err.errors()) - 1
+    tail = f" [+{more} more error(s)]" if more else ""
+    return f"{source}: {loc}: {msg}{shown}{tail}"
+
+
+def validate_section(section: str, data: dict[str, Any] | None, source: str) -> BaseModel:
+    """Validate one method section, naming ``[section].field`` on error."""
+    cls = method_config_class(section)
+    try:
+        return cls.model_validate(data or {})
+    except ValidationError as err:
+        raise ConfigError(_fmt_error(source, err, prefix=f"{section}.")) from None
+
+
+def read_toml(path: Path) -> dict[str, Any]:
+    if not path.exists():
+        raise ConfigError(f"{path}: file not found")
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a UTF-8 text file") from None
+
+
+def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConfig:
+    try:
+        cfg = ScenarioConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_fmt_error(source, err)) from None
+    for section in cfg.controller:
+        validate_section(section, getattr(cfg, section), source)
+    for section in METHOD_SECTIONS:
+        if getattr(cfg, section) is not None and section not in cfg.controller:
+            validate_section(section, getattr(cfg, section), source)
+    return cfg
+
+
+def load_config(path: str | Path) -> ScenarioConfig:
+    """Read and validate a scenario TOML file (relative profile paths resolve next to it)."""
+    p = Path(path)
+    data = read_toml(p)
+    load = data.get("load")
+    if isinstance(load, dict):
+        prof = load.get("profile")
+        if isinstance(prof, str) and prof.endswith(".csv") and not Path(prof).is_absolute():
+            load["profile"] = str((p.parent / prof).resolve())
+    return parse_config(data, str(p))
+
+
+def load_section(path: str | Path | None, section: str) -> BaseModel:
+    """A single method section from a file (or its defaults) — used by ``replay``."""
+    if path is None:
+        return validate_section(section, None, "<defaults>")
+    p = Path(path)
+    data = read_toml(p)
+    raw = data.get(section)
+    if raw is not None and not isinstance(raw, dict):
+        raise ConfigError(f"{p}: [{section}] must be a table")
+    return validate_section(section, raw, str(p))
+
+
+def is_finite(x: float) -> bool:
+    return math.isfinite(x)

@@ -1,0 +1,459 @@
+"""The pack plant: strings in parallel on one bus, each string = series groups of cells.
+
+Every cell is simulated (equivalent circuit + thermal, :mod:`packpilot.model.cell`), so the
+min/max cell voltage of a group is the real spread, not a guess. A pack object steps ``n_packs``
+packs of identical topology in one NumPy call (a fleet for Monte-Carlo campaigns).
+
+Step structure, per control period ``dt_s``:
+
+1. the cached Thevenin source (``e``, ``r``) of every cell at the start of the period, plus the
+   balancers' internal currents, give each string's source voltage and resistance;
+2. the bus is solved exactly (:mod:`packpilot.model.bus`) with the gates as commanded;
+3. every cell advances with its constant current over the period;
+4. the source is re-evaluated at the new state and cached (measurements read it).
+
+The plant knows nothing of controllers: gates, charger requests, balancer and aux currents are
+inputs set by whoever runs it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.config import BatteryConfig, ScenarioConfig, SwitchConfig
+from packpilot.model import cell as cellmod
+from packpilot.model.bus import ChargerSource, LoadSink, solve_bus
+from packpilot.model.charger import ChargerModel, ChargerParams
+from packpilot.model.switches import KIND_MOSFET, KIND_RELAY, diode_currents, switch_branches
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
+
+
+def _load_cell_set(name: str) -> cellmod.CellParams:
+    if name.endswith((".json", ".toml", ".npz")) or "/" in name:
+        return cellmod.load_parameter_file(Path(name))
+    return cellmod.load_parameter_set(name)
+
+
+def soc_from_ocv(params: cellmod.CellParams, ocv_v: Array, temp_c: Array) -> Array:
+    """Invert the (monotone) OCV curve by bisection, clamped to SOC 0..1."""
+    lo = np.zeros_like(ocv_v)
+    hi = np.ones_like(ocv_v)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        above = cellmod.ocv_v(params, mid, temp_c) > ocv_v
+        hi = np.where(above, mid, hi)
+        lo = np.where(above, lo, mid)
+    return 0.5 * (lo + hi)
+
+
+@dataclass
+class CellBank:
+    """Cells sharing one parameter set; ``idx`` maps them into the pack's flat cell axis."""
+
+    params: cellmod.CellParams
+    idx: IntArray
+    state: cellmod.CellState
+
+
+@dataclass
+class Interval:
+    """What flowed during the last period ``[t_s, t_s + dt_s]`` (arrays over packs)."""
+
+    t_s: float
+    dt_s: float
+    bus_v: Array
+    load_demand_a: Array
+    load_a: Array
+    supplied: BoolArray
+    charger_v: Array
+    charger_a: Array
+    string_a: Array
+    """(packs, strings), positive = discharge; the aux string's own current included."""
+    battery_v: Array
+    """(packs, strings) battery-side terminal voltage during the period."""
+    cell_v: Array
+    """(packs, cells) cell terminal voltage during the period."""
+    group_v: Array
+    """(packs, groups)."""
+    chg_diode_a: Array
+    dsg_diode_a: Array
+    balancer_in_w: Array
+    """(packs, strings) power drawn by the string's equalizers from the string."""
+    heat_w: Array
+    """(packs, strings) heat generated in the cells."""
+
+
+@dataclass
+class Pack:
+    """Plant of ``n_packs`` identical-topology packs, built from a scenario config."""
+
+    cfg: ScenarioConfig
+    n_packs: int = 1
+    capacity_scale: Array | None = None
+    """Optional (packs,) or (packs, cells) factor on cell capacity (campaign spreads)."""
+    r_scale: Array | None = None
+    """Optional (packs,) or (packs, cells) factor on cell resistance."""
+    soc_offset: Array | None = None
+    """Optional (packs,) additive offset on initial SOC."""
+    ambient_c: Array | None = None
+    """Optional (packs,) ambient temperature override."""
+
+    t_s: float = field(init=False, default=0.0)
+    names: list[str] = field(init=False)
+    banks: list[CellBank] = field(init=False)
+    charger: ChargerModel = field(init=False)
+
+    def __post_init__(self) -> None:
+        pc = self.cfg.pack
+        bats = pc.batteries
+        self.names = [b.name for b in bats]
+        n_s = len(bats)
+        self.n_strings = n_s
+        self.is_aux = np.array([b.role == "aux" for b in bats])
+        self.aux_index: int | None = int(np.argmax(self.is_aux)) if self.is_aux.any() else None
+        # Flat cell axis: battery-major, then group, then cell.
+        n_cells = [b.n_cells for b in bats]
+        self.cell_string = np.repeat(np.arange(n_s), n_cells)
+        groups = [b.series_groups for b in bats]
+        self.groups_per_string = tuple(groups)
+        self.group_string = np.repeat(np.arange(n_s), groups)
+        cell_group: list[int] = []
+        g0 = 0
+        for b in bats:
+            for g in range(b.series_groups):
+                cell_group += [g0 + g] * b.cells_per_group
+            g0 += b.series_groups
+        self.cell_group = np.array(cell_group, dtype=np.int64)
+        self.n_cells = int(sum(n_cells))
+        self.n_groups = int(sum(groups))
+        self.group_starts = np.concatenate([[0], np.cumsum([b.cells_per_group for b in bats
+                                                             for _ in range(b.series_groups)])[:-1]])
+        self.string_group_starts = np.concatenate([[0], np.cumsum(groups)[:-1]])
+        self.max_groups = max(groups)
+
+        # Switches.
+        sw = [b.switch or pc.switch for b in bats]
+        self.sw_kind = np.array(
+            [KIND_RELAY if s.kind == "relay" else KIND_MOSFET for s in sw], dtype=np.int64
+        )
+        self.sw_on_ohm = np.array([s.on_ohm for s in sw])
+        self.sw_drop_v = np.array([s.diode_drop_v for s in sw])
+        self.sw_diode_ohm = np.array([s.diode_ohm for s in sw])
+        self.welded = np.array([s.welded and s.kind == "relay" for s in sw])
+        P = self.n_packs
+        self.chg_on = np.tile(np.array([s.chg_on for s in sw]), (P, 1))
+        self.dsg_on = np.tile(np.array([s.dsg_on for s in sw]), (P, 1))
+        self.fet_shorted = np.zeros((P, n_s, 2), dtype=bool)
+        self.present_from_s = np.array([b.present_from_s for b in bats])
+
+        self.ambient = (
+            np.full(P, pc.ambient_c) if self.ambient_c is None else np.asarray(self.ambient_c, float)
+        )
+        offsets = np.array([b.ambient_offset_c for b in bats])
+        self.cell_ambient = self.ambient[:, None] + offsets[self.cell_string][None, :]
+
+        rng = np.random.default_rng(pc.seed)
+        self._build_cells(bats, rng)
+        self.charger = ChargerModel(
+            ChargerParams(
+                rated_v=self.cfg.charger.rated_v,
+                rated_a=self.cfg.charger.rated_a,
+                r_out_ohm=self.cfg.charger.r_out_ohm,
+                heartbeat_timeout_s=self.cfg.charger.heartbeat_timeout_s,
+            ),
+            P,
+        )
+        self.balancer_a = np.zeros((P, self.n_groups))
+        self.aux_charge_a = np.zeros(P)
+        self.cell_a = np.zeros((P, self.n_cells))
+        self.string_a = np.zeros((P, n_s))
+        self.bus_v = np.zeros(P)
+        self.group_v_prev = np.zeros((P, self.n_groups))
+        # Diode stress ledgers, (packs, strings): conduction time and energy.
+        self.chg_diode_s = np.zeros((P, n_s))
+        self.dsg_diode_s = np.zeros((P, n_s))
+        self.chg_diode_j = np.zeros((P, n_s))
+        self.dsg_diode_j = np.zeros((P, n_s))
+        self.charge_in_ah = np.zeros((P, n_s))
+        self.joule_j = np.zeros((P, n_s))
+        """Ohmic heat in cells and switches, (packs, strings)."""
+        self._refresh_source()
+        self.group_v_prev = self._group_sum(self.e_cell)
+
+    # ------------------------------------------------------------------ construction
+    def _build_cells(self, bats: list[BatteryConfig], rng: np.random.Generator) -> None:
+        P, C = self.n_packs, self.n_cells
+        pc = self.cfg.pack
+        set_names = [b.cell or pc.cell for b in bats]
+        cap = np.empty(C)
+        rs = np.ones(C)
+        soc = np.empty(C)
+        params_of_string = {}
+        for name in set(set_names):
+            params_of_string[name] = _load_cell_set(name)
+        start = 0
+        for b, name in zip(bats, set_names, strict=True):
+            prm = params_of_string[name]
+            sl = slice(start, start + b.n_cells)
+            nominal = b.capacity_ah if b.capacity_ah is not None else prm.capacity_ah
+            gscale = np.repeat(
+                np.array(b.group_capacity_scale or [1.0] * b.series_groups), b.cells_per_group
+            )
+            spread = rng.uniform(-b.cell_capacity_spread, b.cell_capacity_spread, b.n_cells)
+            cap[sl] = nominal * gscale * (1.0 + spread)
+            gsoc = np.repeat(
+                np.array(b.group_soc0 if b.group_soc0 is not None else [np.nan] * b.series_groups),
+                b.cells_per_group,
+            )
+            if b.ocv0_v is not None:
+                base = soc_from_ocv(
+                    prm, np.array([b.ocv0_v / b.n_cells]), np.array([pc.ambient_c])
+                )[0]
+            else:
+                base = 0.5 if b.soc0 is None else b.soc0
+            soc_spread = rng.uniform(-b.cell_soc_spread, b.cell_soc_spread, b.n_cells)
+            soc[sl] = np.where(np.isnan(gsoc), base, gsoc) + soc_spread
+            if b.resistance_ohm is not None:
+                # The stated DC resistance holds at the battery's initial state (mean SOC,
+                # ambient temperature, no current): what a datasheet or an ohmmeter reports.
+                ref = cellmod.initial_state(prm, 1, float(np.clip(soc[sl].mean(), 0, 1)),
+                                            pc.ambient_c + b.ambient_offset_c)
+                _, r0 = cellmod.thevenin(prm, ref, np.zeros(1), np.array([nominal]), np.ones(1))
+                rs[sl] = b.resistance_ohm / (b.n_cells * float(r0[0]))
+            start += b.n_cells
+        cap2 = np.tile(cap, (P, 1))
+        if self.capacity_scale is not None:
+            cap2 = cap2 * np.asarray(self.capacity_scale, float).reshape(P, -1)
+        rs2 = np.tile(rs, (P, 1))
+        if self.r_scale is not None:
+            rs2 = rs2 * np.asarray(self.r_scale, float).reshape(P, -1)
+        soc2 = np.tile(soc, (P, 1))
+        if self.soc_offset is not None:
+            soc2 = soc2 + np.asarray(self.soc_offset, float).reshape(P, 1)
+        soc2 = np.clip(soc2, 0.0, 1.0)
+        self.capacity_ah = cap2
+        self.cell_r_scale = rs2
+        self.banks = []
+        string_of_cell = self.cell_string
+        for name, prm in params_of_string.items():
+            strings = [i for i, n in enumerate(set_names) if n == name]
+            mask = np.isin(string_of_cell, strings)
+            flat = (np.arange(P)[:, None] * C + np.nonzero(mask)[0][None, :]).ravel()
+            state = cellmod.initial_state(
+                prm, flat.size, soc2.ravel()[flat], self.cell_ambient.ravel()[flat]
+            )
+            self.banks.append(CellBank(params=prm, idx=flat, state=state))
+        self.v_min_cell = np.empty(C)
+        self.v_max_cell = np.empty(C)
+        for bank in self.banks:
+            cells = bank.idx[: bank.idx.size // P] if P else bank.idx
+            self.v_min_cell[cells] = bank.params.v_min_v
+            self.v_max_cell[cells] = bank.params.v_max_v
+
+    # ------------------------------------------------------------------ helpers
+    def _group_sum(self, x: Array) -> Array:
+        return np.add.reduceat(x, self.group_starts, axis=1)
+
+    def _string_sum_groups(self, g: Array) -> Array:
+        return np.add.reduceat(g, self.string_group_starts, axis=1)
+
+    def _refresh_source(self) -> None:
+        """Thevenin source of every cell at the present state (looked up at the last current)."""
+        P, C = self.n_packs, self.n_cells
+        e = np.empty(P * C)
+        r = np.empty(P * C)
+        cap = self.capacity_ah.ravel()
+        rs = self.cell_r_scale.ravel()
+        ia = self.cell_a.ravel()
+        for bank in self.banks:
+            eb, rb = cellmod.thevenin(
+                bank.params, bank.state, ia[bank.idx], cap[bank.idx], rs[bank.idx]
+            )
+            e[bank.idx] = eb
+            r[bank.idx] = rb
+        self.e_cell = e.reshape(P, C)
+        self.r_cell = r.reshape(P, C)
+
+    def present(self, t_s: float | None = None) -> BoolArray:
+        t = self.t_s if t_s is None else t_s
+        return np.broadcast_to(self.present_from_s <= t + 1e-12, (self.n_packs, self.n_strings))
+
+    def charger_connected(self, t_s: float) -> BoolArray:
+        c = self.cfg.charger
+        on = c.present and t_s >= c.connect_s and (c.disconnect_s is None or t_s < c.disconnect_s)
+        return np.full(self.n_packs, on)
+
+    # ------------------------------------------------------------------ inputs
+    def set_gates(self, chg_on: BoolArray, dsg_on: BoolArray) -> None:
+        """Command the switches, shape (packs, strings)."""
+        self.chg_on = np.array(chg_on, dtype=bool).reshape(self.n_packs, self.n_strings)
+        self.dsg_on = np.array(dsg_on, dtype=bool).reshape(self.n_packs, self.n_strings)
+
+    def effective_gates(self) -> tuple[BoolArray, BoolArray]:
+        """Gates as the hardware really is: welded relays closed, shorted FETs on."""
+        chg = self.chg_on | self.welded[None, :] | self.fet_shorted[:, :, 0]
+        dsg = self.dsg_on | self.welded[None, :] | self.fet_shorted[:, :, 1]
+        return chg, dsg
+
+    def set_balancer(self, current_a: Array) -> None:
+        """Equalizer current into each group, shape (packs, groups); clamped to the rating."""
+        bc = self.cfg.balancer
+        if not bc.present:
+            self.balancer_a = np.zeros((self.n_packs, self.n_groups))
+            return
+        lo = -bc.max_current_a if bc.bidirectional else 0.0
+        a = np.nan_to_num(np.asarray(current_a, float).reshape(self.n_packs, self.n_groups))
+        self.balancer_a = np.clip(a, lo, bc.max_current_a)
+
+    def set_aux_charge(self, current_a: Array) -> None:
+        a = np.nan_to_num(np.asarray(current_a, float).reshape(self.n_packs))
+        self.aux_charge_a = np.clip(a, 0.0, self.cfg.aux.dcdc_max_a)
+
+    # ------------------------------------------------------------------ step
+    def step(self, dt_s: float, load_kind: str, load_value: Array) -> Interval:
+        """Solve the bus for the coming period, advance every cell, return the flows."""
+        P, S = self.n_packs, self.n_strings
+        t = self.t_s
+        present = self.present(t) & ~self.is_aux[None, :]
+        chg, dsg = self.effective_gates()
+        # Balancer internal currents (explicit in the previous group voltages).
+        bc = self.cfg.balancer
+        gv = self.group_v_prev
+        ib = self.balancer_a
+        p_in = np.where(ib > 0.0, ib * gv / bc.efficiency, ib * gv * bc.efficiency)
+        p_in_string = self._string_sum_groups(p_in)
+        v_string_prev = np.maximum(self._string_sum_groups(gv), 1e-3)
+        i_draw = p_in_string / v_string_prev
+        x_cell = i_draw[:, self.cell_string] - ib[:, self.cell_group]
+
+        # Aux battery: fed by its DC/DC from the bus; powers the BMS.
+        aux_p_bus = np.zeros(P)
+        aux_cfg = self.cfg.aux
+        if self.aux_index is not None:
+            a = self.aux_index
+            v_aux = np.maximum(gv[:, self.string_group_starts[a]: self.string_group_starts[a]
+                                  + self.groups_per_string[a]].sum(axis=1), 1e-3)
+            bus_ok = self.bus_v >= aux_cfg.dcdc_min_input_v
+            i_aux_chg = np.where(bus_ok, self.aux_charge_a, 0.0)
+            aux_p_bus = i_aux_chg * v_aux / aux_cfg.dcdc_efficiency
+            x_cell[:, self.cell_string == a] += (aux_cfg.bms_load_w / v_aux - i_aux_chg)[:, None]
+
+        e_string = np.add.reduceat(self.e_cell - self.r_cell * x_cell, self._string_starts(), axis=1)
+        r_string = np.add.reduceat(self.r_cell, self._string_starts(), axis=1)
+        br = switch_branches(
+            self.sw_kind, self.sw_on_ohm, self.sw_drop_v, self.sw_diode_ohm,
+            chg, dsg, present, r_string,
+        )
+        connected = self.charger_connected(t)
+        self.charger.connected = connected
+        ch_on = self.charger.output_enabled(t)
+        chs = ChargerSource(
+            enabled=ch_on,
+            v_set=self.charger.v_req.copy(),
+            i_lim=self.charger.i_req.copy(),
+            r_out=np.full(P, self.charger.params.r_out_ohm),
+        )
+        demand = np.asarray(load_value, float).reshape(P)
+        zero = np.zeros(P)
+        if load_kind == "current":
+            ld = LoadSink(a=demand, g=zero, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
+        elif load_kind == "power":
+            ld = LoadSink(a=zero, g=zero, p=demand + aux_p_bus,
+                          v_min=np.full(P, self.cfg.load.v_min_v))
+        elif load_kind == "resistance":
+            g = np.where(demand > 0, 1.0 / np.maximum(demand, 1e-12), 0.0)
+            ld = LoadSink(a=zero, g=g, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
+        else:
+            ld = LoadSink(a=zero, g=zero, p=aux_p_bus, v_min=zero)
+        sol = solve_bus(e_string, br, chs, ld)
+        string_a = sol.string_a.copy()
+        # The aux string's terminal current is its BMS load minus its DC/DC charge.
+        cell_a = string_a[:, self.cell_string] + x_cell
+        if self.aux_index is not None:
+            string_a[:, self.aux_index] = cell_a[:, self.cell_string == self.aux_index][:, 0]
+        cell_v = self.e_cell - self.r_cell * cell_a
+        group_v = self._group_sum(cell_v)
+        battery_v = np.add.reduceat(cell_v, self._string_starts(), axis=1)
+        chg_d, dsg_d = diode_currents(self.sw_kind, chg, dsg, string_a)
+        drop = self.sw_drop_v[None, :]
+        self.chg_diode_s += dt_s * (chg_d > 0)
+        self.dsg_diode_s += dt_s * (dsg_d > 0)
+        self.chg_diode_j += dt_s * chg_d * (drop + chg_d * self.sw_diode_ohm)
+        self.dsg_diode_j += dt_s * dsg_d * (drop + dsg_d * self.sw_diode_ohm)
+        self.charge_in_ah += np.maximum(-string_a, 0.0) * dt_s / 3600.0
+
+        # Advance every cell with its constant current.
+        cap = self.capacity_ah.ravel()
+        rs = self.cell_r_scale.ravel()
+        amb = self.cell_ambient.ravel()
+        ia = cell_a.ravel()
+        heat = np.empty(P * self.n_cells)
+        for bank in self.banks:
+            bank.state, hb = cellmod.advance(
+                bank.params, bank.state, ia[bank.idx], dt_s, amb[bank.idx], cap[bank.idx],
+                rs[bank.idx],
+            )
+            heat[bank.idx] = hb
+        heat_string = np.add.reduceat(heat.reshape(P, -1), self._string_starts(), axis=1)
+        # Ohmic (I^2 R) heat of the period: cell R0 plus switch path, and the RC branches'
+        # share through the cell model's irreversible heat is not separable here, so count R0.
+        self.joule_j += dt_s * np.add.reduceat(self.r_cell * cell_a**2, self._string_starts(),
+                                               axis=1)
+
+        self.cell_a = cell_a
+        self.string_a = string_a
+        self.bus_v = sol.bus_v
+        self.group_v_prev = group_v
+        # Charger telemetry: what it delivered over the period.
+        self.charger.out_v = np.where(ch_on, sol.bus_v, 0.0)
+        self.charger.out_a = sol.charger_a
+        self.t_s = t + dt_s
+        self._refresh_source()
+        return Interval(
+            t_s=t, dt_s=dt_s, bus_v=sol.bus_v,
+            load_demand_a=self._demand_current(load_kind, demand, sol.bus_v),
+            load_a=sol.load_a - aux_p_bus / np.maximum(sol.bus_v, 1e-6) * (sol.bus_v > 0),
+            supplied=sol.supplied, charger_v=self.charger.out_v.copy(),
+            charger_a=sol.charger_a, string_a=string_a, battery_v=battery_v,
+            cell_v=cell_v, group_v=group_v, chg_diode_a=chg_d, dsg_diode_a=dsg_d,
+            balancer_in_w=p_in_string, heat_w=heat_string,
+        )
+
+    def _demand_current(self, kind: str, demand: Array, v: Array) -> Array:
+        if kind == "current":
+            return demand
+        if kind == "power":
+            return np.where(v > 0, demand / np.maximum(v, 1e-6), np.where(demand > 0, np.inf, 0.0))
+        if kind == "resistance":
+            return np.where(demand > 0, v / np.maximum(demand, 1e-12), 0.0)
+        return np.zeros_like(demand)
+
+    def _string_starts(self) -> IntArray:
+        return np.concatenate([[0], np.cumsum(np.bincount(self.cell_string,
+                                                           minlength=self.n_strings))[:-1]])
+
+    # ------------------------------------------------------------------ truth for sensors
+    def cell_states(self) -> tuple[Array, Array]:
+        """(soc, temp_c) of every cell, shape (packs, cells)."""
+        P, C = self.n_packs, self.n_cells
+        soc = np.empty(P * C)
+        temp = np.empty(P * C)
+        for bank in self.banks:
+            soc[bank.idx] = bank.state.soc
+            temp[bank.idx] = bank.state.temp_c
+        return soc.reshape(P, C), temp.reshape(P, C)
+
+    def cell_voltage_now(self) -> Array:
+        """Cell terminal voltage at the present instant, under the last period's currents."""
+        return self.e_cell - self.r_cell * self.cell_a
+
+
+def switch_config_summary(sw: SwitchConfig) -> str:
+    return f"{sw.kind} on={sw.on_ohm} ohm drop={sw.diode_drop_v} V"

@@ -1,0 +1,343 @@
+"""The closed loop: measure → controller.step → commands → plant step. Wiring lives here.
+
+The runner is the imperative shell around the pure controllers: it owns the clock (simulated
+time only), applies commands to the plant, turns plant happenings into events (the load going
+unsupplied), streams every step to a recorder, and summarises the run into metrics.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from packpilot.config import METHOD_SECTIONS, ScenarioConfig, validate_section
+from packpilot.control.types import (
+    ChargerCommand,
+    ChargerStatus,
+    Commands,
+    ComposedController,
+    Controller,
+    ControlOutput,
+    Event,
+    NullController,
+    PackInfo,
+)
+from packpilot.model import loads
+from packpilot.model.charger import ChargerView
+from packpilot.model.pack import Interval, Pack
+from packpilot.sim.result import BATTERY_CHANNELS, Recorder, Result, StepSample, Trace
+from packpilot.sim.sensors import measure, pack_info, traction_indices
+
+CONTROLLER_CLASSES: dict[str, str] = {
+    "protection": "packpilot.control.protection:ProtectionController",
+    "sequencing": "packpilot.control.sequencing:SequencingController",
+    "charging": "packpilot.control.charging:ChargingController",
+    "equalization": "packpilot.control.equalization:EqualizationController",
+}
+
+
+def build_controller(cfg: ScenarioConfig, info: PackInfo) -> Controller:
+    """Compose the methods the scenario enables, in the order it lists them."""
+    parts: list[Controller] = []
+    for section in cfg.controller:
+        mod_name, cls_name = CONTROLLER_CLASSES[section].split(":")
+        cls = getattr(importlib.import_module(mod_name), cls_name)
+        method_cfg = validate_section(section, getattr(cfg, section), "<config>")
+        parts.append(cls(method_cfg, info))
+    if not parts:
+        return NullController()
+    if len(parts) == 1:
+        return parts[0]
+    return ComposedController(parts)
+
+
+assert set(CONTROLLER_CLASSES) == set(METHOD_SECTIONS)
+
+
+class ChargerLink(Protocol):
+    """How charger setpoints reach the dock and its status comes back (direct or CAN)."""
+
+    def send(self, command: ChargerCommand, t_s: float) -> None: ...
+
+    def poll(self, t_s: float) -> ChargerStatus | None: ...
+
+
+@dataclass
+class DirectChargerLink:
+    """Setpoints written straight into the plant's charger: a request every control period."""
+
+    charger: ChargerView
+
+    def send(self, command: ChargerCommand, t_s: float) -> None:
+        self.charger.request(command.voltage_v, command.current_a, command.enable, t_s)
+
+    def poll(self, t_s: float) -> ChargerStatus | None:
+        v, a = self.charger.output()
+        f = self.charger.fault_flags
+        return ChargerStatus(output_v=v, output_a=a, online=True, **f)
+
+
+def load_profile(cfg: ScenarioConfig) -> loads.LoadProfile:
+    lc = cfg.load
+    if lc.kind == "none":
+        return loads.constant("none", 0.0)
+    if lc.profile is None:
+        return loads.constant(lc.kind, lc.value)
+    if lc.profile.endswith(".csv"):
+        prof = loads.from_csv(Path(lc.profile), repeat=lc.repeat)
+        return prof
+    prof = loads.builtin(lc.profile, lc.value, lc.kind)
+    return loads.LoadProfile(kind=prof.kind, t_s=prof.t_s, value=prof.value, repeat=lc.repeat)
+
+
+@dataclass
+class Runner:
+    """One closed-loop run of one pack."""
+
+    cfg: ScenarioConfig
+    controller: Controller | None = None
+    recorder: Recorder | None = None
+    charger_link: ChargerLink | None = None
+    progress: bool | None = None
+    hooks: Sequence[Callable[[Runner, float], None]] = ()
+    """Called before each control step with (runner, t_s): fault injection, hot plugs."""
+    pack: Pack = field(init=False)
+    info: PackInfo = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.pack = Pack(self.cfg)
+        self.info = pack_info(self.pack)
+        if self.controller is None:
+            self.controller = build_controller(self.cfg, self.info)
+        if self.charger_link is None and self.cfg.charger.present:
+            self.charger_link = DirectChargerLink(self.pack.charger.view(0))
+        self.profile = load_profile(self.cfg)
+        self.traction = traction_indices(self.pack)
+        self.events: list[Event] = []
+        self.samples: list[StepSample] = []
+
+    # ----------------------------------------------------------------- commands
+    def apply(self, cmd: Commands, t_s: float) -> None:
+        pack = self.pack
+        chg = pack.chg_on.copy()
+        dsg = pack.dsg_on.copy()
+        for k, i in enumerate(self.traction):
+            if k < len(cmd.chg_on) and cmd.chg_on[k] is not None:
+                chg[0, i] = bool(cmd.chg_on[k])
+            if k < len(cmd.dsg_on) and cmd.dsg_on[k] is not None:
+                dsg[0, i] = bool(cmd.dsg_on[k])
+        if pack.aux_index is not None and cmd.aux_relay_closed is not None:
+            chg[0, pack.aux_index] = dsg[0, pack.aux_index] = cmd.aux_relay_closed
+        pack.set_gates(chg, dsg)
+        if cmd.balancer_a is not None:
+            flat = np.zeros(pack.n_groups)
+            for k, i in enumerate(self.traction):
+                if k < len(cmd.balancer_a):
+                    g0 = int(pack.string_group_starts[i])
+                    vals = cmd.balancer_a[k][: pack.groups_per_string[i]]
+                    flat[g0 : g0 + len(vals)] = vals
+            pack.set_balancer(flat[None, :])
+        if cmd.aux_charge_a is not None:
+            pack.set_aux_charge(np.array([cmd.aux_charge_a]))
+        if self.charger_link is not None:
+            c = self.cfg.charger
+            command = cmd.charger or ChargerCommand(c.voltage_v, c.current_a, c.enable)
+            self.charger_link.send(command, t_s)
+
+    # ----------------------------------------------------------------- loop
+    def run(self) -> Result:
+        cfg = self.cfg
+        dt = cfg.sim.dt_s
+        n_steps = int(math.ceil(cfg.sim.duration_s / dt - 1e-9))
+        assert self.controller is not None
+        controller = self.controller
+        if self.recorder is not None:
+            self.run_id: int | None = self.recorder.start(cfg.model_dump(mode="json"),
+                                                          self.pack.names)
+        else:
+            self.run_id = None
+        wall0 = time.perf_counter()
+        unsupplied_s = 0.0
+        was_supplied = True
+        status = "ok"
+        bar = _Progress(n_steps, enabled=cfg.sim.progress if self.progress is None
+                        else self.progress)
+        try:
+            charger_status: ChargerStatus | None = None
+            for k in range(n_steps):
+                t = self.pack.t_s
+                for hook in self.hooks:
+                    hook(self, t)
+                if self.charger_link is not None:
+                    charger_status = self.charger_link.poll(t) or charger_status
+                meas = measure(self.pack, charger_status)
+                out: ControlOutput = controller.step(meas, dt)
+                self.apply(out.commands, t)
+                value = self.profile.at(t - cfg.load.start_s) if t >= cfg.load.start_s else 0.0
+                iv = self.pack.step(dt, self.profile.kind, np.array([value]))
+                new_events = list(out.events)
+                supplied = bool(iv.supplied[0])
+                if not supplied and was_supplied:
+                    new_events.append(Event(t, "LoadUnsupplied", None,
+                                            "bus cannot supply the load",
+                                            {"bus_v": float(iv.bus_v[0]),
+                                             "demand_a": float(iv.load_demand_a[0])}))
+                elif supplied and not was_supplied:
+                    new_events.append(Event(t, "LoadResupplied", None, "load supplied again"))
+                was_supplied = supplied
+                unsupplied_s = unsupplied_s + dt if not supplied else 0.0
+                sample = self._sample(k, iv, out)
+                self.samples.append(sample)
+                if new_events:
+                    self.events.extend(new_events)
+                if self.recorder is not None:
+                    self.recorder.record(sample)
+                    if new_events:
+                        self.recorder.record_events(new_events)
+                bar.update(k + 1)
+                stop = cfg.sim.stop_when_unsupplied_s
+                if stop is not None and unsupplied_s >= stop:
+                    break
+        except BaseException:
+            status = "error"
+            raise
+        finally:
+            bar.close()
+            wall = time.perf_counter() - wall0
+            metrics = compute_metrics(self, wall) if self.samples else {"wall_time_s": wall}
+            if self.recorder is not None:
+                self.recorder.finish(metrics, status=status)
+        return Result(
+            battery_names=list(self.pack.names),
+            trace=Trace.from_samples(self.samples),
+            events=self.events,
+            metrics=metrics,
+            run_id=self.run_id,
+        )
+
+    def _sample(self, k: int, iv: Interval, out: ControlOutput) -> StepSample:
+        pack = self.pack
+        soc, temp = pack.cell_states()
+        chg, dsg = pack.effective_gates()
+        cap = pack.capacity_ah[0]
+        rows = np.empty((pack.n_strings, len(BATTERY_CHANNELS)))
+        group = np.full((pack.n_strings, pack.max_groups), np.nan)
+        for i in range(pack.n_strings):
+            m = pack.cell_string == i
+            rem = soc[0, m] * cap[m]
+            full = cap[m].min()
+            rows[i] = (
+                iv.battery_v[0, i], iv.string_a[0, i], rem.min() / full, temp[0, m].max(),
+                iv.cell_v[0, m].min(), iv.cell_v[0, m].max(), rem.min(), full,
+                chg[0, i], dsg[0, i], iv.chg_diode_a[0, i], iv.dsg_diode_a[0, i],
+                iv.balancer_in_w[0, i],
+            )
+            g0 = int(pack.string_group_starts[i])
+            ng = pack.groups_per_string[i]
+            group[i, :ng] = iv.group_v[0, g0 : g0 + ng]
+        status = {}
+        if out.status:
+            # Controller channels are per traction battery; spread them over all strings.
+            for name, vals in out.status.items():
+                full_vals: list[Any] = [None] * pack.n_strings
+                for kk, i in enumerate(self.traction):
+                    if kk < len(vals):
+                        full_vals[i] = vals[kk]
+                status[name] = full_vals
+        return StepSample(
+            step=k, t_s=iv.t_s, bus_v=float(iv.bus_v[0]),
+            load_demand_a=float(iv.load_demand_a[0]), load_a=float(iv.load_a[0]),
+            charger_v=float(iv.charger_v[0]), charger_a=float(iv.charger_a[0]),
+            battery=rows, group_v=group, status=status,
+        )
+
+
+def compute_metrics(runner: Runner, wall_s: float) -> dict[str, Any]:
+    """Summary of a run: energy, extremes, peak currents, heat, events by kind."""
+    s = runner.samples
+    dt = runner.cfg.sim.dt_s
+    bus_v = np.array([x.bus_v for x in s])
+    load_a = np.array([x.load_a for x in s])
+    demand = np.array([x.load_demand_a for x in s])
+    ch_v = np.array([x.charger_v for x in s])
+    ch_a = np.array([x.charger_a for x in s])
+    bat = np.stack([x.battery for x in s])
+    col = BATTERY_CHANNELS.index
+    cur = bat[:, :, col("current_a")]
+    traction = runner.traction
+    supplying = load_a > 1e-3
+    into = np.maximum(-cur[:, traction], 0.0)
+    peak_cross = float(into[supplying].max()) if supplying.any() else 0.0
+    peak_idx = np.argmax(np.abs(cur), axis=0)
+    peak_string = [float(cur[peak_idx[i], i]) for i in range(cur.shape[1])]
+    p = runner.pack
+    events = Counter(e.kind for e in runner.events)
+    heat_j = float(p.joule_j[0].sum())
+    return {
+        "sim_time_s": float(len(s) * dt),
+        "wall_time_s": float(wall_s),
+        "steps": len(s),
+        "energy_out_wh": float(np.sum(bus_v * load_a) * dt / 3600.0),
+        "energy_in_wh": float(np.sum(ch_v * ch_a) * dt / 3600.0),
+        "min_cell_v": float(np.nanmin(bat[:, :, col("min_cell_v")])),
+        "max_cell_v": float(np.nanmax(bat[:, :, col("max_cell_v")])),
+        "max_temp_c": float(np.nanmax(bat[:, :, col("temp_c")])),
+        "final_soc": [float(x) for x in bat[-1, :, col("soc")]],
+        "peak_string_current_a": peak_string,
+        "peak_cross_current_a": peak_cross,
+        "joule_heat_j": heat_j,
+        "load_unsupplied_s": float(np.sum((demand > 1e-9) & (load_a < demand - 1e-6)) * dt),
+        "chg_diode_energy_j": [float(x) for x in p.chg_diode_j[0]],
+        "dsg_diode_energy_j": [float(x) for x in p.dsg_diode_j[0]],
+        "events": dict(events),
+        "battery_names": list(p.names),
+    }
+
+
+class _Progress:
+    """A rich progress bar that appears only once a run has taken more than ~1 s."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total = total
+        self.enabled = enabled
+        self.t0 = time.perf_counter()
+        self.bar: Any = None
+        self.task: Any = None
+
+    def update(self, done: int) -> None:
+        if not self.enabled or done % 200:
+            return
+        if self.bar is None:
+            if time.perf_counter() - self.t0 < 1.0:
+                return
+            from rich.progress import (
+                BarColumn,
+                Progress,
+                TaskProgressColumn,
+                TimeRemainingColumn,
+            )
+
+            self.bar = Progress(
+                "[progress.description]{task.description}", BarColumn(), TaskProgressColumn(),
+                TimeRemainingColumn(), transient=True,
+            )
+            self.bar.start()
+            self.task = self.bar.add_task("simulating", total=self.total)
+        self.bar.update(self.task, completed=done)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def simulate(cfg: ScenarioConfig, **kw: Any) -> Result:
+    """Convenience: build a runner from a config and run it."""
+    return Runner(cfg, **kw).run()
