@@ -1,0 +1,113 @@
+"""Bad configuration and bad data files give one clear line naming the culprit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from packpilot.config import load_config, parse_config
+from packpilot.errors import ConfigError, InputError
+from packpilot.model import loads
+from tests.conftest import dual_pack
+
+
+def _write(tmp_path: Path, text: str, name: str = "c.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+BASE = """
+[pack]
+cell = "ecm_example"
+[[pack.batteries]]
+name = "A"
+cells_per_group = 6
+soc0 = 0.5
+"""
+
+
+def test_unknown_key_is_named(tmp_path: Path) -> None:
+    p = _write(tmp_path, BASE + "bogus_key = 1\n")
+    with pytest.raises(ConfigError, match=r"c\.toml: pack\.batteries\.0\.bogus_key: unknown key"):
+        load_config(p)
+
+
+def test_negative_capacity_is_named(tmp_path: Path) -> None:
+    p = _write(tmp_path, BASE + "capacity_ah = -5.0\n")
+    with pytest.raises(ConfigError, match=r"pack\.batteries\.0\.capacity_ah: .*greater than 0"):
+        load_config(p)
+
+
+def test_nan_capacity_is_named(tmp_path: Path) -> None:
+    p = _write(tmp_path, BASE + "capacity_ah = nan\n")
+    with pytest.raises(ConfigError, match=r"pack\.batteries\.0\.capacity_ah"):
+        load_config(p)
+
+
+def test_soc_out_of_range_is_named() -> None:
+    cfg = dual_pack()
+    cfg["pack"]["batteries"][0]["soc0"] = 1.5
+    cfg["pack"]["batteries"][0].pop("ocv0_v")
+    with pytest.raises(ConfigError, match=r"pack\.batteries\.0\.soc0"):
+        parse_config(cfg)
+
+
+def test_group_list_length_mismatch() -> None:
+    cfg = dual_pack()
+    cfg["pack"]["batteries"][0].update(series_groups=2, group_soc0=[0.5])
+    with pytest.raises(ConfigError, match="group_soc0 has 1 entries but series_groups is 2"):
+        parse_config(cfg)
+
+
+def test_duplicate_battery_names() -> None:
+    cfg = dual_pack()
+    cfg["pack"]["batteries"][1]["name"] = "A"
+    with pytest.raises(ConfigError, match="repeated: A"):
+        parse_config(cfg)
+
+
+def test_not_toml(tmp_path: Path) -> None:
+    p = _write(tmp_path, "[pack\nname=")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(p)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="file not found"):
+        load_config(tmp_path / "nope.toml")
+
+
+def test_unknown_cell_set_is_named() -> None:
+    from packpilot.sim.runner import Runner
+
+    cfg = dual_pack(cell="no_such_cell")
+    with pytest.raises(ConfigError, match="no_such_cell"):
+        Runner(parse_config(cfg))
+
+
+@pytest.mark.parametrize(
+    ("body", "match"),
+    [
+        ("t_s,current_a\n0,1\n1,\n2,3\n", r"row 3, column current_a: empty cell \(gap\)"),
+        ("t_s,current_a\n0,1\n1,abc\n", r"row 3, column current_a: 'abc' is not a number"),
+        ("t_s,current_a\n0,1\n0,2\n", r"row 3, column t_s: time 0 does not increase"),
+        ("t_s,volts\n0,1\n", "header must be t_s plus exactly one of"),
+        ("t_s,current_a\n", "no data rows"),
+    ],
+)
+def test_bad_profile_csv_names_the_row(tmp_path: Path, body: str, match: str) -> None:
+    p = _write(tmp_path, body, "prof.csv")
+    with pytest.raises(InputError, match=match):
+        loads.from_csv(p)
+
+
+def test_profile_csv_zero_order_hold(tmp_path: Path) -> None:
+    p = _write(tmp_path, "t_s,power_w\n0,100\n10,200\n20,0\n", "prof.csv")
+    prof = loads.from_csv(p)
+    assert prof.kind == "power"
+    assert prof.at(0.0) == 100.0
+    assert prof.at(9.99) == 100.0
+    assert prof.at(10.0) == 200.0
+    assert prof.at(25.0) == 0.0
