@@ -1,0 +1,747 @@
+"""Condition-dependent discharge protection (US10868343B2; ``spec/discharge_protection.md``).
+
+A fixed "cut-off voltage + longest sustainable time" wastes capacity when the load is heavy or
+the battery is cold (the voltage sags under load while plenty of charge is left) and is too lax
+when the load is light. Here the protection parameter (cut-off, t_max) is looked up every tick
+from the battery's status (current, temperature, optionally SOH) in an N-dimensional range
+table, and the time spent at or below the *active* cut-off is accumulated with the weight
+``n = m / t_max`` (``m`` = LCM of all t_max). The battery's discharge path is opened, and stays
+open until the next discharge cycle, once the weighted sum reaches ``m``; this is the same as
+``sum(t_k / t_max_k) >= 1``: each second under parameter k uses up ``1 / t_max_k`` of the
+allowance.
+
+Exactness: the sum is kept as an exact :class:`fractions.Fraction` in weighted milliseconds
+(``n`` is an integer because ``m`` is the LCM of whole-millisecond durations), so the spec's
+worked examples trip exactly at 5 s, 15 s and 10 s and never one tick late from float round-off.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from fractions import Fraction
+from itertools import product
+from typing import Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from packpilot.control.types import (
+    BatteryMeasurement,
+    Commands,
+    ControlOutput,
+    Event,
+    Measurements,
+    PackInfo,
+)
+
+CUTOFF_MIN_V = 2.0
+CUTOFF_MAX_V = 4.5
+"""Allowed cut-off range: the values are cell-level Li-ion voltages (spec §3)."""
+
+AxisExtractor = Callable[[BatteryMeasurement, PackInfo, int], float]
+
+
+def _soh(bm: BatteryMeasurement, pack: PackInfo, i: int) -> float:
+    """State of health as full / nominal capacity; NaN (= unknown) without a nominal value."""
+    if i < len(pack.capacity_ah) and pack.capacity_ah[i] > 0.0:
+        return bm.full_capacity_ah / pack.capacity_ah[i]
+    return math.nan
+
+
+AXES: Mapping[str, AxisExtractor] = {
+    "current_a": lambda bm, pack, i: bm.current_a,
+    "temp_c": lambda bm, pack, i: bm.temp_c,
+    "soh": _soh,
+}
+"""Status parameters a table may use as axes. Internal resistance and cycle count (spec §2)
+need a field in :class:`BatteryMeasurement` first; then they are one line here."""
+
+_INTERVAL_RE = re.compile(r"^\s*([\[(])\s*([^,\s]+)\s*,\s*([^,\s]+)\s*([\])])\s*$")
+
+
+def _fmt(x: float) -> str:
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return f"{x:g}"
+
+
+class AxisRange(BaseModel):
+    """An interval of one status parameter with explicit open/closed edges.
+
+    In TOML write it in interval notation, e.g. ``"(15, 25]"`` (15 excluded, 25 included) or
+    ``"[5, inf)"``; or as a table ``{lo = 15, hi = 25, lo_closed = false, hi_closed = true}``.
+    Edges default to *open*, so an edge value is only covered when a row says so explicitly.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lo: float = Field(default=-math.inf, description="Lower edge (-inf = unbounded).")
+    hi: float = Field(default=math.inf, description="Upper edge (inf = unbounded).")
+    lo_closed: bool = Field(default=False, description="True: the lower edge value is inside.")
+    hi_closed: bool = Field(default=False, description="True: the upper edge value is inside.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _parse_interval(cls, data: object) -> object:
+        if not isinstance(data, str):
+            return data
+        m = _INTERVAL_RE.match(data)
+        if m is None:
+            raise ValueError(
+                f"range {data!r}: expected interval notation such as '(15, 25]' or '[5, inf)'"
+            )
+        lo_b, lo_s, hi_s, hi_b = m.groups()
+        try:
+            lo, hi = float(lo_s), float(hi_s)
+        except ValueError:
+            raise ValueError(f"range {data!r}: edges must be numbers or inf/-inf") from None
+        return {"lo": lo, "hi": hi, "lo_closed": lo_b == "[", "hi_closed": hi_b == "]"}
+
+    @model_validator(mode="after")
+    def _check(self) -> AxisRange:
+        if math.isnan(self.lo) or math.isnan(self.hi):
+            raise ValueError("range edges must not be NaN")
+        if (self.lo_closed and math.isinf(self.lo)) or (self.hi_closed and math.isinf(self.hi)):
+            raise ValueError(f"range {self}: an infinite edge must be open, use '(' or ')'")
+        if self.lo > self.hi or (self.lo == self.hi and not (self.lo_closed and self.hi_closed)):
+            raise ValueError(f"range {self} is empty")
+        return self
+
+    def contains(self, x: float, band: float = 0.0) -> bool:
+        """True when ``x`` lies in the range widened by ``band`` on both sides."""
+        lo, hi = self.lo - band, self.hi + band
+        if x < lo or (x == lo and not self.lo_closed):
+            return False
+        return not (x > hi or (x == hi and not self.hi_closed))
+
+    def __str__(self) -> str:
+        return (
+            f"{'[' if self.lo_closed else '('}{_fmt(self.lo)}, "
+            f"{_fmt(self.hi)}{']' if self.hi_closed else ')'}"
+        )
+
+
+_ALL = AxisRange()
+
+
+class ProtectionParameter(BaseModel):
+    """One discharge protection parameter: a cut-off voltage and how long it may be held."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(description="Identifier used by table rows and telemetry, e.g. 'P1'.")
+    cutoff_v: float = Field(
+        description=f"Cell-level cut-off voltage, {CUTOFF_MIN_V}..{CUTOFF_MAX_V} V."
+    )
+    t_max_s: float = Field(
+        description="Longest sustainable time at or below the cut-off (> 0, whole milliseconds "
+        "so that the LCM m and the weights are exact)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> ProtectionParameter:
+        who = f"parameter {self.name!r}"
+        if not self.name.strip():
+            raise ValueError("parameter name: must not be empty")
+        if not (math.isfinite(self.cutoff_v) and CUTOFF_MIN_V <= self.cutoff_v <= CUTOFF_MAX_V):
+            raise ValueError(
+                f"{who}: cutoff_v must be between {CUTOFF_MIN_V} and {CUTOFF_MAX_V} V "
+                f"(cell level), got {self.cutoff_v}"
+            )
+        if not (math.isfinite(self.t_max_s) and self.t_max_s > 0.0):
+            raise ValueError(f"{who}: t_max_s must be a positive duration, got {self.t_max_s}")
+        ms = self.t_max_s * 1000.0
+        if abs(ms - round(ms)) > 1e-6 * max(1.0, ms):
+            raise ValueError(
+                f"{who}: t_max_s must be a whole number of milliseconds, got {self.t_max_s}"
+            )
+        return self
+
+    @property
+    def t_max_ms(self) -> int:
+        return round(self.t_max_s * 1000.0)
+
+
+class TableRow(BaseModel):
+    """Status-parameter ranges (one per axis; a missing axis = any value) -> a parameter."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    param: str = Field(description="Name of the protection parameter this row selects.")
+    ranges: dict[str, AxisRange] = Field(
+        default_factory=dict,
+        description="Axis name (current_a, temp_c, soh) -> interval, e.g. '(15, 25]'.",
+    )
+
+
+def _row(param: str, current_a: str, temp_c: str) -> TableRow:
+    return TableRow.model_validate(
+        {"param": param, "ranges": {"current_a": current_a, "temp_c": temp_c}}
+    )
+
+
+DEFAULT_PARAMETERS: tuple[ProtectionParameter, ...] = (
+    ProtectionParameter(name="P1", cutoff_v=2.8, t_max_s=15.0),
+    ProtectionParameter(name="P2", cutoff_v=3.0, t_max_s=10.0),
+    ProtectionParameter(name="P3", cutoff_v=3.2, t_max_s=5.0),
+)
+
+_I_LOW, _I_MID, _I_HIGH = "(-inf, 15]", "(15, 25]", "(25, inf)"
+_T_COLD, _T_COOL, _T_WARM = "(-inf, 5)", "[5, 15)", "[15, inf)"
+DEFAULT_TABLE: tuple[TableRow, ...] = (
+    # spec §4 grid, boundaries per §10.1: I <= 15 low, 15 < I <= 25 mid, I > 25 high;
+    # T < 5 cold, 5 <= T < 15 cool, T >= 15 warm.
+    _row("P1", _I_LOW, _T_COLD),
+    _row("P2", _I_LOW, _T_COOL),
+    _row("P3", _I_LOW, _T_WARM),
+    _row("P1", _I_MID, _T_COLD),
+    _row("P2", _I_MID, _T_COOL),
+    _row("P2", _I_MID, _T_WARM),
+    _row("P1", _I_HIGH, _T_COLD),
+    _row("P1", _I_HIGH, _T_COOL),
+    _row("P1", _I_HIGH, _T_WARM),
+)
+
+
+@dataclass(frozen=True)
+class _Atom:
+    """An elementary piece of one axis between breakpoints: a point or an open interval."""
+
+    rep: float
+    text: str
+
+
+def _axis_atoms(axis: str, rows: Sequence[TableRow]) -> list[_Atom]:
+    pts = sorted(
+        {
+            x
+            for r in rows
+            if axis in r.ranges
+            for x in (r.ranges[axis].lo, r.ranges[axis].hi)
+            if math.isfinite(x)
+        }
+    )
+    if not pts:
+        return [_Atom(0.0, f"{axis} any")]
+    atoms = [_Atom(pts[0] - 1.0, f"{axis} in (-inf, {_fmt(pts[0])})")]
+    for a, b in zip(pts, [*pts[1:], math.inf], strict=True):
+        atoms.append(_Atom(a, f"{axis} = {_fmt(a)}"))
+        rep = a + 1.0 if math.isinf(b) else (a + b) / 2.0
+        atoms.append(_Atom(rep, f"{axis} in ({_fmt(a)}, {_fmt(b)})"))
+    return atoms
+
+
+def check_coverage(rows: Sequence[TableRow], axes: Sequence[str]) -> None:
+    """Raise ValueError unless every point of the status space is covered by exactly one row.
+
+    Exact: between consecutive breakpoints every row either contains a whole open interval or
+    none of it, so checking one representative per breakpoint and per open interval suffices.
+    """
+    per_axis = [_axis_atoms(a, rows) for a in axes]
+    for combo in product(*per_axis):
+        hits = [
+            k
+            for k, r in enumerate(rows)
+            if all(
+                r.ranges.get(a, _ALL).contains(at.rep) for a, at in zip(axes, combo, strict=True)
+            )
+        ]
+        where = " and ".join(at.text for at in combo)
+        if not hits:
+            raise ValueError(f"table has a gap: no row covers {where}")
+        if len(hits) > 1:
+            a, b = hits[0], hits[1]
+            raise ValueError(
+                f"table rows overlap: table[{a}] ({rows[a].param}) and table[{b}] "
+                f"({rows[b].param}) both cover {where}"
+            )
+
+
+class ProtectionConfig(BaseModel):
+    """Condition-dependent discharge protection (spec/discharge_protection.md)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    parameters: tuple[ProtectionParameter, ...] = Field(
+        default=DEFAULT_PARAMETERS,
+        description="Protection parameters (name, cutoff_v, t_max_s). Only those referenced by "
+        "the table enter m = LCM(t_max).",
+    )
+    table: tuple[TableRow, ...] = Field(
+        default=DEFAULT_TABLE,
+        description="Range rows -> parameter; must cover the status space exactly once.",
+    )
+    voltage_comparison: Literal["<=", "<"] = Field(
+        default="<=", description="Accumulate when min cell voltage <= (or <) the cut-off."
+    )
+    trip_comparison: Literal[">=", ">"] = Field(
+        default=">=", description="Trip when the weighted sum >= (or >) m (spec §10.2)."
+    )
+    discharge_threshold_a: float = Field(
+        default=0.5, description="Current above which the battery counts as discharging (A)."
+    )
+    charge_threshold_a: float = Field(
+        default=0.5, description="Charging is current below minus this value (A)."
+    )
+    charge_detect_s: float = Field(
+        default=10.0, description="Charging this long starts a new discharge cycle (s)."
+    )
+    reset_on_recovery: bool = Field(
+        default=False,
+        description="Reset the sum when the voltage rises above the cut-off (spec §10.4: off).",
+    )
+    reset_on_reinsert: bool = Field(
+        default=True,
+        description="A battery re-inserted after being absent starts a new discharge cycle "
+        "(it may have been charged elsewhere; a relay battery cannot charge in the pack).",
+    )
+    hysteresis: dict[str, float] = Field(
+        default_factory=dict,
+        description="Per-axis band, e.g. {current_a = 0.5, temp_c = 0.5}: keep the active row "
+        "until the value leaves it by more than the band. Empty = off.",
+    )
+    filter_tau_s: dict[str, float] = Field(
+        default_factory=dict,
+        description="Per-axis first-order low-pass time constant (s) applied before the "
+        "lookup. Empty = off.",
+    )
+
+    @field_validator("discharge_threshold_a", "charge_threshold_a", "charge_detect_s")
+    @classmethod
+    def _non_negative(cls, v: float, info: ValidationInfo) -> float:
+        name = info.field_name
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        return v
+
+    @field_validator("hysteresis")
+    @classmethod
+    def _check_hysteresis(cls, v: dict[str, float]) -> dict[str, float]:
+        for axis, band in v.items():
+            if axis not in AXES:
+                raise ValueError(f"hysteresis.{axis}: unknown axis; known: {', '.join(AXES)}")
+            if not (math.isfinite(band) and band >= 0.0):
+                raise ValueError(f"hysteresis.{axis} must be a finite number >= 0, got {band}")
+        return v
+
+    @field_validator("filter_tau_s")
+    @classmethod
+    def _check_filter(cls, v: dict[str, float]) -> dict[str, float]:
+        for axis, tau in v.items():
+            if axis not in AXES:
+                raise ValueError(f"filter_tau_s.{axis}: unknown axis; known: {', '.join(AXES)}")
+            if not (math.isfinite(tau) and tau > 0.0):
+                raise ValueError(f"filter_tau_s.{axis} must be a finite number > 0, got {tau}")
+        return v
+
+    @model_validator(mode="after")
+    def _check_table(self) -> ProtectionConfig:
+        names = [p.name for p in self.parameters]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"parameters: duplicate name(s) {', '.join(dup)}")
+        if not self.table:
+            raise ValueError("table: must have at least one row")
+        for k, row in enumerate(self.table):
+            if row.param not in names:
+                raise ValueError(
+                    f"table[{k}].param: unknown parameter {row.param!r}; "
+                    f"defined: {', '.join(names)}"
+                )
+            for axis in row.ranges:
+                if axis not in AXES:
+                    raise ValueError(
+                        f"table[{k}].ranges.{axis}: unknown axis; known: {', '.join(AXES)}"
+                    )
+        check_coverage(self.table, self.axes)
+        return self
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        """Axes used by the table, in a stable order."""
+        used = {a for r in self.table for a in r.ranges}
+        return tuple(a for a in AXES if a in used)
+
+
+@dataclass(frozen=True)
+class CompiledTable:
+    """The validated table in lookup form, with m and the integer weights."""
+
+    axes: tuple[str, ...]
+    rows: tuple[tuple[int, tuple[AxisRange, ...]], ...]
+    """(parameter index, one range per axis) per table row."""
+    params: tuple[ProtectionParameter, ...]
+    """Parameters referenced by the table, in order of first appearance."""
+    m_ms: int
+    weights: tuple[int, ...]
+    """n = m / t_max per parameter (exact integers)."""
+
+    @classmethod
+    def from_config(cls, cfg: ProtectionConfig) -> CompiledTable:
+        by_name = {p.name: p for p in cfg.parameters}
+        used: list[str] = []
+        for r in cfg.table:
+            if r.param not in used:
+                used.append(r.param)
+        params = tuple(by_name[n] for n in used)
+        m_ms = math.lcm(*(p.t_max_ms for p in params))
+        axes = cfg.axes
+        rows = tuple(
+            (used.index(r.param), tuple(r.ranges.get(a, _ALL) for a in axes)) for r in cfg.table
+        )
+        return cls(
+            axes=axes,
+            rows=rows,
+            params=params,
+            m_ms=m_ms,
+            weights=tuple(m_ms // p.t_max_ms for p in params),
+        )
+
+    def lookup(self, values: Sequence[float]) -> int:
+        """Row index for fully known axis values (the table covers everything exactly once)."""
+        for k, (_, ranges) in enumerate(self.rows):
+            if all(r.contains(x) for r, x in zip(ranges, values, strict=True)):
+                return k
+        raise AssertionError("validated table does not cover the point")  # pragma: no cover
+
+    def most_conservative(self, values: Sequence[float]) -> int:
+        """Among rows consistent with the finite values (NaN = unknown), the highest cut-off.
+
+        Ties go to the shortest t_max, then to the first row: when a sensor fails the battery
+        is protected as if the unknown status were the worst the table allows.
+        """
+        best = -1
+        best_key = (0.0, 0.0)
+        for k, (p, ranges) in enumerate(self.rows):
+            if all(math.isnan(x) or r.contains(x) for r, x in zip(ranges, values, strict=True)):
+                key = (self.params[p].cutoff_v, -self.params[p].t_max_s)
+                if best < 0 or key > best_key:
+                    best, best_key = k, key
+        return best
+
+
+_DT_CACHE: dict[float, Fraction] = {}
+
+
+def dt_to_ms(dt_s: float) -> Fraction:
+    """Exact milliseconds for a tick, snapping float noise (0.1 s -> 100 ms, 1/3 s -> 1000/3)."""
+    hit = _DT_CACHE.get(dt_s)
+    if hit is None:
+        hit = Fraction(dt_s * 1000.0).limit_denominator(1000)
+        if len(_DT_CACHE) > 4096:
+            _DT_CACHE.clear()
+        _DT_CACHE[dt_s] = hit
+    return hit
+
+
+@dataclass
+class BatteryProtectionState:
+    """Everything one battery's protection remembers between ticks."""
+
+    acc_wms: Fraction = Fraction(0)
+    """Weighted sum in weight x milliseconds (trip at m_ms)."""
+    tripped: bool = False
+    row: int = -1
+    """Active table row (-1 before the first tick)."""
+    discharging: bool = False
+    """Last known discharge state (held while the current reading is not finite)."""
+    charge_s: float = 0.0
+    charge_cycle_started: bool = False
+    absent: bool = False
+    filtered: dict[str, float] = field(default_factory=dict)
+    faults: set[str] = field(default_factory=set)
+    """Fields currently non-finite (a Fault event is emitted once per episode)."""
+
+
+@dataclass
+class ProtectionState:
+    batteries: list[BatteryProtectionState]
+
+
+class ProtectionController:
+    """Per-battery condition-dependent discharge protection; see the module docstring.
+
+    Tick semantics: each call's measurement is taken to hold for ``dt_s``; the trip fires on the
+    call whose ``dt_s`` makes the weighted sum reach ``m``. Commands: ``dsg_on=False`` for a
+    tripped battery until its next discharge cycle, otherwise ``None`` (no opinion).
+    """
+
+    def __init__(self, config: ProtectionConfig, pack: PackInfo) -> None:
+        self.config = config
+        self.pack = pack
+        self.table = CompiledTable.from_config(config)
+        self._extract = tuple(AXES[a] for a in self.table.axes)
+        self._bands = tuple(config.hysteresis.get(a, 0.0) for a in self.table.axes)
+        self._use_hysteresis = any(b > 0.0 for b in self._bands)
+        self.state = ProtectionState(
+            batteries=[BatteryProtectionState() for _ in range(pack.n_batteries)]
+        )
+
+    @property
+    def m_s(self) -> float:
+        return self.table.m_ms / 1000.0
+
+    def weights(self) -> dict[str, int]:
+        return {p.name: n for p, n in zip(self.table.params, self.table.weights, strict=True)}
+
+    def parameter(self, battery: int) -> ProtectionParameter | None:
+        """Active parameter of a battery (None before its first tick)."""
+        row = self.state.batteries[battery].row
+        return None if row < 0 else self.table.params[self.table.rows[row][0]]
+
+    def fraction(self, battery: int) -> float:
+        """Used-up share of the allowance, sum(t_k / t_max_k): 0 .. 1 (and above at a trip)."""
+        return float(self.state.batteries[battery].acc_wms / self.table.m_ms)
+
+    def start_new_cycle(self, battery: int) -> None:
+        """Host command: clear the sum and the latch (e.g. battery charged off-pack)."""
+        st = self.state.batteries[battery]
+        st.acc_wms = Fraction(0)
+        st.tripped = False
+
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        events: list[Event] = []
+        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
+        dsg: list[bool | None] = []
+        names: list[str | None] = []
+        cutoffs: list[float | None] = []
+        tmaxs: list[float | None] = []
+        fractions: list[float] = []
+        tripped: list[bool] = []
+        for i, st in enumerate(self.state.batteries):
+            bm = meas.batteries[i] if i < len(meas.batteries) else None
+            self._step_battery(i, bm, st, meas.t_s, dt, events)
+            p = self.parameter(i)
+            dsg.append(False if st.tripped else None)
+            names.append(None if p is None else p.name)
+            cutoffs.append(None if p is None else p.cutoff_v)
+            tmaxs.append(None if p is None else p.t_max_s)
+            fractions.append(self.fraction(i))
+            tripped.append(st.tripped)
+        status: dict[str, Sequence[float | int | str | bool | None]] = {
+            "protection_param": names,
+            "protection_cutoff_v": cutoffs,
+            "protection_tmax_s": tmaxs,
+            "protection_fraction": fractions,
+            "protection_tripped": tripped,
+        }
+        return ControlOutput(
+            commands=Commands(dsg_on=tuple(dsg)), events=tuple(events), status=status
+        )
+
+    # -- internals -----------------------------------------------------------------------
+
+    def _fault(
+        self,
+        i: int,
+        st: BatteryProtectionState,
+        t_s: float,
+        name: str,
+        ok: bool,
+        what: str,
+        events: list[Event],
+    ) -> None:
+        if ok:
+            st.faults.discard(name)
+        elif name not in st.faults:
+            st.faults.add(name)
+            events.append(
+                Event(
+                    t_s=t_s,
+                    kind="Fault",
+                    battery=i,
+                    message=f"protection: {name} is not finite; {what}",
+                    data={"source": "protection", "field": name},
+                )
+            )
+
+    def _new_cycle(
+        self, i: int, st: BatteryProtectionState, t_s: float, reason: str, events: list[Event]
+    ) -> None:
+        if st.acc_wms or st.tripped:
+            events.append(
+                Event(
+                    t_s=t_s,
+                    kind="ProtectionReset",
+                    battery=i,
+                    message=f"new discharge cycle ({reason}): protection sum and latch cleared",
+                    data={
+                        "reason": reason,
+                        "was_tripped": st.tripped,
+                        "accumulated_s": float(st.acc_wms) / 1000.0,
+                    },
+                )
+            )
+        st.acc_wms = Fraction(0)
+        st.tripped = False
+
+    def _select(self, st: BatteryProtectionState, values: list[float]) -> int:
+        if any(math.isnan(x) for x in values):
+            return self.table.most_conservative(values)
+        if self._use_hysteresis and st.row >= 0:
+            ranges = self.table.rows[st.row][1]
+            if all(r.contains(x, b) for r, x, b in zip(ranges, values, self._bands, strict=True)):
+                return st.row
+        return self.table.lookup(values)
+
+    def _check_voltage(self, i: int, bm: BatteryMeasurement) -> tuple[float, str]:
+        """Min cell voltage, else min group voltage, else mean cell voltage (NaN if none)."""
+        if math.isfinite(bm.min_cell_v):
+            return bm.min_cell_v, "min_cell_v"
+        g = bm.group_voltages_v
+        if g and all(math.isfinite(v) for v in g):
+            return min(g), "group_voltages_v"
+        n_series = self.pack.groups_per_battery[i] if i < len(self.pack.groups_per_battery) else 0
+        if n_series > 0 and math.isfinite(bm.voltage_v):
+            return bm.voltage_v / n_series, "voltage_v"
+        return math.nan, "none"
+
+    def _step_battery(
+        self,
+        i: int,
+        bm: BatteryMeasurement | None,
+        st: BatteryProtectionState,
+        t_s: float,
+        dt: float,
+        events: list[Event],
+    ) -> None:
+        cfg = self.config
+        if bm is None or not bm.present:
+            st.absent = True
+            st.charge_s = 0.0
+            return
+        if st.absent:
+            st.absent = False
+            if cfg.reset_on_reinsert:
+                self._new_cycle(i, st, t_s, "reinserted", events)
+
+        cur = bm.current_a
+        cur_ok = math.isfinite(cur)
+        self._fault(
+            i,
+            st,
+            t_s,
+            "current_a",
+            cur_ok,
+            "discharge state held, most conservative parameter for the known status",
+            events,
+        )
+        # New discharge cycle: sustained charging (spec §7/§10.4).
+        if cur_ok and cur < -cfg.charge_threshold_a:
+            st.charge_s += dt
+            if st.charge_s >= cfg.charge_detect_s and not st.charge_cycle_started:
+                st.charge_cycle_started = True
+                self._new_cycle(i, st, t_s, "charge", events)
+        else:
+            st.charge_s = 0.0
+            st.charge_cycle_started = False
+        if cur_ok:
+            st.discharging = cur > cfg.discharge_threshold_a
+
+        values: list[float] = []
+        for axis, extract in zip(self.table.axes, self._extract, strict=True):
+            x = extract(bm, self.pack, i)
+            if axis != "current_a":
+                self._fault(
+                    i,
+                    st,
+                    t_s,
+                    axis,
+                    math.isfinite(x),
+                    "most conservative parameter for the known status",
+                    events,
+                )
+            if not math.isfinite(x):
+                values.append(math.nan)
+                continue
+            tau = cfg.filter_tau_s.get(axis)
+            if tau is not None:
+                prev = st.filtered.get(axis)
+                x = x if prev is None else prev + (1.0 - math.exp(-dt / tau)) * (x - prev)
+                st.filtered[axis] = x
+            values.append(x)
+        st.row = self._select(st, values)
+        p_idx = self.table.rows[st.row][0]
+        param = self.table.params[p_idx]
+
+        v_chk, source = self._check_voltage(i, bm)
+        self._fault(
+            i,
+            st,
+            t_s,
+            "min_cell_v",
+            source == "min_cell_v",
+            f"checking {source} instead"
+            if source != "none"
+            else "no accumulation until a voltage is available",
+            events,
+        )
+        if st.tripped or math.isnan(v_chk):
+            return
+        below = (
+            v_chk <= param.cutoff_v if cfg.voltage_comparison == "<=" else (v_chk < param.cutoff_v)
+        )
+        if below and st.discharging:
+            st.acc_wms += self.table.weights[p_idx] * dt_to_ms(dt)
+        elif not below and cfg.reset_on_recovery:
+            st.acc_wms = Fraction(0)
+        m = self.table.m_ms
+        if st.acc_wms > m or (cfg.trip_comparison == ">=" and st.acc_wms == m):
+            st.tripped = True
+            events.append(
+                Event(
+                    t_s=t_s,
+                    kind="ProtectionTripped",
+                    battery=i,
+                    message=(
+                        f"discharge protection tripped under {param.name} "
+                        f"({param.cutoff_v:g} V / {param.t_max_s:g} s): discharge path opened"
+                    ),
+                    data={
+                        "param": param.name,
+                        "cutoff_v": param.cutoff_v,
+                        "t_max_s": param.t_max_s,
+                        "weight": self.table.weights[p_idx],
+                        "accumulated_s": float(st.acc_wms) / 1000.0,
+                        "m_s": m / 1000.0,
+                        "fraction": float(st.acc_wms / m),
+                        "check_v": v_chk,
+                        "check_v_source": source,
+                        "min_cell_v": bm.min_cell_v,
+                        "voltage_v": bm.voltage_v,
+                        "current_a": bm.current_a,
+                        "temp_c": bm.temp_c,
+                        "soc": bm.soc,
+                        "remaining_capacity_ah": bm.remaining_capacity_ah,
+                        "full_capacity_ah": bm.full_capacity_ah,
+                    },
+                )
+            )
+
+
+__all__ = [
+    "AXES",
+    "CUTOFF_MAX_V",
+    "CUTOFF_MIN_V",
+    "DEFAULT_PARAMETERS",
+    "DEFAULT_TABLE",
+    "AxisRange",
+    "BatteryProtectionState",
+    "CompiledTable",
+    "ProtectionConfig",
+    "ProtectionController",
+    "ProtectionParameter",
+    "ProtectionState",
+    "TableRow",
+    "check_coverage",
+    "dt_to_ms",
+]

@@ -1,0 +1,144 @@
+"""Property tests of the discharge protection (hypothesis)."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from packpilot.control.protection import CompiledTable, ProtectionConfig, ProtectionController
+from packpilot.control.types import BatteryMeasurement, Measurements, PackInfo, SwitchKind
+
+PACK = PackInfo(
+    n_batteries=1,
+    groups_per_battery=(6,),
+    cells_per_group=(1,),
+    switch_kind=(SwitchKind.RELAY,),
+)
+CFG = ProtectionConfig()
+TABLE = CompiledTable.from_config(CFG)
+
+currents = st.one_of(
+    st.sampled_from([15.0, 25.0, 0.6, 100.0]),
+    st.floats(min_value=0.6, max_value=80.0, allow_nan=False),
+)
+temps = st.one_of(
+    st.sampled_from([5.0, 15.0, -30.0, 60.0]),
+    st.floats(min_value=-30.0, max_value=60.0, allow_nan=False),
+)
+Row = tuple[float, float, float, float]  # (I, T, V, dt)
+
+
+def _bm(i: float, t: float, v: float) -> BatteryMeasurement:
+    return BatteryMeasurement(
+        voltage_v=6 * v,
+        current_a=i,
+        temp_c=t,
+        min_cell_v=v,
+        max_cell_v=v,
+        soc=0.5,
+        full_capacity_ah=5.0,
+        remaining_capacity_ah=2.5,
+    )
+
+
+def _trip_time(rows: list[Row], cfg: ProtectionConfig = CFG) -> float | None:
+    """End time of the tick in which the protection trips (None = never)."""
+    ctl = ProtectionController(cfg, PACK)
+    t = 0.0
+    for i, temp, v, dt in rows:
+        out = ctl.step(Measurements(t_s=t, batteries=(_bm(i, temp, v),), bus_v=6 * v), dt)
+        t += dt
+        if any(e.kind == "ProtectionTripped" for e in out.events):
+            return t
+    return None
+
+
+def _reference_param(i: float, t: float) -> str:
+    """Spec §4 grid with the §10.1 edge convention, written out independently."""
+    if t < 5.0 or i > 25.0:
+        return "P1"
+    if i > 15.0 or t < 15.0:
+        return "P2"
+    return "P3"
+
+
+@settings(max_examples=300, deadline=None)
+@given(i=currents, t=temps)
+def test_lookup_matches_edge_convention(i: float, t: float) -> None:
+    row = TABLE.lookup([i, t])
+    assert TABLE.params[TABLE.rows[row][0]].name == _reference_param(i, t)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    i=currents,
+    t=temps,
+    dt_ms=st.integers(min_value=1, max_value=3000),
+    depth=st.floats(min_value=0.0, max_value=0.5),
+)
+def test_constant_parameter_trips_at_tmax_within_one_step(
+    i: float, t: float, dt_ms: int, depth: float
+) -> None:
+    params = {p.name: p for p in TABLE.params}
+    p = params[_reference_param(i, t)]
+    dt = dt_ms / 1000.0
+    n = math.ceil(p.t_max_s / dt) + 2
+    trip = _trip_time([(i, t, p.cutoff_v - depth, dt)] * n)
+    assert trip is not None
+    assert p.t_max_s - 1e-9 <= trip < p.t_max_s + dt + 1e-9
+    # and exactly on the tick where k*dt first reaches t_max (exact arithmetic)
+    assert round(trip / dt) == math.ceil(Fraction(p.t_max_ms, dt_ms))
+
+
+trace_rows = st.tuples(
+    currents | st.floats(min_value=-10.0, max_value=0.6),
+    temps,
+    st.floats(min_value=2.5, max_value=4.2),
+    st.sampled_from([0.1, 0.5, 1.0, 2.0]),
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    rows=st.lists(
+        st.tuples(currents, temps, st.floats(min_value=3.2001, max_value=4.3), st.just(1.0)),
+        min_size=1,
+        max_size=200,
+    )
+)
+def test_voltage_above_every_cutoff_never_trips(rows: list[Row]) -> None:
+    assert max(p.cutoff_v for p in TABLE.params) == 3.2
+    assert _trip_time(rows) is None
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    rows=st.lists(trace_rows, min_size=1, max_size=120),
+    drops=st.lists(st.floats(min_value=0.0, max_value=1.0), min_size=120, max_size=120),
+)
+def test_lowering_voltage_never_delays_the_trip(rows: list[Row], drops: list[float]) -> None:
+    lowered = [(i, t, v - d, dt) for (i, t, v, dt), d in zip(rows, drops, strict=False)]
+    before = _trip_time(rows)
+    after = _trip_time(lowered)
+    if before is not None:
+        assert after is not None and after <= before + 1e-9
+
+
+@settings(max_examples=150, deadline=None)
+@given(rows=st.lists(trace_rows, min_size=1, max_size=120))
+def test_fraction_is_sum_of_t_over_tmax(rows: list[Row]) -> None:
+    """The weighted sum / m equals sum(t_k / t_max_k) over discharging ticks below cut-off."""
+    ctl = ProtectionController(CFG, PACK)
+    params = {p.name: p for p in TABLE.params}
+    expected = Fraction(0)
+    for k, (i, t, v, dt) in enumerate(rows):
+        ctl.step(Measurements(t_s=float(k), batteries=(_bm(i, t, v),), bus_v=6 * v), dt)
+        if ctl.state.batteries[0].tripped:
+            break
+        p = params[_reference_param(i, t)]
+        if i > CFG.discharge_threshold_a and v <= p.cutoff_v:
+            expected += Fraction(round(dt * 1000), p.t_max_ms)
+        assert ctl.state.batteries[0].acc_wms / TABLE.m_ms == expected
