@@ -320,6 +320,23 @@ def test_nan_min_cell_falls_back_to_group_voltages_then_mean_cell() -> None:
     assert len(faults) == 1 and faults[0].data["field"] == "min_cell_v"  # type: ignore[attr-defined]
 
 
+def test_fallback_divides_groups_into_series_cells() -> None:
+    """3 groups of 2 series cells: group voltages are module voltages."""
+    pack = PackInfo(
+        n_batteries=1,
+        groups_per_battery=(3,),
+        cells_per_group=(2,),
+        switch_kind=(SwitchKind.MOSFET_PAIR,),
+    )
+    d = Driver(pack=pack)
+    d.step(_bm(10.0, 25.0, math.nan, groups=(7.0, 6.3, 7.0), voltage_v=20.3), 1.0)
+    assert d.ctl.fraction(0) == pytest.approx(0.2)  # weakest group: 3.15 V per cell
+    d.step(_bm(10.0, 25.0, math.nan, groups=(7.0, 6.5, 7.0), voltage_v=20.5), 1.0)
+    assert d.ctl.fraction(0) == pytest.approx(0.2)  # 3.25 V per cell: above 3.2
+    d.step(_bm(10.0, 25.0, math.nan, voltage_v=6 * 3.19), 1.0)
+    assert d.ctl.fraction(0) == pytest.approx(0.4)  # mean cell 3.19 V
+
+
 def test_unknown_voltage_does_not_accumulate_and_faults_once_per_episode() -> None:
     d = Driver()
     d.run(2.0, 10.0, 25.0, 3.1)

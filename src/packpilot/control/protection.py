@@ -594,15 +594,21 @@ class ProtectionController:
         return self.table.lookup(values)
 
     def _check_voltage(self, i: int, bm: BatteryMeasurement) -> tuple[float, str]:
-        """Min cell voltage, else min group voltage, else mean cell voltage (NaN if none)."""
+        """Min cell voltage; else the weakest group's mean cell; else the mean cell; else NaN.
+
+        A group is ``cells_per_group`` cells in series, so ``group_v / cells_per_group`` is that
+        group's mean cell voltage (>= its minimum: the fallbacks under-count, never over-trip).
+        """
         if math.isfinite(bm.min_cell_v):
             return bm.min_cell_v, "min_cell_v"
+        pack = self.pack
+        per_group = pack.cells_per_group[i] if i < len(pack.cells_per_group) else 0
+        n_groups = pack.groups_per_battery[i] if i < len(pack.groups_per_battery) else 0
         g = bm.group_voltages_v
-        if g and all(math.isfinite(v) for v in g):
-            return min(g), "group_voltages_v"
-        n_series = self.pack.groups_per_battery[i] if i < len(self.pack.groups_per_battery) else 0
-        if n_series > 0 and math.isfinite(bm.voltage_v):
-            return bm.voltage_v / n_series, "voltage_v"
+        if per_group > 0 and g and all(math.isfinite(v) for v in g):
+            return min(g) / per_group, "group_voltages_v"
+        if per_group > 0 and n_groups > 0 and math.isfinite(bm.voltage_v):
+            return bm.voltage_v / (n_groups * per_group), "voltage_v"
         return math.nan, "none"
 
     def _step_battery(
