@@ -13,8 +13,14 @@ from packpilot.model.switches import KIND_MOSFET, KIND_RELAY, switch_branches
 def _setup(e, kinds, chg, dsg, r, load=(0.0, 0.0, 0.0, 0.0), charger=None):  # type: ignore[no-untyped-def]
     n = len(e)
     br = switch_branches(
-        np.array(kinds), np.full(n, 0.001), np.full(n, 0.6), np.full(n, 0.002),
-        np.array([chg]), np.array([dsg]), np.ones((1, n), bool), np.array([r]),
+        np.array(kinds),
+        np.full(n, 0.001),
+        np.full(n, 0.6),
+        np.full(n, 0.002),
+        np.array([chg]),
+        np.array([dsg]),
+        np.ones((1, n), bool),
+        np.array([r]),
     )
     en, v, i = charger or (False, 0.0, 0.0)
     ch = ChargerSource(np.array([en]), np.array([v]), np.array([i]), np.array([0.01]))
@@ -95,11 +101,46 @@ def test_fleet_of_packs_solves_in_one_call() -> None:
     e = np.array([[24.0, 22.0], [23.0, 23.0], [20.0, 25.0]])
     n = 2
     br = switch_branches(
-        np.array([KIND_RELAY] * n), np.zeros(n), np.full(n, 0.6), np.full(n, 0.002),
-        np.ones((3, n), bool), np.ones((3, n), bool), np.ones((3, n), bool), np.full((3, n), 0.02),
+        np.array([KIND_RELAY] * n),
+        np.zeros(n),
+        np.full(n, 0.6),
+        np.full(n, 0.002),
+        np.ones((3, n), bool),
+        np.ones((3, n), bool),
+        np.ones((3, n), bool),
+        np.full((3, n), 0.02),
     )
     ch = ChargerSource(np.zeros(3, bool), np.zeros(3), np.zeros(3), np.full(3, 0.01))
     ld = LoadSink(np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3))
     sol = solve_bus(e, br, ch, ld)
     np.testing.assert_allclose(sol.bus_v, [23.0, 23.0, 22.5])
     np.testing.assert_allclose(sol.string_a[:, 0], [50.0, 0.0, -125.0])
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.floats(5.0, 120.0), min_size=1, max_size=7),
+    st.data(),
+)
+def test_compiled_kernel_matches_numpy_reference(e, data) -> None:  # type: ignore[no-untyped-def]
+    from packpilot.model.bus_kernel import solve_bus_fast
+
+    n = len(e)
+    kinds = data.draw(st.lists(st.sampled_from([KIND_RELAY, KIND_MOSFET]), min_size=n, max_size=n))
+    chg = data.draw(st.lists(st.booleans(), min_size=n, max_size=n))
+    dsg = data.draw(st.lists(st.booleans(), min_size=n, max_size=n))
+    r = data.draw(st.lists(st.floats(0.001, 0.5), min_size=n, max_size=n))
+    load = (
+        data.draw(st.floats(0.0, 80.0)),
+        data.draw(st.sampled_from([0.0, 0.05])),
+        data.draw(st.sampled_from([0.0, 50.0, 800.0])),
+        data.draw(st.sampled_from([0.0, 20.0])),
+    )
+    charger = data.draw(st.sampled_from([None, (True, 60.0, 20.0), (True, 130.0, 100.0)]))
+    args = _setup(e, kinds, chg, dsg, r, load, charger)
+    ref = solve_bus(*args)
+    fast = solve_bus_fast(*args)
+    np.testing.assert_allclose(fast.bus_v, ref.bus_v, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(fast.string_a, ref.string_a, rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(fast.charger_a, ref.charger_a, rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(fast.supplied, ref.supplied)

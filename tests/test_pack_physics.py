@@ -48,8 +48,9 @@ def test_charge_fet_off_blocks_charging_but_discharges_through_body_diode() -> N
     assert np.all(np.abs(cur[:, 0]) <= 1e-9)  # nothing else to supply: no current at all
 
     # Now a load that pulls the bus below B + diode drop: B discharges through the diode.
-    cfg2 = dual_pack(switch=sw, v_a=22.2, v_b=22.2, duration_s=2.0,
-                     load={"kind": "current", "value": 40.0})
+    cfg2 = dual_pack(
+        switch=sw, v_a=22.2, v_b=22.2, duration_s=2.0, load={"kind": "current", "value": 40.0}
+    )
     runner2 = Runner(parse_config(cfg2))
     runner2.pack.set_gates(np.array([[True, False]]), np.array([[True, True]]))
     runner2.controller = _Hold()

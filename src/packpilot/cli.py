@@ -106,9 +106,7 @@ def _print_metrics(m: dict[str, Any]) -> None:
     Console().print(table)
 
 
-def _replay(
-    method: str, log: Path, config: Path | None, out: Path | None, as_json: bool
-) -> None:
+def _replay(method: str, log: Path, config: Path | None, out: Path | None, as_json: bool) -> None:
     def go() -> None:
         import importlib
 

@@ -242,11 +242,9 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConf
         cfg = ScenarioConfig.model_validate(data)
     except ValidationError as err:
         raise ConfigError(_fmt_error(source, err)) from None
-    for section in cfg.controller:
-        validate_section(section, getattr(cfg, section), source)
-    for section in METHOD_SECTIONS:
-        if getattr(cfg, section) is not None and section not in cfg.controller:
-            validate_section(section, getattr(cfg, section), source)
+    for name in METHOD_SECTIONS:
+        if name in cfg.controller or getattr(cfg, name) is not None:
+            validate_section(name, getattr(cfg, name), source)
     return cfg
 
 

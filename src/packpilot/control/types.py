@@ -171,9 +171,7 @@ class Event:
 class ControlOutput:
     commands: Commands
     events: tuple[Event, ...] = ()
-    status: Mapping[str, Sequence[float | int | str | bool | None]] = field(
-        default_factory=dict
-    )
+    status: Mapping[str, Sequence[float | int | str | bool | None]] = field(default_factory=dict)
     """Per-battery status channels for telemetry (e.g. active protection parameter)."""
 
 
@@ -198,9 +196,7 @@ class Controller(Protocol):
     def step(self, meas: Measurements, dt_s: float) -> ControlOutput: ...
 
 
-def _merge_flags(
-    a: tuple[bool | None, ...], b: tuple[bool | None, ...]
-) -> tuple[bool | None, ...]:
+def _merge_flags(a: tuple[bool | None, ...], b: tuple[bool | None, ...]) -> tuple[bool | None, ...]:
     n = max(len(a), len(b))
     out: list[bool | None] = []
     for i in range(n):
@@ -221,9 +217,9 @@ def merge_commands(first: Commands, second: Commands) -> Commands:
     The charger is disabled if either side disables it, so a safety layer can always stop it.
     """
     charger = second.charger if second.charger is not None else first.charger
-    if first.charger is not None and second.charger is not None:
-        if not (first.charger.enable and second.charger.enable):
-            charger = CHARGER_OFF
+    both = first.charger is not None and second.charger is not None
+    if both and not (first.charger.enable and second.charger.enable):  # type: ignore[union-attr]
+        charger = CHARGER_OFF
     return Commands(
         chg_on=_merge_flags(first.chg_on, second.chg_on),
         dsg_on=_merge_flags(first.dsg_on, second.dsg_on),

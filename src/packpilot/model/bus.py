@@ -56,9 +56,7 @@ class BusSolution:
     """False where the load demanded power but could not be supplied."""
 
 
-def _source_current(
-    v: Array, e: Array, br: BranchArrays, ch: ChargerSource
-) -> tuple[Array, Array]:
+def _source_current(v: Array, e: Array, br: BranchArrays, ch: ChargerSource) -> tuple[Array, Array]:
     """String currents (P, K, S) and charger current (P, K) at bus voltages v (P, K)."""
     vv = v[..., None]
     ee = e[:, None, :]
@@ -93,7 +91,7 @@ def _solve(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> tuple
         np.concatenate([np.abs(k) for k in kinks] + [np.zeros((n_packs, 1))], axis=1), axis=1
     )
     ends = np.stack([np.full(n_packs, _V_FLOOR), 2.0 * hi + 10.0], axis=1)
-    bp = np.concatenate(kinks + [ends, ld.v_min[:, None]], axis=1)
+    bp = np.concatenate([*kinks, ends, ld.v_min[:, None]], axis=1)
     bp = np.where(np.isfinite(bp) & (bp >= _V_FLOOR), bp, _V_FLOOR)
     bp.sort(axis=1)
     if np.any(ld.p > 0.0):
@@ -115,7 +113,8 @@ def _solve(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> tuple
 
     def residual(v: Array) -> Array:
         s, c = _source_current(v, e, br, ch)
-        return s.sum(axis=-1) + c - (ld.a[:, None] + ld.g[:, None] * v + ld.p[:, None] / v)
+        out: Array = s.sum(axis=-1) + c - (ld.a[:, None] + ld.g[:, None] * v + ld.p[:, None] / v)
+        return out
 
     f = residual(bp)
     pos = f > 0.0
@@ -149,7 +148,7 @@ def _solve(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> tuple
         interp = lo + f_lo * (up - lo) / (f_lo - f_up)
     v = np.where((ld.p == 0.0) & np.isfinite(interp), interp, v)
     v = np.clip(v, lo, up)
-    return np.where(has_root, v, 0.0), has_root
+    return np.where(has_root, v, 0.0), np.asarray(has_root, dtype=bool)
 
 
 def solve_bus(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> BusSolution:

@@ -60,7 +60,9 @@ class ChargerModel:
         self.out_v = np.zeros(self.n)
         self.out_a = np.zeros(self.n)
 
-    def request(self, idx: int, voltage_v: float, current_a: float, enable: bool, t_s: float) -> None:
+    def request(
+        self, idx: int, voltage_v: float, current_a: float, enable: bool, t_s: float
+    ) -> None:
         """A request (heartbeat) arrived for charger ``idx``; clamped to the rating."""
         self.v_req[idx] = min(max(voltage_v, 0.0), self.params.rated_v)
         self.i_req[idx] = min(max(current_a, 0.0), self.params.rated_a)
@@ -96,9 +98,7 @@ class ChargerView:
 
     @property
     def fault_flags(self) -> dict[str, bool]:
-        return {
-            name: bool(self.model.flags[self.idx, k]) for k, name in enumerate(FLAG_NAMES)
-        }
+        return {name: bool(self.model.flags[self.idx, k]) for k, name in enumerate(FLAG_NAMES)}
 
     def set_fault(self, name: str, value: bool = True) -> None:
         """Fault injection: raise or clear one status flag."""

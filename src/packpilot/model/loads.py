@@ -78,7 +78,9 @@ def builtin(name: str, base: float, kind: str) -> LoadProfile:
             rows += [(k * 60.0, 1.0), (k * 60.0 + 50.0, 2.0)]
         rows.append((3600.0, 0.0))
     else:
-        raise InputError(f"unknown built-in load profile {name!r}; known: uav_flight, uav_hover, step")
+        raise InputError(
+            f"unknown built-in load profile {name!r}; known: uav_flight, uav_hover, step"
+        )
     arr = np.array(rows, dtype=np.float64)
     return LoadProfile(kind=kind, t_s=arr[:, 0], value=arr[:, 1] * base)
 

@@ -26,7 +26,8 @@ from numpy.typing import NDArray
 
 from packpilot.config import BatteryConfig, ScenarioConfig, SwitchConfig
 from packpilot.model import cell as cellmod
-from packpilot.model.bus import ChargerSource, LoadSink, solve_bus
+from packpilot.model.bus import ChargerSource, LoadSink
+from packpilot.model.bus_kernel import solve_bus_fast
 from packpilot.model.charger import ChargerModel, ChargerParams
 from packpilot.model.switches import KIND_MOSFET, KIND_RELAY, diode_currents, switch_branches
 
@@ -133,10 +134,12 @@ class Pack:
         self.cell_group = np.array(cell_group, dtype=np.int64)
         self.n_cells = int(sum(n_cells))
         self.n_groups = int(sum(groups))
-        self.group_starts = np.concatenate([[0], np.cumsum([b.cells_per_group for b in bats
-                                                             for _ in range(b.series_groups)])[:-1]])
+        self.group_starts = np.concatenate(
+            [[0], np.cumsum([b.cells_per_group for b in bats for _ in range(b.series_groups)])[:-1]]
+        )
         self.string_group_starts = np.concatenate([[0], np.cumsum(groups)[:-1]])
         self.max_groups = max(groups)
+        self.string_cell_starts = np.concatenate([[0], np.cumsum(n_cells)[:-1]]).astype(np.int64)
 
         # Switches.
         sw = [b.switch or pc.switch for b in bats]
@@ -154,7 +157,9 @@ class Pack:
         self.present_from_s = np.array([b.present_from_s for b in bats])
 
         self.ambient = (
-            np.full(P, pc.ambient_c) if self.ambient_c is None else np.asarray(self.ambient_c, float)
+            np.full(P, pc.ambient_c)
+            if self.ambient_c is None
+            else np.asarray(self.ambient_c, float)
         )
         offsets = np.array([b.ambient_offset_c for b in bats])
         self.cell_ambient = self.ambient[:, None] + offsets[self.cell_string][None, :]
@@ -223,8 +228,9 @@ class Pack:
             if b.resistance_ohm is not None:
                 # The stated DC resistance holds at the battery's initial state (mean SOC,
                 # ambient temperature, no current): what a datasheet or an ohmmeter reports.
-                ref = cellmod.initial_state(prm, 1, float(np.clip(soc[sl].mean(), 0, 1)),
-                                            pc.ambient_c + b.ambient_offset_c)
+                ref = cellmod.initial_state(
+                    prm, 1, float(np.clip(soc[sl].mean(), 0, 1)), pc.ambient_c + b.ambient_offset_c
+                )
                 _, r0 = cellmod.thevenin(prm, ref, np.zeros(1), np.array([nominal]), np.ones(1))
                 rs[sl] = b.resistance_ohm / (b.n_cells * float(r0[0]))
             start += b.n_cells
@@ -319,7 +325,7 @@ class Pack:
     # ------------------------------------------------------------------ step
     def step(self, dt_s: float, load_kind: str, load_value: Array) -> Interval:
         """Solve the bus for the coming period, advance every cell, return the flows."""
-        P, S = self.n_packs, self.n_strings
+        P = self.n_packs
         t = self.t_s
         present = self.present(t) & ~self.is_aux[None, :]
         chg, dsg = self.effective_gates()
@@ -338,18 +344,32 @@ class Pack:
         aux_cfg = self.cfg.aux
         if self.aux_index is not None:
             a = self.aux_index
-            v_aux = np.maximum(gv[:, self.string_group_starts[a]: self.string_group_starts[a]
-                                  + self.groups_per_string[a]].sum(axis=1), 1e-3)
+            v_aux = np.maximum(
+                gv[
+                    :,
+                    self.string_group_starts[a] : self.string_group_starts[a]
+                    + self.groups_per_string[a],
+                ].sum(axis=1),
+                1e-3,
+            )
             bus_ok = self.bus_v >= aux_cfg.dcdc_min_input_v
             i_aux_chg = np.where(bus_ok, self.aux_charge_a, 0.0)
             aux_p_bus = i_aux_chg * v_aux / aux_cfg.dcdc_efficiency
             x_cell[:, self.cell_string == a] += (aux_cfg.bms_load_w / v_aux - i_aux_chg)[:, None]
 
-        e_string = np.add.reduceat(self.e_cell - self.r_cell * x_cell, self._string_starts(), axis=1)
+        e_string = np.add.reduceat(
+            self.e_cell - self.r_cell * x_cell, self._string_starts(), axis=1
+        )
         r_string = np.add.reduceat(self.r_cell, self._string_starts(), axis=1)
         br = switch_branches(
-            self.sw_kind, self.sw_on_ohm, self.sw_drop_v, self.sw_diode_ohm,
-            chg, dsg, present, r_string,
+            self.sw_kind,
+            self.sw_on_ohm,
+            self.sw_drop_v,
+            self.sw_diode_ohm,
+            chg,
+            dsg,
+            present,
+            r_string,
         )
         connected = self.charger_connected(t)
         self.charger.connected = connected
@@ -365,14 +385,15 @@ class Pack:
         if load_kind == "current":
             ld = LoadSink(a=demand, g=zero, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
         elif load_kind == "power":
-            ld = LoadSink(a=zero, g=zero, p=demand + aux_p_bus,
-                          v_min=np.full(P, self.cfg.load.v_min_v))
+            ld = LoadSink(
+                a=zero, g=zero, p=demand + aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v)
+            )
         elif load_kind == "resistance":
             g = np.where(demand > 0, 1.0 / np.maximum(demand, 1e-12), 0.0)
             ld = LoadSink(a=zero, g=g, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
         else:
             ld = LoadSink(a=zero, g=zero, p=aux_p_bus, v_min=zero)
-        sol = solve_bus(e_string, br, chs, ld)
+        sol = solve_bus_fast(e_string, br, chs, ld)
         string_a = sol.string_a.copy()
         # The aux string's terminal current is its BMS load minus its DC/DC charge.
         cell_a = string_a[:, self.cell_string] + x_cell
@@ -397,15 +418,21 @@ class Pack:
         heat = np.empty(P * self.n_cells)
         for bank in self.banks:
             bank.state, hb = cellmod.advance(
-                bank.params, bank.state, ia[bank.idx], dt_s, amb[bank.idx], cap[bank.idx],
+                bank.params,
+                bank.state,
+                ia[bank.idx],
+                dt_s,
+                amb[bank.idx],
+                cap[bank.idx],
                 rs[bank.idx],
             )
             heat[bank.idx] = hb
         heat_string = np.add.reduceat(heat.reshape(P, -1), self._string_starts(), axis=1)
         # Ohmic (I^2 R) heat of the period: cell R0 plus switch path, and the RC branches'
         # share through the cell model's irreversible heat is not separable here, so count R0.
-        self.joule_j += dt_s * np.add.reduceat(self.r_cell * cell_a**2, self._string_starts(),
-                                               axis=1)
+        self.joule_j += dt_s * np.add.reduceat(
+            self.r_cell * cell_a**2, self._string_starts(), axis=1
+        )
 
         self.cell_a = cell_a
         self.string_a = string_a
@@ -417,13 +444,22 @@ class Pack:
         self.t_s = t + dt_s
         self._refresh_source()
         return Interval(
-            t_s=t, dt_s=dt_s, bus_v=sol.bus_v,
+            t_s=t,
+            dt_s=dt_s,
+            bus_v=sol.bus_v,
             load_demand_a=self._demand_current(load_kind, demand, sol.bus_v),
             load_a=sol.load_a - aux_p_bus / np.maximum(sol.bus_v, 1e-6) * (sol.bus_v > 0),
-            supplied=sol.supplied, charger_v=self.charger.out_v.copy(),
-            charger_a=sol.charger_a, string_a=string_a, battery_v=battery_v,
-            cell_v=cell_v, group_v=group_v, chg_diode_a=chg_d, dsg_diode_a=dsg_d,
-            balancer_in_w=p_in_string, heat_w=heat_string,
+            supplied=sol.supplied,
+            charger_v=self.charger.out_v.copy(),
+            charger_a=sol.charger_a,
+            string_a=string_a,
+            battery_v=battery_v,
+            cell_v=cell_v,
+            group_v=group_v,
+            chg_diode_a=chg_d,
+            dsg_diode_a=dsg_d,
+            balancer_in_w=p_in_string,
+            heat_w=heat_string,
         )
 
     def _demand_current(self, kind: str, demand: Array, v: Array) -> Array:
@@ -436,8 +472,7 @@ class Pack:
         return np.zeros_like(demand)
 
     def _string_starts(self) -> IntArray:
-        return np.concatenate([[0], np.cumsum(np.bincount(self.cell_string,
-                                                           minlength=self.n_strings))[:-1]])
+        return self.string_cell_starts
 
     # ------------------------------------------------------------------ truth for sensors
     def cell_states(self) -> tuple[Array, Array]:

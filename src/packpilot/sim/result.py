@@ -99,8 +99,12 @@ class Trace:
                 status.setdefault(k, []).append(v)
         aux = None
         if samples[0].aux is not None:
-            aux = np.stack([s.aux if s.aux is not None else np.full_like(samples[0].aux, np.nan)
-                            for s in samples])
+            aux = np.stack(
+                [
+                    s.aux if s.aux is not None else np.full_like(samples[0].aux, np.nan)
+                    for s in samples
+                ]
+            )
         return cls(
             t_s=np.array([s.t_s for s in samples]),
             bus_v=np.array([s.bus_v for s in samples]),

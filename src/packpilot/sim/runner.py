@@ -156,20 +156,22 @@ class Runner:
     def run(self) -> Result:
         cfg = self.cfg
         dt = cfg.sim.dt_s
-        n_steps = int(math.ceil(cfg.sim.duration_s / dt - 1e-9))
+        n_steps = math.ceil(cfg.sim.duration_s / dt - 1e-9)
         assert self.controller is not None
         controller = self.controller
         if self.recorder is not None:
-            self.run_id: int | None = self.recorder.start(cfg.model_dump(mode="json"),
-                                                          self.pack.names)
+            self.run_id: int | None = self.recorder.start(
+                cfg.model_dump(mode="json"), self.pack.names
+            )
         else:
             self.run_id = None
         wall0 = time.perf_counter()
         unsupplied_s = 0.0
         was_supplied = True
         status = "ok"
-        bar = _Progress(n_steps, enabled=cfg.sim.progress if self.progress is None
-                        else self.progress)
+        bar = _Progress(
+            n_steps, enabled=cfg.sim.progress if self.progress is None else self.progress
+        )
         try:
             charger_status: ChargerStatus | None = None
             for k in range(n_steps):
@@ -186,10 +188,15 @@ class Runner:
                 new_events = list(out.events)
                 supplied = bool(iv.supplied[0])
                 if not supplied and was_supplied:
-                    new_events.append(Event(t, "LoadUnsupplied", None,
-                                            "bus cannot supply the load",
-                                            {"bus_v": float(iv.bus_v[0]),
-                                             "demand_a": float(iv.load_demand_a[0])}))
+                    new_events.append(
+                        Event(
+                            t,
+                            "LoadUnsupplied",
+                            None,
+                            "bus cannot supply the load",
+                            {"bus_v": float(iv.bus_v[0]), "demand_a": float(iv.load_demand_a[0])},
+                        )
+                    )
                 elif supplied and not was_supplied:
                     new_events.append(Event(t, "LoadResupplied", None, "load supplied again"))
                 was_supplied = supplied
@@ -235,9 +242,18 @@ class Runner:
             rem = soc[0, m] * cap[m]
             full = cap[m].min()
             rows[i] = (
-                iv.battery_v[0, i], iv.string_a[0, i], rem.min() / full, temp[0, m].max(),
-                iv.cell_v[0, m].min(), iv.cell_v[0, m].max(), rem.min(), full,
-                chg[0, i], dsg[0, i], iv.chg_diode_a[0, i], iv.dsg_diode_a[0, i],
+                iv.battery_v[0, i],
+                iv.string_a[0, i],
+                rem.min() / full,
+                temp[0, m].max(),
+                iv.cell_v[0, m].min(),
+                iv.cell_v[0, m].max(),
+                rem.min(),
+                full,
+                chg[0, i],
+                dsg[0, i],
+                iv.chg_diode_a[0, i],
+                iv.dsg_diode_a[0, i],
                 iv.balancer_in_w[0, i],
             )
             g0 = int(pack.string_group_starts[i])
@@ -253,10 +269,16 @@ class Runner:
                         full_vals[i] = vals[kk]
                 status[name] = full_vals
         return StepSample(
-            step=k, t_s=iv.t_s, bus_v=float(iv.bus_v[0]),
-            load_demand_a=float(iv.load_demand_a[0]), load_a=float(iv.load_a[0]),
-            charger_v=float(iv.charger_v[0]), charger_a=float(iv.charger_a[0]),
-            battery=rows, group_v=group, status=status,
+            step=k,
+            t_s=iv.t_s,
+            bus_v=float(iv.bus_v[0]),
+            load_demand_a=float(iv.load_demand_a[0]),
+            load_a=float(iv.load_a[0]),
+            charger_v=float(iv.charger_v[0]),
+            charger_a=float(iv.charger_a[0]),
+            battery=rows,
+            group_v=group,
+            status=status,
         )
 
 
@@ -326,8 +348,11 @@ class _Progress:
             )
 
             self.bar = Progress(
-                "[progress.description]{task.description}", BarColumn(), TaskProgressColumn(),
-                TimeRemainingColumn(), transient=True,
+                "[progress.description]{task.description}",
+                BarColumn(),
+                TaskProgressColumn(),
+                TimeRemainingColumn(),
+                transient=True,
             )
             self.bar.start()
             self.task = self.bar.add_task("simulating", total=self.total)
