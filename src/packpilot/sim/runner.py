@@ -11,7 +11,7 @@ import importlib
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -109,11 +109,14 @@ class Runner:
     progress: bool | None = None
     hooks: Sequence[Callable[[Runner, float], None]] = ()
     """Called before each control step with (runner, t_s): fault injection, hot plugs."""
+    pack_overrides: Mapping[str, Any] = field(default_factory=dict)
+    """Extra keyword arguments for ``Pack(cfg, ...)`` (campaign draws: ``capacity_scale``,
+    ``r_scale``, ``soc_offset``, ``ambient_c``)."""
     pack: Pack = field(init=False)
     info: PackInfo = field(init=False)
 
     def __post_init__(self) -> None:
-        self.pack = Pack(self.cfg)
+        self.pack = Pack(self.cfg, **self.pack_overrides)
         self.info = pack_info(self.pack)
         if self.controller is None:
             self.controller = build_controller(self.cfg, self.info)
