@@ -1,0 +1,238 @@
+"""EqualizationController: commands, balancing time, ledger, gating, faults, status."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from packpilot.control.equalization import EqualizationConfig, EqualizationController
+from packpilot.control.types import BatteryMeasurement, Measurements, PackInfo, SwitchKind
+
+
+def pack(groups: tuple[int, ...] = (4,), balancers: bool = True) -> PackInfo:
+    n = len(groups)
+    return PackInfo(
+        n_batteries=n,
+        groups_per_battery=groups,
+        cells_per_group=(6,) * n,
+        switch_kind=(SwitchKind.RELAY,) * n,
+        has_balancers=balancers,
+    )
+
+
+def batt(gv: tuple[float, ...], current_a: float, present: bool = True) -> BatteryMeasurement:
+    return BatteryMeasurement(
+        voltage_v=sum(gv),
+        current_a=current_a,
+        temp_c=25.0,
+        min_cell_v=min(gv) / 6,
+        max_cell_v=max(gv) / 6,
+        soc=0.5,
+        full_capacity_ah=100.0,
+        remaining_capacity_ah=50.0,
+        group_voltages_v=gv,
+        present=present,
+    )
+
+
+def meas(t: float, *bats: BatteryMeasurement) -> Measurements:
+    return Measurements(t_s=t, batteries=bats, bus_v=bats[0].voltage_v)
+
+
+LOW0 = (12.97, 13.0, 13.0, 13.0)  # group 0 lags by 22.5 mV
+
+
+def test_first_update_grants_time_and_current() -> None:
+    cfg = EqualizationConfig(equalizer_max_a=5.0, max_balance_time_s=1000.0)
+    ctrl = EqualizationController(cfg, pack())
+    outs = [ctrl.step(meas(float(k), batt(LOW0, 10.0)), 1.0) for k in range(121)]
+    # t = 0..118: nothing; t = 119 the 120th sample fires formula 1.
+    assert all(o.commands.balancer_a == ((0.0,) * 4,) for o in outs[:119])
+    upd = [e for e in outs[119].events if e.kind == "BalancingUpdated"]
+    assert len(upd) == 1
+    assert upd[0].data == {
+        "group": 0,
+        "formula": "formula1",
+        "old": 0.0,
+        "new": 0.25,
+        "dv_v": pytest.approx(0.0225),
+    }
+    assert outs[119].commands.balancer_a == ((5.0, 0.0, 0.0, 0.0),)
+    # 3600·0.25/5 = 180 s granted, 1 s already used.
+    assert list(outs[119].status["eq_time_s_g0"]) == [pytest.approx(179.0)]
+    assert outs[119].status["eq_ah_g0"] == [0.25]
+    assert list(outs[119].status["eq_dv_mv_g0"]) == [pytest.approx(22.5)]
+
+
+def test_balancing_delivers_exactly_ah_when_undisturbed() -> None:
+    # dv_set = 0.5 V makes group 0 sit exactly at ΔV = dv_set after the lag: no further updates,
+    # so the granted time runs out and the ledger must show exactly AH = 0.25 Ah.
+    cfg = EqualizationConfig(
+        dv_set_v=0.5, equalizer_max_a=3.0, min_current_a=0.5, max_balance_time_s=1000.0
+    )
+    ctrl = EqualizationController(cfg, pack((2,)))
+    for k in range(120):
+        ctrl.step(meas(float(k), batt((11.0, 13.0), -2.5)), 1.0)  # ΔV0 = +1 V, charging
+    st = ctrl.strings[0]
+    assert st.ah == [0.25, 0.0]
+    assert st.remaining_s[0] == pytest.approx(3600 * 0.25 / 2.5 - 1.0)
+    total = 0.0
+    for k in range(120, 2000):
+        out = ctrl.step(meas(float(k), batt((12.0, 13.0), -2.5)), 1.0)
+        assert out.commands.balancer_a is not None
+        total += out.commands.balancer_a[0][0] / 3600.0
+    assert st.ah == [0.25, 0.0]
+    assert st.ledger_gross_ah[0] == pytest.approx(0.25)
+    assert st.ledger_time_s[0] == pytest.approx(360.0)
+    assert total + 2.5 / 3600 == pytest.approx(0.25)  # plus the first second at t = 119
+
+
+def test_partial_last_step_is_prorated() -> None:
+    cfg = EqualizationConfig(
+        dv_set_v=0.5, time_mode="fixed_current", fixed_current_a=1.0, max_balance_time_s=1e4
+    )
+    ctrl = EqualizationController(cfg, pack((2,)))
+    ctrl.strings[0].ah = [0.001, 0.0]  # 3.6 s at 1 A
+    ctrl.strings[0].remaining_s = [3.6, 0.0]
+    cur = [
+        ctrl.step(meas(k * 1.0, batt((12.0, 13.0), 5.0)), 1.0).commands.balancer_a[0][0]  # type: ignore[index]
+        for k in range(5)
+    ]
+    assert cur == pytest.approx([1.0, 1.0, 1.0, 0.6, 0.0])
+    assert ctrl.strings[0].ledger_gross_ah[0] == pytest.approx(0.001)
+
+
+def test_gate_holds_remaining_time_below_min_current() -> None:
+    cfg = EqualizationConfig(dv_set_v=0.5, min_current_a=1.0, max_balance_time_s=1e4)
+    ctrl = EqualizationController(cfg, pack((2,)))
+    ctrl.strings[0].remaining_s = [100.0, 0.0]
+    out = ctrl.step(meas(0.0, batt((12.0, 13.0), 0.5)), 1.0)
+    assert out.commands.balancer_a == ((0.0, 0.0),)
+    assert ctrl.strings[0].remaining_s[0] == 100.0
+    out = ctrl.step(meas(1.0, batt((12.0, 13.0), 1.5)), 1.0)
+    assert out.commands.balancer_a == ((1.5, 0.0),)
+    assert ctrl.strings[0].remaining_s[0] == 99.0
+
+
+def test_fixed_current_balance_at_rest() -> None:
+    cfg = EqualizationConfig(
+        dv_set_v=0.5,
+        time_mode="fixed_current",
+        fixed_current_a=0.8,
+        balance_at_rest=True,
+        max_balance_time_s=1e4,
+    )
+    ctrl = EqualizationController(cfg, pack((2,)))
+    ctrl.strings[0].remaining_s = [10.0, 0.0]
+    out = ctrl.step(meas(0.0, batt((12.0, 13.0), 0.0)), 1.0)
+    assert out.commands.balancer_a == ((0.8, 0.0),)
+
+
+def test_nan_group_voltage_stops_string_and_faults_once() -> None:
+    cfg = EqualizationConfig(equalizer_max_a=5.0)
+    ctrl = EqualizationController(cfg, pack((4, 4)))
+    for k in range(130):
+        ctrl.step(meas(float(k), batt(LOW0, 10.0), batt(LOW0, 10.0)), 1.0)
+    assert ctrl.strings[0].remaining_s[0] > 0
+    bad = batt((math.nan, 13.0, 13.0, 13.0), 10.0)
+    out = ctrl.step(meas(130.0, bad, batt(LOW0, 10.0)), 1.0)
+    assert out.commands.balancer_a is not None
+    assert out.commands.balancer_a[0] == (0.0, 0.0, 0.0, 0.0)
+    assert out.commands.balancer_a[1][0] == 5.0  # the other string keeps balancing
+    faults = [e for e in out.events if e.kind == "Fault"]
+    assert len(faults) == 1 and faults[0].battery == 0
+    assert out.status["eq_fault"] == [True, False]
+    out = ctrl.step(meas(131.0, bad, batt(LOW0, 10.0)), 1.0)
+    assert not [e for e in out.events if e.kind == "Fault"]
+    assert ctrl.strings[0].ah[0] == 0.25  # learned AH kept
+    assert ctrl.strings[0].hi_timer_s == [0.0] * 4
+    out = ctrl.step(meas(132.0, batt(LOW0, 10.0), batt(LOW0, 10.0)), 1.0)
+    assert [e.kind for e in out.events] == ["FaultCleared"]
+    assert out.status["eq_fault"] == [False, False]
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        batt((13.0, 13.0, 13.0), 1.0),  # wrong group count
+        batt((13.0, 13.0, -1.0, 13.0), 1.0),  # negative voltage
+        batt((13.0, 13.0, 13.0, 13.0), math.inf),  # current
+    ],
+)
+def test_other_invalid_inputs_fault(bad: BatteryMeasurement) -> None:
+    ctrl = EqualizationController(EqualizationConfig(), pack())
+    out = ctrl.step(meas(0.0, bad), 1.0)
+    assert out.commands.balancer_a == ((0.0,) * 4,)
+    assert [e.kind for e in out.events] == ["Fault"]
+
+
+def test_nan_temperature_does_not_stop_equalization() -> None:
+    b = batt(LOW0, 10.0)
+    b = dataclasses.replace(b, temp_c=math.nan)
+    ctrl = EqualizationController(EqualizationConfig(), pack())
+    out = ctrl.step(meas(0.0, b), 1.0)
+    assert out.events == ()
+    assert out.status["eq_fault"] == [False]
+
+
+def test_absent_battery_idles_silently() -> None:
+    ctrl = EqualizationController(EqualizationConfig(), pack())
+    out = ctrl.step(meas(0.0, batt(LOW0, 10.0, present=False)), 1.0)
+    assert out.events == ()
+    assert out.commands.balancer_a == ((0.0,) * 4,)
+
+
+def test_bidirectional_drives_the_minority() -> None:
+    cfg = EqualizationConfig(dv_set_v=0.5, equalizer="bidirectional", max_balance_time_s=1e4)
+    ctrl = EqualizationController(cfg, pack())
+    st = ctrl.strings[0]
+    gv = (13.0, 13.0, 13.0, 13.0)
+    st.remaining_s = [50.0, 0.0, 0.0, 0.0]  # one group to charge: unidirectional behaviour
+    out = ctrl.step(meas(0.0, batt(gv, 1.5)), 1.0)
+    assert out.commands.balancer_a == ((1.5, 0.0, 0.0, 0.0),)
+    st.remaining_s = [50.0, 50.0, 50.0, 0.0]  # three to charge: discharge the leader instead
+    out = ctrl.step(meas(1.0, batt(gv, 1.5)), 1.0)
+    assert out.commands.balancer_a == ((0.0, 0.0, 0.0, -1.5),)
+    # Relative charge per group is the same as with a unidirectional equalizer.
+    gross = st.ledger_gross_ah
+    net = st.ledger_net_ah
+    assert [g - gross[3] for g in gross] == pytest.approx([n - net[3] for n in net])
+
+
+def test_sample_period_accumulates_short_steps() -> None:
+    cfg = EqualizationConfig(sample_period_s=2.0)
+    ctrl = EqualizationController(cfg, pack())
+    ctrl.step(meas(0.0, batt(LOW0, 10.0)), 0.5)
+    assert ctrl.strings[0].hi_timer_s[0] == 0.0
+    for k in range(1, 4):
+        ctrl.step(meas(0.5 * k, batt(LOW0, 10.0)), 0.5)
+    assert ctrl.strings[0].hi_timer_s[0] == pytest.approx(2.0)
+
+
+def test_no_balancers_means_no_opinion_but_status() -> None:
+    ctrl = EqualizationController(EqualizationConfig(), pack(balancers=False))
+    out = ctrl.step(meas(0.0, batt(LOW0, 10.0)), 1.0)
+    assert out.commands.balancer_a is None
+    assert "eq_ah_g3" in out.status
+
+
+def test_mixed_group_counts_status_padding() -> None:
+    ctrl = EqualizationController(EqualizationConfig(), pack((2, 3)))
+    out = ctrl.step(meas(0.0, batt((13.0, 13.0), 1.0), batt((13.0, 13.0, 13.0), 1.0)), 1.0)
+    assert out.status["eq_ah_g2"] == [None, 0.0]
+    assert out.commands.balancer_a == ((0.0, 0.0), (0.0, 0.0, 0.0))
+
+
+def test_deterministic() -> None:
+    def run() -> list[tuple[object, object]]:
+        ctrl = EqualizationController(EqualizationConfig(), pack())
+        seq: list[tuple[object, object]] = []
+        for k in range(400):
+            v = (12.97 + 0.0001 * (k % 7), 13.0, 13.01, 13.0)
+            out = ctrl.step(meas(float(k), batt(v, 5.0 - k * 0.02)), 1.0)
+            seq.append((out.commands, out.events))
+        return seq
+
+    assert run() == run()
