@@ -1,0 +1,782 @@
+"""Staged charging of a multi-battery pack on one busbar (``spec/staged_charging.md``).
+
+Tying unequally discharged batteries to the charging busbar at once makes the emptiest one draw
+a large current (and the fuller ones discharge into it). Instead, every control period the
+traction batteries are sorted and grouped into voltage *levels*; only the lowest level (the
+"first batteries") is charged up to just below the next level (S20), then the two lowest levels
+are charged together (S30), and so on until all batteries sit on one level, which is then
+charged in bounded steps (S40) and finally topped off to V_sat at constant voltage.
+
+Design decisions (the spec's [I]/[REC] points, see ``docs/staged_charging.md``):
+
+* **Voltages "while charging" (spec §7.7)** include the I·R rise, and batteries connected in
+  parallel all show the same terminal voltage. Decisions therefore use an IR-compensated
+  voltage ``v_est = v + i·R`` (``i`` positive = discharge), with ``R`` learned online from
+  current steps (relay closing/opening, setpoint changes): ``R = -ΔV/ΔI`` between consecutive
+  samples, filtered. The "battery is full" test uses the raw terminal voltage and the
+  termination current, as a CC/CV charger does.
+* **Levels** are built on the sorted ``v_est``: a new level starts when a voltage exceeds the
+  current level's lowest voltage by more than ``eps_eq``, so a level never spans more than
+  ``eps_eq`` (a level closed in parallel circulates at most ``eps_eq / R``).
+* **Latching**: each stage keeps its members and setpoints until its own exit condition
+  (S20: first batteries reach Vr1; S30: the connected levels merge or reach Vt; S40: reach
+  Vr2), or until the grouping changes structurally. Only then is a fresh decision taken, so
+  measurement noise cannot toggle relays every period.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from packpilot.control.types import (
+    CHARGER_OFF,
+    BatteryMeasurement,
+    ChargerCommand,
+    ChargerStatus,
+    Commands,
+    ControlOutput,
+    Event,
+    Measurements,
+    PackInfo,
+)
+from packpilot.errors import ConfigError
+
+REFERENCE_SERIES = 30
+"""Series cells of the ~100 V battery the battery-level defaults were written for; with
+``voltage_basis = "cell"`` an unset voltage setting defaults to its battery value / 30."""
+
+VOLTAGE_FIELDS: tuple[str, ...] = (
+    "delta_v1_v",
+    "d1_v",
+    "vc1_margin_v",
+    "vc2_margin_v",
+    "vc3_margin_v",
+    "step_v",
+    "delta_v2_v",
+    "eps_eq_v",
+    "reach_tol_v",
+    "v_sat_v",
+    "overvoltage_margin_v",
+)
+"""Settings that scale with the series count when ``voltage_basis = "cell"``."""
+
+
+class ChargingConfig(BaseModel):
+    """Staged-charging settings. Voltages are per battery (``voltage_basis = "battery"``, the
+    spec's ~100 V example values) or per series cell (``"cell"``, multiplied by each battery's
+    series-group count)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    voltage_basis: Literal["battery", "cell"] = Field(
+        default="battery",
+        description="'battery': voltage settings are battery volts; 'cell': volts per series "
+        "cell, multiplied by the battery's series count (unset ones default to the battery "
+        "value / 30).",
+    )
+    delta_v1_v: float = Field(
+        default=3.0, gt=0.0, description="ΔV1, first voltage threshold: V2 − Vr1 stays below it."
+    )
+    d1_v: float = Field(
+        default=1.0, ge=0.0, description="Vr1 = V2 − d1 (first regulation voltage); d1 < ΔV1."
+    )
+    vc1_margin_v: float = Field(
+        default=3.0, ge=0.0, description="Vc1 = Vr1 + this (S20 charging voltage, ≥ Vr1)."
+    )
+    vc2_margin_v: float = Field(
+        default=0.0, ge=0.0, description="Vc2 = Vt + this (S30 charging voltage, ≥ Vt)."
+    )
+    vc3_margin_v: float = Field(
+        default=0.0, ge=0.0, description="Vc3 = Vr2 + this (S40 charging voltage, ≥ Vr2)."
+    )
+    target_mode: Literal["levels", "saturation"] = Field(
+        default="levels",
+        description="S30 target Vt when no third level exists: 'levels' = V2 + step_v, "
+        "'saturation' = V_sat. With a third level, Vt is that level in both modes.",
+    )
+    step_v: float = Field(default=10.0, gt=0.0, description="Vt = V2 + step_v in 'levels' mode.")
+    delta_v2_v: float = Field(
+        default=10.0,
+        gt=0.0,
+        description="ΔV2: all batteries equal and V_sat − V > ΔV2 → S40 step to V + ΔV2.",
+    )
+    eps_eq_v: float = Field(
+        default=0.5, gt=0.0, description="Equal-voltage tolerance: widest span of one level."
+    )
+    reach_tol_v: float = Field(
+        default=0.5,
+        gt=0.0,
+        description="A CV target counts as reached within this (CV approaches it only "
+        "asymptotically); also the S40/top-off hysteresis and the 'at V_sat' band.",
+    )
+    v_sat_v: float = Field(default=120.0, gt=0.0, description="V_sat, saturated battery voltage.")
+    overvoltage_margin_v: float = Field(
+        default=1.0, gt=0.0, description="Terminal voltage above V_sat + this opens the relay."
+    )
+    charger_current_limit_a: float = Field(
+        default=20.0, gt=0.0, description="Current limit commanded to the charger (A)."
+    )
+    termination_current_a: float = Field(
+        default=1.0,
+        gt=0.0,
+        description="A battery at V_sat whose charge current has fallen to this is full (A).",
+    )
+    cell_v_limit_v: float = Field(
+        default=4.2, gt=0.0, description="Max cell voltage (per cell, never scaled): opens relay."
+    )
+    r_comp_initial_ohm: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="Initial internal-resistance estimate for IR compensation (Ω per battery).",
+    )
+    r_comp_adapt: bool = Field(
+        default=True, description="Learn each battery's resistance from current steps."
+    )
+    r_est_min_step_a: float = Field(
+        default=2.0, gt=0.0, description="Smallest current step used to estimate resistance (A)."
+    )
+    r_est_gain: float = Field(
+        default=0.5, gt=0.0, le=1.0, description="Filter gain of the resistance estimate (0..1]."
+    )
+    r_comp_max_ohm: float = Field(
+        default=1.0, gt=0.0, description="Estimates above this are rejected as implausible (Ω)."
+    )
+    dock_rest_s: float = Field(
+        default=2.0,
+        ge=0.0,
+        description="After docking, all relays stay open and the charger off this long so the "
+        "first sort uses rest voltages (no I·R) and the relay opening teaches R.",
+    )
+    charger_status_timeout_s: float = Field(
+        default=5.0, gt=0.0, description="Docked with no charger status this long → Fault."
+    )
+    charger_fault_clear_s: float = Field(
+        default=5.0,
+        ge=0.0,
+        description="Charger must report healthy this long after a fault before charging resumes.",
+    )
+    aux_soc_floor: float = Field(
+        default=0.3, ge=0.0, lt=1.0, description="Aux battery is charged whenever below this."
+    )
+    aux_soc_target: float = Field(
+        default=0.9, gt=0.0, le=1.0, description="Aux battery is charged to this while docked."
+    )
+    aux_soc_hysteresis: float = Field(
+        default=0.05, ge=0.0, lt=0.5, description="SOC hysteresis of aux charging start/stop."
+    )
+    aux_charge_current_a: float = Field(
+        default=5.0, gt=0.0, description="DC/DC current into the aux battery (A)."
+    )
+    aux_cv_v: float = Field(
+        default=14.4, gt=0.0, description="CV limit of the aux battery's terminal voltage (V)."
+    )
+    aux_cv_band_v: float = Field(
+        default=0.2, gt=0.0, description="Aux current tapers linearly to 0 over this band (V)."
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _cell_defaults(cls, data: Any) -> Any:
+        """Per-cell basis: unset voltage settings default to the battery default / 30."""
+        if not isinstance(data, dict) or data.get("voltage_basis") != "cell":
+            return data
+        out = dict(data)
+        for name in VOLTAGE_FIELDS:
+            if name not in out:
+                default = cls.model_fields[name].default
+                out[name] = float(default) / REFERENCE_SERIES
+        return out
+
+    @model_validator(mode="after")
+    def _check(self) -> ChargingConfig:
+        for name in (*VOLTAGE_FIELDS, "charger_current_limit_a", "termination_current_a"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be a finite number")
+        if self.eps_eq_v >= self.delta_v1_v:
+            raise ValueError(
+                f"eps_eq_v ({self.eps_eq_v}) must be smaller than delta_v1_v ({self.delta_v1_v})"
+            )
+        if self.d1_v >= self.delta_v1_v:
+            raise ValueError(
+                f"d1_v ({self.d1_v}) must be smaller than delta_v1_v ({self.delta_v1_v}): "
+                "the spec requires V2 − Vr1 < ΔV1"
+            )
+        if self.termination_current_a >= self.charger_current_limit_a:
+            raise ValueError(
+                f"termination_current_a ({self.termination_current_a}) must be smaller than "
+                f"charger_current_limit_a ({self.charger_current_limit_a})"
+            )
+        if self.aux_soc_floor >= self.aux_soc_target:
+            raise ValueError(
+                f"aux_soc_floor ({self.aux_soc_floor}) must be below aux_soc_target "
+                f"({self.aux_soc_target})"
+            )
+        if self.r_comp_initial_ohm > self.r_comp_max_ohm:
+            raise ValueError(
+                f"r_comp_initial_ohm ({self.r_comp_initial_ohm}) must not exceed "
+                f"r_comp_max_ohm ({self.r_comp_max_ohm})"
+            )
+        return self
+
+
+class Stage(enum.StrEnum):
+    """Charging stage; ``S20``/``S30``/``S40`` are the spec's steps."""
+
+    IDLE = "idle"
+    """Not docked: no opinion on relays, charger off."""
+    REST = "rest"
+    """Just docked: relays open, charger off, waiting ``dock_rest_s`` for rest voltages."""
+    HOLD = "hold"
+    """Docked but no battery can be charged right now (all invalid or absent)."""
+    S20 = "S20"
+    S30 = "S30"
+    S40 = "S40"
+    TOP_OFF = "top_off"
+    COMPLETE = "complete"
+    FAULT = "fault"
+
+
+@dataclass(frozen=True, slots=True)
+class Volts:
+    """Battery-level voltage settings resolved from the config and the series count."""
+
+    delta_v1: float
+    d1: float
+    k1: float
+    k2: float
+    k3: float
+    step: float
+    delta_v2: float
+    eps_eq: float
+    reach_tol: float
+    v_sat: float
+    overvoltage_margin: float
+
+    @classmethod
+    def resolve(cls, cfg: ChargingConfig, pack: PackInfo) -> Volts:
+        scale = 1.0
+        if cfg.voltage_basis == "cell":
+            series = set(pack.groups_per_battery)
+            if len(series) != 1:
+                raise ConfigError(
+                    "charging.voltage_basis = 'cell' needs batteries with one common series "
+                    f"count, got groups_per_battery={pack.groups_per_battery}"
+                )
+            scale = float(series.pop())
+        return cls(*(getattr(cfg, name) * scale for name in VOLTAGE_FIELDS))
+
+
+@dataclass(slots=True)
+class Plan:
+    """A latched stage: who is connected, the setpoints and why."""
+
+    stage: Stage
+    members: frozenset[int] = frozenset()
+    first: tuple[int, ...] = ()
+    second: tuple[int, ...] = ()
+    cmd_v: float = math.nan
+    vr1_v: float = math.nan
+    vt_v: float = math.nan
+    vr2_v: float = math.nan
+
+    @property
+    def target_v(self) -> float:
+        """The voltage this stage charges towards (for telemetry)."""
+        if self.stage is Stage.S20:
+            return self.vr1_v
+        if self.stage is Stage.S30:
+            return self.vt_v
+        if self.stage is Stage.S40:
+            return self.vr2_v
+        if self.stage is Stage.TOP_OFF:
+            return self.cmd_v
+        return math.nan
+
+    def same_as(self, other: Plan) -> bool:
+        return (
+            self.stage is other.stage
+            and self.members == other.members
+            and _same(self.cmd_v, other.cmd_v)
+        )
+
+
+def _same(a: float, b: float) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or a == b
+
+
+@dataclass(slots=True)
+class ChargingState:
+    """Everything the controller remembers between periods (explicit, for inspection)."""
+
+    plan: Plan = field(default_factory=lambda: Plan(Stage.IDLE))
+    r_ohm: list[float] = field(default_factory=list)
+    r_learned: list[bool] = field(default_factory=list)
+    prev_v: list[float] = field(default_factory=list)
+    prev_i: list[float] = field(default_factory=list)
+    done: list[str] = field(default_factory=list)
+    """Per battery: '' (chargeable) or why it is out for this session ('full', 'cell_limit',
+    'overvoltage'). Cleared on undocking."""
+    invalid: list[bool] = field(default_factory=list)
+    no_status_s: float = 0.0
+    fault_clear_s: float = 0.0
+    charger_fault: str = ""
+    session_s: float = 0.0
+    rested: bool = False
+    aux_charging: bool = False
+    aux_invalid: bool = False
+
+
+def cluster_levels(values: Sequence[tuple[int, float]], eps_v: float) -> list[list[int]]:
+    """Group ``(index, voltage)`` pairs into levels of span ≤ ``eps_v``, lowest level first.
+
+    Sorting is by voltage then index, so ties are deterministic. A level is anchored at its
+    lowest voltage (not single-linkage), so a chain of small gaps cannot grow one level wider
+    than ``eps_v``.
+    """
+    levels: list[list[int]] = []
+    anchor = -math.inf
+    for idx, v in sorted(values, key=lambda p: (p[1], p[0])):
+        if not levels or v - anchor > eps_v:
+            levels.append([idx])
+            anchor = v
+        else:
+            levels[-1].append(idx)
+    return levels
+
+
+def _fmt_idx(idx: Iterable[int]) -> str:
+    return ",".join(str(i) for i in sorted(idx))
+
+
+class ChargingController:
+    """Staged charging: S20 → S30 per level pair, S40 steps, CV top-off, relays per battery.
+
+    ``step`` is deterministic and never raises on bad measurements: a battery with a
+    non-finite reading is left out of the sort with its relay open (``Fault`` event once);
+    charger faults stop the charger and open every relay until the charger has reported
+    healthy for ``charger_fault_clear_s``.
+    """
+
+    def __init__(self, config: ChargingConfig, pack: PackInfo) -> None:
+        self.config = config
+        self.pack = pack
+        self.volts = Volts.resolve(config, pack)
+        n = pack.n_batteries
+        self.series = list(pack.groups_per_battery) or [1] * n
+        self.state = ChargingState(
+            r_ohm=[config.r_comp_initial_ohm] * n,
+            r_learned=[False] * n,
+            prev_v=[math.nan] * n,
+            prev_i=[math.nan] * n,
+            done=[""] * n,
+            invalid=[False] * n,
+        )
+
+    # ----------------------------------------------------------------------------------------
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        cfg, st, n = self.config, self.state, self.pack.n_batteries
+        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
+        t = meas.t_s
+        events: list[Event] = []
+        bats = list(meas.batteries[:n])
+        valid = [i < len(bats) and bats[i].present and bats[i].is_finite() for i in range(n)]
+        self._validity_events(bats, valid, t, events)
+        self._update_resistance(bats, valid)
+        r_use = self._r_for_compensation()
+        est = [
+            bats[i].voltage_v + bats[i].current_a * r_use[i] if valid[i] else math.nan
+            for i in range(n)
+        ]
+        aux_relay, aux_a = self._aux(meas, dt, events)
+
+        if not meas.docked:
+            if st.plan.stage is not Stage.IDLE:
+                self._set_plan(Plan(Stage.IDLE), t, events, reason="undocked")
+            self._reset_session()
+            return self._output((None,) * n, CHARGER_OFF, aux_relay, aux_a, est, events)
+
+        if st.plan.stage is not Stage.IDLE:
+            st.session_s += dt  # the first docked period starts the session clock at 0
+        fault = self._charger_health(meas.charger, dt)
+        if fault:
+            if st.plan.stage is not Stage.FAULT or fault != st.charger_fault:
+                events.append(
+                    Event(t, "Fault", message=f"charger: {fault}", data=_charger_data(meas))
+                )
+            st.charger_fault = fault
+            st.fault_clear_s = 0.0
+            self._set_plan(Plan(Stage.FAULT), t, events, reason=fault)
+            return self._output((False,) * n, CHARGER_OFF, aux_relay, aux_a, est, events)
+        if st.plan.stage is Stage.FAULT:
+            st.fault_clear_s += dt
+            if st.fault_clear_s < cfg.charger_fault_clear_s:
+                return self._output((False,) * n, CHARGER_OFF, aux_relay, aux_a, est, events)
+            st.charger_fault = ""  # the fresh decision below is reported as a stage change
+
+        if st.plan.stage is Stage.COMPLETE:
+            return self._output((False,) * n, CHARGER_OFF, aux_relay, aux_a, est, events)
+        if not st.rested:
+            if st.plan.stage is not Stage.REST:
+                self._set_plan(Plan(Stage.REST), t, events, reason="docked")
+            st.rested = st.session_s >= cfg.dock_rest_s
+            if not st.rested:
+                return self._output((False,) * n, CHARGER_OFF, aux_relay, aux_a, est, events)
+
+        self._battery_limits(bats, valid, t, events)
+        eligible = [i for i in range(n) if valid[i] and not st.done[i]]
+        plan = self._decide(est, eligible)
+        self._set_plan(plan, t, events)
+        if plan.stage is Stage.COMPLETE:
+            events.append(
+                Event(
+                    t,
+                    "ChargeComplete",
+                    message="all batteries full, relays opened",
+                    data={
+                        "session_s": st.session_s,
+                        "n_full": sum(1 for d in st.done if d),
+                    },
+                )
+            )
+        closed = tuple(i in plan.members for i in range(n))
+        if plan.members:
+            charger = ChargerCommand(
+                voltage_v=plan.cmd_v, current_a=cfg.charger_current_limit_a, enable=True
+            )
+        else:
+            charger = CHARGER_OFF
+        return self._output(closed, charger, aux_relay, aux_a, est, events)
+
+    # ----------------------------------------------------------------------------------------
+    def _decide(self, est: list[float], eligible: list[int]) -> Plan:
+        """Keep the latched plan while its exit condition is unmet, else decide afresh."""
+        st = self.state
+        if not eligible:
+            if any(st.done):
+                return Plan(Stage.COMPLETE)
+            return Plan(Stage.HOLD)
+        if self._keep(st.plan, est, eligible):
+            if st.plan.stage is Stage.TOP_OFF:
+                return Plan(Stage.TOP_OFF, frozenset(eligible), cmd_v=self.volts.v_sat)
+            return st.plan
+        return self._fresh(est, eligible)
+
+    def _keep(self, plan: Plan, est: list[float], eligible: list[int]) -> bool:
+        vs = self.volts
+        if plan.stage not in (Stage.S20, Stage.S30, Stage.S40, Stage.TOP_OFF):
+            return False
+        elig = set(eligible)
+        if plan.stage is Stage.TOP_OFF:
+            member_v = [est[i] for i in eligible]
+            return max(member_v) - min(member_v) <= vs.delta_v1
+        if not plan.members <= elig:
+            return False
+        member_v = [est[i] for i in plan.members]
+        lo, hi = min(member_v), max(member_v)
+        others = elig - plan.members
+        if any(est[i] <= hi + vs.eps_eq for i in others):
+            return False  # another battery is now at or below the connected level: regroup
+        if plan.stage is Stage.S20:
+            return lo < plan.vr1_v
+        if plan.stage is Stage.S30:
+            merged = hi - lo <= vs.eps_eq
+            reached = lo >= plan.vt_v - vs.reach_tol
+            return not (merged or reached)
+        # S40
+        return lo < plan.vr2_v - vs.reach_tol and hi - lo <= vs.delta_v1
+
+    def _fresh(self, est: list[float], eligible: list[int]) -> Plan:
+        cfg, vs = self.config, self.volts
+        levels = cluster_levels([(i, est[i]) for i in eligible], vs.eps_eq)
+        if len(levels) == 1:
+            members = frozenset(levels[0])
+            vp = min(est[i] for i in members)
+            if vs.v_sat - vp > vs.delta_v2 + vs.reach_tol:
+                vr2 = min(vs.v_sat, vp + vs.delta_v2)
+                return Plan(
+                    Stage.S40,
+                    members,
+                    first=tuple(sorted(members)),
+                    cmd_v=min(vs.v_sat, vr2 + vs.k3),
+                    vr2_v=vr2,
+                )
+            return Plan(Stage.TOP_OFF, members, first=tuple(sorted(members)), cmd_v=vs.v_sat)
+        g1, g2 = levels[0], levels[1]
+        v1 = max(est[i] for i in g1)
+        v2 = min(est[i] for i in g2)
+        vr1 = v2 - vs.d1
+        if v1 < vr1:
+            return Plan(
+                Stage.S20,
+                frozenset(g1),
+                first=tuple(sorted(g1)),
+                second=tuple(sorted(g2)),
+                cmd_v=min(vs.v_sat, vr1 + vs.k1),
+                vr1_v=vr1,
+            )
+        if len(levels) >= 3:
+            vt = min(est[i] for i in levels[2])
+        elif cfg.target_mode == "levels":
+            vt = v2 + vs.step
+        else:
+            vt = vs.v_sat
+        vt = min(vt, vs.v_sat)
+        return Plan(
+            Stage.S30,
+            frozenset(g1) | frozenset(g2),
+            first=tuple(sorted(g1)),
+            second=tuple(sorted(g2)),
+            cmd_v=min(vs.v_sat, vt + vs.k2),
+            vr1_v=vr1,
+            vt_v=vt,
+        )
+
+    def _set_plan(self, plan: Plan, t: float, events: list[Event], reason: str = "") -> None:
+        st = self.state
+        if not plan.same_as(st.plan):
+            events.append(
+                Event(
+                    t,
+                    "StageChanged",
+                    message=f"{st.plan.stage} -> {plan.stage}",
+                    data={
+                        "stage": str(plan.stage),
+                        "previous": str(st.plan.stage),
+                        "first": _fmt_idx(plan.first),
+                        "second": _fmt_idx(plan.second),
+                        "closed": _fmt_idx(plan.members),
+                        "vr1_v": plan.vr1_v,
+                        "vt_v": plan.vt_v,
+                        "vr2_v": plan.vr2_v,
+                        "cmd_v": plan.cmd_v,
+                        "reason": reason,
+                    },
+                )
+            )
+        st.plan = plan
+
+    # ----------------------------------------------------------------------------------------
+    def _validity_events(
+        self, bats: list[BatteryMeasurement], valid: list[bool], t: float, events: list[Event]
+    ) -> None:
+        st = self.state
+        for i, ok in enumerate(valid):
+            bad = not ok and i < len(bats) and bats[i].present
+            if bad and not st.invalid[i]:
+                events.append(
+                    Event(
+                        t,
+                        "Fault",
+                        battery=i,
+                        message="non-finite measurement: left out of charging, relay open",
+                        data={"reason": "invalid_measurement"},
+                    )
+                )
+            st.invalid[i] = bad
+
+    def _update_resistance(self, bats: list[BatteryMeasurement], valid: list[bool]) -> None:
+        """R = −ΔV/ΔI across a current step (V = OCV − I·R with I positive = discharge)."""
+        cfg, st = self.config, self.state
+        for i, ok in enumerate(valid):
+            if not ok:
+                st.prev_v[i] = st.prev_i[i] = math.nan
+                continue
+            v, cur = bats[i].voltage_v, bats[i].current_a
+            di = cur - st.prev_i[i]
+            if cfg.r_comp_adapt and math.isfinite(di) and abs(di) >= cfg.r_est_min_step_a:
+                r_new = -(v - st.prev_v[i]) / di
+                if 0.0 <= r_new <= cfg.r_comp_max_ohm:
+                    gain = cfg.r_est_gain if st.r_learned[i] else 1.0  # first step: take it
+                    st.r_ohm[i] += gain * (r_new - st.r_ohm[i])
+                    st.r_learned[i] = True
+            st.prev_v[i], st.prev_i[i] = v, cur
+
+    def _r_for_compensation(self) -> list[float]:
+        """Own estimate once learned; before that the mean of the learned ones (batteries of
+        one pack are alike), else ``r_comp_initial_ohm``. A battery that joins a running group
+        may see too small a current step to learn from, yet already carries current."""
+        st = self.state
+        learned = [r for r, ok in zip(st.r_ohm, st.r_learned, strict=True) if ok]
+        fallback = sum(learned) / len(learned) if learned else self.config.r_comp_initial_ohm
+        return [r if ok else fallback for r, ok in zip(st.r_ohm, st.r_learned, strict=True)]
+
+    def _battery_limits(
+        self, bats: list[BatteryMeasurement], valid: list[bool], t: float, events: list[Event]
+    ) -> None:
+        """Latch out batteries that are full, hit the cell limit or are over-voltage."""
+        cfg, vs, st = self.config, self.volts, self.state
+        for i, ok in enumerate(valid):
+            if not ok or st.done[i]:
+                continue
+            b = bats[i]
+            reason = ""
+            if b.max_cell_v >= cfg.cell_v_limit_v:
+                reason = "cell_limit"
+            elif b.voltage_v >= vs.v_sat + vs.overvoltage_margin:
+                reason = "overvoltage"
+            elif (
+                b.voltage_v >= vs.v_sat - vs.reach_tol and -b.current_a <= cfg.termination_current_a
+            ):
+                reason = "full"
+            if not reason:
+                continue
+            st.done[i] = reason
+            events.append(
+                Event(
+                    t,
+                    "Fault" if reason == "overvoltage" else "BatteryFull",
+                    battery=i,
+                    message=f"relay opened: {reason}",
+                    data={
+                        "reason": reason,
+                        "voltage_v": b.voltage_v,
+                        "current_a": b.current_a,
+                        "max_cell_v": b.max_cell_v,
+                    },
+                )
+            )
+
+    def _charger_health(self, status: ChargerStatus | None, dt: float) -> str:
+        """'' when the charger is usable, else why not."""
+        cfg, st = self.config, self.state
+        if status is None:
+            st.no_status_s += dt
+            if st.no_status_s >= cfg.charger_status_timeout_s:
+                return "lost (no status)"
+            return ""
+        st.no_status_s = 0.0
+        if not status.online:
+            return "offline (status timeout)"
+        flags = [
+            name
+            for name in (
+                "hardware_failure",
+                "over_temperature",
+                "input_voltage_fault",
+                "battery_not_detected",
+                "communication_timeout",
+            )
+            if getattr(status, name)
+        ]
+        return ",".join(flags)
+
+    def _aux(
+        self, meas: Measurements, dt: float, events: list[Event]
+    ) -> tuple[bool | None, float | None]:
+        """Independent aux channel: charge below the floor always, to the target when docked."""
+        cfg, st = self.config, self.state
+        aux = meas.aux
+        if not self.pack.has_aux or aux is None:
+            return None, None
+        if not aux.is_finite():
+            if not st.aux_invalid:
+                events.append(
+                    Event(
+                        meas.t_s,
+                        "Fault",
+                        message="aux battery: non-finite measurement, aux charging stopped",
+                        data={"reason": "aux_invalid_measurement"},
+                    )
+                )
+            st.aux_invalid = True
+            st.aux_charging = False
+            return False, 0.0
+        st.aux_invalid = False
+        stop_at = cfg.aux_soc_target if meas.docked else cfg.aux_soc_floor + cfg.aux_soc_hysteresis
+        start_below = (
+            cfg.aux_soc_target - cfg.aux_soc_hysteresis if meas.docked else cfg.aux_soc_floor
+        )
+        if st.aux_charging:
+            st.aux_charging = aux.soc < stop_at
+        else:
+            st.aux_charging = aux.soc < start_below or aux.soc < cfg.aux_soc_floor
+        if not st.aux_charging:
+            return False, 0.0
+        taper = min(1.0, max(0.0, (cfg.aux_cv_v - aux.voltage_v) / cfg.aux_cv_band_v))
+        return True, cfg.aux_charge_current_a * taper
+
+    def _reset_session(self) -> None:
+        st = self.state
+        st.done = [""] * self.pack.n_batteries
+        st.no_status_s = 0.0
+        st.fault_clear_s = 0.0
+        st.charger_fault = ""
+        st.session_s = 0.0
+        st.rested = False
+
+    def _output(
+        self,
+        closed: tuple[bool | None, ...],
+        charger: ChargerCommand,
+        aux_relay: bool | None,
+        aux_a: float | None,
+        est: list[float],
+        events: list[Event],
+    ) -> ControlOutput:
+        st, n = self.state, self.pack.n_batteries
+        plan = st.plan
+        group: list[int] = []
+        for i in range(n):
+            if st.done[i] or st.invalid[i]:
+                group.append(-1)
+            elif i in plan.first:
+                group.append(1)
+            elif i in plan.second:
+                group.append(2)
+            else:
+                group.append(0)
+        status: dict[str, Sequence[float | int | str | bool | None]] = {
+            "chg_stage": [str(plan.stage)] * n,
+            "chg_group": group,
+            "chg_relay": list(closed),
+            "chg_est_v": est,
+            "chg_r_ohm": self._r_for_compensation(),
+            "chg_done": list(st.done),
+            "chg_cmd_v": [charger.voltage_v if charger.enable else 0.0] * n,
+            "chg_target_v": [plan.target_v] * n,
+        }
+        return ControlOutput(
+            commands=Commands(
+                chg_on=closed,
+                dsg_on=closed,
+                charger=charger,
+                aux_relay_closed=aux_relay,
+                aux_charge_a=aux_a,
+            ),
+            events=tuple(events),
+            status=status,
+        )
+
+
+def _charger_data(meas: Measurements) -> dict[str, float | int | str | bool | None]:
+    c = meas.charger
+    if c is None:
+        return {"status": "none"}
+    return {
+        "online": c.online,
+        "output_v": c.output_v,
+        "output_a": c.output_a,
+        "hardware_failure": c.hardware_failure,
+        "over_temperature": c.over_temperature,
+        "input_voltage_fault": c.input_voltage_fault,
+        "battery_not_detected": c.battery_not_detected,
+        "communication_timeout": c.communication_timeout,
+    }
+
+
+__all__ = [
+    "REFERENCE_SERIES",
+    "ChargingConfig",
+    "ChargingController",
+    "ChargingState",
+    "Plan",
+    "Stage",
+    "Volts",
+    "cluster_levels",
+]
