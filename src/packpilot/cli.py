@@ -159,6 +159,77 @@ def replay_equalization(
     _replay("equalization", log, config, out, as_json)
 
 
+@app.command()
+def campaign(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    runs: Annotated[int, typer.Option(help="number of runs (run indices 0..N-1)")],
+    spread: Annotated[
+        str | None,
+        typer.Option(help="parameter spreads, e.g. capacity=5%,r0=10%,soc0=0.05,ambient_c=-10:35"),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="campaign seed (run i draws from [seed, i])")] = 0,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="auto | processes | threads | sync | a Dask address tcp://host:8786"),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Parquet result file (default CONFIG_campaign.parquet)")
+    ] = None,
+    resume: Annotated[bool, typer.Option(help="keep finished runs, compute the rest")] = False,
+    workers: Annotated[int | None, typer.Option(help="local workers (default: cores)")] = None,
+    batch: Annotated[int | None, typer.Option(help="runs per task (default: automatic)")] = None,
+    max_runs: Annotated[
+        int | None, typer.Option(help="compute at most this many runs now (finish with --resume)")
+    ] = None,
+    duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+    no_progress: Annotated[bool, typer.Option(help="hide the progress bar")] = False,
+) -> None:
+    """Monte-Carlo campaign: N closed-loop runs over parameter spreads (Dask), to Parquet."""
+
+    def go() -> None:
+        from packpilot.config import load_config
+        from packpilot.sim import campaign as cp
+
+        cfg = load_config(config)
+        if duration is not None:
+            cfg = cfg.model_copy(
+                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
+            )
+        target = out if out is not None else Path(f"{config.stem}_campaign.parquet")
+        show = not (as_json or no_progress) and sys.stdout.isatty()
+        try:
+            with cp.rich_progress(show) as progress:
+                report = cp.run_campaign(
+                    cfg,
+                    runs,
+                    target,
+                    spreads=spread,
+                    seed=seed,
+                    scheduler=scheduler,
+                    workers=workers,
+                    batch=batch,
+                    resume=resume,
+                    limit=max_runs,
+                    on_progress=progress,
+                )
+        except KeyboardInterrupt:
+            typer.echo(
+                f"interrupted: finished runs kept; rerun with --resume --out {target}", err=True
+            )
+            raise typer.Exit(code=130) from None
+        png = cp.plot_histograms(report.table, target.with_suffix(".png"))
+        if as_json:
+            typer.echo(json.dumps(cp.report_to_dict(report, png), default=_json_default))
+        else:
+            cp.print_summary(report)
+            typer.echo(
+                f"wrote {report.out} ({report.table.num_rows} runs)" + (f", {png}" if png else "")
+            )
+
+    _guard(go)
+
+
 def main() -> None:
     app()
 
