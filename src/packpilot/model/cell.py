@@ -500,6 +500,11 @@ def _frac(x: float, ax: F64, inv: float) -> tuple[int, float]:
         if not g > 0.0:
             g = 0.0
         i = int(g) if g < n - 2 else n - 2
+        # same bracket as a binary search despite rounding in f or noise in the nodes
+        if i > 0 and x < ax[i]:
+            i -= 1
+        elif i < n - 2 and x >= ax[i + 1]:
+            i += 1
         return i, f - i
     lo, hi = 0, n - 1
     while hi - lo > 1:
@@ -530,17 +535,10 @@ def _interp1(x: float, ax: F64, inv: float, y: F64, clamp: bool) -> float:
 
 
 @_jit_inline
-def _planes2(
-    x: float, z: float, ax: F64, az: F64, invx: float, invz: float, y: F64, clamp: bool
-) -> tuple[float, float, float, float]:  # fmt: skip
-    """Bilinear table: values at z's two bracket nodes (x interpolated), z fraction, 1/dz."""
-    i, t = _frac(x, ax, invx)
-    j, u = _frac(z, az, invz)
-    t = _lim(t, clamp)
+def _col2(y: F64, i: int, t: float, j: int) -> tuple[float, float]:
+    """Bilinear table: values at z nodes j and j+1, interpolated along x (bracket i, fraction t)."""
     a0, a1 = y[i, j], y[i, j + 1]
-    c0 = a0 + t * (y[i + 1, j] - a0)
-    c1 = a1 + t * (y[i + 1, j + 1] - a1)
-    return c0, c1, u, invz if invz > 0.0 else 1.0 / (az[j + 1] - az[j])
+    return a0 + t * (y[i + 1, j] - a0), a1 + t * (y[i + 1, j + 1] - a1)
 
 
 @_jit_inline
@@ -549,9 +547,7 @@ def _planes3(
 ) -> tuple[float, float]:  # fmt: skip
     """Table m at (I, SoC) on the two temperature nodes bracketing T.
 
-    The flat layout [T][I][SoC][table] puts all tables of one corner side by side. Reading
-    the value at any T' by ``p0 + t' (p1 - p0)`` within T's bracket lets one lookup serve
-    both the predictor (T at step start) and the corrector (T at mid-step).
+    The flat layout [T][I][SoC][table] puts all tables of one corner side by side.
     """
     b = base + m
     c00 = flat[b] + v * (flat[b + dk] - flat[b])
@@ -573,7 +569,9 @@ def _ocv_scalar(
     if math.isnan(t_ref):
         return u_ref
     x = u_ref if imeta[1] == 1 else soc
-    c0, c1, u, _ = _planes2(x, temp, du_x, du_t, fmeta[4], fmeta[5], du_y, clamp)
+    i, t = _frac(x, du_x, fmeta[4])
+    j, u = _frac(temp, du_t, fmeta[5])
+    c0, c1 = _col2(du_y, i, _lim(t, clamp), j)
     return float(u_ref + (temp - t_ref) * (c0 + _lim(u, clamp) * (c1 - c0)))
 
 
@@ -642,15 +640,21 @@ def _step_scalar(
     xd = u_ref if imeta[1] == 1 else sm
     # predictor: heat at step start -> cell temperature at mid-step
     p0, p1 = _planes3(flat, 0, base, di, dj, dk, u, v)
-    d0, d1, w, inv_dw = _planes2(xd, tc, du_x, du_t, fmeta[4], fmeta[5], du_y, clamp)
+    xi, xt = _frac(xd, du_x, fmeta[4])
+    xt = _lim(xt, clamp)
+    jd, w = _frac(tc, du_t, fmeta[5])
+    d0, d1 = _col2(du_y, xi, xt, jd)
     r0 = (p0 + t * (p1 - p0)) * r_scale
     q0 = cur * (cur * r0 + eta1 + eta2 - (tc + 273.15) * (d0 + _lim(w, clamp) * (d1 - d0)))
     yc = tc - ta
     yj = tj - ta
-    dtm = th[6] * yc + th[7] * yj + th[10] * q0 - yc  # T_mid - T_start
-    inv_t = fmeta[0] if fmeta[0] > 0.0 else 1.0 / (ax_t[i + 1] - ax_t[i])
-    tm = _lim(tu + dtm * inv_t, clamp)
-    # corrector: everything at (T_mid, I, SoC_mid), T_mid read within T's bracket
+    tmid = ta + th[6] * yc + th[7] * yj + th[10] * q0
+    # corrector: every table at (T_mid, I, SoC_mid); the brackets rarely change
+    im, tm = _frac(tmid, ax_t, fmeta[0])
+    tm = _lim(tm, clamp)
+    if im != i:
+        base += (im - i) * di
+        p0, p1 = _planes3(flat, 0, base, di, dj, dk, u, v)
     heat = cur * cur * (p0 + tm * (p1 - p0)) * r_scale
     p0, p1 = _planes3(flat, 1, base, di, dj, dk, u, v)
     r = p0 + tm * (p1 - p0)
@@ -664,8 +668,10 @@ def _step_scalar(
         p0, p1 = _planes3(flat, 4, base, di, dj, dk, u, v)
         eta2_new, mean = _rc_branch(eta2, cur, r, p0 + tm * (p1 - p0), r_scale, h, inv_h)
         heat += cur * mean
-    dudt = d0 + _lim(w + dtm * inv_dw, clamp) * (d1 - d0)
-    heat -= cur * (tc + dtm + 273.15) * dudt
+    jm, w = _frac(tmid, du_t, fmeta[5])
+    if jm != jd:
+        d0, d1 = _col2(du_y, xi, xt, jm)
+    heat -= cur * (tmid + 273.15) * (d0 + _lim(w, clamp) * (d1 - d0))
     tc_new = ta + th[0] * yc + th[1] * yj + th[4] * heat
     tj_new = ta + th[2] * yc + th[3] * yj + th[5] * heat
     return soc1, eta1_new, eta2_new, tc_new, tj_new, heat
@@ -879,27 +885,22 @@ def _np_lim(t: F64, clamp: bool) -> F64:
     return np.clip(t, 0.0, 1.0) if clamp else t
 
 
-def _np_interp2(
-    x: F64, z: F64, ax: F64, az: F64, y: F64, clamp: bool, dz: F64 | float = 0.0
-) -> F64:
-    """Bilinear y(x, z + dz) with z + dz read within z's bracket (as the kernels do)."""
+def _np_interp2(x: F64, z: F64, ax: F64, az: F64, y: F64, clamp: bool) -> F64:
+    """Bilinear y(x, z)."""
     i, t = _np_locate(x, ax)
     j, u = _np_locate(z, az)
-    t = _np_lim(t, clamp)
-    u = _np_lim(u + dz / (az[j + 1] - az[j]), clamp)
+    t, u = _np_lim(t, clamp), _np_lim(u, clamp)
     a = y[i, j] * (1 - u) + y[i, j + 1] * u
     b = y[i + 1, j] * (1 - u) + y[i + 1, j + 1] * u
     return a * (1 - t) + b * t
 
 
-def _np_interp3(
-    params: CellParams, key: str, temp: F64, cur: F64, soc: F64, dtemp: F64 | float = 0.0
-) -> F64:
-    """Trilinear table at (temp + dtemp, cur, soc), temp + dtemp read within temp's bracket."""
+def _np_interp3(params: CellParams, key: str, temp: F64, cur: F64, soc: F64) -> F64:
+    """Trilinear table at (temp, cur, soc)."""
     clamp = params.extrapolation == "clamp"
     tab = getattr(params, key)
     i, t = _np_locate(temp, params.rc_temp_c)
-    t = _np_lim(t + dtemp / (params.rc_temp_c[i + 1] - params.rc_temp_c[i]), clamp)
+    t = _np_lim(t, clamp)
     j, u = _np_locate(cur, params.rc_current_a)
     k, v = _np_locate(soc, params.rc_soc)
     u, v = _np_lim(u, clamp), _np_lim(v, clamp)
@@ -969,20 +970,20 @@ def advance_numpy(
         - (tc + KELVIN) * _np_interp2(x, tc, *du_args)
     )
     h11, h12, _, _, hkc, _ = step_coefficients(params.thermal, 0.5 * h)
-    dtm = h11 * yc + h12 * yj + hkc * q0 - yc
+    tm = ta + h11 * yc + h12 * yj + hkc * q0
     # corrector: tables at (T_mid, I, SoC_mid), exact RC and thermal steps
-    heat = cur**2 * _np_interp3(params, "r0_ohm", tc, cur, sm, dtm) * rs
+    heat = cur**2 * _np_interp3(params, "r0_ohm", tm, cur, sm) * rs
     eta1 = np.empty_like(state.eta_v)
     for b, (rk, ck) in enumerate((("r1_ohm", "c1_f"), ("r2_ohm", "c2_f"))[: params.n_rc]):
-        r = _np_interp3(params, rk, tc, cur, sm, dtm) * rs
-        c = _np_interp3(params, ck, tc, cur, sm, dtm) / rs
+        r = _np_interp3(params, rk, tm, cur, sm) * rs
+        c = _np_interp3(params, ck, tm, cur, sm) / rs
         tau = r * c
         decay = np.exp(-h / tau)
         target = cur * r
         eta1[:, b] = target + (state.eta_v[:, b] - target) * decay
         mean = target + (state.eta_v[:, b] - target) * (1 - decay) * tau / h
         heat = heat + cur * mean
-    heat = heat - cur * (tc + dtm + KELVIN) * _np_interp2(x, tc, *du_args, dz=dtm)
+    heat = heat - cur * (tm + KELVIN) * _np_interp2(x, tm, *du_args)
     e11, e12, e21, e22, kc, kj = step_coefficients(params.thermal, h)
     new = CellState(
         soc=soc1,
