@@ -211,7 +211,7 @@ def test_non_positive_duration_is_rejected(t_max_s: float) -> None:
         ProtectionConfig(
             parameters=(
                 DEFAULT_PARAMETERS[0],
-                {"name": "P2", "cutoff_v": 3.0, "t_max_s": t_max_s},  # type: ignore[arg-type]
+                {"name": "P2", "cutoff_v": 3.0, "t_max_s": t_max_s},
                 DEFAULT_PARAMETERS[2],
             )
         )
