@@ -42,7 +42,7 @@ STRATEGIES: dict[str, dict[str, Any] | None] = {
     "fixed_conservative": _fixed(3.2, 5.0),
     "fixed_aggressive": _fixed(2.8, 15.0),
     # Diagnostic: the spec's grid and times with cut-offs raised so that, with this cell's
-    # ~3-8 mOhm DCIR, a heavy-load trip happens near 0 % SOC rather than below it.
+    # ~3-10 mOhm DCIR, a heavy-load trip happens near 0 % SOC rather than below it.
     "method_cell_matched": {
         "parameters": [
             {"name": "P1", "cutoff_v": 3.05, "t_max_s": 15},
