@@ -444,3 +444,55 @@ def test_recording_is_fast(tmp_path: Path) -> None:
     elapsed = time.perf_counter() - t0
     rec.close()
     assert elapsed < 6.0, f"recording 36,000 steps took {elapsed:.2f} s"
+
+
+def _one_battery(i: int, status: dict[str, Any]) -> StepSample:
+    return StepSample(
+        i, float(i), 1.0, 0.0, 0.0, 0.0, 0.0, np.ones((2, N_C)), np.ones((2, 1)), status=status
+    )
+
+
+def test_status_is_stored_on_change_and_forward_filled(tmp_path: Path) -> None:
+    db = tmp_path / "t.sqlite"
+    samples = []
+    for i in range(50):
+        st_: dict[str, Any] = {"mode": ("idle" if i < 30 else "run", "idle")}
+        if i >= 10:
+            st_["late"] = (math.nan, float(i // 20))  # appears at step 10
+        samples.append(_one_battery(i, st_))
+    record_run(db, samples, events=[], flush_every=7)
+    # mode: 2 rows at step 0, 1 change at step 30; late: 2 rows at step 10, changes at 20, 40
+    assert _count(db, "status_samples") == 3 + 4
+    tr = load_run(db).trace
+    assert_same_trace(tr, Trace.from_samples(samples))
+    assert len(tr.status["late"]) == 40
+
+
+STATUS_STRATEGIES = {
+    "float": st.floats(allow_infinity=True, allow_nan=True, width=64),
+    "int": st.one_of(st.none(), st.integers(-(2**62), 2**62)),
+    "bool": st.one_of(st.none(), st.booleans()),
+    "str": st.one_of(st.none(), st.text(max_size=5)),
+}
+
+
+@settings(max_examples=60, deadline=None)
+@given(n_steps=st.integers(1, 8), data=st.data())
+def test_any_status_round_trips(n_steps: int, data: st.DataObject) -> None:
+    """Channels keep one type each (as controllers do); values of that type survive exactly.
+
+    Values repeat often (small pools) so the change-only storage is exercised.
+    """
+    kinds = data.draw(st.lists(st.sampled_from(sorted(STATUS_STRATEGIES)), min_size=3, max_size=3))
+    pools = [data.draw(st.lists(STATUS_STRATEGIES[k], min_size=1, max_size=3)) for k in kinds]
+    samples = []
+    for i in range(n_steps):
+        status = {
+            f"c{j}": tuple(data.draw(st.sampled_from(pool)) for _ in range(2))
+            for j, pool in enumerate(pools)
+        }
+        samples.append(_one_battery(i, status))
+    with tempfile.TemporaryDirectory() as d:
+        db = Path(d) / "t.sqlite"
+        record_run(db, samples, events=[], flush_every=2)
+        assert_same_trace(load_run(db).trace, Trace.from_samples(samples))

@@ -131,6 +131,9 @@ def _versions() -> dict[str, str]:
     return {"packpilot": pp, "numpy": np.__version__, "python": platform.python_version()}
 
 
+_UNSET = object()
+
+
 def _status_cell(value: Any) -> tuple[StatusValue, str]:
     """Value to store (numbers as SQL numbers, text as TEXT, None/NaN as NULL) and its kind."""
     if value is None:
@@ -195,6 +198,8 @@ class SQLiteRecorder:
         self._status_rows: list[tuple[Any, ...]] = []
         self._event_rows: list[tuple[Any, ...]] = []
         self._status_kinds: dict[str, set[str]] = {}
+        self._status_prev: dict[tuple[str, int], Any] = {}
+        self._status_prev_seq: dict[str, tuple[Any, ...]] = {}
 
     @property
     def run_id(self) -> int | None:
@@ -231,6 +236,8 @@ class SQLiteRecorder:
         assert run_id is not None
         self._run_id = run_id
         self._status_kinds = {}
+        self._status_prev = {}
+        self._status_prev_seq = {}
         self._bat_buf = None  # re-sized from the first sample of the new run
         return run_id
 
@@ -266,27 +273,47 @@ class SQLiteRecorder:
             self._aux_buf[k] = sample.aux
             self._aux_steps.append(k)
         if sample.status:
-            kinds = self._status_kinds
-            rows = self._status_rows
-            for channel, values in sample.status.items():
-                seen = kinds.get(channel)
-                if seen is None:
-                    seen = kinds[channel] = set()
-                for i, v in enumerate(values):
-                    t = type(v)
-                    if t is float:
-                        seen.add("float")
-                        rows.append((run_id, step, i, channel, None if v != v else v))
-                    elif t is str:
-                        seen.add("str")
-                        rows.append((run_id, step, i, channel, v))
-                    else:
-                        stored, kind = _status_cell(v)
-                        seen.add(kind)
-                        rows.append((run_id, step, i, channel, stored))
+            self._record_status(run_id, step, sample.status)
         self._pending = k + 1
         if self._pending >= self.flush_every:
             self.flush()
+
+    def _record_status(self, run_id: int, step: int, status: Mapping[str, Sequence[Any]]) -> None:
+        """Store a status value only when it differs from the last one stored (same type too).
+
+        Most channels (stage, mode, tripped flags) change a few times per run; writing every
+        step made status the bulk of the rows. Readers forward-fill (see docs/telemetry.md).
+        """
+        kinds = self._status_kinds
+        prev = self._status_prev
+        prev_seq = self._status_prev_seq
+        rows = self._status_rows
+        for channel, seq in status.items():
+            values = tuple(seq)
+            # Whole-tuple compare in C first: an unchanged channel costs one comparison. It
+            # treats 1 == 1.0 == True as unchanged, so a change of type alone is not recorded.
+            if prev_seq.get(channel) == values:
+                continue
+            prev_seq[channel] = values
+            seen = kinds.get(channel)
+            if seen is None:
+                seen = kinds[channel] = set()
+            for i, v in enumerate(values):
+                key = (channel, i)
+                p = prev.get(key, _UNSET)
+                if type(v) is type(p) and (v == p or (v != v and p != p)):
+                    continue
+                prev[key] = v
+                if type(v) is float:
+                    seen.add("float")
+                    rows.append((run_id, step, i, channel, None if v != v else v))
+                elif type(v) is str:
+                    seen.add("str")
+                    rows.append((run_id, step, i, channel, v))
+                else:
+                    stored, kind = _status_cell(v)
+                    seen.add(kind)
+                    rows.append((run_id, step, i, channel, stored))
 
     def record_events(self, events: Sequence[Event]) -> None:
         """Buffer events; they are written with the next flush."""
@@ -455,12 +482,49 @@ def _restore_status(value: Any, kinds: set[str]) -> StatusValue:
     return value  # type: ignore[no-any-return]
 
 
+def _forward_fill_status(
+    rows: list[tuple[str, int, int, Any]],
+    steps: NDArray[np.int64],
+    kinds: dict[str, set[str]],
+) -> dict[str, list[Sequence[StatusValue]]]:
+    """Rebuild one tuple per step per channel from change-only rows, from its first step on."""
+    by_channel: dict[str, dict[int, list[tuple[int, StatusValue]]]] = {}
+    for channel, step, b, value in rows:
+        restored = _restore_status(value, kinds.get(channel, set()))
+        by_channel.setdefault(channel, {}).setdefault(step, []).append((b, restored))
+    step_list = steps.tolist()
+    out: dict[str, list[Sequence[StatusValue]]] = {}
+    # The recorder's channel order (first seen), as Trace.from_samples keeps it.
+    for channel in [*kinds, *sorted(set(by_channel) - set(kinds))]:
+        changes = by_channel.get(channel)
+        if not changes:
+            continue
+        first = min(changes)
+        current: list[StatusValue] = []
+        seqs: list[Sequence[StatusValue]] = []
+        last: tuple[StatusValue, ...] = ()
+        for st in step_list:
+            if st < first:
+                continue
+            upd = changes.get(st)
+            if upd is not None:
+                for b, v in upd:
+                    while len(current) <= b:
+                        current.append(None)
+                    current[b] = v
+                last = tuple(current)
+            seqs.append(last)
+        out[channel] = seqs
+    return out
+
+
 def load_run(path: Path | str, run_id: int | None = None) -> Result:
     """Rebuild a run's ``Result`` (latest run when ``run_id`` is None).
 
-    Known loss: a status value that was ``None`` in a channel that also carried NaN comes back
-    as ``None`` (SQLite stores NaN as NULL); a status channel is only present for steps that
-    recorded it, as in ``Trace.from_samples``.
+    Known losses: a status value that was ``None`` in a channel that also carried NaN comes
+    back as ``None`` (SQLite stores NaN as NULL); status is stored on change, so a channel runs
+    from the first step that carried it to the end of the run, and a per-step sequence never
+    shrinks (a battery index once seen keeps its last value).
     """
     return _load(path, run_id)[0]
 
@@ -523,27 +587,15 @@ def _load(path: Path | str, run_id: int | None) -> tuple[Result, NDArray[np.int6
             aux[ai, :] = _float_matrix([r[1:] for r in aux_rows], n_c)
 
         kinds = {k: set(v) for k, v in json.loads(kinds_j or "{}").items()}
-        status: dict[str, list[Sequence[StatusValue]]] = {}
-        cur = conn.execute(
-            "SELECT channel, step, battery, value FROM status_samples WHERE run_id = ?"
-            " ORDER BY channel, step, battery",
-            (rid,),
+        status = _forward_fill_status(
+            conn.execute(
+                "SELECT channel, step, battery, value FROM status_samples WHERE run_id = ?"
+                " ORDER BY channel, step, battery",
+                (rid,),
+            ).fetchall(),
+            steps,
+            kinds,
         )
-        current: tuple[str, int] | None = None
-        values: list[StatusValue] = []
-        for channel, step, b, value in cur:
-            if (channel, step) != current:
-                if current is not None:
-                    status.setdefault(current[0], []).append(tuple(values))
-                current = (channel, step)
-                values = []
-            while len(values) < b:
-                values.append(None)
-            values.append(_restore_status(value, kinds.get(channel, set())))
-        if current is not None:
-            status.setdefault(current[0], []).append(tuple(values))
-        # Keep the recorder's channel order (first seen), as Trace.from_samples does.
-        status = {k: status[k] for k in [*kinds, *sorted(set(status) - set(kinds))] if k in status}
 
         events = [
             Event(
