@@ -141,7 +141,9 @@ def derive_lfp(ecm: CellParams) -> CellParams:
     kx, ky = (np.array(v) for v in zip(*LFP_OCV_KNOTS, strict=True))
     soc = np.round(np.linspace(-0.05, 1.05, 221), 10)  # uniform 0.005 grid -> O(1) lookup
     ocv = np.interp(soc, kx, ky)
-    dx, dy = (np.array(v) for v in zip(*LFP_DUDT_KNOTS_MV_PER_K, strict=True))
+    kx, ky = (np.array(v) for v in zip(*LFP_DUDT_KNOTS_MV_PER_K, strict=True))
+    dx = np.round(np.linspace(0.0, 1.0, 21), 10)  # uniform 5 % grid -> O(1) lookup
+    dy = np.interp(dx, kx, ky)
     dudt_t = np.array([-20.0, 60.0])
     dudt = np.repeat((dy * 1e-3)[:, None], dudt_t.size, axis=1)
     provenance = (
@@ -150,7 +152,7 @@ def derive_lfp(ecm: CellParams) -> CellParams:
         "~1 mOhm at 25 degC / 50 % SoC, typical of 100 Ah prismatic LFP cells); OCV from a "
         "generic LFP shape (knots in derive_sets.py: 3.00 V at 0 %, plateaus 3.26-3.34 V, "
         "3.45 V at 100 %) on a uniform 0.5 % grid; dU/dT a representative SoC-dependent "
-        "profile within +-0.4 mV/K applied about 25 degC; thermal: 2000 J/K cell (~2 kg "
+        "profile within +-0.4 mV/K (knots in derive_sets.py, 5 % grid) applied about 25 degC; thermal: 2000 J/K cell (~2 kg "
         "prismatic), 1000 J/K rack share, 10 W/K cell-rack, 5 W/K rack-air (still air). "
         "Assumptions, not a measured cell."
     )
