@@ -21,7 +21,7 @@ def dual_pack(
     load: dict[str, Any] | None = None,
     duration_s: float = 60.0,
     dt_s: float = 0.1,
-    cell: str = "ecm_example",
+    cell: str = "uav_5ah",
 ) -> dict[str, Any]:
     """Two 6S 5 Ah 20 mOhm batteries, the parallel-discharge spec's example."""
     return {
