@@ -33,6 +33,7 @@ import os
 import re
 import time
 import uuid
+import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
@@ -431,6 +432,23 @@ class ResultStore:
 
 
 # --------------------------------------------------------------------------------- scheduling
+LOCAL_SCHEDULERS = ("auto", "processes", "threads", "sync")
+CONNECT_TIMEOUT_S = 10.0
+"""How long to wait for an existing Dask scheduler (``--scheduler tcp://...``)."""
+
+
+def _check_scheduler(text: str) -> str:
+    name = text.strip()
+    if name in ("synchronous", "single-threaded"):
+        return "sync"
+    if name in LOCAL_SCHEDULERS or "://" in name or re.fullmatch(r"[\w.\-]+:\d+", name):
+        return name
+    raise InputError(
+        f"--scheduler {text!r}: expected {', '.join(LOCAL_SCHEDULERS)} or an address"
+        " such as tcp://host:8786"
+    )
+
+
 def default_batch(n_runs: int, workers: int) -> int:
     """Enough runs per task to amortize scheduling, enough tasks (~4 per worker) to balance."""
     return max(1, min(32, math.ceil(n_runs / (4 * max(1, workers)))))
@@ -496,13 +514,16 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
     dist: Any = importlib.import_module("distributed")
     Client, LocalCluster = dist.Client, dist.LocalCluster
     if scheduler == "processes":
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=None,
-        )
+        with warnings.catch_warnings():
+            # The scheduler's small HTTP server moves off :8787 if taken; nothing to report.
+            warnings.filterwarnings("ignore", message="Port .* is already in use")
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,
+            )
         client = Client(cluster)
         try:
             yield client
@@ -511,7 +532,7 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
             cluster.close()
     else:
         try:
-            client = Client(scheduler, timeout=10)
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
         except OSError as err:
             raise InputError(f"--scheduler {scheduler}: cannot connect ({err})") from None
         try:
@@ -595,9 +616,7 @@ def run_campaign(
     sp = parse_spreads(spreads) if spreads is None or isinstance(spreads, str) else dict(spreads)
     fail = frozenset(fail_runs) if fail_runs is not None else fail_runs_from_env()
     n_workers = workers or os.cpu_count() or 1
-    sched = "client" if client is not None else (scheduler or "auto")
-    if sched in ("synchronous", "single-threaded"):
-        sched = "sync"
+    sched = "client" if client is not None else _check_scheduler(scheduler or "auto")
 
     store = ResultStore(Path(out), campaign_meta(cfg, sp, seed))
     if resume:
