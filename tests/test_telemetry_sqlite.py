@@ -496,3 +496,22 @@ def test_any_status_round_trips(n_steps: int, data: st.DataObject) -> None:
         db = Path(d) / "t.sqlite"
         record_run(db, samples, events=[], flush_every=2)
         assert_same_trace(load_run(db).trace, Trace.from_samples(samples))
+
+
+@pytest.mark.filterwarnings("ignore:status channel 'early'")
+def test_late_status_channel_in_wide_exports(tmp_path: Path) -> None:
+    samples = [
+        _one_battery(i, {"late": ("on", "off")} if i >= 3 else {"early": (1, 2)}) for i in range(6)
+    ]
+    db = tmp_path / "t.sqlite"
+    record_run(db, samples, events=[])
+    out = tmp_path / "run.parquet"
+    export_parquet(db, out)
+    d = pq.read_table(out).to_pydict()
+    # From the database the channel's steps are known: empty before it first appeared.
+    assert d["left_late"] == [None, None, None, "on", "on", "on"]
+    assert d["right_early"] == [2] * 6  # forward-filled to the end
+    # In memory they are not (it has 3 values for 6 steps): left out, with a warning.
+    with pytest.warns(UserWarning, match="late"):
+        trace_to_csv(Result(NAMES, Trace.from_samples(samples), [], {}), tmp_path / "m.csv")
+    assert "left_late" not in pacsv.read_csv(tmp_path / "m.csv").column_names

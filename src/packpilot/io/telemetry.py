@@ -672,14 +672,18 @@ def _status_column(seqs: list[Sequence[StatusValue]], b: int) -> list[StatusValu
 WideColumn = NDArray[np.float64] | NDArray[np.int64] | list[StatusValue]
 
 
-def wide_columns(result: Result, steps: NDArray[np.int64] | None = None) -> dict[str, WideColumn]:
+def wide_columns(
+    result: Result, steps: NDArray[np.int64] | None = None, *, status_runs_to_end: bool = False
+) -> dict[str, WideColumn]:
     """The run as one row per step: pack columns, then ``<battery>_<channel>`` per battery.
 
     ``step`` is the recorded step number when ``steps`` is given, else the row index.
 
     Group voltages become ``<battery>_g<k>_v`` (k from 0), status channels
-    ``<battery>_<channel>``, the auxiliary battery ``aux_<channel>``. Status channels that were
-    not recorded on every step cannot be aligned with steps and are left out (with a warning).
+    ``<battery>_<channel>``, the auxiliary battery ``aux_<channel>``. A status channel shorter
+    than the run is padded with empty values at the start when ``status_runs_to_end`` (true of
+    a loaded run: channels are forward-filled to the end); otherwise its steps are unknown and
+    it is left out with a warning.
     """
     tr = result.trace
     n_s = len(tr.t_s)
@@ -702,11 +706,13 @@ def wide_columns(result: Result, steps: NDArray[np.int64] | None = None) -> dict
     for channel, seqs in tr.status.items():
         if len(seqs) == n_s:
             aligned[channel] = seqs
+        elif status_runs_to_end and len(seqs) < n_s:
+            aligned[channel] = [*([()] * (n_s - len(seqs))), *seqs]
         else:
             warnings.warn(
                 f"status channel {channel!r} has {len(seqs)} samples for {n_s} steps;"
                 " left out of the wide export",
-                stacklevel=2,
+                stacklevel=3,
             )
     for b, name in enumerate(result.battery_names):
         for c, channel in enumerate(BATTERY_CHANNELS):
@@ -750,7 +756,7 @@ def trace_to_csv(result: Result, out_path: Path | str) -> None:
 def export_csv(db_path: Path | str, out_path: Path | str, run_id: int | None = None) -> None:
     """Export one run (latest by default) as a wide CSV."""
     result, steps = _load(db_path, run_id)
-    _write_csv(wide_columns(result, steps), out_path)
+    _write_csv(wide_columns(result, steps, status_runs_to_end=True), out_path)
 
 
 def export_parquet(db_path: Path | str, out_path: Path | str, run_id: int | None = None) -> None:
@@ -760,7 +766,7 @@ def export_parquet(db_path: Path | str, out_path: Path | str, run_id: int | None
 
     result, steps = _load(db_path, run_id)
     arrays: dict[str, Any] = {}
-    for name, col in wide_columns(result, steps).items():
+    for name, col in wide_columns(result, steps, status_runs_to_end=True).items():
         if isinstance(col, np.ndarray):
             arrays[name] = pa.array(col)
         else:
