@@ -491,7 +491,8 @@ def _frac(x: float, ax: F64, inv: float) -> tuple[int, float]:
     """Bracket i (0..n-2) of x on ax and the unclamped fraction of x within it.
 
     Uniform axes (``inv`` = 1/spacing > 0) take O(1) and no division; others a binary search.
-    NaN gives bracket 0 (never an out-of-range index) and a NaN fraction.
+    At a node, rounding may pick either neighbouring bracket: the interpolated value is the
+    same to rounding. NaN gives bracket 0 (never an out-of-range index) and a NaN fraction.
     """
     n = ax.shape[0]
     if inv > 0.0:
@@ -500,11 +501,6 @@ def _frac(x: float, ax: F64, inv: float) -> tuple[int, float]:
         if not g > 0.0:
             g = 0.0
         i = int(g) if g < n - 2 else n - 2
-        # same bracket as a binary search despite rounding in f or noise in the nodes
-        if i > 0 and x < ax[i]:
-            i -= 1
-        elif i < n - 2 and x >= ax[i + 1]:
-            i += 1
         return i, f - i
     lo, hi = 0, n - 1
     while hi - lo > 1:
