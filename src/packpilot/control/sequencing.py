@@ -1,0 +1,654 @@
+"""Discharge sequencing of parallel batteries behind charge/discharge MOSFET pairs.
+
+Spec: ``spec/parallel_discharge.md`` (DJI CN 201680002560.8), generalised to N >= 2 batteries.
+Each battery sits behind a charge FET (its body diode conducts when the battery *discharges*)
+in series with a discharge FET (its diode conducts when the battery is *charged*). The point of
+the method is that a battery whose charge FET is off can feed the bus through the diode but can
+never be charged by a higher sibling, so directly paralleled batteries at different voltages do
+not push tens of amperes into each other.
+
+States (per battery) and the FET pattern each one commands:
+
+* ``DISCHARGING`` - admitted to discharge: discharge FET on; charge FET on once *engaged*.
+  Engagement follows R3 (diode conduction seen -> FET on within ``t_on``) or the *level rule*
+  (the battery's voltage has reached the bus reference, so closing the FET cannot charge it).
+* ``STANDBY`` - discharge FET on, charge FET off (the charge diode blocks any charging).
+* ``CHARGING`` - charge FET on; discharge FET on once charging current is seen through its
+  diode (R4).
+* ``OFF`` - both FETs off: the battery is not present.
+
+Rules applied every control period in discharge mode (see ``docs/parallel_discharge.md``):
+
+* R1 at (re)initialisation (power-up, fault recovery, return from charge mode, empty
+  discharging set): batteries within ``v_th`` of the highest discharge, the others stand by.
+  A hot-inserted battery that is ``v_th`` or more above the bus reference takes over (R1
+  re-applied to it); any other inserted battery starts in STANDBY.
+* Reverse current: an engaged discharging battery taking more than ``i_rev`` of charge from a
+  sibling has its charge FET opened (-> STANDBY).
+* R2: a standby battery ``v_co`` or more above the bus reference (the highest discharging
+  battery's terminal voltage) joins.
+* R3: a battery with discharge FET on and charge FET off that sources more than ``i_det``
+  (its charge diode conducts) gets its charge FET on after a debounce, no later than ``t_on``.
+
+Invalid measurements (non-finite or negative voltage, non-finite current, time or period) put
+the pack in a fail-safe: every charge FET off, every present battery's discharge FET on (the
+pack can discharge only through the charge diodes, nothing can be charged), with one ``Fault``
+event. When measurements are valid again the controller re-initialises with R1.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from packpilot.control.types import (
+    BatteryMeasurement,
+    Commands,
+    ControlOutput,
+    Event,
+    Measurements,
+    PackInfo,
+)
+
+_EPS_S = 1e-9
+"""Tolerance for comparing accumulated times, so 0.1 + 0.1 + 0.1 counts as 0.3 s."""
+
+
+class SeqState(enum.StrEnum):
+    """Per-battery sequencing state (spec section 3, plus OFF for an absent battery)."""
+
+    DISCHARGING = "DISCHARGING"
+    STANDBY = "STANDBY"
+    CHARGING = "CHARGING"
+    OFF = "OFF"
+
+
+class SeqMode(enum.StrEnum):
+    """Pack-level mode: which set of rules runs this period."""
+
+    DISCHARGE = "discharge"
+    CHARGE = "charge"
+    FAULT = "fault"
+
+
+class SequencingConfig(BaseModel):
+    """Thresholds of the parallel-discharge sequencing method (spec section 6 and defaults)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    v_th: float = Field(
+        0.5,
+        gt=0.0,
+        description=(
+            "R1 spread threshold (V). At (re)initialisation the batteries within v_th of the "
+            "highest discharge and the others stand by; a spread below v_th means all discharge "
+            "together. A hot-inserted battery v_th or more above the bus takes over."
+        ),
+    )
+    v_co: float = Field(
+        0.3,
+        gt=0.0,
+        description=(
+            "R2 co-discharge threshold (V): a standby battery joins when its terminal voltage "
+            "exceeds the highest discharging battery's terminal voltage by at least v_co. Keep it "
+            "at or below the body-diode drop (~0.5-0.7 V) and at or below v_th."
+        ),
+    )
+    i_det: float = Field(
+        0.5,
+        gt=0.0,
+        description=(
+            "Diode-conduction detection threshold (A) for R3/R4: a battery whose FET on that "
+            "path is off but which carries more than i_det has its body diode conducting. Also "
+            "the dead band for deciding that the pack is being charged."
+        ),
+    )
+    t_on: float = Field(
+        0.1,
+        gt=0.0,
+        description=(
+            "R3/R4 deadline (s): once diode conduction is seen, the FET is commanded on no "
+            "later than t_on after the first sample that showed it."
+        ),
+    )
+    t_debounce: float = Field(
+        0.02,
+        ge=0.0,
+        description=(
+            "R3/R4 debounce (s): conduction must persist this long before the FET is switched, "
+            "so a single noisy sample does not close it. Capped by the t_on deadline."
+        ),
+    )
+    i_rev: float = Field(
+        0.5,
+        gt=0.0,
+        description=(
+            "Reverse-current protection (A): an engaged discharging battery taking more than "
+            "i_rev of charging current from a sibling has its charge FET opened (-> STANDBY); "
+            "mirrored for the discharge FET of a charging battery that feeds a sibling."
+        ),
+    )
+    t_mode: float = Field(
+        1.0,
+        ge=0.0,
+        description=(
+            "Mode debounce (s): a pack current below -i_det sustained for t_mode switches to "
+            "charge mode when the shell does not report docking; charge mode ends t_mode after "
+            "the dock is gone and the pack current is no longer below -i_det."
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _check_relations(self) -> SequencingConfig:
+        if self.v_co > self.v_th:
+            raise ValueError(
+                f"v_co ({self.v_co} V) must be <= v_th ({self.v_th} V): a standby battery "
+                "more than v_th above the discharging set would otherwise not join (R1 vs R2)"
+            )
+        if self.t_debounce > self.t_on:
+            raise ValueError(
+                f"t_debounce ({self.t_debounce} s) must be <= t_on ({self.t_on} s): the debounce "
+                "runs inside the R3/R4 deadline"
+            )
+        return self
+
+
+@dataclass(slots=True)
+class BatterySeq:
+    """Per-battery controller state. ``chg_on``/``dsg_on`` are the commands last issued."""
+
+    state: SeqState = SeqState.OFF
+    chg_on: bool = False
+    dsg_on: bool = False
+    conduct_since_s: float | None = None
+    """Time of the first sample of the current diode-conduction episode (R3/R4), if any."""
+
+
+@dataclass(slots=True)
+class SequencingState:
+    """Everything the controller remembers between periods (explicit, so it can be inspected)."""
+
+    batteries: list[BatterySeq]
+    mode: SeqMode = SeqMode.DISCHARGE
+    initialized: bool = False
+    last_t_s: float | None = None
+    mode_evidence_since_s: float | None = None
+    """First sample of the current run of evidence for leaving the current mode."""
+    v_ref_v: float | None = None
+    """Bus reference of the last period (highest discharging terminal voltage)."""
+    fault_reason: str = ""
+
+
+def _pattern(state: SeqState, engaged: bool) -> tuple[bool, bool]:
+    """(chg_on, dsg_on) for a state; ``engaged`` is the R3/R4-controlled FET of that state."""
+    if state is SeqState.DISCHARGING:
+        return engaged, True
+    if state is SeqState.STANDBY:
+        return False, True
+    if state is SeqState.CHARGING:
+        return True, engaged
+    return False, False
+
+
+class SequencingController:
+    """Parallel-discharge sequencing for ``pack.n_batteries`` MOSFET-pair batteries.
+
+    Deterministic: the only clock is ``meas.t_s`` (for timers) and ``dt_s`` (the control period,
+    used to predict whether waiting one more period would miss the ``t_on`` deadline).
+    """
+
+    def __init__(self, config: SequencingConfig, pack: PackInfo) -> None:
+        if pack.n_batteries < 1:
+            raise ValueError("SequencingController needs at least one battery")
+        self.config = config
+        self.pack = pack
+        self.state = SequencingState(batteries=[BatterySeq() for _ in range(pack.n_batteries)])
+
+    # ------------------------------------------------------------------ helpers
+    def _set(
+        self,
+        k: int,
+        new: SeqState,
+        engaged: bool,
+        t_s: float,
+        events: list[Event],
+        kind: str = "StateChanged",
+        reason: str = "",
+        data: dict[str, float | int | str | bool | None] | None = None,
+    ) -> None:
+        """Move battery k to ``new`` and record one event if its state changed."""
+        b = self.state.batteries[k]
+        old = b.state
+        b.state = new
+        b.chg_on, b.dsg_on = _pattern(new, engaged)
+        if old is not new:
+            payload: dict[str, float | int | str | bool | None] = {
+                "from": old.value,
+                "to": new.value,
+                "reason": reason,
+            }
+            if data:
+                payload.update(data)
+            events.append(
+                Event(
+                    t_s=t_s,
+                    kind=kind,
+                    battery=k,
+                    message=f"battery {k}: {old.value} -> {new.value} ({reason})",
+                    data=payload,
+                )
+            )
+
+    def _validate(self, meas: Measurements, dt_s: float) -> str:
+        """Return why the sample is unusable, or ``""`` if it is fine."""
+        if len(meas.batteries) != self.pack.n_batteries:
+            return (
+                f"expected {self.pack.n_batteries} batteries in the measurements, "
+                f"got {len(meas.batteries)}"
+            )
+        if not math.isfinite(meas.t_s):
+            return f"t_s is not finite ({meas.t_s})"
+        if not math.isfinite(dt_s) or dt_s < 0.0:
+            return f"dt_s must be a finite number >= 0 (got {dt_s})"
+        last = self.state.last_t_s
+        if last is not None and meas.t_s < last:
+            return f"time went backwards ({last} -> {meas.t_s})"
+        for k, bm in enumerate(meas.batteries):
+            if not bm.present:
+                continue
+            if not math.isfinite(bm.voltage_v) or bm.voltage_v < 0.0:
+                return f"battery {k}: voltage {bm.voltage_v} is not a finite value >= 0"
+            if not math.isfinite(bm.current_a):
+                return f"battery {k}: current {bm.current_a} is not finite"
+        return ""
+
+    def _v_ref(self, meas: Measurements) -> float | None:
+        """Bus reference: highest terminal voltage of the discharging set (engaged first)."""
+        bats = self.state.batteries
+        engaged = [
+            meas.batteries[k].voltage_v
+            for k, b in enumerate(bats)
+            if b.state is SeqState.DISCHARGING and b.chg_on
+        ]
+        if engaged:
+            return max(engaged)
+        admitted = [
+            meas.batteries[k].voltage_v
+            for k, b in enumerate(bats)
+            if b.state is SeqState.DISCHARGING
+        ]
+        return max(admitted) if admitted else None
+
+    def _r1(self, meas: Measurements, t_s: float, events: list[Event], reason: str) -> None:
+        """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
+        present = [k for k, bm in enumerate(meas.batteries) if bm.present]
+        if not present:
+            return
+        v_max = max(meas.batteries[k].voltage_v for k in present)
+        for k in present:
+            v = meas.batteries[k].voltage_v
+            new = SeqState.DISCHARGING if v_max - v < self.config.v_th else SeqState.STANDBY
+            self._set(k, new, False, t_s, events, reason=reason, data={"v": v, "v_max": v_max})
+            self.state.batteries[k].conduct_since_s = None
+
+    def _diode_rule(
+        self,
+        k: int,
+        conducting: bool,
+        t_s: float,
+        dt_s: float,
+        events: list[Event],
+    ) -> bool:
+        """R3/R4 timer for battery k. Returns True when the FET must be switched on now.
+
+        Switches once conduction has lasted ``t_debounce``, or earlier if waiting one more
+        period (``dt_s``) would overrun ``t_on``.
+        """
+        b = self.state.batteries[k]
+        if not conducting:
+            b.conduct_since_s = None
+            return False
+        if b.conduct_since_s is None:
+            b.conduct_since_s = t_s
+        elapsed = t_s - b.conduct_since_s
+        cfg = self.config
+        due = elapsed + _EPS_S >= cfg.t_debounce or elapsed + dt_s > cfg.t_on + _EPS_S
+        if due:
+            b.conduct_since_s = None
+            path = "chg" if b.state is not SeqState.CHARGING else "dsg"
+            events.append(
+                Event(
+                    t_s=t_s,
+                    kind="DiodeBypassed",
+                    battery=k,
+                    message=f"battery {k}: {path} FET on after {elapsed:.3f} s of diode conduction",
+                    data={"path": path, "conduction_s": elapsed},
+                )
+            )
+        return due
+
+    # ------------------------------------------------------------------ modes
+    def _update_mode(self, meas: Measurements, events: list[Event]) -> None:
+        st = self.state
+        pack_i = sum(bm.current_a for bm in meas.batteries if bm.present)
+        charging_seen = pack_i < -self.config.i_det
+        if st.mode is SeqMode.DISCHARGE:
+            # Docking is immediate; charging current alone must persist t_mode.
+            evidence = charging_seen
+            switch = meas.docked
+            new = SeqMode.CHARGE
+        else:
+            evidence = not (meas.docked or charging_seen)
+            switch = False
+            new = SeqMode.DISCHARGE
+        if not evidence:
+            st.mode_evidence_since_s = None
+        else:
+            if st.mode_evidence_since_s is None:
+                st.mode_evidence_since_s = meas.t_s
+            persisted = meas.t_s - st.mode_evidence_since_s
+            switch = switch or persisted + _EPS_S >= self.config.t_mode
+        if not switch:
+            return
+        events.append(
+            Event(
+                t_s=meas.t_s,
+                kind="ModeChanged",
+                message=f"sequencing mode {st.mode.value} -> {new.value}",
+                data={
+                    "from": st.mode.value,
+                    "to": new.value,
+                    "docked": meas.docked,
+                    "pack_current_a": pack_i,
+                },
+            )
+        )
+        st.mode = new
+        st.mode_evidence_since_s = None
+        st.initialized = False
+        for b in st.batteries:
+            b.conduct_since_s = None
+
+    def _discharge_tick(
+        self, meas: Measurements, dt_s: float, inserted: list[int], events: list[Event]
+    ) -> None:
+        cfg = self.config
+        st = self.state
+        bats = st.batteries
+        t = meas.t_s
+        cur = [bm.current_a for bm in meas.batteries]
+        volt = [bm.voltage_v for bm in meas.batteries]
+        present = [bm.present for bm in meas.batteries]
+
+        if not st.initialized:
+            self._r1(meas, t, events, "R1 init")
+            st.initialized = True
+            inserted = []
+
+        # Reverse current: a sibling is charging an engaged discharging battery. Only when some
+        # other battery sources current; otherwise the charge comes from outside (mode logic).
+        demoted: set[int] = set()
+        for k, b in enumerate(bats):
+            if b.state is SeqState.DISCHARGING and b.chg_on and cur[k] < -cfg.i_rev:
+                feeder = any(cur[j] > cfg.i_det for j in range(len(bats)) if j != k and present[j])
+                if feeder:
+                    self._set(
+                        k,
+                        SeqState.STANDBY,
+                        False,
+                        t,
+                        events,
+                        kind="ReverseCurrent",
+                        reason="charging current from a sibling",
+                        data={"current_a": cur[k], "i_rev": cfg.i_rev},
+                    )
+                    b.conduct_since_s = None
+                    demoted.add(k)
+
+        # Hot insertion (R1 re-applied to the newcomer): a battery v_th above the bus takes over
+        # and the batteries v_th below it stand by in the same period, so none is charged.
+        for k in inserted:
+            v_ref = self._v_ref(meas)
+            if v_ref is None or volt[k] - v_ref < cfg.v_th:
+                continue
+            for j, bj in enumerate(bats):
+                if bj.state is SeqState.DISCHARGING and volt[k] - volt[j] >= cfg.v_th:
+                    self._set(
+                        j, SeqState.STANDBY, False, t, events, reason=f"R1 battery {k} inserted"
+                    )
+            self._set(
+                k,
+                SeqState.DISCHARGING,
+                False,
+                t,
+                events,
+                reason="R1 inserted above bus",
+                data={"v": volt[k], "v_ref": v_ref},
+            )
+
+        # Nobody admitted to discharge and no diode conducting: start over with R1.
+        if not any(b.state is SeqState.DISCHARGING for b in bats) and not any(
+            present[k] and cur[k] > cfg.i_det for k in range(len(bats))
+        ):
+            self._r1(meas, t, events, "R1 no battery discharging")
+
+        # R2: a standby battery v_co above the bus reference joins. Not one demoted for reverse
+        # current this period: its terminal voltage still carries the charging I*R rise.
+        v_ref = self._v_ref(meas)
+        if v_ref is not None:
+            for k, b in enumerate(bats):
+                if k in demoted:
+                    continue
+                if b.state is SeqState.STANDBY and volt[k] - v_ref >= cfg.v_co:
+                    self._set(
+                        k,
+                        SeqState.DISCHARGING,
+                        False,
+                        t,
+                        events,
+                        kind="BatteryJoined",
+                        reason="R2",
+                        data={"v": volt[k], "v_ref": v_ref, "dv": volt[k] - v_ref},
+                    )
+
+        # Level rule: an admitted battery at or above the engaged batteries cannot be charged by
+        # them, so its charge FET may close directly (this completes every R2 join at once).
+        engaged_v = [
+            volt[k] for k, b in enumerate(bats) if b.state is SeqState.DISCHARGING and b.chg_on
+        ]
+        if engaged_v:
+            # Highest first, each compared with everything engaged so far, so two batteries
+            # joining in the same period cannot close onto each other.
+            v_eng = max(engaged_v)
+            waiting = [
+                k for k, b in enumerate(bats) if b.state is SeqState.DISCHARGING and not b.chg_on
+            ]
+            for k in sorted(waiting, key=lambda j: -volt[j]):
+                if volt[k] >= v_eng:
+                    bats[k].chg_on = True
+                    bats[k].conduct_since_s = None
+                    v_eng = max(v_eng, volt[k])
+
+        # R3: charge diode conducting (charge FET off, discharge FET on, discharge current).
+        for k, b in enumerate(bats):
+            if b.state not in (SeqState.DISCHARGING, SeqState.STANDBY) or b.chg_on:
+                b.conduct_since_s = None
+                continue
+            if not self._diode_rule(k, cur[k] > cfg.i_det, t, dt_s, events):
+                continue
+            if b.state is SeqState.STANDBY:
+                self._set(
+                    k,
+                    SeqState.DISCHARGING,
+                    True,
+                    t,
+                    events,
+                    kind="BatteryJoined",
+                    reason="R3",
+                    data={"v": volt[k], "current_a": cur[k]},
+                )
+            else:
+                b.chg_on = True
+
+        st.v_ref_v = self._v_ref(meas)
+
+    def _charge_tick(self, meas: Measurements, dt_s: float, events: list[Event]) -> None:
+        cfg = self.config
+        st = self.state
+        bats = st.batteries
+        t = meas.t_s
+        cur = [bm.current_a for bm in meas.batteries]
+        present = [bm.present for bm in meas.batteries]
+        if not st.initialized:
+            for k, b in enumerate(bats):
+                if present[k]:
+                    self._set(k, SeqState.CHARGING, False, t, events, reason="charge mode")
+                    b.conduct_since_s = None
+            st.initialized = True
+        for k, b in enumerate(bats):
+            if present[k] and b.state is not SeqState.CHARGING:
+                self._set(k, SeqState.CHARGING, False, t, events, reason="inserted while charging")
+        # Mirror of the reverse-current rule: a charging battery feeding a sibling opens its
+        # discharge FET, so its discharge diode blocks discharge again.
+        for k, b in enumerate(bats):
+            if b.state is SeqState.CHARGING and b.dsg_on and cur[k] > cfg.i_rev:
+                sink = any(cur[j] < -cfg.i_det for j in range(len(bats)) if j != k and present[j])
+                if sink:
+                    b.dsg_on = False
+                    b.conduct_since_s = None
+                    events.append(
+                        Event(
+                            t_s=t,
+                            kind="ReverseCurrent",
+                            battery=k,
+                            message=f"battery {k}: discharging into a sibling while charging",
+                            data={"current_a": cur[k], "i_rev": cfg.i_rev, "path": "dsg"},
+                        )
+                    )
+        # R4: discharge diode conducting (discharge FET off, charging current).
+        for k, b in enumerate(bats):
+            if b.state is not SeqState.CHARGING or b.dsg_on:
+                b.conduct_since_s = None
+                continue
+            if self._diode_rule(k, cur[k] < -cfg.i_det, t, dt_s, events):
+                b.dsg_on = True
+        st.v_ref_v = None
+
+    # ------------------------------------------------------------------ step
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        """One control period: validate, track presence and mode, apply the rules."""
+        st = self.state
+        events: list[Event] = []
+        n = self.pack.n_batteries
+        t = meas.t_s if math.isfinite(meas.t_s) else (st.last_t_s or 0.0)
+        problem = self._validate(meas, dt_s)
+        if problem:
+            if st.mode is not SeqMode.FAULT:
+                events.append(
+                    Event(
+                        t_s=t,
+                        kind="Fault",
+                        message=f"sequencing fail-safe: {problem}",
+                        data={"reason": problem, "previous_mode": st.mode.value},
+                    )
+                )
+                st.mode = SeqMode.FAULT
+                st.fault_reason = problem
+            same_n = len(meas.batteries) == n
+            for k, b in enumerate(st.batteries):
+                present = meas.batteries[k].present if same_n else b.state is not SeqState.OFF
+                new = SeqState.STANDBY if present else SeqState.OFF
+                self._set(k, new, False, t, events, reason="fail-safe")
+                b.conduct_since_s = None
+            st.initialized = False
+            st.v_ref_v = None
+            return self._output(events)
+
+        st.last_t_s = meas.t_s
+        if st.mode is SeqMode.FAULT:
+            events.append(
+                Event(
+                    t_s=t,
+                    kind="FaultCleared",
+                    message="sequencing measurements valid again, re-initialising (R1)",
+                    data={"reason": st.fault_reason},
+                )
+            )
+            st.mode = SeqMode.DISCHARGE
+            st.mode_evidence_since_s = None
+            st.initialized = False
+            st.fault_reason = ""
+
+        # Presence: removal -> OFF; insertion -> STANDBY (R1/R2 decide when it joins).
+        inserted: list[int] = []
+        for k, (b, bm) in enumerate(zip(st.batteries, meas.batteries, strict=True)):
+            if not bm.present and b.state is not SeqState.OFF:
+                self._set(k, SeqState.OFF, False, t, events, reason="removed")
+                b.conduct_since_s = None
+            elif bm.present and b.state is SeqState.OFF and st.initialized:
+                self._set(k, SeqState.STANDBY, False, t, events, reason="inserted")
+                inserted.append(k)
+
+        self._update_mode(meas, events)
+        if st.mode is SeqMode.CHARGE:
+            self._charge_tick(meas, dt_s, events)
+        else:
+            self._discharge_tick(meas, dt_s, inserted, events)
+        return self._output(events)
+
+    def _output(self, events: list[Event]) -> ControlOutput:
+        st = self.state
+        bats = st.batteries
+        n = len(bats)
+        return ControlOutput(
+            commands=Commands(
+                chg_on=tuple(b.chg_on for b in bats),
+                dsg_on=tuple(b.dsg_on for b in bats),
+            ),
+            events=tuple(events),
+            status={
+                "seq_state": [b.state.value for b in bats],
+                "seq_chg_on": [b.chg_on for b in bats],
+                "seq_dsg_on": [b.dsg_on for b in bats],
+                "seq_mode": [st.mode.value] * n,
+                "seq_v_ref_v": [st.v_ref_v] * n,
+                "seq_diode_s": [
+                    0.0
+                    if b.conduct_since_s is None or st.last_t_s is None
+                    else st.last_t_s - b.conduct_since_s
+                    for b in bats
+                ],
+            },
+        )
+
+
+def battery_measurement(
+    voltage_v: float, current_a: float, present: bool = True
+) -> BatteryMeasurement:
+    """A measurement carrying only what sequencing reads; other fields are unknown (NaN)."""
+    nan = math.nan
+    return BatteryMeasurement(
+        voltage_v=voltage_v,
+        current_a=current_a,
+        temp_c=nan,
+        min_cell_v=nan,
+        max_cell_v=nan,
+        soc=nan,
+        full_capacity_ah=nan,
+        remaining_capacity_ah=nan,
+        present=present,
+    )
+
+
+__all__ = [
+    "BatterySeq",
+    "SeqMode",
+    "SeqState",
+    "SequencingConfig",
+    "SequencingController",
+    "SequencingState",
+    "battery_measurement",
+]

@@ -1,0 +1,215 @@
+"""Property-based tests of SequencingController on arbitrary measurement sequences.
+
+Whatever the inputs (N = 2..6, any voltages/currents, insertions, removals, docking, NaN), the
+commands must satisfy the method's safety invariants period by period.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from packpilot.control.sequencing import (
+    SequencingConfig,
+    SequencingController,
+    battery_measurement,
+)
+from packpilot.control.types import ControlOutput, Measurements, PackInfo, SwitchKind
+
+CFG = SequencingConfig()
+STATES = {"DISCHARGING", "STANDBY", "CHARGING", "OFF"}
+
+
+@dataclass(frozen=True)
+class Sample:
+    volts: tuple[float, ...]
+    currs: tuple[float, ...]
+    present: tuple[bool, ...]
+    docked: bool
+
+
+@st.composite
+def scenarios(draw: st.DrawFn, allow_nan: bool = True) -> tuple[int, float, list[Sample]]:
+    n = draw(st.integers(2, 6))
+    dt = draw(st.sampled_from([0.01, 0.02, 0.05, 0.1, 0.2, 0.5]))
+    steps = draw(st.integers(1, 40))
+    base = [draw(st.floats(18.0, 26.0)) for _ in range(n)]
+    voltage = st.floats(-0.6, 0.6)
+    current = st.one_of(st.just(0.0), st.floats(-15.0, 40.0))
+    samples: list[Sample] = []
+    present = [draw(st.booleans()) or k == 0 for k in range(n)]
+    for _ in range(steps):
+        if draw(st.integers(0, 9)) == 0:
+            k = draw(st.integers(0, n - 1))
+            present[k] = not present[k]
+        volts = []
+        currs = []
+        for k in range(n):
+            base[k] += draw(voltage) * 0.2
+            v = base[k] + draw(voltage)
+            i = draw(current)
+            if allow_nan and draw(st.integers(0, 24)) == 0:
+                if draw(st.booleans()):
+                    v = math.nan
+                else:
+                    i = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+            volts.append(v)
+            currs.append(i)
+        samples.append(
+            Sample(tuple(volts), tuple(currs), tuple(present), draw(st.integers(0, 14)) == 0)
+        )
+    return n, dt, samples
+
+
+def _pack(n: int) -> PackInfo:
+    return PackInfo(n, (6,) * n, (1,) * n, (SwitchKind.MOSFET_PAIR,) * n)
+
+
+def _meas(t: float, s: Sample) -> Measurements:
+    return Measurements(
+        t_s=t,
+        batteries=tuple(
+            battery_measurement(v, i, p)
+            for v, i, p in zip(s.volts, s.currs, s.present, strict=True)
+        ),
+        bus_v=math.nan,
+        docked=s.docked,
+    )
+
+
+def _bad(s: Sample) -> bool:
+    return any(
+        p and not (math.isfinite(v) and v >= 0.0 and math.isfinite(i))
+        for v, i, p in zip(s.volts, s.currs, s.present, strict=True)
+    )
+
+
+def _check_patterns(out: ControlOutput, s: Sample, n: int) -> None:
+    states = list(out.status["seq_state"])
+    chg, dsg = out.commands.chg_on, out.commands.dsg_on
+    assert len(states) == len(chg) == len(dsg) == n
+    for k, (state, c, d) in enumerate(zip(states, chg, dsg, strict=True)):
+        assert state in STATES
+        assert isinstance(c, bool) and isinstance(d, bool)
+        if state == "STANDBY":
+            assert not c and d, "STANDBY: charge FET never on, discharge FET on"
+        elif state == "OFF":
+            assert not c and not d
+        elif state == "DISCHARGING":
+            assert d
+        else:
+            assert c
+        if not s.present[k]:
+            assert state == "OFF" and not c and not d, "an absent battery is OFF"
+
+
+@settings(max_examples=150, deadline=None)
+@given(scenarios())
+def test_commanded_states_are_consistent_and_nan_fails_safe(
+    case: tuple[int, float, list[Sample]],
+) -> None:
+    n, dt, samples = case
+    ctrl = SequencingController(CFG, _pack(n))
+    in_fault = False
+    for step, s in enumerate(samples):
+        out = ctrl.step(_meas(step * dt, s), dt)
+        _check_patterns(out, s, n)
+        faults = [e for e in out.events if e.kind == "Fault"]
+        if _bad(s):
+            assert out.commands.chg_on == (False,) * n, "fail-safe: every charge FET off"
+            assert out.commands.dsg_on == s.present, "fail-safe: present batteries' dsg FET on"
+            assert set(out.status["seq_mode"]) == {"fault"}
+            assert len(faults) == (0 if in_fault else 1)
+            in_fault = True
+        else:
+            assert not faults
+            assert out.status["seq_mode"][0] in {"discharge", "charge"}
+            in_fault = False
+
+
+@settings(max_examples=150, deadline=None)
+@given(scenarios(allow_nan=False))
+def test_r3_r4_deadline_is_respected(case: tuple[int, float, list[Sample]]) -> None:
+    """Once a FET-off path is seen conducting, the FET is on no later than t_on after."""
+    n, dt, samples = case
+    ctrl = SequencingController(CFG, _pack(n))
+    prev: ControlOutput | None = None
+    since: list[float | None] = [None] * n
+    for step, s in enumerate(samples):
+        t = step * dt
+        out = ctrl.step(_meas(t, s), dt)
+        mode = out.status["seq_mode"][0]
+        for k in range(n):
+            if prev is None or prev.status["seq_mode"][0] != mode or not s.present[k]:
+                since[k] = None
+                continue
+            pc, pd = prev.commands.chg_on[k], prev.commands.dsg_on[k]
+            if mode == "discharge":
+                conducting = pd and not pc and s.currs[k] > CFG.i_det
+                still_off = out.commands.dsg_on[k] and not out.commands.chg_on[k]
+            else:
+                conducting = bool(pc) and not pd and s.currs[k] < -CFG.i_det
+                still_off = out.commands.chg_on[k] and not out.commands.dsg_on[k]
+            if not conducting:
+                since[k] = None
+                continue
+            if since[k] is None:
+                since[k] = t
+            if still_off:
+                start = since[k]
+                assert start is not None
+                # Waiting until the next sample must not overrun the deadline.
+                assert t - start + dt <= CFG.t_on + 1e-6, (k, t, start, dt)
+            else:
+                since[k] = None
+        prev = out
+
+
+@settings(max_examples=150, deadline=None)
+@given(scenarios(allow_nan=False))
+def test_charge_fet_closes_only_on_a_battery_that_cannot_be_charged(
+    case: tuple[int, float, list[Sample]],
+) -> None:
+    """STANDBY never has its charge FET on; a charge FET closes only on a battery that is
+    sourcing current (R3) or is at least as high as every battery already engaged (R2/level)."""
+    n, dt, samples = case
+    ctrl = SequencingController(CFG, _pack(n))
+    prev_chg: tuple[bool | None, ...] = (False,) * n
+    prev_mode = "discharge"
+    for step, s in enumerate(samples):
+        out = ctrl.step(_meas(step * dt, s), dt)
+        states = out.status["seq_state"]
+        chg = out.commands.chg_on
+        for state, c in zip(states, chg, strict=True):
+            if state == "STANDBY":
+                assert c is False
+        mode = out.status["seq_mode"][0]
+        if mode == prev_mode == "discharge":
+            kept = [s.volts[j] for j in range(n) if prev_chg[j] and chg[j]]
+            for k in range(n):
+                if chg[k] and not prev_chg[k]:
+                    assert states[k] == "DISCHARGING"
+                    assert s.currs[k] > CFG.i_det or (kept and s.volts[k] >= max(kept)), (
+                        k,
+                        s.volts,
+                        s.currs,
+                    )
+        prev_chg, prev_mode = chg, mode
+
+
+@settings(max_examples=60, deadline=None)
+@given(scenarios(allow_nan=True))
+def test_controller_is_a_pure_function_of_its_inputs(
+    case: tuple[int, float, list[Sample]],
+) -> None:
+    n, dt, samples = case
+    a = SequencingController(CFG, _pack(n))
+    b = SequencingController(CFG, _pack(n))
+    for step, s in enumerate(samples):
+        m = _meas(step * dt, s)
+        oa, ob = a.step(m, dt), b.step(m, dt)
+        assert oa.commands == ob.commands
+        assert oa.events == ob.events
