@@ -34,7 +34,7 @@ def check_output(out: ControlOutput, n: int, ctl: LimitsController) -> None:
         assert isinstance(x, float) and (math.isnan(x) or x >= 0.0)
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(
     info=pack_infos(),
     steps=st.lists(st.tuples(measurements(), ANY_FLOAT), min_size=1, max_size=15),
