@@ -304,3 +304,17 @@ def test_nan_input_stays_nan_and_in_bounds() -> None:
     assert np.isnan(new.soc[0]) and np.isnan(new.temp_c[1]) and np.isnan(heat[2])
     e, _ = thevenin(p, s, 10.0, 100.0, 1.0)
     assert np.isnan(e[0])
+
+
+@pytest.mark.parametrize("name", ["ecm_example", "uav_5ah", "lfp_storage"])
+def test_ocv_kernel_matches_numpy(name: str) -> None:
+    from packpilot.model.cell import _ocv_numpy
+
+    p = load_parameter_set(name)
+    soc = np.linspace(-0.2, 1.2, 301).reshape(7, 43)
+    temp = np.linspace(-40.0, 70.0, 43)
+    ref = _ocv_numpy(p, *np.broadcast_arrays(soc, temp))[1]
+    out = ocv_v(p, soc, temp)
+    assert out.shape == (7, 43)
+    np.testing.assert_allclose(out, ref, rtol=1e-14)
+    assert ocv_v(p, 0.5, 25.0).shape == ()

@@ -721,6 +721,15 @@ def _advance_kernel(
 
 
 @_jit
+def _ocv_kernel(
+    soc: F64, temp: F64, ocv_x: F64, ocv_y: F64, du_x: F64, du_t: F64, du_y: F64,
+    fmeta: F64, imeta: NDArray[np.int64], out: F64,
+) -> None:  # fmt: skip
+    for c in range(soc.shape[0]):
+        out[c] = _ocv_scalar(soc[c], temp[c], ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta)
+
+
+@_jit
 def _thevenin_kernel(
     soc: F64, eta: F64, tc: F64, cur: F64, rs: F64,
     flat: F64, ax_t: F64, ax_i: F64, ax_s: F64, ocv_x: F64, ocv_y: F64,
@@ -772,9 +781,18 @@ def _simulate_kernel(
 
 
 def ocv_v(params: CellParams, soc: ArrayLike, temp_c: ArrayLike) -> F64:
-    """Open-circuit voltage at (SoC, cell temperature), including the entropic term if enabled."""
+    """Open-circuit voltage at (SoC, cell temperature), including the entropic term if enabled.
+
+    Broadcasts ``soc`` against ``temp_c``; the result has their broadcast shape.
+    """
     s, t = np.broadcast_arrays(np.asarray(soc, np.float64), np.asarray(temp_c, np.float64))
-    return _ocv_numpy(params, s, t)[1]
+    out = np.empty(s.shape)
+    k = params._packed
+    _ocv_kernel(
+        np.ascontiguousarray(s).ravel(), np.ascontiguousarray(t).ravel(),
+        k.ocv_x, k.ocv_y, k.du_x, k.du_t, k.du_y, k.fmeta, k.imeta, out.reshape(-1),
+    )  # fmt: skip
+    return out
 
 
 def _thermal_coeffs(params: CellParams, h: float) -> F64:
