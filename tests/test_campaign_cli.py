@@ -112,8 +112,8 @@ def test_bad_input_is_one_line_exit_2(tmp_path: Path) -> None:
 def test_killed_campaign_keeps_its_parts_and_resume_completes_it(tmp_path: Path) -> None:
     cfg = _scenario(tmp_path)
     out = tmp_path / "k.parquet"
-    args = [str(cfg), "--runs", "40", "--scheduler", "sync", "--batch", "1", "--out", str(out)]
-    args += ["--duration", "20", "--spread", "capacity=5%", "--json"]
+    args = [str(cfg), "--runs", "30", "--scheduler", "sync", "--batch", "1", "--out", str(out)]
+    args += ["--duration", "12", "--spread", "capacity=5%", "--json"]
     proc = subprocess.Popen([*CLI, *args], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     parts = Path(str(out) + ".parts")
     deadline = time.monotonic() + 120
@@ -127,10 +127,10 @@ def test_killed_campaign_keeps_its_parts_and_resume_completes_it(tmp_path: Path)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
     kept = len(list(parts.glob("part-*.parquet")))
-    assert 3 <= kept < 40 and not out.exists()
+    assert 3 <= kept < 30 and not out.exists()
     res = _run(*args, "--resume")
     assert res.returncode == 0, res.stderr
     rep = json.loads(res.stdout)
-    assert rep["skipped"] == kept and rep["computed"] == 40 - kept and rep["rows"] == 40
-    assert pq.read_table(out).column("run").to_pylist() == list(range(40))
+    assert rep["skipped"] == kept and rep["computed"] == 30 - kept and rep["rows"] == 30
+    assert pq.read_table(out).column("run").to_pylist() == list(range(30))
     assert not parts.exists()

@@ -58,7 +58,7 @@ PROCESS_BREAK_EVEN_S = 10.0
 (spawn, imports, numba cache load per worker) costs ~3-4 s, and threads give no speed-up because
 the loop holds the GIL outside the numba kernels (measured; see docs/campaign.md)."""
 
-# Spread name -> (Parquet column / Draw field, what "%" is relative to, floor, ceiling).
+# Spread name -> Parquet column (= Draw field), and the physical range draws are clipped to.
 SPREAD_NAMES: tuple[str, ...] = ("capacity", "r0", "soc0", "ambient_c")
 _COLUMN = {
     "capacity": "capacity_scale",
@@ -505,6 +505,7 @@ def _run_distributed(
     try:
         for fut in as_completed(futures):
             done(fut.result())
+            fut.release()  # the rows are on disk; free the worker's copy
     finally:
         client.cancel([f for f in futures if not f.done()])
 
@@ -625,6 +626,7 @@ def run_campaign(
         store.clear()
         done_before = set()
     missing = [i for i in range(runs) if i not in done_before]
+    skipped = runs - len(missing)
     if limit is not None:
         missing = missing[: max(0, limit)]
     draws = make_draws(sp, seed, missing, cfg.pack.ambient_c)
@@ -661,7 +663,7 @@ def run_campaign(
         table=table,
         runs=runs,
         computed=computed,
-        skipped=runs - len([i for i in range(runs) if i not in done_before]),
+        skipped=skipped,
         failures=sum(s != "ok" for s in status),
         wall_s=wall,
         scheduler=sched,
