@@ -65,13 +65,14 @@ def simulate(
             cfg = cfg.model_copy(
                 update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
             )
-        recorder = None
+        progress = False if no_progress or as_json else None
         if db is not None:
             from packpilot.io.telemetry import SQLiteRecorder
 
-            recorder = SQLiteRecorder(db)
-        runner = Runner(cfg, recorder=recorder, progress=False if no_progress or as_json else None)
-        result = runner.run()
+            with SQLiteRecorder(db) as recorder:
+                result = Runner(cfg, recorder=recorder, progress=progress).run()
+        else:
+            result = Runner(cfg, progress=progress).run()
         if trace_csv is not None:
             from packpilot.io.telemetry import trace_to_csv
 

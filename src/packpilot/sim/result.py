@@ -84,6 +84,8 @@ class Trace:
     """Shape (steps, n_batteries, max_groups)."""
     status: dict[str, list[Sequence[StatusValue]]]
     aux: NDArray[np.float64] | None = None
+    step: NDArray[np.int64] | None = None
+    """Step index of each row (None when unknown: then the row index is the step)."""
 
     def channel(self, name: str) -> NDArray[np.float64]:
         """Per-battery time series, shape (steps, n_batteries)."""
@@ -116,6 +118,7 @@ class Trace:
             group_v=np.stack([s.group_v for s in samples]),
             status=status,
             aux=aux,
+            step=np.array([s.step for s in samples], dtype=np.int64),
         )
 
 
