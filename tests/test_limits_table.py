@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import tomllib
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -143,3 +144,28 @@ def test_toml_table_round_trip() -> None:
     assert cfg.rows[1].latch_s == 0.0 and cfg.derate_fraction == 0.25
     with pytest.raises(ConfigError, match=r"lfp\.toml: limits\.bogus: unknown key"):
         LimitsConfig.load({"bogus": 1}, "lfp.toml")
+
+
+def test_docs_limit_table_matches_the_defaults() -> None:
+    """docs/safety.md shows DEFAULT_ROWS; regenerate the table there if this fails."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "safety.md").read_text()
+    block = text.split("<!-- limits-table")[1].split("<!-- /limits-table -->")[0]
+    lines = [ln for ln in block.splitlines() if ln.startswith("| ") and ln[2].isdigit()]
+    assert len(lines) == len(DEFAULT_ROWS)
+    for k, (line, r) in enumerate(zip(lines, DEFAULT_ROWS, strict=True)):
+        latch = "manual" if r.latch_s is None else f"{r.latch_s:g}"
+        cells = [
+            str(k),
+            r.limit,
+            r.quantity,
+            r.direction,
+            r.path,
+            r.when,
+            r.tier,
+            f"{r.threshold:g}",
+            f"{r.reset:g}",
+            str(r.debounce),
+            f"{r.delay_s:g}",
+            latch,
+        ]
+        assert [c.strip() for c in line.strip("|").split("|")] == cells, line
