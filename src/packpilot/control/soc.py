@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from itertools import pairwise
 from typing import Any, Literal
@@ -103,16 +103,16 @@ class SocEstimator:
 
     def __init__(
         self,
-        capacity_ah: Sequence[float],
-        ocv_soc: Sequence[float],
-        ocv_v: Sequence[float],
+        capacity_ah: Iterable[float],
+        ocv_soc: Iterable[float],
+        ocv_v: Iterable[float],
         rest_current_a: float = 0.1,
         rest_time_s: float = 600.0,
         *,
         blend: float = 1.0,
         voltage: VoltageSource = "min",
-        series_cells: Sequence[int] | None = None,
-        soc0: Sequence[float] | None = None,
+        series_cells: Iterable[int] | None = None,
+        soc0: Iterable[float] | None = None,
     ) -> None:
         cfg = SocConfig(
             rest_current_a=rest_current_a, rest_time_s=rest_time_s, blend=blend, voltage=voltage
@@ -124,7 +124,9 @@ class SocEstimator:
                 raise ConfigError(f"soc: capacity_ah[{i}] must be > 0 Ah, got {c}")
         self._ocv_v, self._ocv_soc = _check_ocv(ocv_soc, ocv_v)
         n = len(self.capacity_ah)
-        self.series_cells = tuple(series_cells) if series_cells is not None else (0,) * n
+        self.series_cells = (
+            tuple(int(s) for s in series_cells) if series_cells is not None else (0,) * n
+        )
         if len(self.series_cells) != n:
             raise ConfigError(f"soc: series_cells has {len(self.series_cells)} entries, need {n}")
         if voltage == "avg" and not all(s > 0 for s in self.series_cells):
@@ -141,9 +143,9 @@ class SocEstimator:
         cls,
         config: SocConfig,
         pack: PackInfo,
-        ocv_soc: Sequence[float],
-        ocv_v: Sequence[float],
-        soc0: Sequence[float] | None = None,
+        ocv_soc: Iterable[float],
+        ocv_v: Iterable[float],
+        soc0: Iterable[float] | None = None,
     ) -> SocEstimator:
         """Build for a pack: capacities and series cell counts from :class:`PackInfo`."""
         if len(pack.capacity_ah) != pack.n_batteries:
@@ -244,7 +246,7 @@ class SocEstimator:
 
 
 def _check_ocv(
-    ocv_soc: Sequence[float], ocv_v: Sequence[float]
+    ocv_soc: Iterable[float], ocv_v: Iterable[float]
 ) -> tuple[tuple[float, ...], tuple[float, ...]]:
     soc = tuple(float(x) for x in ocv_soc)
     volts = tuple(float(x) for x in ocv_v)
