@@ -318,3 +318,21 @@ def test_ocv_kernel_matches_numpy(name: str) -> None:
     assert out.shape == (7, 43)
     np.testing.assert_allclose(out, ref, rtol=1e-14)
     assert ocv_v(p, 0.5, 25.0).shape == ()
+
+
+def test_state_shape_mismatch_rejected() -> None:
+    p = load_parameter_set("ecm_example")
+    s = initial_state(p, 3, 0.5, 25.0)
+    bad = CellState(s.soc, np.zeros((3, 2)), s.temp_c, s.jig_temp_c)
+    with pytest.raises(ValueError, match="eta_v"):
+        advance(p, bad, 1.0, 1.0, 25.0, 100.0, 1.0)
+    bad = CellState(s.soc, s.eta_v, s.temp_c[:2], s.jig_temp_c)
+    with pytest.raises(ValueError, match="temp_c \\(2,\\)"):
+        thevenin(p, bad, 1.0, 100.0, 1.0)
+    # strided views and other dtypes are accepted
+    big = initial_state(p, 6, 0.5, 25.0)
+    view = CellState(
+        big.soc[::2], big.eta_v[::2], big.temp_c[::2].astype(np.float32), big.jig_temp_c[::2]
+    )
+    new, _ = advance(p, view, 10.0, 1.0, 25.0, 100.0, 1.0)
+    assert new.soc.shape == (3,)

@@ -470,6 +470,23 @@ def _cells(x: ArrayLike, n: int) -> F64:
     return np.ascontiguousarray(np.broadcast_to(a, (n,)))
 
 
+def _state_arrays(params: CellParams, state: CellState) -> tuple[int, F64, F64, F64, F64]:
+    """State arrays as the kernels need them (C-contiguous float64, no copy when they already
+    are); shapes checked, since the kernels do no bounds checking."""
+    f64 = np.float64
+    soc = np.ascontiguousarray(state.soc, dtype=f64)
+    eta = np.ascontiguousarray(state.eta_v, dtype=f64)
+    tc = np.ascontiguousarray(state.temp_c, dtype=f64)
+    tj = np.ascontiguousarray(state.jig_temp_c, dtype=f64)
+    n = soc.shape[0]
+    if eta.shape != (n, params.n_rc) or tc.shape != (n,) or tj.shape != (n,) or soc.ndim != 1:
+        raise ValueError(
+            f"inconsistent CellState shapes: soc {soc.shape}, eta_v {eta.shape} (n_rc = "
+            f"{params.n_rc}), temp_c {tc.shape}, jig_temp_c {tj.shape}"
+        )
+    return n, soc, eta, tc, tj
+
+
 def initial_state(params: CellParams, n: int, soc0: ArrayLike, ambient_c: ArrayLike) -> CellState:
     """n cells at rest: RC branches relaxed, cell and jig at ambient."""
     amb = _cells(ambient_c, n).copy()
@@ -829,11 +846,11 @@ def thevenin(
     ``capacity_ah`` does not enter (the source has no capacity term); it is accepted so that
     :func:`thevenin` and :func:`advance` take the same per-cell arguments.
     """
-    n = state.soc.shape[0]
+    n, soc, eta, tc, _ = _state_arrays(params, state)
     e = np.empty(n)
     r = np.empty(n)
     _thevenin_kernel(
-        state.soc, state.eta_v, state.temp_c, _cells(current_a, n), _cells(r_scale, n),
+        soc, eta, tc, _cells(current_a, n), _cells(r_scale, n),
         *_tables(params), e, r,
     )  # fmt: skip
     return e, r
@@ -857,12 +874,12 @@ def advance(
     h = float(dt_s)
     if not h > 0.0:
         raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
-    n = state.soc.shape[0]
+    n, soc, eta, tc, tj = _state_arrays(params, state)
     th = _thermal_coeffs(params, h)
     new = CellState(np.empty(n), np.empty((n, params.n_rc)), np.empty(n), np.empty(n))
     heat = np.empty(n)
     _advance_kernel(
-        state.soc, np.ascontiguousarray(state.eta_v), state.temp_c, state.jig_temp_c,
+        soc, eta, tc, tj,
         _cells(current_a, n), _cells(ambient_c, n), _cells(capacity_ah, n), _cells(r_scale, n),
         h, th, *_tables(params), new.soc, new.eta_v, new.temp_c, new.jig_temp_c, heat,
     )  # fmt: skip
