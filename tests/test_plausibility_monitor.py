@@ -177,6 +177,7 @@ def test_stale_by_sample_age_when_the_measurement_carries_one() -> None:
 
     d = PDriver()
     assert not faults(d.run(lambda k: (aged(k, 0.5), live(k)), 20))
+    assert not faults(d.run(lambda k: (aged(k, math.nan), live(k)), 20))  # NaN: not reported
     outs = d.run(lambda k: (aged(k, 3.0), live(k)), 5)
     assert first_fault_step(outs) == 1 and faults(outs)[0].data["kind"] == "stale"
 

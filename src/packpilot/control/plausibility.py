@@ -395,8 +395,8 @@ class PlausibilityMonitor:
 
     def _stale(self, bm: BatteryMeasurement) -> Finding:
         age = getattr(bm, "sample_age_s", None)
-        if age is None:
-            return None
+        if age is None or (isinstance(age, float) and math.isnan(age)):
+            return None  # not reported (a NaN default would mean "unknown", not "stale")
         if not _finite(age) or age > self.config.max_sample_age_s:
             return (True, "sample_age_s", _show(age))
         return (False, "", None)
