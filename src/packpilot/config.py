@@ -159,6 +159,14 @@ class AuxConfig(_Strict):
     bms_load_w: NonNegFloat = 15.0
 
 
+class CanConfig(_Strict):
+    """Charger setpoints over a python-can bus (``virtual`` in one process for simulation)."""
+
+    interface: str = "virtual"
+    channel: str = "packpilot"
+    log: str | None = Field(None, description="log every frame to this .blf or .asc file")
+
+
 class SimConfig(_Strict):
     dt_s: Annotated[float, Field(gt=0, le=10)] = 0.1
     duration_s: PosFloat = 600.0
@@ -174,6 +182,63 @@ METHOD_SECTIONS: dict[str, str] = {
     "charging": "packpilot.control.charging:ChargingConfig",
     "equalization": "packpilot.control.equalization:EqualizationConfig",
 }
+
+SAFETY_SECTIONS: dict[str, str] = {
+    "supervisor": "packpilot.control.supervisor:SupervisorConfig",
+    "limits": "packpilot.control.limits:LimitsConfig",
+    "plausibility": "packpilot.control.plausibility:PlausibilityConfig",
+}
+
+FAULT_KINDS = (
+    "sensor_nan",
+    "sensor_stuck",
+    "sensor_dropout",
+    "welded_relay",
+    "shorted_fet",
+    "charger_fault",
+    "can_silence",
+    "cooling_failure",
+)
+
+
+class FaultConfig(_Strict):
+    """A fault injected into the run at ``at_s`` (until ``until_s``, if given)."""
+
+    kind: Literal[
+        "sensor_nan",
+        "sensor_stuck",
+        "sensor_dropout",
+        "welded_relay",
+        "shorted_fet",
+        "charger_fault",
+        "can_silence",
+        "cooling_failure",
+    ]
+    at_s: NonNegFloat
+    until_s: NonNegFloat | None = None
+    battery: str | None = Field(None, description="battery name (sensor/switch/thermal faults)")
+    quantity: Literal["voltage_v", "current_a", "temp_c", "min_cell_v", "max_cell_v", "soc"] = (
+        "voltage_v"
+    )
+    fet: Literal["chg", "dsg"] = "chg"
+    flag: Literal[
+        "hardware_failure",
+        "over_temperature",
+        "input_voltage_fault",
+        "battery_not_detected",
+    ] = "hardware_failure"
+    cooling_factor: Annotated[float, Field(gt=0, lt=1)] = Field(
+        0.02, description="heat-transfer-to-ambient multiplier during a cooling failure"
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> FaultConfig:
+        if self.until_s is not None and self.until_s <= self.at_s:
+            raise ValueError("until_s must be after at_s")
+        needs_battery = self.kind not in ("charger_fault", "can_silence")
+        if needs_battery and self.battery is None:
+            raise ValueError(f"fault kind {self.kind!r} needs a battery name")
+        return self
 
 
 class ScenarioConfig(_Strict):
@@ -192,11 +257,36 @@ class ScenarioConfig(_Strict):
     sequencing: dict[str, Any] | None = None
     charging: dict[str, Any] | None = None
     equalization: dict[str, Any] | None = None
+    supervisor: dict[str, Any] | None = Field(
+        None, description="present: run the methods under the supervisor's mode machine"
+    )
+    limits: dict[str, Any] | None = Field(None, description="present: enable safety limits")
+    plausibility: dict[str, Any] | None = Field(
+        None, description="present: enable sensor/switch plausibility checks"
+    )
+    can: CanConfig | None = Field(None, description="charger over CAN (python-can)")
+    faults: list[FaultConfig] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _check_faults(self) -> ScenarioConfig:
+        names = {b.name for b in self.pack.batteries}
+        for k, f in enumerate(self.faults):
+            if f.battery is not None and f.battery not in names:
+                raise ValueError(
+                    f"faults.{k}.battery: unknown battery {f.battery!r}; "
+                    f"known: {', '.join(sorted(names))}"
+                )
+        return self
+
+    @property
+    def supervised(self) -> bool:
+        return any(x is not None for x in (self.supervisor, self.limits, self.plausibility))
 
 
 def method_config_class(section: str) -> type[BaseModel]:
     """The pydantic model that validates a method's section (imported lazily)."""
-    mod_name, cls_name = METHOD_SECTIONS[section].split(":")
+    path = METHOD_SECTIONS.get(section) or SAFETY_SECTIONS[section]
+    mod_name, cls_name = path.split(":")
     cls = getattr(importlib.import_module(mod_name), cls_name)
     assert isinstance(cls, type) and issubclass(cls, BaseModel)
     return cls
@@ -244,6 +334,9 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConf
         raise ConfigError(_fmt_error(source, err)) from None
     for name in METHOD_SECTIONS:
         if name in cfg.controller or getattr(cfg, name) is not None:
+            validate_section(name, getattr(cfg, name), source)
+    for name in SAFETY_SECTIONS:
+        if getattr(cfg, name) is not None:
             validate_section(name, getattr(cfg, name), source)
     return cfg
 

@@ -18,6 +18,7 @@ inputs set by whoever runs it.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -61,6 +62,12 @@ class CellBank:
     params: cellmod.CellParams
     idx: IntArray
     state: cellmod.CellState
+    base: cellmod.CellParams | None = None
+    """The unmodified set, when ``params`` carries a fault (e.g. a cooling failure)."""
+
+
+def _take(state: cellmod.CellState, m: BoolArray) -> cellmod.CellState:
+    return cellmod.CellState(state.soc[m], state.eta_v[m], state.temp_c[m], state.jig_temp_c[m])
 
 
 @dataclass
@@ -321,6 +328,31 @@ class Pack:
     def set_aux_charge(self, current_a: Array) -> None:
         a = np.nan_to_num(np.asarray(current_a, float).reshape(self.n_packs))
         self.aux_charge_a = np.clip(a, 0.0, self.cfg.aux.dcdc_max_a)
+
+    def set_cooling(self, string: int, factor: float) -> None:
+        """Scale one battery's heat transfer to ambient (1 = healthy; a cooling failure < 1).
+
+        The battery's cells move to a bank of their own whose thermal parameters carry the
+        factor, so the fault touches no other battery that shares the cell set.
+        """
+        C = self.n_cells
+        banks: list[CellBank] = []
+        for bank in self.banks:
+            m = self.cell_string[bank.idx % C] == string
+            if not m.any():
+                banks.append(bank)
+                continue
+            if (~m).any():
+                banks.append(CellBank(bank.params, bank.idx[~m], _take(bank.state, ~m),
+                                      bank.base))
+            base = bank.base or bank.params
+            th = base.thermal
+            params = base if factor == 1.0 else dataclasses.replace(
+                base, thermal=dataclasses.replace(th, jig_air_w_per_k=th.jig_air_w_per_k * factor)
+            )
+            banks.append(CellBank(params, bank.idx[m], _take(bank.state, m),
+                                  None if factor == 1.0 else base))
+        self.banks = banks
 
     # ------------------------------------------------------------------ step
     def step(self, dt_s: float, load_kind: str, load_value: Array) -> Interval:

@@ -7,6 +7,7 @@ unsupplied), streams every step to a recorder, and summarises the run into metri
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
 import time
@@ -33,6 +34,7 @@ from packpilot.control.types import (
 from packpilot.model import loads
 from packpilot.model.charger import ChargerView
 from packpilot.model.pack import Interval, Pack
+from packpilot.sim.faults import FaultInjector, SilenceableLink
 from packpilot.sim.result import BATTERY_CHANNELS, Recorder, Result, StepSample, Trace
 from packpilot.sim.sensors import measure, pack_info, traction_indices
 
@@ -44,14 +46,37 @@ CONTROLLER_CLASSES: dict[str, str] = {
 }
 
 
+SAFETY_CLASSES: dict[str, str] = {
+    "limits": "packpilot.control.limits:LimitsController",
+    "plausibility": "packpilot.control.plausibility:PlausibilityMonitor",
+}
+
+
+def _instantiate(path: str, section: str, cfg: ScenarioConfig, info: PackInfo) -> Controller:
+    mod_name, cls_name = path.split(":")
+    cls = getattr(importlib.import_module(mod_name), cls_name)
+    section_cfg = validate_section(section, getattr(cfg, section), "<config>")
+    ctrl: Controller = cls(section_cfg, info)
+    return ctrl
+
+
 def build_controller(cfg: ScenarioConfig, info: PackInfo) -> Controller:
-    """Compose the methods the scenario enables, in the order it lists them."""
-    parts: list[Controller] = []
-    for section in cfg.controller:
-        mod_name, cls_name = CONTROLLER_CLASSES[section].split(":")
-        cls = getattr(importlib.import_module(mod_name), cls_name)
-        method_cfg = validate_section(section, getattr(cfg, section), "<config>")
-        parts.append(cls(method_cfg, info))
+    """Compose the methods the scenario enables, in the order it lists them.
+
+    With a ``[supervisor]``, ``[limits]`` or ``[plausibility]`` section the methods run under
+    the :class:`~packpilot.control.supervisor.Supervisor` with the enabled safety layers.
+    """
+    parts = [_instantiate(CONTROLLER_CLASSES[s], s, cfg, info) for s in cfg.controller]
+    if cfg.supervised:
+        from packpilot.control.supervisor import Supervisor
+
+        safety = [
+            _instantiate(path, s, cfg, info)
+            for s, path in SAFETY_CLASSES.items()
+            if getattr(cfg, s) is not None
+        ]
+        sup_cfg = validate_section("supervisor", cfg.supervisor, "<config>")
+        return Supervisor(sup_cfg, info, methods=parts, safety=safety)  # type: ignore[arg-type]
     if not parts:
         return NullController()
     if len(parts) == 1:
@@ -124,6 +149,11 @@ class Runner:
             self.charger_link = DirectChargerLink(self.pack.charger.view(0))
         self.profile = load_profile(self.cfg)
         self.traction = traction_indices(self.pack)
+        self.faults: FaultInjector | None = None
+        if self.cfg.faults:
+            link = SilenceableLink(self.charger_link) if self.charger_link is not None else None
+            self.charger_link = link
+            self.faults = FaultInjector(self.cfg, self.pack, link)
         self.events: list[Event] = []
         self.samples: list[StepSample] = []
 
@@ -181,9 +211,13 @@ class Runner:
                 t = self.pack.t_s
                 for hook in self.hooks:
                     hook(self, t)
+                if self.faults is not None:
+                    self.faults.before_step(self, t)
                 if self.charger_link is not None:
-                    charger_status = self.charger_link.poll(t) or charger_status
+                    charger_status = self._charger_status(t, charger_status)
                 meas = measure(self.pack, charger_status)
+                if self.faults is not None:
+                    meas = self.faults.filter(meas)
                 out: ControlOutput = controller.step(meas, dt)
                 self.apply(out.commands, t)
                 value = self.profile.at(t - cfg.load.start_s) if t >= cfg.load.start_s else 0.0
@@ -232,6 +266,19 @@ class Runner:
             metrics=metrics,
             run_id=self.run_id,
         )
+
+    def _charger_status(self, t_s: float, last: ChargerStatus | None) -> ChargerStatus | None:
+        """Latest charger status; marked offline once nothing arrived for the timeout."""
+        assert self.charger_link is not None
+        status = self.charger_link.poll(t_s)
+        if status is not None:
+            self._charger_seen_s = t_s
+            return status
+        seen = getattr(self, "_charger_seen_s", None)
+        if last is not None and seen is not None:
+            if t_s - seen > self.cfg.charger.heartbeat_timeout_s and last.online:
+                return dataclasses.replace(last, online=False)
+        return last
 
     def _sample(self, k: int, iv: Interval, out: ControlOutput) -> StepSample:
         pack = self.pack
