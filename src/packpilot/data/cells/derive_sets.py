@@ -152,8 +152,9 @@ def derive_lfp(ecm: CellParams) -> CellParams:
         "~1 mOhm at 25 degC / 50 % SoC, typical of 100 Ah prismatic LFP cells); OCV from a "
         "generic LFP shape (knots in derive_sets.py: 3.00 V at 0 %, plateaus 3.26-3.34 V, "
         "3.45 V at 100 %) on a uniform 0.5 % grid; dU/dT a representative SoC-dependent "
-        "profile within +-0.4 mV/K (knots in derive_sets.py, 5 % grid) applied about 25 degC; thermal: 2000 J/K cell (~2 kg "
-        "prismatic), 1000 J/K rack share, 10 W/K cell-rack, 5 W/K rack-air (still air). "
+        "profile within +-0.4 mV/K (knots in derive_sets.py, 5 % grid) applied about 25 degC; "
+        "thermal: 2000 J/K cell (~2 kg prismatic), 1000 J/K rack share, 10 W/K cell-rack, "
+        "5 W/K rack-air (still air). "
         "Assumptions, not a measured cell."
     )
     return CellParams(
