@@ -122,6 +122,13 @@ class ChargingConfig(BaseModel):
     charger_current_limit_a: float = Field(
         default=20.0, gt=0.0, description="Current limit commanded to the charger (A)."
     )
+    battery_current_limit_a: float | None = Field(
+        default=None,
+        gt=0.0,
+        description="Optional charge-current limit per connected battery (A): the charger is "
+        "commanded min(charger_current_limit_a, n_connected x this), so a stage that charges "
+        "few batteries does not push the whole charger current through them.",
+    )
     termination_current_a: float = Field(
         default=1.0,
         gt=0.0,
@@ -143,6 +150,12 @@ class ChargingConfig(BaseModel):
     )
     r_est_gain: float = Field(
         default=0.5, gt=0.0, le=1.0, description="Filter gain of the resistance estimate (0..1]."
+    )
+    r_settle_s: float = Field(
+        default=60.0,
+        ge=0.0,
+        description="Hold time after a current step for the settled R estimate that includes "
+        "the RC polarization (about 2 time constants; 0 = step estimate only).",
     )
     r_comp_max_ohm: float = Field(
         default=1.0, gt=0.0, description="Estimates above this are rejected as implausible (Ω)."
@@ -206,6 +219,12 @@ class ChargingConfig(BaseModel):
             raise ValueError(
                 f"d1_v ({self.d1_v}) must be smaller than delta_v1_v ({self.delta_v1_v}): "
                 "the spec requires V2 − Vr1 < ΔV1"
+            )
+        per_battery = self.battery_current_limit_a
+        if per_battery is not None and self.termination_current_a >= per_battery:
+            raise ValueError(
+                f"termination_current_a ({self.termination_current_a}) must be smaller than "
+                f"battery_current_limit_a ({per_battery})"
             )
         if self.termination_current_a >= self.charger_current_limit_a:
             raise ValueError(
@@ -316,7 +335,11 @@ class ChargingState:
 
     plan: Plan = field(default_factory=lambda: Plan(Stage.IDLE))
     r_ohm: list[float] = field(default_factory=list)
-    r_learned: list[bool] = field(default_factory=list)
+    r_kind: list[int] = field(default_factory=list)
+    """Per battery: 0 = no estimate yet, 1 = from a step, 2 = settled (incl. polarization)."""
+    step_ref: list[tuple[float, float, float, float] | None] = field(default_factory=list)
+    """Per battery: (V before, I before, I after, clock) of the last step, for the settled R."""
+    clock_s: float = 0.0
     prev_v: list[float] = field(default_factory=list)
     prev_i: list[float] = field(default_factory=list)
     done: list[str] = field(default_factory=list)
@@ -371,7 +394,8 @@ class ChargingController:
         self.series = list(pack.groups_per_battery) or [1] * n
         self.state = ChargingState(
             r_ohm=[config.r_comp_initial_ohm] * n,
-            r_learned=[False] * n,
+            r_kind=[0] * n,
+            step_ref=[None] * n,
             prev_v=[math.nan] * n,
             prev_i=[math.nan] * n,
             done=[""] * n,
@@ -387,6 +411,7 @@ class ChargingController:
         bats = list(meas.batteries[:n])
         valid = [i < len(bats) and bats[i].present and bats[i].is_finite() for i in range(n)]
         self._validity_events(bats, valid, t, events)
+        st.clock_s += dt
         self._update_resistance(bats, valid)
         r_use = self._r_for_compensation()
         est = [
@@ -446,9 +471,10 @@ class ChargingController:
             )
         closed = tuple(i in plan.members for i in range(n))
         if plan.members:
-            charger = ChargerCommand(
-                voltage_v=plan.cmd_v, current_a=cfg.charger_current_limit_a, enable=True
-            )
+            current = cfg.charger_current_limit_a
+            if cfg.battery_current_limit_a is not None:
+                current = min(current, len(plan.members) * cfg.battery_current_limit_a)
+            charger = ChargerCommand(voltage_v=plan.cmd_v, current_a=current, enable=True)
         else:
             charger = CHARGER_OFF
         return self._output(closed, charger, aux_relay, aux_a, est, events)
@@ -581,20 +607,42 @@ class ChargingController:
             st.invalid[i] = bad
 
     def _update_resistance(self, bats: list[BatteryMeasurement], valid: list[bool]) -> None:
-        """R = −ΔV/ΔI across a current step (V = OCV − I·R with I positive = discharge)."""
+        """Learn each battery's R from current steps (V = OCV − I·R, I positive = discharge).
+
+        Two estimates of ``R = −ΔV/ΔI``: across the step itself (one period: mostly the ohmic
+        R0, available at once) and, if the current then holds steady for ``r_settle_s``,
+        between the sample before the step and that later one (R0 plus the developed RC
+        polarization, which is what separates a charging battery's terminal voltage from its
+        rest voltage). The settled value, once known, is the one used.
+        """
         cfg, st = self.config, self.state
         for i, ok in enumerate(valid):
             if not ok:
                 st.prev_v[i] = st.prev_i[i] = math.nan
+                st.step_ref[i] = None
                 continue
             v, cur = bats[i].voltage_v, bats[i].current_a
             di = cur - st.prev_i[i]
             if cfg.r_comp_adapt and math.isfinite(di) and abs(di) >= cfg.r_est_min_step_a:
                 r_new = -(v - st.prev_v[i]) / di
-                if 0.0 <= r_new <= cfg.r_comp_max_ohm:
-                    gain = cfg.r_est_gain if st.r_learned[i] else 1.0  # first step: take it
+                if 0.0 <= r_new <= cfg.r_comp_max_ohm and st.r_kind[i] < 2:
+                    gain = cfg.r_est_gain if st.r_kind[i] == 1 else 1.0  # first step: take it
                     st.r_ohm[i] += gain * (r_new - st.r_ohm[i])
-                    st.r_learned[i] = True
+                    st.r_kind[i] = 1
+                # remember the pre-step point for the settled estimate
+                st.step_ref[i] = (st.prev_v[i], st.prev_i[i], cur, st.clock_s)
+            ref = st.step_ref[i]
+            if cfg.r_comp_adapt and cfg.r_settle_s > 0.0 and ref is not None:
+                v0, i0, i1, t1 = ref
+                if abs(cur - i1) > max(0.1 * abs(i1 - i0), 0.5 * cfg.r_est_min_step_a):
+                    st.step_ref[i] = None  # current moved on: no clean settled response
+                elif st.clock_s - t1 >= cfg.r_settle_s:
+                    r_new = -(v - v0) / (cur - i0)
+                    if 0.0 <= r_new <= cfg.r_comp_max_ohm:
+                        gain = cfg.r_est_gain if st.r_kind[i] == 2 else 1.0
+                        st.r_ohm[i] += gain * (r_new - st.r_ohm[i])
+                        st.r_kind[i] = 2
+                    st.step_ref[i] = None
             st.prev_v[i], st.prev_i[i] = v, cur
 
     def _r_for_compensation(self) -> list[float]:
@@ -602,9 +650,12 @@ class ChargingController:
         one pack are alike), else ``r_comp_initial_ohm``. A battery that joins a running group
         may see too small a current step to learn from, yet already carries current."""
         st = self.state
-        learned = [r for r, ok in zip(st.r_ohm, st.r_learned, strict=True) if ok]
+        best = max(st.r_kind)
+        learned = [r for r, k in zip(st.r_ohm, st.r_kind, strict=True) if k == best and k > 0]
         fallback = sum(learned) / len(learned) if learned else self.config.r_comp_initial_ohm
-        return [r if ok else fallback for r, ok in zip(st.r_ohm, st.r_learned, strict=True)]
+        return [
+            r if k == best and k > 0 else fallback for r, k in zip(st.r_ohm, st.r_kind, strict=True)
+        ]
 
     def _battery_limits(
         self, bats: list[BatteryMeasurement], valid: list[bool], t: float, events: list[Event]

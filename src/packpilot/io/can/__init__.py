@@ -1,5 +1,5 @@
 """CAN I/O: the TC/Elcon charger protocol (packaged DBC), a BMS-side charger client, a
-charger emulator node for closed-loop simulation, bus opening and BLF/ASC frame logging."""
+charger emulator node, the closed loop's CAN charger link, bus opening and BLF/ASC logging."""
 
 from packpilot.io.can.bus import LOG_SUFFIXES, SIM_EPOCH_S, FrameLog, open_bus
 from packpilot.io.can.client import ChargerClient, FrameCounters
@@ -18,6 +18,7 @@ from packpilot.io.can.codec import (
     encode_status,
 )
 from packpilot.io.can.emulator import ChargerEmulator, ChargerPlant
+from packpilot.io.can.link import CanChargerLink
 
 __all__ = [
     "FLAG_NAMES",
@@ -25,6 +26,7 @@ __all__ = [
     "REQUEST_ID",
     "SIM_EPOCH_S",
     "STATUS_ID",
+    "CanChargerLink",
     "ChargerClient",
     "ChargerEmulator",
     "ChargerFlags",

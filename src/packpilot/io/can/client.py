@@ -82,20 +82,30 @@ class ChargerClient:
         first poll), the latest status while status frames keep coming, and a status with
         ``online=False`` and NaN outputs once none arrived for ``status_timeout_s``.
         """
-        if not math.isfinite(t_s):
-            raise ValueError(f"poll: simulation time must be finite, got {t_s}")
-        if self._first_poll_t is None:
-            self._first_poll_t = t_s
+        self._check_time(t_s)
         if self._next_tx_t is None or t_s >= self._next_tx_t - 1e-9:
             self._send(t_s)
             nxt = (self._next_tx_t if self._next_tx_t is not None else t_s) + self.period_s
             # after a stall, restart the cadence from now instead of bursting to catch up
             self._next_tx_t = nxt if nxt > t_s else t_s + self.period_s
+        return self.read(t_s)
+
+    def read(self, t_s: float) -> ChargerStatus | None:
+        """Only the receive half of :meth:`poll` (no heartbeat): lets a loop read the status
+        before its controller runs and send the fresh setpoint after it."""
+        self._check_time(t_s)
         self._drain(t_s)
+        assert self._first_poll_t is not None
         ref = self._last_status_t if self._last_status_t is not None else self._first_poll_t
         if t_s - ref > self.status_timeout_s:
             return ChargerStatus(output_v=math.nan, output_a=math.nan, online=False)
         return self.last_status
+
+    def _check_time(self, t_s: float) -> None:
+        if not math.isfinite(t_s):
+            raise ValueError(f"poll: simulation time must be finite, got {t_s}")
+        if self._first_poll_t is None:
+            self._first_poll_t = t_s
 
     def _send(self, t_s: float) -> None:
         msg = encode_request(self.request, timestamp=t_s)
