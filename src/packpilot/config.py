@@ -187,6 +187,7 @@ SAFETY_SECTIONS: dict[str, str] = {
     "supervisor": "packpilot.control.supervisor:SupervisorConfig",
     "limits": "packpilot.control.limits:LimitsConfig",
     "plausibility": "packpilot.control.plausibility:PlausibilityConfig",
+    "soc": "packpilot.control.soc:SocConfig",
 }
 
 FAULT_KINDS = (
@@ -264,6 +265,9 @@ class ScenarioConfig(_Strict):
     plausibility: dict[str, Any] | None = Field(
         None, description="present: enable sensor/switch plausibility checks"
     )
+    soc: dict[str, Any] | None = Field(
+        None, description="present: BMS SOC estimation (coulomb counting + OCV after rest)"
+    )
     can: CanConfig | None = Field(None, description="charger over CAN (python-can)")
     faults: list[FaultConfig] = Field(default_factory=list)
 
@@ -280,7 +284,9 @@ class ScenarioConfig(_Strict):
 
     @property
     def supervised(self) -> bool:
-        return any(x is not None for x in (self.supervisor, self.limits, self.plausibility))
+        return any(
+            x is not None for x in (self.supervisor, self.limits, self.plausibility, self.soc)
+        )
 
 
 def method_config_class(section: str) -> type[BaseModel]:

@@ -60,7 +60,9 @@ def _instantiate(path: str, section: str, cfg: ScenarioConfig, info: PackInfo) -
     return ctrl
 
 
-def build_controller(cfg: ScenarioConfig, info: PackInfo) -> Controller:
+def build_controller(
+    cfg: ScenarioConfig, info: PackInfo, pack: Pack | None = None
+) -> Controller:
     """Compose the methods the scenario enables, in the order it lists them.
 
     With a ``[supervisor]``, ``[limits]`` or ``[plausibility]`` section the methods run under
@@ -75,6 +77,8 @@ def build_controller(cfg: ScenarioConfig, info: PackInfo) -> Controller:
             for s, path in SAFETY_CLASSES.items()
             if getattr(cfg, s) is not None
         ]
+        if cfg.soc is not None and pack is not None:
+            safety.append(_soc_estimator(cfg, info, pack))
         sup_cfg = validate_section("supervisor", cfg.supervisor, "<config>")
         return Supervisor(sup_cfg, info, methods=parts, safety=safety)  # type: ignore[arg-type]
     if not parts:
@@ -85,6 +89,22 @@ def build_controller(cfg: ScenarioConfig, info: PackInfo) -> Controller:
 
 
 assert set(CONTROLLER_CLASSES) == set(METHOD_SECTIONS)
+
+
+def _soc_estimator(cfg: ScenarioConfig, info: PackInfo, pack: Pack) -> Controller:
+    """The BMS's own SOC estimate, given the OCV table of the traction cells as data."""
+    from packpilot.control.soc import SocEstimator
+
+    soc_cfg = validate_section("soc", cfg.soc, "<config>")
+    first_cell = int(np.nonzero(~pack.is_aux[pack.cell_string])[0][0])
+    params = next(b.params for b in pack.banks if np.any(b.idx % pack.n_cells == first_cell))
+    est = SocEstimator.from_config(
+        soc_cfg,  # type: ignore[arg-type]
+        info,
+        params.ocv_soc,
+        params.ocv_table_v,
+    )
+    return est
 
 
 class ChargerLink(Protocol):
@@ -144,7 +164,7 @@ class Runner:
         self.pack = Pack(self.cfg, **self.pack_overrides)
         self.info = pack_info(self.pack)
         if self.controller is None:
-            self.controller = build_controller(self.cfg, self.info)
+            self.controller = build_controller(self.cfg, self.info, self.pack)
         if self.charger_link is None and self.cfg.charger.present:
             self.charger_link = DirectChargerLink(self.pack.charger.view(0))
         self.profile = load_profile(self.cfg)
