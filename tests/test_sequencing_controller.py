@@ -277,11 +277,14 @@ def test_diode_conduction_on_power_up_is_bypassed_within_t_on() -> None:
     assert isinstance(conduction, float) and conduction <= 0.1
 
 
-def test_hot_inserted_higher_battery_takes_over_without_cross_current() -> None:
+@pytest.mark.parametrize("dt", [0.1, 0.5])
+def test_hot_inserted_higher_battery_takes_over_without_cross_current(dt: float) -> None:
+    # dt > t_on: the demoted battery's current of the previous period flowed through its FET,
+    # so it must not be mistaken for diode conduction (R3) and re-close the FET at once.
     plant = TinyPlant(ocv0=[23.0, 25.2], r_ohm=[0.02, 0.02], present=[True, False])
-    run = closed_loop(plant, hover, t_end=600.0, insert=(100.0, 1))
+    run = closed_loop(plant, hover, t_end=600.0, dt=dt, insert=(100.0, 1))
     assert run.peak_into_a == 0.0
-    k = round(100.0 / 0.1)
+    k = round(100.0 / dt)
     assert list(run.outputs[k].status["seq_state"]) == ["STANDBY", "DISCHARGING"]
     assert run.outputs[k].commands.chg_on[0] is False
     rejoin = [e for e in run.events if e.kind == "BatteryJoined"]

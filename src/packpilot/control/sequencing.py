@@ -373,7 +373,12 @@ class SequencingController:
             b.conduct_since_s = None
 
     def _discharge_tick(
-        self, meas: Measurements, dt_s: float, inserted: list[int], events: list[Event]
+        self,
+        meas: Measurements,
+        dt_s: float,
+        inserted: list[int],
+        was: list[tuple[bool, bool]],
+        events: list[Event],
     ) -> None:
         cfg = self.config
         st = self.state
@@ -473,11 +478,14 @@ class SequencingController:
                     v_eng = max(v_eng, volt[k])
 
         # R3: charge diode conducting (charge FET off, discharge FET on, discharge current).
+        # Only current measured over a period in which this controller held the charge FET off
+        # and the discharge FET on can have flowed through the diode.
         for k, b in enumerate(bats):
             if b.state not in (SeqState.DISCHARGING, SeqState.STANDBY) or b.chg_on:
                 b.conduct_since_s = None
                 continue
-            if not self._diode_rule(k, cur[k] > cfg.i_det, t, dt_s, events):
+            through_diode = was[k] == (False, True) and cur[k] > cfg.i_det
+            if not self._diode_rule(k, through_diode, t, dt_s, events):
                 continue
             if b.state is SeqState.STANDBY:
                 self._set(
@@ -495,7 +503,13 @@ class SequencingController:
 
         st.v_ref_v = self._v_ref(meas)
 
-    def _charge_tick(self, meas: Measurements, dt_s: float, events: list[Event]) -> None:
+    def _charge_tick(
+        self,
+        meas: Measurements,
+        dt_s: float,
+        was: list[tuple[bool, bool]],
+        events: list[Event],
+    ) -> None:
         cfg = self.config
         st = self.state
         bats = st.batteries
@@ -533,7 +547,8 @@ class SequencingController:
             if b.state is not SeqState.CHARGING or b.dsg_on:
                 b.conduct_since_s = None
                 continue
-            if self._diode_rule(k, cur[k] < -cfg.i_det, t, dt_s, events):
+            through_diode = was[k] == (True, False) and cur[k] < -cfg.i_det
+            if self._diode_rule(k, through_diode, t, dt_s, events):
                 b.dsg_on = True
         st.v_ref_v = None
 
@@ -582,6 +597,8 @@ class SequencingController:
             st.initialized = False
             st.fault_reason = ""
 
+        # FETs in force over the period the measurements cover (our previous commands).
+        was = [(b.chg_on, b.dsg_on) for b in st.batteries]
         # Presence: removal -> OFF; insertion -> STANDBY (R1/R2 decide when it joins).
         inserted: list[int] = []
         for k, (b, bm) in enumerate(zip(st.batteries, meas.batteries, strict=True)):
@@ -594,9 +611,9 @@ class SequencingController:
 
         self._update_mode(meas, events)
         if st.mode is SeqMode.CHARGE:
-            self._charge_tick(meas, dt_s, events)
+            self._charge_tick(meas, dt_s, was, events)
         else:
-            self._discharge_tick(meas, dt_s, inserted, events)
+            self._discharge_tick(meas, dt_s, inserted, was, events)
         return self._output(events)
 
     def _output(self, events: list[Event]) -> ControlOutput:
