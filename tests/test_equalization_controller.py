@@ -236,3 +236,37 @@ def test_deterministic() -> None:
         return seq
 
     assert run() == run()
+
+
+def test_saturated_ah_still_regrants_time() -> None:
+    # At AH = N formula 1 leaves AH unchanged; the lagging group must still be balanced.
+    cfg = EqualizationConfig(equalizer_max_a=5.0)
+    ctrl = EqualizationController(cfg, pack())
+    ctrl.strings[0].ah = [0.5, 0.0, 0.0, 0.0]
+    outs = [ctrl.step(meas(float(k), batt(LOW0, 10.0)), 1.0) for k in range(125)]
+    assert outs[118].commands.balancer_a == ((0.0,) * 4,)
+    assert [e.kind for e in outs[119].events] == []  # no change, no event
+    assert outs[119].commands.balancer_a == ((5.0, 0.0, 0.0, 0.0),)
+    assert ctrl.strings[0].counts["formula1"] == 1
+    assert ctrl.strings[0].remaining_s[0] == pytest.approx(120.0 - 6.0)
+
+
+def test_passive_top_balancer_bleeds_high_groups_while_charging() -> None:
+    from packpilot.control.equalization import PassiveTopBalancer, PassiveTopBalancerConfig
+
+    cfg = PassiveTopBalancerConfig(threshold_cell_v=3.40, delta_cell_v=0.005, bleed_ohm=10.0)
+    info = PackInfo(1, (4,), (4,), (SwitchKind.RELAY,), has_balancers=True)
+    bal = PassiveTopBalancer(cfg, info)
+    gv = (13.70, 13.55, 13.62, 13.40)  # threshold 13.6 V, floor 13.40 + 0.02
+    out = bal.step(meas(0.0, batt(gv, -20.0)), 2.0)
+    assert out.commands.balancer_a is not None
+    assert out.commands.balancer_a[0] == pytest.approx((-1.37, 0.0, -1.362, 0.0))
+    assert bal.bled_ah[0][0] == pytest.approx(1.37 * 2.0 / 3600.0)
+    assert out.status["passive_bleeding"] == [2]
+    # Discharging: no bleeding (top balancing only).
+    assert bal.step(meas(2.0, batt(gv, 20.0)), 2.0).commands.balancer_a == ((0.0,) * 4,)
+    # A NaN voltage stops it with one Fault.
+    bad = batt((math.nan, 13.55, 13.62, 13.40), -20.0)
+    out = bal.step(meas(4.0, bad), 2.0)
+    assert out.commands.balancer_a == ((0.0,) * 4,)
+    assert [e.kind for e in out.events] == ["Fault"]
