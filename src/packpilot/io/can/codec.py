@@ -135,18 +135,25 @@ def _raw(value: float) -> int:
     return min(max(round(value * COUNTS_PER_UNIT), 0), _RAW_MAX)
 
 
+@functools.lru_cache(maxsize=4096)
+def _encode_raw(frame_id: int, raw: tuple[tuple[str, int], ...]) -> bytes:
+    """cantools encoding of raw counts, memoised: a heartbeat repeats the same few frames."""
+    return bytes(_message(frame_id).encode(dict(raw), scaling=False))
+
+
 def encode_request(cmd: ChargerCommand, timestamp: float = 0.0) -> can.Message:
     """Request frame for a charger command. A non-finite setpoint is sent as 0 V / 0 A / off,
     so a corrupted command can only switch the charger off."""
-    msg = _message(REQUEST_ID)
     finite = math.isfinite(cmd.voltage_v) and math.isfinite(cmd.current_a)
-    raw = {
-        "MaxChargeVoltage": _raw(cmd.voltage_v) if finite else 0,
-        "MaxChargeCurrent": _raw(cmd.current_a) if finite else 0,
-        "Control": CONTROL_ON if (cmd.enable and finite) else CONTROL_OFF,
-        "Mode": MODE_CHARGING,
-    }
-    data = msg.encode(raw, scaling=False)
+    data = _encode_raw(
+        REQUEST_ID,
+        (
+            ("MaxChargeVoltage", _raw(cmd.voltage_v) if finite else 0),
+            ("MaxChargeCurrent", _raw(cmd.current_a) if finite else 0),
+            ("Control", CONTROL_ON if (cmd.enable and finite) else CONTROL_OFF),
+            ("Mode", MODE_CHARGING),
+        ),
+    )
     return can.Message(
         timestamp=timestamp, arbitration_id=REQUEST_ID, is_extended_id=True, data=data
     )
@@ -156,15 +163,10 @@ def encode_status(
     output_v: float, output_a: float, flags: FaultFlags, timestamp: float = 0.0
 ) -> can.Message:
     """Status frame: present output and the five status bits."""
-    msg = _message(STATUS_ID)
     f = ChargerFlags.of(flags)
-    raw: dict[str, int] = {
-        "OutputVoltage": _raw(output_v),
-        "OutputCurrent": _raw(output_a),
-    }
-    for name, signal in _FLAG_SIGNALS.items():
-        raw[signal] = int(getattr(f, name))
-    data = msg.encode(raw, scaling=False)
+    raw = [("OutputVoltage", _raw(output_v)), ("OutputCurrent", _raw(output_a))]
+    raw += [(signal, int(getattr(f, name))) for name, signal in _FLAG_SIGNALS.items()]
+    data = _encode_raw(STATUS_ID, tuple(raw))
     return can.Message(
         timestamp=timestamp, arbitration_id=STATUS_ID, is_extended_id=True, data=data
     )
