@@ -147,6 +147,10 @@ class Pack:
         self.string_group_starts = np.concatenate([[0], np.cumsum(groups)[:-1]])
         self.max_groups = max(groups)
         self.string_cell_starts = np.concatenate([[0], np.cumsum(n_cells)[:-1]]).astype(np.int64)
+        # (strings, max_groups) -> flat group index, -1 where a string has fewer groups.
+        self.group_table = np.full((n_s, self.max_groups), -1, dtype=np.int64)
+        for i, ng in enumerate(groups):
+            self.group_table[i, :ng] = self.string_group_starts[i] + np.arange(ng)
 
         # Switches.
         sw = [b.switch or pc.switch for b in bats]

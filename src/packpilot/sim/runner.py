@@ -295,40 +295,37 @@ class Runner:
             self._charger_seen_s = t_s
             return status
         seen = getattr(self, "_charger_seen_s", None)
-        if last is not None and seen is not None:
-            if t_s - seen > self.cfg.charger.heartbeat_timeout_s and last.online:
-                return dataclasses.replace(last, online=False)
+        timeout = self.cfg.charger.heartbeat_timeout_s
+        if last is not None and seen is not None and t_s - seen > timeout and last.online:
+            return dataclasses.replace(last, online=False)
         return last
 
     def _sample(self, k: int, iv: Interval, out: ControlOutput) -> StepSample:
         pack = self.pack
         soc, temp = pack.cell_states()
         chg, dsg = pack.effective_gates()
+        starts = pack.string_cell_starts
         cap = pack.capacity_ah[0]
-        rows = np.empty((pack.n_strings, len(BATTERY_CHANNELS)))
-        group = np.full((pack.n_strings, pack.max_groups), np.nan)
-        for i in range(pack.n_strings):
-            m = pack.cell_string == i
-            rem = soc[0, m] * cap[m]
-            full = cap[m].min()
-            rows[i] = (
-                iv.battery_v[0, i],
-                iv.string_a[0, i],
-                rem.min() / full,
-                temp[0, m].max(),
-                iv.cell_v[0, m].min(),
-                iv.cell_v[0, m].max(),
-                rem.min(),
+        rem = np.minimum.reduceat(soc[0] * cap, starts)
+        full = np.minimum.reduceat(cap, starts)
+        rows = np.column_stack(
+            (
+                iv.battery_v[0],
+                iv.string_a[0],
+                rem / full,
+                np.maximum.reduceat(temp[0], starts),
+                np.minimum.reduceat(iv.cell_v[0], starts),
+                np.maximum.reduceat(iv.cell_v[0], starts),
+                rem,
                 full,
-                chg[0, i],
-                dsg[0, i],
-                iv.chg_diode_a[0, i],
-                iv.dsg_diode_a[0, i],
-                iv.balancer_in_w[0, i],
+                chg[0],
+                dsg[0],
+                iv.chg_diode_a[0],
+                iv.dsg_diode_a[0],
+                iv.balancer_in_w[0],
             )
-            g0 = int(pack.string_group_starts[i])
-            ng = pack.groups_per_string[i]
-            group[i, :ng] = iv.group_v[0, g0 : g0 + ng]
+        )
+        group = np.where(pack.group_table >= 0, iv.group_v[0][pack.group_table], np.nan)
         status = {}
         if out.status:
             # Controller channels are per traction battery; spread them over all strings.

@@ -51,32 +51,35 @@ def battery_truth(pack: Pack, p: int = 0) -> list[BatteryMeasurement]:
     """Per-battery status of pack ``p`` at the present instant (all strings, aux included)."""
     cell_v = pack.cell_voltage_now()[p]
     soc, temp = pack.cell_states()
-    soc, temp = soc[p], temp[p]
+    starts = pack.string_cell_starts
     cap = pack.capacity_ah[p]
-    group_v = np.add.reduceat(cell_v, pack.group_starts)
+    remaining = np.minimum.reduceat(soc[p] * cap, starts)
+    full = np.minimum.reduceat(cap, starts)
+    volts = np.add.reduceat(cell_v, starts)
+    vmin = np.minimum.reduceat(cell_v, starts)
+    vmax = np.maximum.reduceat(cell_v, starts)
+    tmax = np.maximum.reduceat(temp[p], starts)
+    tmin = np.minimum.reduceat(temp[p], starts)
+    group_v = np.add.reduceat(cell_v, pack.group_starts).tolist()
     present = pack.present()[p]
     chg, dsg = pack.effective_gates()
+    current = pack.string_a[p]
     out: list[BatteryMeasurement] = []
     for i in range(pack.n_strings):
-        m = pack.cell_string == i
         g0 = int(pack.string_group_starts[i])
-        remaining = soc[m] * cap[m]
-        full = float(cap[m].min())
-        rem = float(remaining.min())
+        f = float(full[i])
         out.append(
             BatteryMeasurement(
-                voltage_v=float(cell_v[m].sum()),
-                current_a=float(pack.string_a[p, i]),
-                temp_c=float(temp[m].max()),
-                min_temp_c=float(temp[m].min()),
-                min_cell_v=float(cell_v[m].min()),
-                max_cell_v=float(cell_v[m].max()),
-                soc=rem / full if full > 0 else float("nan"),
-                full_capacity_ah=full,
-                remaining_capacity_ah=rem,
-                group_voltages_v=tuple(
-                    float(x) for x in group_v[g0 : g0 + pack.groups_per_string[i]]
-                ),
+                voltage_v=float(volts[i]),
+                current_a=float(current[i]),
+                temp_c=float(tmax[i]),
+                min_temp_c=float(tmin[i]),
+                min_cell_v=float(vmin[i]),
+                max_cell_v=float(vmax[i]),
+                soc=float(remaining[i]) / f if f > 0 else float("nan"),
+                full_capacity_ah=f,
+                remaining_capacity_ah=float(remaining[i]),
+                group_voltages_v=tuple(group_v[g0 : g0 + pack.groups_per_string[i]]),
                 switch=SwitchState(chg_on=bool(chg[p, i]), dsg_on=bool(dsg[p, i])),
                 present=bool(present[i]),
             )
