@@ -74,10 +74,10 @@ def test_pack_charges_to_full_over_can(tmp_path: Path) -> None:
     assert len(done) == 1
     soc = res.trace.channel("soc")[-1, tr]
     assert soc.min() > 0.97, soc
-    # every relay open once complete, charger commanded off
+    # every relay open once complete; the dock only feeds the aux DC/DC (5 A at ~14 V)
     k = int(done[0].t_s)
     assert not res.trace.channel("chg_on")[k + 2 :, tr].any()
-    assert res.trace.charger_a[k + 3 :].max() < 1e-6
+    assert res.trace.charger_a[k + 3 :].max() < 1.0
     # setpoints never above V_sat and the stage sequence of the spec
     cmd = np.array(res.trace.status["chg_cmd_v"], dtype=float)[:, tr[0]]
     assert np.nanmax(cmd) <= V_SAT

@@ -350,3 +350,17 @@ def test_offline_status_object() -> None:
     meas = Measurements(t_s=0.0, batteries=meas.batteries, bus_v=1.0, charger=st, docked=True)
     out = controller(1).step(meas, 1.0)
     assert out.commands.charger == CHARGER_OFF
+
+
+def test_dock_stays_on_for_aux_after_complete_then_off() -> None:
+    toy = ToyPack([119.8], aux_soc=0.5)
+    ctrl = ChargingController(ChargingConfig(), pack_info(1, has_aux=True))
+    run = drive(toy, ctrl, 10)
+    assert run.kinds("ChargeComplete")
+    out = ctrl.step(toy.measure(), 1.0)
+    assert out.commands.chg_on == (False,)
+    assert out.commands.charger is not None and out.commands.charger.enable
+    assert out.commands.charger.voltage_v == 120.0 and out.commands.aux_relay_closed
+    toy.aux_soc = 0.95
+    out = ctrl.step(toy.measure(), 1.0)
+    assert out.commands.charger == CHARGER_OFF and out.commands.aux_relay_closed is False

@@ -154,8 +154,13 @@ class ChargingConfig(BaseModel):
     r_settle_s: float = Field(
         default=60.0,
         ge=0.0,
-        description="Hold time after a current step for the settled R estimate that includes "
-        "the RC polarization (about 2 time constants; 0 = step estimate only).",
+        description="Window of the settled R estimate (needs 2 windows of steady current after "
+        "a step; about 2 RC time constants; 0 = step estimate only).",
+    )
+    r_settle_max_ratio: float = Field(
+        default=4.0,
+        ge=1.0,
+        description="A settled R above this multiple of the step R is rejected as corrupted.",
     )
     r_comp_max_ohm: float = Field(
         default=1.0, gt=0.0, description="Estimates above this are rejected as implausible (Ω)."
@@ -330,6 +335,18 @@ def _same(a: float, b: float) -> bool:
 
 
 @dataclass(slots=True)
+class StepRef:
+    """A current step being followed for the settled resistance estimate."""
+
+    v0: float
+    i0: float
+    i1: float
+    t1: float
+    r_step: float
+    v_mid: float = math.nan
+
+
+@dataclass(slots=True)
 class ChargingState:
     """Everything the controller remembers between periods (explicit, for inspection)."""
 
@@ -337,8 +354,8 @@ class ChargingState:
     r_ohm: list[float] = field(default_factory=list)
     r_kind: list[int] = field(default_factory=list)
     """Per battery: 0 = no estimate yet, 1 = from a step, 2 = settled (incl. polarization)."""
-    step_ref: list[tuple[float, float, float, float] | None] = field(default_factory=list)
-    """Per battery: (V before, I before, I after, clock) of the last step, for the settled R."""
+    step_ref: list[StepRef | None] = field(default_factory=list)
+    """Per battery: the last current step, followed for the settled R estimate."""
     clock_s: float = 0.0
     prev_v: list[float] = field(default_factory=list)
     prev_i: list[float] = field(default_factory=list)
@@ -445,7 +462,8 @@ class ChargingController:
             st.charger_fault = ""  # the fresh decision below is reported as a stage change
 
         if st.plan.stage is Stage.COMPLETE:
-            return self._output((False,) * n, CHARGER_OFF, aux_relay, aux_a, est, events)
+            charger = self._aux_only_charger(aux_relay)
+            return self._output((False,) * n, charger, aux_relay, aux_a, est, events)
         if not st.rested:
             if st.plan.stage is not Stage.REST:
                 self._set_plan(Plan(Stage.REST), t, events, reason="docked")
@@ -475,9 +493,20 @@ class ChargingController:
             if cfg.battery_current_limit_a is not None:
                 current = min(current, len(plan.members) * cfg.battery_current_limit_a)
             charger = ChargerCommand(voltage_v=plan.cmd_v, current_a=current, enable=True)
+        elif plan.stage is Stage.COMPLETE:
+            charger = self._aux_only_charger(aux_relay)
         else:
             charger = CHARGER_OFF
         return self._output(closed, charger, aux_relay, aux_a, est, events)
+
+    def _aux_only_charger(self, aux_relay: bool | None) -> ChargerCommand:
+        """Traction charging done: the dock stays on (every traction relay open) only while the
+        aux battery is still charging, since its DC/DC draws from the dock (spec §2)."""
+        if aux_relay:
+            return ChargerCommand(
+                voltage_v=self.volts.v_sat, current_a=self.config.charger_current_limit_a
+            )
+        return CHARGER_OFF
 
     # ----------------------------------------------------------------------------------------
     def _decide(self, est: list[float], eligible: list[int]) -> Plan:
@@ -609,11 +638,14 @@ class ChargingController:
     def _update_resistance(self, bats: list[BatteryMeasurement], valid: list[bool]) -> None:
         """Learn each battery's R from current steps (V = OCV − I·R, I positive = discharge).
 
-        Two estimates of ``R = −ΔV/ΔI``: across the step itself (one period: mostly the ohmic
-        R0, available at once) and, if the current then holds steady for ``r_settle_s``,
-        between the sample before the step and that later one (R0 plus the developed RC
-        polarization, which is what separates a charging battery's terminal voltage from its
-        rest voltage). The settled value, once known, is the one used.
+        Two estimates of ``R = −ΔV/ΔI``. Across the step itself (one period): mostly the
+        ohmic R0, available at once. Settled: if the current then holds steady for two windows
+        of ``r_settle_s``, ``R = −(V(T) − V(0) − (V(2T) − V(T))) / ΔI`` — the voltage change to
+        the end of the first window includes the RC polarization (what separates a charging
+        battery's terminal voltage from its rest voltage) plus the OCV drift of the charge
+        delivered meanwhile, and the second window, with the polarization nearly settled,
+        measures that drift. The settled value is accepted only within
+        ``[1, r_settle_max_ratio] ×`` the step value and, once known, is the one used.
         """
         cfg, st = self.config, self.state
         for i, ok in enumerate(valid):
@@ -624,26 +656,38 @@ class ChargingController:
             v, cur = bats[i].voltage_v, bats[i].current_a
             di = cur - st.prev_i[i]
             if cfg.r_comp_adapt and math.isfinite(di) and abs(di) >= cfg.r_est_min_step_a:
-                r_new = -(v - st.prev_v[i]) / di
-                if 0.0 <= r_new <= cfg.r_comp_max_ohm and st.r_kind[i] < 2:
-                    gain = cfg.r_est_gain if st.r_kind[i] == 1 else 1.0  # first step: take it
-                    st.r_ohm[i] += gain * (r_new - st.r_ohm[i])
-                    st.r_kind[i] = 1
-                # remember the pre-step point for the settled estimate
-                st.step_ref[i] = (st.prev_v[i], st.prev_i[i], cur, st.clock_s)
+                r_step = -(v - st.prev_v[i]) / di
+                if 0.0 <= r_step <= cfg.r_comp_max_ohm:
+                    if st.r_kind[i] < 2:
+                        gain = cfg.r_est_gain if st.r_kind[i] == 1 else 1.0  # first: take it
+                        st.r_ohm[i] += gain * (r_step - st.r_ohm[i])
+                        st.r_kind[i] = 1
+                    st.step_ref[i] = StepRef(st.prev_v[i], st.prev_i[i], cur, st.clock_s, r_step)
+                else:
+                    st.step_ref[i] = None
             ref = st.step_ref[i]
             if cfg.r_comp_adapt and cfg.r_settle_s > 0.0 and ref is not None:
-                v0, i0, i1, t1 = ref
-                if abs(cur - i1) > max(0.1 * abs(i1 - i0), 0.5 * cfg.r_est_min_step_a):
-                    st.step_ref[i] = None  # current moved on: no clean settled response
-                elif st.clock_s - t1 >= cfg.r_settle_s:
-                    r_new = -(v - v0) / (cur - i0)
-                    if 0.0 <= r_new <= cfg.r_comp_max_ohm:
-                        gain = cfg.r_est_gain if st.r_kind[i] == 2 else 1.0
-                        st.r_ohm[i] += gain * (r_new - st.r_ohm[i])
-                        st.r_kind[i] = 2
-                    st.step_ref[i] = None
+                self._settle(i, ref, v, cur)
             st.prev_v[i], st.prev_i[i] = v, cur
+
+    def _settle(self, i: int, ref: StepRef, v: float, cur: float) -> None:
+        cfg, st = self.config, self.state
+        if abs(cur - ref.i1) > max(0.1 * abs(ref.i1 - ref.i0), 0.5 * cfg.r_est_min_step_a):
+            st.step_ref[i] = None  # the current moved on: no clean settled response
+            return
+        elapsed = st.clock_s - ref.t1
+        if math.isnan(ref.v_mid):
+            if elapsed >= cfg.r_settle_s:
+                ref.v_mid = v
+            return
+        if elapsed < 2.0 * cfg.r_settle_s:
+            return
+        st.step_ref[i] = None
+        r_new = -((ref.v_mid - ref.v0) - (v - ref.v_mid)) / (ref.i1 - ref.i0)
+        if ref.r_step <= r_new <= min(cfg.r_settle_max_ratio * ref.r_step, cfg.r_comp_max_ohm):
+            gain = cfg.r_est_gain if st.r_kind[i] == 2 else 1.0
+            st.r_ohm[i] += gain * (r_new - st.r_ohm[i])
+            st.r_kind[i] = 2
 
     def _r_for_compensation(self) -> list[float]:
         """Own estimate once learned; before that the mean of the learned ones (batteries of
