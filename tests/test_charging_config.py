@@ -56,5 +56,14 @@ def test_cell_basis_needs_one_series_count() -> None:
         cells_per_group=(1, 1),
         switch_kind=info.switch_kind,
     )
-    with pytest.raises(ConfigError, match="one common series count"):
+    with pytest.raises(ConfigError, match="one common series cell count"):
         ChargingController(ChargingConfig(voltage_basis="cell"), info)
+
+
+def test_cell_basis_counts_cells_in_series_inside_groups() -> None:
+    """A group is cells_per_group cells in *series*: 1 group of 6 cells is a 6S battery."""
+    from dataclasses import replace
+
+    info = replace(pack_info(2, series=1), cells_per_group=(6, 6))
+    volts = Volts.resolve(ChargingConfig(voltage_basis="cell", v_sat_v=4.2), info)
+    assert volts.v_sat == pytest.approx(6 * 4.2)

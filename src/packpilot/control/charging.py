@@ -286,14 +286,22 @@ class Volts:
     def resolve(cls, cfg: ChargingConfig, pack: PackInfo) -> Volts:
         scale = 1.0
         if cfg.voltage_basis == "cell":
-            series = set(pack.groups_per_battery)
+            series = set(series_cells(pack))
             if len(series) != 1:
                 raise ConfigError(
                     "charging.voltage_basis = 'cell' needs batteries with one common series "
-                    f"count, got groups_per_battery={pack.groups_per_battery}"
+                    f"cell count, got {series_cells(pack)}"
                 )
             scale = float(series.pop())
         return cls(*(getattr(cfg, name) * scale for name in VOLTAGE_FIELDS))
+
+
+def series_cells(pack: PackInfo) -> list[int]:
+    """Cells in series per battery: groups in series, each group ``cells_per_group`` in series."""
+    cells = list(pack.cells_per_group) + [1] * (
+        len(pack.groups_per_battery) - len(pack.cells_per_group)
+    )
+    return [g * c for g, c in zip(pack.groups_per_battery, cells, strict=True)]
 
 
 @dataclass(slots=True)
@@ -408,7 +416,7 @@ class ChargingController:
         self.pack = pack
         self.volts = Volts.resolve(config, pack)
         n = pack.n_batteries
-        self.series = list(pack.groups_per_battery) or [1] * n
+        self.series = series_cells(pack) or [1] * n
         self.state = ChargingState(
             r_ohm=[config.r_comp_initial_ohm] * n,
             r_kind=[0] * n,
