@@ -53,6 +53,11 @@ def simulate(
     as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
     no_progress: Annotated[bool, typer.Option(help="hide the progress bar")] = False,
+    can_interface: Annotated[
+        str | None, typer.Option(help="charger over CAN: python-can interface (virtual, socketcan)")
+    ] = None,
+    can_channel: Annotated[str | None, typer.Option(help="CAN channel, e.g. can0")] = None,
+    can_log: Annotated[Path | None, typer.Option(help="log CAN frames to .blf or .asc")] = None,
 ) -> None:
     """Run a closed-loop simulation of a scenario."""
 
@@ -61,6 +66,22 @@ def simulate(
         from packpilot.sim.runner import Runner
 
         cfg = load_config(config)
+        if can_interface or can_channel or can_log:
+            from packpilot.config import CanConfig
+
+            base = cfg.can or CanConfig()
+            can_cfg = base.model_copy(
+                update={
+                    k: v
+                    for k, v in (
+                        ("interface", can_interface),
+                        ("channel", can_channel),
+                        ("log", str(can_log) if can_log else None),
+                    )
+                    if v is not None
+                }
+            )
+            cfg = cfg.model_copy(update={"can": can_cfg})
         if duration is not None:
             cfg = cfg.model_copy(
                 update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}

@@ -162,8 +162,14 @@ class AuxConfig(_Strict):
 class CanConfig(_Strict):
     """Charger setpoints over a python-can bus (``virtual`` in one process for simulation)."""
 
-    interface: str = "virtual"
-    channel: str = "packpilot"
+    interface: str = Field(
+        "virtual",
+        description="python-can interface; 'virtual' runs an emulated charger node in-process, "
+        "anything else (e.g. socketcan) talks to the real charger on that bus",
+    )
+    channel: str | None = Field(
+        None, description="bus channel (e.g. can0); default: a fresh in-process virtual bus"
+    )
     log: str | None = Field(None, description="log every frame to this .blf or .asc file")
 
 

@@ -51,6 +51,11 @@ class SilenceableLink:
         status = self.inner.poll(t_s)
         return None if self.silenced else status
 
+    def close(self) -> None:
+        close = getattr(self.inner, "close", None)
+        if callable(close):
+            close()
+
 
 @dataclass
 class FaultInjector:

@@ -60,9 +60,7 @@ def _instantiate(path: str, section: str, cfg: ScenarioConfig, info: PackInfo) -
     return ctrl
 
 
-def build_controller(
-    cfg: ScenarioConfig, info: PackInfo, pack: Pack | None = None
-) -> Controller:
+def build_controller(cfg: ScenarioConfig, info: PackInfo, pack: Pack | None = None) -> Controller:
     """Compose the methods the scenario enables, in the order it lists them.
 
     With a ``[supervisor]``, ``[limits]`` or ``[plausibility]`` section the methods run under
@@ -130,6 +128,21 @@ class DirectChargerLink:
         return ChargerStatus(output_v=v, output_a=a, online=True, **f)
 
 
+def _can_link(cfg: ScenarioConfig, pack: Pack) -> ChargerLink:
+    """Charger setpoints over python-can: an emulated dock on a virtual bus, or real hardware."""
+    from packpilot.io.can.link import CanChargerLink
+
+    assert cfg.can is not None
+    emulate = cfg.can.interface == "virtual"
+    return CanChargerLink(
+        pack.charger.view(0) if emulate else None,
+        interface=cfg.can.interface,
+        channel=cfg.can.channel,
+        log_path=cfg.can.log,
+        heartbeat_timeout_s=cfg.charger.heartbeat_timeout_s,
+    )
+
+
 def load_profile(cfg: ScenarioConfig) -> loads.LoadProfile:
     lc = cfg.load
     if lc.kind == "none":
@@ -166,7 +179,10 @@ class Runner:
         if self.controller is None:
             self.controller = build_controller(self.cfg, self.info, self.pack)
         if self.charger_link is None and self.cfg.charger.present:
-            self.charger_link = DirectChargerLink(self.pack.charger.view(0))
+            if self.cfg.can is not None:
+                self.charger_link = _can_link(self.cfg, self.pack)
+            else:
+                self.charger_link = DirectChargerLink(self.pack.charger.view(0))
         self.profile = load_profile(self.cfg)
         self.traction = traction_indices(self.pack)
         self.faults: FaultInjector | None = None
@@ -275,6 +291,9 @@ class Runner:
             raise
         finally:
             bar.close()
+            close = getattr(self.charger_link, "close", None)
+            if callable(close):
+                close()
             wall = time.perf_counter() - wall0
             metrics = compute_metrics(self, wall) if self.samples else {"wall_time_s": wall}
             if self.recorder is not None:
