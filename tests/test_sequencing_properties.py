@@ -188,15 +188,20 @@ def test_charge_fet_closes_only_on_a_battery_that_cannot_be_charged(
                 assert c is False
         mode = out.status["seq_mode"][0]
         if mode == prev_mode == "discharge":
-            kept = [s.volts[j] for j in range(n) if prev_chg[j] and chg[j]]
+            newly = [bool(chg[k]) and not prev_chg[k] for k in range(n)]
+            sourcing = [s.currs[k] > CFG.i_det for k in range(n)]
             for k in range(n):
-                if chg[k] and not prev_chg[k]:
-                    assert states[k] == "DISCHARGING"
-                    assert s.currs[k] > CFG.i_det or (kept and s.volts[k] >= max(kept)), (
-                        k,
-                        s.volts,
-                        s.currs,
-                    )
+                if not newly[k]:
+                    continue
+                assert states[k] == "DISCHARGING"
+                # Batteries engaged after this period, other than k and those closed because
+                # they were seen sourcing current (R3): k must not be below any of them.
+                ref = [
+                    s.volts[j]
+                    for j in range(n)
+                    if j != k and chg[j] and not (newly[j] and sourcing[j])
+                ]
+                assert sourcing[k] or not ref or s.volts[k] >= max(ref), (k, s.volts, s.currs)
         prev_chg, prev_mode = chg, mode
 
 

@@ -266,18 +266,14 @@ class SequencingController:
         return ""
 
     def _v_ref(self, meas: Measurements) -> float | None:
-        """Bus reference: highest terminal voltage of the discharging set (engaged first)."""
-        bats = self.state.batteries
-        engaged = [
-            meas.batteries[k].voltage_v
-            for k, b in enumerate(bats)
-            if b.state is SeqState.DISCHARGING and b.chg_on
-        ]
-        if engaged:
-            return max(engaged)
+        """Bus reference for R2: highest terminal voltage of the discharging set.
+
+        Admitted batteries whose charge FET is still open count too, so a standby battery joins
+        only above every battery already admitted to discharge (joins go in voltage order).
+        """
         admitted = [
             meas.batteries[k].voltage_v
-            for k, b in enumerate(bats)
+            for k, b in enumerate(self.state.batteries)
             if b.state is SeqState.DISCHARGING
         ]
         return max(admitted) if admitted else None
@@ -442,22 +438,33 @@ class SequencingController:
 
         # R2: a standby battery v_co above the bus reference joins. Not one demoted for reverse
         # current this period: its terminal voltage still carries the charging I*R rise.
+        # At rest (no battery carries more than i_det) terminal voltages are open-circuit
+        # voltages, so a joiner v_co above the engaged batteries would push about
+        # (V_k - V_ref) / R_loop into them: it takes over instead, and they stay admitted with
+        # their charge FETs open until the load brings the bus down to them (level rule).
         v_ref = self._v_ref(meas)
+        idle = all(abs(cur[k]) <= cfg.i_det for k in range(len(bats)) if present[k])
         if v_ref is not None:
-            for k, b in enumerate(bats):
-                if k in demoted:
+            standby = [k for k, b in enumerate(bats) if b.state is SeqState.STANDBY]
+            for k in sorted(standby, key=lambda j: -volt[j]):
+                if k in demoted or volt[k] - v_ref < cfg.v_co:
                     continue
-                if b.state is SeqState.STANDBY and volt[k] - v_ref >= cfg.v_co:
-                    self._set(
-                        k,
-                        SeqState.DISCHARGING,
-                        False,
-                        t,
-                        events,
-                        kind="BatteryJoined",
-                        reason="R2",
-                        data={"v": volt[k], "v_ref": v_ref, "dv": volt[k] - v_ref},
-                    )
+                if idle:
+                    for bj in bats:
+                        if bj.state is SeqState.DISCHARGING:
+                            bj.chg_on = False
+                self._set(
+                    k,
+                    SeqState.DISCHARGING,
+                    idle,
+                    t,
+                    events,
+                    kind="BatteryJoined",
+                    reason="R2",
+                    data={"v": volt[k], "v_ref": v_ref, "dv": volt[k] - v_ref, "idle": idle},
+                )
+                if idle:
+                    v_ref = volt[k]
 
         # Level rule: an admitted battery at or above the engaged batteries cannot be charged by
         # them, so its charge FET may close directly (this completes every R2 join at once).
