@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 OUT    := out
 
-.PHONY: demo test bench lint clean venv
+.PHONY: demo test bench lint clean venv browser
 
 venv: $(STAMP)
 
@@ -23,7 +23,17 @@ demo: $(STAMP)
 	@echo "demo: wrote $(OUT)/demo.png, $(OUT)/demo_summary.json, $(OUT)/demo.sqlite"
 	@cat $(OUT)/demo_summary.json
 
-test: $(STAMP)
+# Headless Chromium for the HTML report's browser test (Debian package). A no-op when it is
+# installed; when apt is unavailable (not root, no network) it only warns and that test skips.
+CHROMIUM := /usr/bin/chromium
+browser:
+	@if [ -x $(CHROMIUM) ]; then :; \
+	elif command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium) \
+		|| echo "browser: could not install chromium; the browser test will skip"; \
+	else echo "browser: apt-get unavailable (or not root); the browser test will skip"; fi
+
+test: $(STAMP) browser
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider
 
 bench: $(STAMP)

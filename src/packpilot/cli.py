@@ -6,15 +6,19 @@ printed as one line on stderr with exit code 2, never a traceback.
 
 from __future__ import annotations
 
+import datetime
 import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 
 from packpilot.errors import PackPilotError
+
+if TYPE_CHECKING:
+    from packpilot.sim.result import Result
 
 app = typer.Typer(
     add_completion=False,
@@ -50,6 +54,9 @@ def simulate(
     db: Annotated[Path | None, typer.Option(help="record telemetry to this SQLite file")] = None,
     trace_csv: Annotated[Path | None, typer.Option(help="write the per-step trace as CSV")] = None,
     plot: Annotated[Path | None, typer.Option(help="write a PNG of V, I, SOC, T")] = None,
+    report: Annotated[
+        Path | None, typer.Option(help="write a self-contained HTML report of the run")
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
     no_progress: Annotated[bool, typer.Option(help="hide the progress bar")] = False,
@@ -86,7 +93,12 @@ def simulate(
             cfg = cfg.model_copy(
                 update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
             )
+        if report is not None:  # before a long run, not after it
+            from packpilot.report.html import check_report_path
+
+            check_report_path(report)
         progress = False if no_progress or as_json else None
+        started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
         if db is not None:
             from packpilot.io.telemetry import SQLiteRecorder
 
@@ -102,12 +114,36 @@ def simulate(
             from packpilot.report.plots import plot_run
 
             plot_run(result, plot)
+        if report is not None:
+            _write_report(result, report, cfg.model_dump(mode="json"), config, db, started)
         if as_json:
             typer.echo(json.dumps(result.metrics, default=_json_default))
         else:
             _print_metrics(result.metrics)
 
     _guard(go)
+
+
+def _write_report(
+    result: Result, out: Path, cfg: dict[str, Any], config: Path, db: Path | None, started: str
+) -> None:
+    """HTML report of an in-memory run; run facts from the database row when one was written."""
+    import dataclasses
+
+    from packpilot.report.html import RunInfo, run_info_from_db, write_report
+
+    if db is not None and result.run_id is not None:
+        info = run_info_from_db(db, result.run_id)
+        info = dataclasses.replace(info, source=f"{config} (recorded in {db})")
+    else:
+        info = RunInfo.from_config(
+            cfg,
+            status="ok",
+            started_at=started,
+            finished_at=datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds"),
+            source=str(config),
+        )
+    write_report(result, out, info)
 
 
 def _print_metrics(m: dict[str, Any]) -> None:
@@ -126,6 +162,23 @@ def _print_metrics(m: dict[str, Any]) -> None:
             text = str(v)
         table.add_row(k, text)
     Console().print(table)
+
+
+@app.command()
+def report(
+    db: Annotated[Path, typer.Argument(help="telemetry SQLite file (simulate --db)")],
+    out: Annotated[Path, typer.Option(help="HTML file to write")],
+    run_id: Annotated[int | None, typer.Option(help="run to report (default: latest)")] = None,
+) -> None:
+    """Write a self-contained HTML report (plots inline, no network) of a recorded run."""
+
+    def go() -> None:
+        from packpilot.report.html import report_from_db
+
+        path = report_from_db(db, out, run_id)
+        typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+
+    _guard(go)
 
 
 def _replay(method: str, log: Path, config: Path | None, out: Path | None, as_json: bool) -> None:

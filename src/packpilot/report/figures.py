@@ -236,6 +236,10 @@ def _categories(ch: StatusChannel) -> list[str]:
     return [s for s in order if s in keep] + ["other"]
 
 
+def _natural_key(text: str) -> list[Any]:
+    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", text)]
+
+
 def _label_codes(ch: StatusChannel, b: int, cats: list[str]) -> NDArray[np.float64]:
     index = {c: i for i, c in enumerate(cats)}
     other = index.get("other", math.nan)
@@ -365,7 +369,15 @@ def events_figure(result: Result, axis: TimeAxis, names: Sequence[str]) -> Figur
         else:
             color, label = "0.5", f"battery {b}"
         ax.plot(
-            arr[:, 0], arr[:, 1], ls="none", marker="|", ms=12, mew=2.0, color=color, alpha=0.85
+            arr[:, 0],
+            arr[:, 1],
+            ls="none",
+            marker="|",
+            ms=12,
+            mew=2.0,
+            color=color,
+            alpha=0.85,
+            clip_on=False,  # an event at t = 0 sits on the frame; show all of it
         )
         handles.append(
             Line2D([], [], ls="none", marker="|", ms=9, mew=2.0, color=color, label=label)
@@ -387,13 +399,14 @@ def events_figure(result: Result, axis: TimeAxis, names: Sequence[str]) -> Figur
 
 
 def hold_runs(
-    x: NDArray[np.float64], on: NDArray[np.bool_], max_runs: int = 2000
+    x: NDArray[np.float64], on: NDArray[np.bool_], max_runs: int = 2000, min_width: float = 0.0
 ) -> list[tuple[float, float]]:
     """(start, width) of the intervals where a sample-and-hold flag is on.
 
     Sample ``i`` holds from ``x[i]`` to ``x[i+1]``. Runs separated by less than 1/4000 of the
     span are merged when there are more than ``max_runs`` (a flickering flag would otherwise
-    draw thousands of slivers no one can see).
+    draw thousands of slivers no one can see). Runs are at least ``min_width`` wide, so a
+    one-sample diode conduction or trip still shows on a long time axis.
     """
     if len(x) == 0 or not on.any():
         return []
@@ -403,6 +416,8 @@ def hold_runs(
     x_end = np.append(x[1:], x[-1])
     s_x = x[starts]
     e_x = x_end[ends - 1]
+    if min_width > 0.0:
+        e_x = np.maximum(e_x, s_x + min_width)
     if len(s_x) > max_runs:
         gap = (float(x[-1]) - float(x[0])) / 4000.0
         keep = np.concatenate([[True], s_x[1:] - e_x[:-1] > gap])
@@ -447,11 +462,11 @@ def batteries_figure(result: Result, axis: TimeAxis, apart: Sequence[int] = ()) 
         line(ax_c, tr.channel("min_cell_v")[:, b], color=c, lw=1.0, ls="--", label=f"{name} min")
     line(ax_v, tr.bus_v, color="k", lw=0.8, ls="--", label="bus")
     if np.isfinite(tr.load_a).any() and np.nanmax(np.abs(tr.load_a)) > 0:
-        line(ax_i, tr.load_a, color="k", lw=0.8, ls="--", label="load")
+        line(ax_i, tr.load_a, color="0.15", lw=0.9, ls="-.", label="load")
     if not np.allclose(tr.load_demand_a, tr.load_a, rtol=1e-6, atol=1e-6, equal_nan=True):
         line(ax_i, tr.load_demand_a, color="0.5", lw=0.8, ls=":", label="load demand")
     if np.isfinite(tr.charger_a).any() and np.nanmax(np.abs(tr.charger_a)) > 0:
-        line(ax_i, tr.charger_a, color="0.4", lw=0.8, ls="-.", label="charger")
+        line(ax_i, tr.charger_a, color="tab:olive", lw=0.9, ls=(0, (5, 2)), label="charger")
     ax_i.axhline(0.0, color="0.6", lw=0.6, zorder=0)
     ax_v.set_ylabel(
         "voltage (V)"
@@ -518,6 +533,7 @@ def switches_figure(
     t = tr.t_s / axis.scale
     diode_seen = False
     n = len(lanes)
+    min_w = (axis.hi - axis.lo) / 600.0  # ~1.5 px
     for k, (b, _label, state, diode) in enumerate(lanes):
         base = float(n - 1 - k)  # first battery on top
         y = base + 0.7 * np.where(np.isnan(state), np.nan, np.clip(state, 0.0, 1.0))
@@ -526,7 +542,7 @@ def switches_figure(
         ax.plot(t[idx], y[idx], drawstyle="steps-post", color=c, lw=1.4)
         ax.fill_between(t[idx], base, y[idx], step="post", color=c, alpha=0.18, lw=0)
         if diode is not None:
-            runs = hold_runs(t, np.nan_to_num(np.abs(diode)) > 1e-6)
+            runs = hold_runs(t, np.nan_to_num(np.abs(diode)) > 1e-6, min_width=min_w)
             if runs:
                 diode_seen = True
                 ax.broken_barh(runs, (base, 0.7), color="tab:orange", alpha=0.5, lw=0)
@@ -569,7 +585,8 @@ def protection_figure(
     if base is None or not base.columns:
         return None
     cols = base.columns
-    cats = _categories(param) if param is not None else []
+    # Parameters in their natural order (P1 below P2 below P3), not by first appearance.
+    cats = sorted(_categories(param), key=_natural_key) if param is not None else []
     fig, axes = _new_figure([max(1.3, 0.35 + 0.22 * len(cats))] * len(cols), gap_in=0.45)
     for ax, b in zip(axes, cols, strict=True):
         c = battery_color(b)
@@ -583,7 +600,7 @@ def protection_figure(
         ax.set_ylabel("parameter", fontsize=8)
         if tripped is not None and b in tripped.columns:
             x, y = _step_xy(tripped, tripped.numeric(b), t, axis)
-            runs = hold_runs(x, np.nan_to_num(y) > 0.5)
+            runs = hold_runs(x, np.nan_to_num(y) > 0.5, min_width=(axis.hi - axis.lo) / 600.0)
             if runs:
                 ax.broken_barh(
                     runs,
@@ -703,7 +720,9 @@ def controller_panels(
         if m and ch.kind == "numeric":
             grouped.setdefault(m.group(1), []).append((int(m.group(2)), ch))
             continue
-        height = max(1.5, 0.5 + 0.2 * len(_categories(ch))) if ch.kind == "label" else 1.5
+        height = {"label": max(0.9, 0.4 + 0.22 * len(_categories(ch))), "bool": 1.0}.get(
+            ch.kind, 1.5
+        )
 
         def draw(ax: Axes, ch: StatusChannel = ch) -> None:
             plot_status(ax, ch, t, axis, names)

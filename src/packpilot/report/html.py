@@ -340,8 +340,16 @@ def _summary(result: Result, info: RunInfo) -> str:
             "<details><summary>Scenario configuration (JSON)</summary>"
             f"<pre>{esc(text)}</pre></details>"
         )
+    warn = ""
+    if info.status not in (None, "ok"):
+        warn = (
+            f'<p class="warn">This run ended with status <strong>{esc(info.status)}</strong>:'
+            " it did not finish normally (it failed, or its process stopped while recording),"
+            " so what follows covers only what was recorded.</p>"
+        )
     return (
-        '<div class="cols"><div><h3>Run</h3>'
+        warn
+        + '<div class="cols"><div><h3>Run</h3>'
         + run_tbl
         + "</div><div><h3>Metrics</h3>"
         + metrics_tbl
@@ -456,7 +464,12 @@ def _events(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
     return "".join(parts)
 
 
+_NO_SAMPLES = '<p class="note">No samples were recorded in this run.</p>'
+
+
 def _batteries(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
+    if len(result.trace.t_s) == 0:
+        return _NO_SAMPLES
     roles = info.roles(result.battery_names)
     apart = [b for b, r in enumerate(roles) if r == "aux"]
     fig = F.batteries_figure(result, axis, apart)
@@ -472,6 +485,8 @@ def _batteries(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
 
 def _switches(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
     tr = result.trace
+    if len(tr.t_s) == 0:
+        return _NO_SAMPLES
     names = result.battery_names
     kinds = info.switch_kinds(names) if info.config is not None else None
     fig = F.switches_figure(result, axis, kinds)
@@ -642,6 +657,7 @@ figure { margin: .6rem 0 1rem; }
 figure img { max-width: 100%; height: auto; display: block; border: 1px solid var(--line); }
 figcaption { color: var(--muted); font-size: .85rem; margin-top: .25rem; }
 .note { color: var(--muted); font-style: italic; }
+.warn { background: #fdf0d5; border-left: 4px solid #d08a00; padding: .4rem .7rem; }
 .badge { display: inline-block; padding: 0 .45rem; border-radius: .6rem; font-size: .85rem;
          font-weight: 600; background: #e1e5eb; }
 .badge.ok { background: #d6f0dc; color: #135d27; }
@@ -709,13 +725,21 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
     )
 
 
-def write_report(result: Result, out_path: Path | str, info: RunInfo | None = None) -> Path:
-    """Write the report of an in-memory run (``simulate --report``)."""
+def check_report_path(out_path: Path | str) -> Path:
+    """Refuse a report path that cannot be written, before any work is done."""
     out = Path(out_path)
     if out.suffix.lower() not in (".html", ".htm"):
         raise InputError(f"{out}: report file must end in .html")
     if not out.parent.is_dir():
         raise InputError(f"{out}: directory {out.parent} does not exist")
+    if out.is_dir():
+        raise InputError(f"{out}: is a directory")
+    return out
+
+
+def write_report(result: Result, out_path: Path | str, info: RunInfo | None = None) -> Path:
+    """Write the report of an in-memory run (``simulate --report``)."""
+    out = check_report_path(out_path)
     page = build_html(result, info)
     try:
         out.write_text(page, encoding="utf-8")
@@ -728,6 +752,7 @@ def report_from_db(db_path: Path | str, out_path: Path | str, run_id: int | None
     """Write the report of a recorded run (latest by default): ``packpilot report``."""
     from packpilot.io.telemetry import load_run
 
+    check_report_path(out_path)
     result = load_run(db_path, run_id)
     info = run_info_from_db(db_path, result.run_id)
     return write_report(result, out_path, info)
@@ -737,6 +762,7 @@ __all__ = [
     "SECTION_IDS",
     "RunInfo",
     "build_html",
+    "check_report_path",
     "report_from_db",
     "run_info_from_db",
     "select_events",

@@ -1,0 +1,367 @@
+"""HTML run report: written by the CLI from a recorded run, self-contained, every section there."""
+
+from __future__ import annotations
+
+import base64
+import math
+import os
+import re
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from packpilot.config import load_config
+from packpilot.control.types import Event
+from packpilot.io.telemetry import SQLiteRecorder, load_run
+from packpilot.report import figures as F
+from packpilot.report.downsample import MAX_POINTS
+from packpilot.report.html import (
+    SECTION_IDS,
+    RunInfo,
+    build_html,
+    fmt_num,
+    run_info_from_db,
+    select_events,
+)
+from packpilot.sim.result import BATTERY_CHANNELS, Result, StepSample, Trace
+from packpilot.sim.runner import Runner
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# A reference that makes a browser fetch something: src/href/url()/@import to another host.
+EXTERNAL = re.compile(
+    r"""(?:\b(?:src|href|action|poster)\s*=\s*["']?\s*(?:https?:)?//)|(?:url\(\s*["']?\s*(?:https?:)?//)|@import""",
+    re.IGNORECASE,
+)
+DATA_PNG = re.compile(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
+
+RICH_PROTECTION = """
+[protection]
+parameters = [
+  { name = "P1", cutoff_v = 4.0, t_max_s = 4.0 },
+  { name = "P2", cutoff_v = 3.9, t_max_s = 6.0 },
+  { name = "P3", cutoff_v = 3.8, t_max_s = 8.0 },
+]
+"""
+
+
+def rich_toml(tmp: Path) -> Path:
+    """The sequencing example with discharge protection added, tuned to trip within 30 s."""
+    text = (EXAMPLES / "sequencing_dual_hover.toml").read_text(encoding="utf-8")
+    text = text.replace('controller = ["sequencing"]', 'controller = ["protection", "sequencing"]')
+    assert 'controller = ["protection", "sequencing"]' in text
+    path = tmp / "rich.toml"
+    path.write_text(text + RICH_PROTECTION, encoding="utf-8")
+    return path
+
+
+def cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYBAMM_DISABLE_TELEMETRY": "true", "MPLBACKEND": "Agg"}
+    return subprocess.run(
+        [sys.executable, "-m", "packpilot.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env=env,
+        cwd=ROOT,
+    )
+
+
+def section(page: str, sid: str) -> str:
+    m = re.search(rf'<section id="{sid}">(.*?)</section>', page, re.DOTALL)
+    assert m, f"section {sid} missing"
+    return m.group(1)
+
+
+def png_sizes(page: str) -> list[tuple[int, int]]:
+    """(width, height) of every inline PNG, read from its IHDR chunk after decoding."""
+    out = []
+    for b64 in DATA_PNG.findall(page):
+        raw = base64.b64decode(b64, validate=True)
+        assert raw[:8] == PNG_MAGIC
+        w, h = struct.unpack(">II", raw[16:24])
+        out.append((w, h))
+    return out
+
+
+def strip_images(text: str) -> str:
+    return DATA_PNG.sub('<img src="data:…"', text)
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Result]:
+    """A real 30 s closed-loop run of the UAV dual-parallel example, recorded to SQLite."""
+    db = tmp_path_factory.mktemp("run") / "run.sqlite"
+    cfg = load_config(EXAMPLES / "uav_dual_parallel.toml")
+    cfg = cfg.model_copy(
+        update={"sim": cfg.sim.model_copy(update={"duration_s": 30.0, "progress": False})}
+    )
+    with SQLiteRecorder(db) as rec:
+        result = Runner(cfg, recorder=rec, progress=False).run()
+    return db, result
+
+
+def test_report_cli_writes_a_self_contained_page(
+    recorded: tuple[Path, Result], tmp_path: Path
+) -> None:
+    db, result = recorded
+    out = tmp_path / "report.html"
+    r = cli("report", str(db), "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    assert "wrote" in r.stdout and str(out) in r.stdout
+    page = out.read_text(encoding="utf-8")
+    for sid in SECTION_IDS:
+        assert f'<section id="{sid}">' in page
+    assert not EXTERNAL.search(page), EXTERNAL.search(page)
+    assert "http://" not in page and "https://" not in page
+    assert 20_000 < out.stat().st_size < 3_000_000
+    sizes = png_sizes(page)
+    assert len(sizes) >= 2  # batteries and switches (this run has no events or controllers)
+    assert all(w > 300 and h > 100 for w, h in sizes)
+    # Facts of this run, in readable form.
+    summary = section(page, "summary")
+    assert "uav_dual_parallel" in summary
+    assert ">ok<" in summary  # run status
+    assert "energy_out_wh" in summary and fmt_num(result.metrics["energy_out_wh"]) in summary
+    assert "<th>A</th>" in summary and "<th>B</th>" in summary
+    soc_end = [fmt_num(100 * float(x)) for x in result.trace.channel("soc")[-1]]
+    assert all(s in summary for s in soc_end)
+    assert "not recorded" in section(page, "protection")
+    assert "No events" in section(page, "events")
+    assert "<img" in section(page, "batteries") and "<img" in section(page, "switches")
+
+
+def test_simulate_report_in_one_go(tmp_path: Path) -> None:
+    """simulate --report from the in-memory Result: protection, events and controllers shown."""
+    out = tmp_path / "sim.html"
+    r = cli(
+        "simulate",
+        str(rich_toml(tmp_path)),
+        "--duration",
+        "30",
+        "--report",
+        str(out),
+        "--no-progress",
+        "--json",
+    )
+    assert r.returncode == 0, r.stderr
+    assert '"energy_out_wh"' in r.stdout
+    page = out.read_text(encoding="utf-8")
+    assert not EXTERNAL.search(page)
+    events = section(page, "events")
+    assert "<img" in events and "ProtectionTripped" in events and "StateChanged" in events
+    prot = section(page, "protection")
+    assert "not recorded" not in prot and "<img" in prot
+    assert re.search(r"P\d: [\d.]+ s", prot)  # time per parameter
+    ctrl = section(page, "controllers")
+    assert "Parallel discharge sequencing" in ctrl and "<img" in ctrl
+    assert "STANDBY" in ctrl and "DISCHARGING" in ctrl  # the state-change table
+    assert len(png_sizes(page)) >= 5
+
+
+def test_report_from_database_equals_report_from_memory(tmp_path: Path) -> None:
+    """``report`` (load_run) and ``simulate --report`` (Result) describe a run identically."""
+    cfg = load_config(rich_toml(tmp_path))
+    cfg = cfg.model_copy(
+        update={"sim": cfg.sim.model_copy(update={"duration_s": 30.0, "progress": False})}
+    )
+    db = tmp_path / "rich.sqlite"
+    with SQLiteRecorder(db) as rec:
+        mem = Runner(cfg, recorder=rec, progress=False).run()
+    info = run_info_from_db(db, mem.run_id)
+    assert info.status == "ok" and info.config_name == "sequencing_dual_hover"
+    a = build_html(mem, info)
+    b = build_html(load_run(db, mem.run_id), info)
+    for sid in SECTION_IDS:
+        assert strip_images(section(a, sid)) == strip_images(section(b, sid)), sid
+    assert len(png_sizes(a)) == len(png_sizes(b)) >= 5
+
+
+def synthetic(
+    n: int, events: list[Event] | None = None, **status: list[tuple[object, ...]]
+) -> Result:
+    samples = []
+    col = {c: i for i, c in enumerate(BATTERY_CHANNELS)}
+    for k in range(n):
+        bat = np.zeros((2, len(BATTERY_CHANNELS)))
+        bat[:, col["voltage_v"]] = (24.0 - 0.001 * k, 23.0 - 0.001 * k)
+        bat[:, col["current_a"]] = (10.0, 5.0)
+        bat[:, col["soc"]] = 0.8
+        bat[:, col["dsg_on"]] = 1.0
+        st_k = {name: seqs[k] for name, seqs in status.items()}
+        samples.append(
+            StepSample(k, float(k), 23.5, 15.0, 15.0, 0.0, 0.0, bat, np.full((2, 1), 3.9), st_k)
+        )
+    return Result(["left", "right"], Trace.from_samples(samples), events or [], {}, run_id=None)
+
+
+def test_untrusted_text_is_escaped() -> None:
+    """Battery names, messages and event data land in the page as text, never as markup."""
+    ev = Event(1.0, "Fault", 0, "<script>alert(1)</script>", {"x": "<img src=x onerror=1>"})
+    page = build_html(synthetic(20, [ev]), RunInfo(config_name="<b>pack</b>", status="ok"))
+    assert "<script>alert(1)</script>" not in page
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
+    assert "<img src=x" not in page and "&lt;b&gt;pack&lt;/b&gt;" in page
+    assert page.count("<script>") == 1  # only the image-check marker
+
+
+def test_status_channels_are_classified_and_aligned() -> None:
+    n = 30
+    res = synthetic(
+        n,
+        mode=[("discharge", "discharge")] * 10 + [("charge", "charge")] * 20,
+        seq_state=[("ON", "OFF")] * 15 + [("ON", "ON")] * 15,
+        eq_ah_g0=[(0.1 * (k // 10), None) for k in range(n)],
+        flag=[(k >= 5, False) for k in range(n)],
+    )
+    # A channel that starts late (telemetry keeps channels from their first step on).
+    res.trace.status["late_v"] = [(1.0, 2.0)] * 12
+    ch = F.status_channels(res)
+    assert ch["mode"].kind == "label" and ch["mode"].pack_level
+    assert ch["seq_state"].kind == "label" and not ch["seq_state"].pack_level
+    assert list(ch["mode"].rows) == [0, 10]  # compressed to its changes
+    assert ch["eq_ah_g0"].columns == (0,) and ch["eq_ah_g0"].kind == "numeric"
+    assert ch["flag"].kind == "bool"
+    late = ch["late_v"]
+    assert list(late.rows) == [0, n - 12] and late.values[0, 0] is None
+    panels = F.controller_panels(ch, res.trace.t_s, F.TimeAxis.of(res.trace.t_s), ["l", "r"])
+    assert set(panels) == {
+        "Supervisor",
+        "Parallel discharge sequencing",
+        "Equalization",
+        "Other controller channels",
+    }
+    page = build_html(res)
+    assert "charge" in section(page, "controllers") and "not recorded" in section(
+        page, "protection"
+    )
+
+
+def test_large_run_is_downsampled_and_small() -> None:
+    """10 h at 0.1 s: every plotted line <= MAX_POINTS, a one-sample spike kept, page < 3 MB."""
+    n = 360_000
+    t = np.arange(n) * 0.1
+    bat = np.zeros((n, 2, len(BATTERY_CHANNELS)))
+    col = {c: i for i, c in enumerate(BATTERY_CHANNELS)}
+    rng = np.random.default_rng(1)
+    bat[:, :, col["voltage_v"]] = 24.0 - t[:, None] / 7200.0 + 0.02 * rng.standard_normal((n, 2))
+    bat[:, :, col["current_a"]] = 10.0 + rng.standard_normal((n, 2))
+    bat[123_457, 1, col["current_a"]] = 95.0  # a single-sample spike
+    bat[:, :, col["soc"]] = 0.9 - 0.8 * t[:, None] / t[-1]
+    bat[:, :, col["chg_on"]] = (np.sin(t / 600.0)[:, None] > 0).astype(float)
+    bat[:, :, col["dsg_on"]] = 1.0
+    status = {
+        "protection_param": [("P1", "P2")] * (n // 2) + [("P2", "P3")] * (n - n // 2),
+        "protection_fraction": [(k / n, k / n / 2) for k in range(n)],
+    }
+    trace = Trace(
+        t_s=t,
+        bus_v=bat[:, 0, 0].copy(),
+        load_demand_a=np.full(n, 20.0),
+        load_a=np.full(n, 20.0),
+        charger_v=np.zeros(n),
+        charger_a=np.zeros(n),
+        battery=bat,
+        group_v=np.full((n, 2, 1), 3.9),
+        status=status,
+    )
+    events = [Event(float(k), "StateChanged", k % 2, "x") for k in range(0, 36_000, 3)]
+    events.append(Event(5000.0, "ProtectionTripped", 1, "P2 exhausted"))
+    res = Result(["A", "B"], trace, events, {"sim_time_s": 36_000.0})
+    axis = F.TimeAxis.of(t)
+    assert axis.label == "time (h)"
+    fig = F.batteries_figure(res, axis)
+    lines = [ln for ax in fig.axes for ln in ax.get_lines()]
+    assert lines and all(len(ln.get_xdata()) <= MAX_POINTS for ln in lines)
+    current_b = fig.axes[1].get_lines()[1]
+    assert max(current_b.get_ydata()) == 95.0
+    t0 = time.perf_counter()
+    page = build_html(res, RunInfo(config_name="long", status="ok"))
+    elapsed = time.perf_counter() - t0
+    size = len(page.encode())
+    assert size < 3_000_000, size
+    assert elapsed < 30.0, elapsed
+    ev = section(page, "events")
+    assert "ProtectionTripped" in ev and "Listing 1,000 of 12,001 events" in ev
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    counts=st.dictionaries(
+        st.sampled_from(["A", "B", "C", "D", "E"]), st.integers(1, 400), min_size=1
+    ),
+    limit=st.integers(1, 300),
+)
+def test_event_selection_shares_the_budget(counts: dict[str, int], limit: int) -> None:
+    events = [
+        Event(float(i), kind, None) for i, (kind, n) in enumerate(counts.items()) for _ in range(n)
+    ]
+    events.sort(key=lambda e: e.t_s)
+    chosen = select_events(events, limit)
+    total = sum(counts.values())
+    assert len(chosen) == min(total, limit)
+    assert chosen == sorted(set(chosen))
+    got = {k: sum(1 for i in chosen if events[i].kind == k) for k in counts}
+    fair = limit // len(counts)
+    for k, n in counts.items():
+        assert got[k] >= min(n, fair)  # a rare kind is never crowded out
+
+
+def test_cli_report_errors_are_one_line(recorded: tuple[Path, Result], tmp_path: Path) -> None:
+    db, _ = recorded
+    bogus = tmp_path / "notes.sqlite"
+    bogus.write_text("not a database", encoding="utf-8")
+    cases = [
+        (("report", str(db), "--out", str(tmp_path / "no" / "r.html")), "does not exist"),
+        (("report", str(db), "--out", str(tmp_path / "r.pdf")), "must end in .html"),
+        (("report", str(db), "--run-id", "99", "--out", str(tmp_path / "r.html")), "no run"),
+        (("report", str(tmp_path / "missing.sqlite"), "--out", str(tmp_path / "r.html")), "not"),
+        (("report", str(bogus), "--out", str(tmp_path / "r.html")), "telemetry database"),
+    ]
+    for args, msg in cases:
+        r = cli(*args)
+        assert r.returncode == 2, (args, r.stderr)
+        assert msg in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_number_formatting() -> None:
+    assert fmt_num(0.0) == "0"
+    assert fmt_num(3.14159) == "3.142"
+    assert fmt_num(147_574.3) == "147,574"
+    assert fmt_num(12) == "12"
+    assert fmt_num(math.nan) == "nan"
+    assert fmt_num(1.5e-5) == "1.500e-05"
+
+
+def test_unfinished_runs_still_report(tmp_path: Path) -> None:
+    """A run whose process died (status 'running', no metrics) gives a report that says so."""
+    from packpilot.report.html import report_from_db
+
+    db = tmp_path / "crash.sqlite"
+    rec = SQLiteRecorder(db, flush_every=5)
+    rec.start({"pack": {"name": "crashy"}}, ["A", "B"])
+    rec.close()  # nothing recorded, never finished
+    rec = SQLiteRecorder(db, flush_every=5)
+    rec.start({"pack": {"name": "crashy"}}, ["A", "B"])
+    for k in range(12):
+        bat = np.ones((2, len(BATTERY_CHANNELS)))
+        status = {"seq_state": ("ON", "OFF") if k < 6 else ("ON", "ON")}
+        rec.record(StepSample(k, float(k), 24.0, 1, 1, 0, 0, bat, np.ones((2, 1)), status))
+    rec.close()
+    for run_id, n_img in ((1, 0), (2, 3)):
+        out = report_from_db(db, tmp_path / f"r{run_id}.html", run_id)
+        page = out.read_text(encoding="utf-8")
+        assert all(f'<section id="{sid}">' in page for sid in SECTION_IDS)
+        assert "status <strong>running</strong>" in page and "No metrics recorded" in page
+        assert len(png_sizes(page)) == n_img
+    assert "No samples were recorded" in (tmp_path / "r1.html").read_text(encoding="utf-8")
