@@ -16,6 +16,7 @@ from packpilot.cli import app
 from tests.conftest import EXAMPLES
 
 RUNNER = CliRunner()
+FIXTURE_OK = [HealthCheck.function_scoped_fixture]
 BASE = tomllib.loads((EXAMPLES / "uav_dual_parallel.toml").read_text())
 
 BAD_VALUES = st.one_of(
@@ -40,16 +41,13 @@ def _paths(node: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
     return out
 
 
-PATHS = _paths(BASE) + [("pack", "bogus"), ("sim", "dt_s"), ("protection", "table")]
+PATHS = [*_paths(BASE), ("pack", "bogus"), ("sim", "dt_s"), ("protection", "table")]
 
 
 def _set(cfg: dict[str, Any], path: tuple[Any, ...], value: Any) -> None:
     node: Any = cfg
     for key in path[:-1]:
-        if isinstance(node, dict):
-            node = node.setdefault(key, {})
-        else:
-            node = node[key]
+        node = node.setdefault(key, {}) if isinstance(node, dict) else node[key]
     if isinstance(node, dict):
         node[path[-1]] = value
     else:
