@@ -82,3 +82,25 @@ class _Hold:
         from packpilot.control.types import Commands, ControlOutput
 
         return ControlOutput(commands=Commands())
+
+
+def test_fleet_of_packs_steps_in_one_call_and_matches_single_packs() -> None:
+    """Pack(n_packs=N) advances N independent packs together; each equals its own run."""
+    from packpilot.model.pack import Pack
+
+    cfg = parse_config(dual_pack(load={"kind": "current", "value": 20.0}))
+    scales = np.array([0.9, 1.0, 1.1])
+    fleet = Pack(cfg, n_packs=3, capacity_scale=scales, ambient_c=np.array([0.0, 25.0, 40.0]))
+    singles = [
+        Pack(cfg, n_packs=1, capacity_scale=scales[k : k + 1], ambient_c=np.array([a]))
+        for k, a in enumerate([0.0, 25.0, 40.0])
+    ]
+    for _ in range(50):
+        out = fleet.step(0.1, "current", np.full(3, 20.0))
+        for k, single in enumerate(singles):
+            one = single.step(0.1, "current", np.array([20.0]))
+            np.testing.assert_allclose(out.string_a[k], one.string_a[0], rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(out.bus_v[k], one.bus_v[0], rtol=1e-12)
+    soc_f, temp_f = fleet.cell_states()
+    assert soc_f[0].mean() < soc_f[2].mean()  # less capacity drains faster
+    assert temp_f[2].mean() > temp_f[0].mean()
