@@ -12,8 +12,9 @@ from tests.conftest import EXAMPLES
 
 def test_mission_flies_charges_over_can_and_balances() -> None:
     cfg = load_config(EXAMPLES / "uav_mission.toml")
-    cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"dt_s": 0.5,
-                                                                    "progress": False})})
+    cfg = cfg.model_copy(
+        update={"sim": cfg.sim.model_copy(update={"dt_s": 0.5, "progress": False})}
+    )
     runner = Runner(cfg)
     assert isinstance(runner.charger_link, CanChargerLink)  # setpoints cross a python-can bus
     res = runner.run()

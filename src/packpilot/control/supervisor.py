@@ -24,8 +24,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from packpilot.control.types import (
     CHARGER_OFF,
     Commands,
-    ControlOutput,
     Controller,
+    ControlOutput,
     Event,
     Measurements,
     PackInfo,
@@ -110,8 +110,13 @@ class Supervisor:
         new_mode = self._next_mode(meas, dt_s)
         if new_mode is not self.mode:
             events.append(
-                Event(meas.t_s, "ModeChanged", None, f"{self.mode} → {new_mode}",
-                      {"from": str(self.mode), "to": str(new_mode)})
+                Event(
+                    meas.t_s,
+                    "ModeChanged",
+                    None,
+                    f"{self.mode} → {new_mode}",
+                    {"from": str(self.mode), "to": str(new_mode)},
+                )
             )
             self.mode = new_mode
             self.t_in_mode_s = 0.0
@@ -131,7 +136,9 @@ class Supervisor:
     # ------------------------------------------------------------------ modes
     def _next_mode(self, meas: Measurements, dt_s: float) -> Mode:
         self.since_fault_s += dt_s
-        pack_a = sum(b.current_a for b in meas.batteries if b.present and math.isfinite(b.current_a))
+        pack_a = sum(
+            b.current_a for b in meas.batteries if b.present and math.isfinite(b.current_a)
+        )
         if pack_a > self.config.discharge_current_a:
             self.quiet_s = 0.0
         else:
@@ -190,18 +197,26 @@ class Supervisor:
         ref = [meas.batteries[i].voltage_v for i in accepted]
         for i in sorted(closing, key=lambda k: meas.batteries[k].voltage_v):
             v = meas.batteries[i].voltage_v
-            others = ref + [meas.batteries[j].voltage_v for j in closing if j != i
-                            and j not in accepted]
+            others = ref + [
+                meas.batteries[j].voltage_v for j in closing if j != i and j not in accepted
+            ]
             spread = max((abs(v - o) for o in others), default=0.0)
             if not math.isfinite(v) or spread > self.config.join_limit_v:
                 chg[i] = False
                 dsg[i] = False
                 if not self.refused.get(i):
                     events.append(
-                        Event(meas.t_s, "CommandRefused", i,
-                              "relay close refused: battery too far from the bus group",
-                              {"voltage_v": v, "spread_v": spread,
-                               "join_limit_v": self.config.join_limit_v})
+                        Event(
+                            meas.t_s,
+                            "CommandRefused",
+                            i,
+                            "relay close refused: battery too far from the bus group",
+                            {
+                                "voltage_v": v,
+                                "spread_v": spread,
+                                "join_limit_v": self.config.join_limit_v,
+                            },
+                        )
                     )
                 self.refused[i] = True
             else:
@@ -209,8 +224,11 @@ class Supervisor:
                 ref.append(v)
                 self.refused.pop(i, None)
         new = Commands(
-            chg_on=tuple(chg), dsg_on=tuple(dsg), charger=cmds.charger,
-            balancer_a=cmds.balancer_a, aux_relay_closed=cmds.aux_relay_closed,
+            chg_on=tuple(chg),
+            dsg_on=tuple(dsg),
+            charger=cmds.charger,
+            balancer_a=cmds.balancer_a,
+            aux_relay_closed=cmds.aux_relay_closed,
             aux_charge_a=cmds.aux_charge_a,
         )
         return new, events
