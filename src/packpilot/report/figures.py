@@ -356,12 +356,16 @@ def events_figure(result: Result, axis: TimeAxis, names: Sequence[str]) -> Figur
     for e in events:
         groups.setdefault(e.battery, []).append((e.t_s / axis.scale, row[e.kind]))
     handles: list[Line2D] = []
-    for b, pts in sorted(groups.items(), key=lambda kv: -1 if kv[0] is None else kv[0]):
+    ordered = sorted(groups.items(), key=lambda kv: -1 if kv[0] is None else kv[0])
+    for j, (b, pts) in enumerate(ordered):
         arr = np.array(pts, dtype=np.float64)
         # Thousands of events cannot be told apart on 1,000 pixels: one marker per pixel-ish bin.
         key = np.round((arr[:, 0] - axis.lo) / span * 2000.0) * 1000 + arr[:, 1]
         _, first = np.unique(key, return_index=True)
         arr = arr[np.sort(first)]
+        # Each battery a little above or below the row, so simultaneous events stay distinct.
+        if len(ordered) > 1:
+            arr[:, 1] += 0.6 * (j / (len(ordered) - 1) - 0.5)
         if b is None:
             color, label = "k", "pack"
         elif 0 <= b < len(names):
@@ -373,7 +377,7 @@ def events_figure(result: Result, axis: TimeAxis, names: Sequence[str]) -> Figur
             arr[:, 1],
             ls="none",
             marker="|",
-            ms=12,
+            ms=12 if len(ordered) == 1 else 7,
             mew=2.0,
             color=color,
             alpha=0.85,
