@@ -136,7 +136,7 @@ def _solve(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> tuple
     qa = s1 - ld.g
     qb = s0 - ld.a
     qc = -ld.p
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         disc = np.maximum(qb * qb - 4.0 * qa * qc, 0.0)
         sq = np.sqrt(disc)
         quad = np.where(qa != 0.0, (-qb - sq) / (2.0 * qa), np.nan)  # qa < 0: larger root
