@@ -365,3 +365,28 @@ def test_unfinished_runs_still_report(tmp_path: Path) -> None:
         assert "status <strong>running</strong>" in page and "No metrics recorded" in page
         assert len(png_sizes(page)) == n_img
     assert "No samples were recorded" in (tmp_path / "r1.html").read_text(encoding="utf-8")
+
+
+def test_run_info_reads_roles_switches_and_event_numbering() -> None:
+    """Events number traction batteries only; an aux battery listed first shifts the names."""
+    cfg = {
+        "pack": {
+            "name": "mixed",
+            "switch": {"kind": "relay"},
+            "batteries": [
+                {"name": "AUX", "role": "aux", "switch": None},
+                {"name": "T1", "role": "traction", "switch": {"kind": "mosfet_pair"}},
+                {"name": "T2"},
+            ],
+        },
+        "controller": ["charging"],
+        "limits": {},
+    }
+    info = RunInfo.from_config(cfg, status="ok")
+    names = ["AUX", "T1", "T2"]
+    assert info.config_name == "mixed"
+    assert info.roles(names) == ["aux", "traction", "traction"]
+    assert info.switch_kinds(names) == ["relay", "mosfet_pair", "relay"]
+    assert info.event_names(names) == ["T1", "T2"] and info.event_batteries(names) == [1, 2]
+    assert info.controllers() == ["charging", "limits"]
+    assert RunInfo().event_names(["a", "b"]) == ["a", "b"]

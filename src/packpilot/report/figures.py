@@ -342,8 +342,17 @@ def channel_label(name: str) -> str:
 # --------------------------------------------------------------------------- figures
 
 
-def events_figure(result: Result, axis: TimeAxis, names: Sequence[str]) -> Figure | None:
-    """Events over time, one row per kind, coloured by battery (black: pack-wide)."""
+def events_figure(
+    result: Result,
+    axis: TimeAxis,
+    names: Sequence[str],
+    colors: Sequence[int] | None = None,
+) -> Figure | None:
+    """Events over time, one row per kind, coloured by battery (black: pack-wide).
+
+    ``names[b]`` names ``Event.battery == b``; ``colors[b]`` is that battery's index in the
+    trace, so its colour matches the other figures when an aux battery shifts the numbering.
+    """
     events = [e for e in result.events if np.isfinite(e.t_s)]
     if not events:
         return None
@@ -369,7 +378,8 @@ def events_figure(result: Result, axis: TimeAxis, names: Sequence[str]) -> Figur
         if b is None:
             color, label = "k", "pack"
         elif 0 <= b < len(names):
-            color, label = battery_color(b), names[b]
+            color = battery_color(colors[b] if colors is not None and b < len(colors) else b)
+            label = names[b]
         else:
             color, label = "0.5", f"battery {b}"
         ax.plot(

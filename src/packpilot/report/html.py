@@ -97,12 +97,14 @@ class RunInfo:
             kinds[b.get("name")] = sw.get("kind") if isinstance(sw, Mapping) else default
         return [kinds.get(n) for n in names]
 
-    def event_names(self, names: Sequence[str]) -> list[str]:
-        """Names for ``Event.battery``, which counts traction batteries only (the aux apart)."""
+    def event_batteries(self, names: Sequence[str]) -> list[int]:
+        """Trace index of each ``Event.battery`` value: events count traction batteries only."""
         roles = self.roles(names)
-        if any(r == "aux" for r in roles):
-            return [n for n, r in zip(names, roles, strict=True) if r != "aux"]
-        return list(names)
+        return [i for i, r in enumerate(roles) if r != "aux"]
+
+    def event_names(self, names: Sequence[str]) -> list[str]:
+        """Names for ``Event.battery`` values (the aux battery has no index of its own)."""
+        return [names[i] for i in self.event_batteries(names)]
 
     def controllers(self) -> list[str]:
         cfg = self.config or {}
@@ -418,7 +420,7 @@ def _events(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
         return '<p class="note">No events were recorded in this run.</p>'
     names = info.event_names(result.battery_names)
     parts: list[str] = []
-    fig = F.events_figure(result, axis, names)
+    fig = F.events_figure(result, axis, names, info.event_batteries(result.battery_names))
     if fig is not None:
         parts.append(img(fig, "events over time by kind", "Each mark is one event."))
     counts = Counter(e.kind for e in events)
