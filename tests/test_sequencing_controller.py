@@ -206,7 +206,7 @@ def test_config_rejects_bad_values_naming_the_field(
     kwargs: dict[str, float], field_name: str
 ) -> None:
     with pytest.raises(ValidationError, match=field_name):
-        SequencingConfig(**kwargs)  # type: ignore[arg-type]
+        SequencingConfig.model_validate(kwargs)
 
 
 # ----------------------------------------------------------------------------- R1

@@ -186,7 +186,7 @@ def test_charge_fet_closes_only_on_a_battery_that_cannot_be_charged(
         for state, c in zip(states, chg, strict=True):
             if state == "STANDBY":
                 assert c is False
-        mode = out.status["seq_mode"][0]
+        mode = str(out.status["seq_mode"][0])
         if mode == prev_mode == "discharge":
             newly = [bool(chg[k]) and not prev_chg[k] for k in range(n)]
             sourcing = [s.currs[k] > CFG.i_det for k in range(n)]

@@ -26,9 +26,12 @@ Rules applied every control period in discharge mode (see ``docs/parallel_discha
 * Reverse current: an engaged discharging battery taking more than ``i_rev`` of charge from a
   sibling has its charge FET opened (-> STANDBY).
 * R2: a standby battery ``v_co`` or more above the bus reference (the highest discharging
-  battery's terminal voltage) joins.
+  battery's terminal voltage) joins. At rest (no current anywhere) it takes over instead of
+  co-discharging, because rest voltages are open-circuit voltages and co-discharge would push
+  about (V_k - V_ref) / R_loop into the others.
 * R3: a battery with discharge FET on and charge FET off that sources more than ``i_det``
   (its charge diode conducts) gets its charge FET on after a debounce, no later than ``t_on``.
+  Only current measured over a period in which the controller held that FET off counts.
 
 Invalid measurements (non-finite or negative voltage, non-finite current, time or period) put
 the pack in a fail-safe: every charge FET off, every present battery's discharge FET on (the

@@ -1,0 +1,165 @@
+"""Closed-loop acceptance of parallel-discharge sequencing on the project plant (uav_5ah cells).
+
+Scenarios ``examples/sequencing_*.toml`` against the baseline of direct parallel (no controller,
+every FET on). Runs use dt = 0.5 s to stay fast; the benchmark runs them at the files' 0.1 s.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from packpilot.config import ScenarioConfig, load_config
+from packpilot.sim.result import Result
+from packpilot.sim.runner import Runner
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _cfg(name: str, strategy: str, **sim: float) -> ScenarioConfig:
+    cfg = load_config(EXAMPLES / f"sequencing_{name}.toml")
+    return cfg.model_copy(
+        update={
+            "controller": [] if strategy == "direct" else ["sequencing"],
+            "sim": cfg.sim.model_copy(update={"progress": False, **sim}),
+        }
+    )
+
+
+@cache
+def _run(name: str, strategy: str, dt_s: float = 0.5) -> Result:
+    return Runner(_cfg(name, strategy, dt_s=dt_s)).run()
+
+
+def _first_brownout(res: Result) -> float:
+    tr = res.trace
+    uns = (tr.load_demand_a > 1e-9) & (tr.load_a < tr.load_demand_a - 1e-6)
+    return float(tr.t_s[int(np.argmax(uns))]) if uns.any() else float("inf")
+
+
+def _energy_to_brownout_wh(res: Result, dt_s: float = 0.5) -> float:
+    tr = res.trace
+    k = int(np.searchsorted(tr.t_s, _first_brownout(res)))
+    return float(np.sum(tr.bus_v[:k] * tr.load_a[:k]) * dt_s / 3600.0)
+
+
+def _into(res: Result) -> np.ndarray:
+    return np.maximum(-res.trace.channel("current_a"), 0.0)
+
+
+def test_direct_parallel_pushes_about_50a_into_the_low_battery_on_connection() -> None:
+    res = Runner(_cfg("dual_hover", "direct", dt_s=0.1, duration_s=1.0)).run()
+    peak_into_b = float(_into(res)[:, 1].max())
+    # 2 V / (2 x 20 mOhm + 4 x 0.1 mOhm FETs) = 49.5 A: the spec's "about 50 A".
+    assert 47.0 <= peak_into_b <= 52.0
+
+
+@pytest.mark.parametrize("name", ["dual_hover", "hot_insert", "four_spread"])
+def test_sequencing_never_supplies_less_and_keeps_the_energy(name: str) -> None:
+    base, seq = _run(name, "direct"), _run(name, "sequencing")
+    assert seq.metrics["events"].get("Fault", 0) == 0
+    # The load browns out no earlier than with every FET on (i.e. only when the batteries
+    # together are at the load's cut-off), and delivers >= 99 % of the energy up to then.
+    assert _first_brownout(seq) >= _first_brownout(base)
+    assert _energy_to_brownout_wh(seq) >= 0.99 * _energy_to_brownout_wh(base)
+    # Body diodes carry current only for the R3 episodes (a few joules, not a lossy path).
+    diode_j = sum(seq.metrics["chg_diode_energy_j"]) + sum(seq.metrics["dsg_diode_energy_j"])
+    assert diode_j < 0.001 * seq.metrics["energy_out_wh"] * 3600.0
+    # STANDBY never has its charge FET on (effective gate, from the plant).
+    chg = seq.trace.channel("chg_on")
+    for row, states in zip(chg, seq.trace.status["seq_state"], strict=True):
+        assert all(not c for c, s in zip(row, states, strict=True) if s == "STANDBY")
+
+
+@pytest.mark.parametrize("name", ["dual_hover", "hot_insert"])
+def test_no_current_into_any_battery_while_the_pack_discharges(name: str) -> None:
+    base, seq = _run(name, "direct"), _run(name, "sequencing")
+    assert base.metrics["peak_cross_current_a"] > 30.0
+    assert seq.metrics["peak_cross_current_a"] <= 1.0
+
+
+def test_dual_hover_low_battery_waits_then_joins_by_r2() -> None:
+    seq = _run("dual_hover", "sequencing")
+    joins = [e for e in seq.events if e.kind == "BatteryJoined"]
+    assert [(e.battery, e.data["reason"]) for e in joins] == [(1, "R2")]
+    k = int(np.searchsorted(seq.trace.t_s, joins[0].t_s))
+    assert not seq.trace.channel("chg_on")[:k, 1].any()
+    assert np.all(seq.trace.channel("current_a")[:k, 1] == 0.0)
+    # After the join both share the hover load.
+    after = seq.trace.channel("current_a")[k + 10 : k + 200]
+    assert np.all(after > 1.0)
+
+
+def test_hot_inserted_fresh_battery_takes_over() -> None:
+    seq = _run("hot_insert", "sequencing")
+    at_300 = [e for e in seq.events if e.t_s == 300.0 and e.kind == "StateChanged"]
+    assert {(e.battery, e.data["to"]) for e in at_300} >= {(0, "STANDBY"), (1, "DISCHARGING")}
+    rejoin = [e for e in seq.events if e.kind == "BatteryJoined"]
+    assert [e.battery for e in rejoin] == [0] and rejoin[0].t_s > 300.0
+
+
+def test_four_spread_cross_current_only_in_the_period_after_a_load_drop() -> None:
+    base, seq = _run("four_spread", "direct"), _run("four_spread", "sequencing")
+    assert seq.metrics["load_unsupplied_s"] == 0.0
+    into = _into(seq)
+    supplied = seq.trace.load_a > 1e-3
+    demand = seq.trace.load_demand_a
+    n = into.shape[1]
+    for k, j in zip(*np.nonzero((into > 1.0) & supplied[:, None]), strict=True):
+        recent = demand[max(k - n, 0) : k + 1]
+        assert np.any(np.diff(recent) < 0.0), f"step {k}: {into[k, j]:.2f} A into {j}"
+        assert into[k + 1, j] <= 0.5, "reverse-current protection acts within one period"
+
+    def cross(r: Result) -> float:
+        return float(_into(r)[r.trace.load_a > 1e-3].sum())
+
+    assert cross(seq) < 0.01 * cross(base)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="co-discharged batteries with 16-30 mOhm differ in OCV by |I_a R_a - I_b R_b|; the "
+    "landing step (39 A -> 1.5 A) pushes ~2.5 A into the 16 mOhm battery for one control "
+    "period before reverse-current protection opens its charge FET (docs/parallel_discharge.md)",
+)
+def test_four_spread_peak_cross_current_below_1a() -> None:
+    assert _run("four_spread", "sequencing").metrics["peak_cross_current_a"] <= 1.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="after the first brown-out the under-voltage-locked load draws nothing, so the "
+    "battery demoted by reverse current at the load cut never sees a sag to rejoin (R2/R3); "
+    "direct parallel keeps pulsing the load and delivers ~4 % more (docs/parallel_discharge.md)",
+)
+def test_dual_hover_total_energy_including_post_brownout_pulsing() -> None:
+    base, seq = _run("dual_hover", "direct"), _run("dual_hover", "sequencing")
+    assert seq.metrics["energy_out_wh"] >= 0.99 * base.metrics["energy_out_wh"]
+
+
+def test_cli_simulate_reports_peak_cross_current() -> None:
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "packpilot.cli",
+            "simulate",
+            str(EXAMPLES / "sequencing_dual_hover.toml"),
+            "--json",
+            "--no-progress",
+            "--duration",
+            "300",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    metrics = json.loads(out.stdout.strip().splitlines()[-1])
+    assert metrics["peak_cross_current_a"] <= 1.0
+    assert metrics["events"]["BatteryJoined"] == 1
