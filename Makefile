@@ -17,10 +17,12 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	mkdir -p $(OUT)
-	$(PY) -m packpilot.cli simulate examples/uav_dual_parallel.toml --no-progress \
-		--db $(OUT)/demo.sqlite --plot $(OUT)/demo.png --trace-csv $(OUT)/demo_trace.csv \
-		--json > $(OUT)/demo_summary.json
-	@echo "demo: wrote $(OUT)/demo.png, $(OUT)/demo_summary.json, $(OUT)/demo.sqlite"
+	$(PY) -m packpilot.cli simulate examples/uav_mission.toml --no-progress \
+		--db $(OUT)/demo.sqlite --report $(OUT)/report.html --plot $(OUT)/demo.png \
+		--can-log $(OUT)/demo_can.blf --json > $(OUT)/demo_summary.json
+	@echo "demo: full UAV mission (flight, dock, staged charging over CAN, balancing)"
+	@echo "demo: wrote $(OUT)/report.html, $(OUT)/demo.png, $(OUT)/demo_summary.json,"
+	@echo "      $(OUT)/demo.sqlite (telemetry) and $(OUT)/demo_can.blf (CAN frames)"
 	@cat $(OUT)/demo_summary.json
 
 # Headless Chromium for the HTML report's browser test (Debian package). A no-op when it is
