@@ -51,6 +51,7 @@ def _table(rows: list[dict[str, Any]]) -> str:
 def main() -> int:
     os.environ.setdefault("PYBAMM_DISABLE_TELEMETRY", "true")
     sys.path.insert(0, str(HERE.parent))
+    sys.path.insert(0, str(HERE))
     only = set(sys.argv[1:])
     names = [n for n in ORDER if (HERE / f"{n}.py").exists() and (not only or n in only)]
     names += sorted(
@@ -64,6 +65,7 @@ def main() -> int:
         spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
         assert spec is not None and spec.loader is not None
         mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod  # worker processes pickle functions by module name
         t0 = time.perf_counter()
         try:
             spec.loader.exec_module(mod)
