@@ -48,6 +48,159 @@ def _table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _pick(rows: list[dict[str, Any]], **match: Any) -> dict[str, Any]:
+    for r in rows:
+        if all(r.get(k) == v for k, v in match.items()):
+            return r
+    raise KeyError(str(match))
+
+
+def _headlines(name: str, rows: list[dict[str, Any]]) -> list[tuple[str, str, str]]:
+    """(figure, value, target) rows for the closing table; each module's key results."""
+    out: list[tuple[str, str, str]] = []
+    if name == "bench_cell":
+        r = rows[0]
+        out += [
+            (
+                "cell vs PyBaMM, 25 degC: max / RMS dV (mV)",
+                f"{r['max_dV_mV_25C']:.4f} / {r['rms_dV_mV_25C']:.5f}",
+                "<= 0.5 / 0.05",
+            ),
+            (
+                "cell vs PyBaMM, 0 degC: max / RMS dV (mV)",
+                f"{r['max_dV_mV_0C']:.4f} / {r['rms_dV_mV_0C']:.5f}",
+                "<= 0.5 / 0.1",
+            ),
+            (
+                "cell vs PyBaMM: max dT (K) / max dSOC",
+                f"{max(r['max_dT_K_25C'], r['max_dT_K_0C']):.2g} / "
+                f"{max(r['max_dSOC_25C'], r['max_dSOC_0C']):.2g}",
+                "<= 0.01 / 1e-6",
+            ),
+            ("1 h profile vs PyBaMM build+solve", f"{r['profile_speedup_x']:.0f}x faster", ""),
+            (
+                "fleet 10k cells, advance (M cell-steps/s)",
+                f"{r['fleet10k_advance_Mcell_steps_per_s']:.1f}",
+                ">= 20",
+            ),
+            (
+                "fleet 10k cells, thevenin+advance (M cell-steps/s)",
+                f"{r['fleet10k_thevenin_advance_Mcell_steps_per_s']:.1f}",
+                ">= 20",
+            ),
+        ]
+    elif name == "bench_loop":
+        for r in rows[1:]:
+            out.append(
+                (
+                    f"{r['case']}: step",
+                    f"{r['step_us']:.0f} us = {r['ratio_vs_pybamm']:.1f}x PyBaMM step",
+                    ">= 200x",
+                )
+            )
+    elif name == "bench_protection":
+        for sc in ("cold_heavy", "warm_light", "warming_flight"):
+            m = _pick(rows, scenario=sc, strategy="method")
+            out.append(
+                (
+                    f"protection {sc}: energy vs fixed 3.2 V/5 s",
+                    f"{m['energy_vs_conservative_pct']:+.1f} %",
+                    ">= +15 %" if sc == "cold_heavy" else "",
+                )
+            )
+            out.append(
+                (
+                    f"protection {sc}: rest OCV vs conservative",
+                    f"{m['rest_ocv_vs_conservative_mv']:+.0f} mV",
+                    ">= -10 mV" if sc == "warm_light" else "",
+                )
+            )
+    elif name == "bench_sequencing":
+        for sc in ("dual_hover_2V", "four_spread", "hot_insert"):
+            d = _pick(rows, scenario=sc, strategy="direct")
+            q = _pick(rows, scenario=sc, strategy="sequencing")
+            out.append(
+                (
+                    f"sequencing {sc}: peak into a battery, direct -> method",
+                    f"{d['peak_cross_a']:.1f} -> {q['peak_cross_a']:.2f} A",
+                    "<= 1 A",
+                )
+            )
+            out.append(
+                (
+                    f"sequencing {sc}: energy vs direct (whole run / to brown-out)",
+                    f"{q['energy_ratio'] * 100:.1f} % / "
+                    f"{q['energy_to_brownout_ratio'] * 100:.1f} %",
+                    ">= 99 %",
+                )
+            )
+    elif name == "bench_charging":
+        base = _pick(rows, strategy="baseline")
+        for r in rows:
+            if r is base:
+                continue
+            peak = r["peak_charge_max_a"] / base["peak_charge_max_a"] - 1
+            out.append(
+                (
+                    f"charging {r['strategy']}: peak battery current vs baseline",
+                    f"{peak * 100:+.0f} %",
+                    "<= -50 %",
+                )
+            )
+            heat_key = next(k for k in r if "heat" in k and "j" in k.lower())
+            heat = r[heat_key] / base[heat_key] - 1
+            out.append(
+                (
+                    f"charging {r['strategy']}: I2R heat vs baseline",
+                    f"{heat * 100:+.0f} %",
+                    "<= -50 %",
+                )
+            )
+            t = r["time_to_full_s"] / base["time_to_full_s"] - 1
+            out.append(
+                (
+                    f"charging {r['strategy']}: time to full vs baseline",
+                    f"{t * 100:+.1f} %",
+                    "<= +20 %",
+                )
+            )
+    elif name == "bench_equalization":
+        for sc in sorted({r["scenario"] for r in rows}):
+            m = [r for r in rows if r["scenario"] == sc and r["strategy"] == "newton"]
+            last = m[-1]
+            ok = [
+                r["cycle"]
+                for r in m
+                if r["rest_spread_top_mv"] <= 10.0
+                and r.get("usable_ratio", r.get("usable_vs_limit", 0)) >= 0.98
+            ]
+            ratio = last.get("usable_ratio", last.get("usable_vs_limit"))
+            out.append(
+                (
+                    f"equalization {sc}: rest spread / usable vs limit (last cycle)",
+                    f"{last['rest_spread_top_mv']:.1f} mV / {ratio}",
+                    "<= 10 mV / >= 0.98",
+                )
+            )
+            out.append(
+                (
+                    f"equalization {sc}: first cycle meeting both",
+                    str(ok[0]) if ok else "none",
+                    "stated",
+                )
+            )
+    elif name == "bench_campaign":
+        for r in rows:
+            out.append(
+                (
+                    f"campaign: {r['case']}",
+                    f"{r['figure']:.4g} {r['unit']}",
+                    "<= 300 s" if "1,000" in r["case"] or "1000" in r["case"] else "",
+                )
+            )
+    return out
+
+
 def main() -> int:
     os.environ.setdefault("PYBAMM_DISABLE_TELEMETRY", "true")
     sys.path.insert(0, str(HERE.parent))
@@ -60,6 +213,7 @@ def main() -> int:
         if p.stem not in ORDER and (not only or p.stem in only)
     )
     sections: list[str] = []
+    headlines: list[tuple[str, str, str]] = []
     failed = 0
     for name in names:
         spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
@@ -72,6 +226,10 @@ def main() -> int:
             out = mod.run()
             rows = out if isinstance(out, list) else [out]
             text = _table(rows)
+            try:
+                headlines += _headlines(name, rows)
+            except (KeyError, IndexError, StopIteration, TypeError):
+                headlines.append((f"{name}: headline figures", "unavailable", ""))
         except Exception:
             failed += 1
             text = "FAILED:\n```\n" + traceback.format_exc() + "```"
@@ -79,6 +237,13 @@ def main() -> int:
         section = f"## {name} ({wall:.0f} s)\n\n{text}\n"
         print(section, flush=True)
         sections.append(section)
+    summary = (
+        "## Every figure in one table\n\n"
+        + _table([{"figure": f, "measured": v, "target": t} for f, v, t in headlines])
+        + "\n"
+    )
+    print(summary, flush=True)
+    sections.append(summary)
     header = (
         "# Benchmark results\n\n"
         f"- date: {_dt.datetime.now(_dt.UTC).isoformat(timespec='seconds')}\n"
