@@ -12,7 +12,7 @@ import importlib
 import math
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -196,7 +196,7 @@ SAFETY_SECTIONS: dict[str, str] = {
     "soc": "packpilot.control.soc:SocConfig",
 }
 
-FAULT_KINDS = (
+FaultKind = Literal[
     "sensor_nan",
     "sensor_stuck",
     "sensor_dropout",
@@ -205,22 +205,14 @@ FAULT_KINDS = (
     "charger_fault",
     "can_silence",
     "cooling_failure",
-)
+]
+FAULT_KINDS: tuple[str, ...] = get_args(FaultKind)
 
 
 class FaultConfig(_Strict):
     """A fault injected into the run at ``at_s`` (until ``until_s``, if given)."""
 
-    kind: Literal[
-        "sensor_nan",
-        "sensor_stuck",
-        "sensor_dropout",
-        "welded_relay",
-        "shorted_fet",
-        "charger_fault",
-        "can_silence",
-        "cooling_failure",
-    ]
+    kind: FaultKind
     at_s: NonNegFloat
     until_s: NonNegFloat | None = None
     battery: str | None = Field(None, description="battery name (sensor/switch/thermal faults)")
