@@ -60,6 +60,31 @@ def _sources(
 
 
 @_jit
+def _segment(
+    lo: Any,
+    up: Any,
+    e: Any,
+    dok: Any,
+    ddrop: Any,
+    dohm: Any,
+    cok: Any,
+    cdrop: Any,
+    cohm: Any,
+    ch_en: Any,
+    vset: Any,
+    ilim: Any,
+    rout: Any,
+) -> Any:
+    """Sources are linear inside a segment between breakpoints: S(V) = s0 + s1 V there."""
+    mid = 0.5 * (lo + up)
+    st = max(1e-3 * (up - lo), 1e-9)
+    ta = _sources(mid, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout)
+    tb = _sources(mid + st, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout)
+    s1 = (tb - ta) / st
+    return ta - s1 * mid, s1
+
+
+@_jit
 def _solve_one(
     e: Any,
     dok: Any,
@@ -108,12 +133,9 @@ def _solve_one(
         for k in range(m - 1):
             lo = pts[k]
             up = pts[k + 1]
-            mid = 0.5 * (lo + up)
-            st = max(1e-3 * (up - lo), 1e-9)
-            ta = _sources(mid, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout)
-            tb = _sources(mid + st, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout)
-            s1 = (tb - ta) / st
-            s0 = ta - s1 * mid
+            s0, s1 = _segment(
+                lo, up, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout
+            )
             den = 2.0 * (s1 - g)
             vs = lo
             if den < 0.0:
@@ -141,12 +163,7 @@ def _solve_one(
         fu = f[kk + 1]
         v = lo + fl * (up - lo) / (fl - fu) if fl != fu else up
         return min(max(v, lo), up), True
-    mid = 0.5 * (lo + up)
-    st = max(1e-3 * (up - lo), 1e-9)
-    ta = _sources(mid, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout)
-    tb = _sources(mid + st, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout)
-    s1 = (tb - ta) / st
-    s0 = ta - s1 * mid
+    s0, s1 = _segment(lo, up, e, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, rout)
     qa = s1 - g
     qb = s0 - a
     qc = -p
