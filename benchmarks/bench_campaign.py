@@ -116,7 +116,7 @@ def run() -> list[dict[str, Any]]:
     sync_rate = 16 / wall_sync
     row("in-process (sync), 60 s runs", sync_rate, "runs/s", "no Dask, one core")
     wall_thr, _ = _timed_campaign(cfg, 32, scheduler="threads", workers=2)
-    row("threaded scheduler, 2 threads", 32 / wall_thr, "runs/s", "loop holds the GIL")
+    row("threaded scheduler, 2 threads", 32 / wall_thr, "runs/s", "GIL ping-pong: slower than 1")
 
     rates: dict[int, float] = {}
     for n, runs in ((1, 24), (2, 48)):

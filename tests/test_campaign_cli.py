@@ -62,8 +62,10 @@ def test_campaign_json_parquet_png_and_resume(tmp_path: Path) -> None:
     cfg = _scenario(tmp_path)
     out = tmp_path / "res.parquet"
     common = ["--spread", "capacity=5%,r0=10%,soc0=0.05,ambient_c=-10:35", "--seed", "5"]
-    common += ["--scheduler", "threads", "--out", str(out), "--json"]
-    proc = _run(str(cfg), "--runs", "8", *common, PACKPILOT_CAMPAIGN_FAIL_RUNS="6")
+    common += ["--out", str(out), "--json"]
+    proc = _run(
+        str(cfg), "--runs", "8", "--scheduler", "threads", *common, PACKPILOT_CAMPAIGN_FAIL_RUNS="6"
+    )
     assert proc.returncode == 0, proc.stderr
     rep = json.loads(proc.stdout)
     assert (rep["rows"], rep["computed"], rep["skipped"], rep["failures"]) == (8, 8, 0, 1)
@@ -80,6 +82,7 @@ def test_campaign_json_parquet_png_and_resume(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     rep = json.loads(proc.stdout)
     assert (rep["rows"], rep["computed"], rep["skipped"]) == (11, 3, 8)
+    assert rep["scheduler"] == "sync"  # auto: a few seconds of work stays in-process
     # The failed run stays recorded (with its error) after the resume.
     assert pq.read_table(out).column("status").to_pylist().count("error") == 1
 

@@ -175,6 +175,6 @@ def test_run_one_records_exceptions_and_non_finite_metrics(monkeypatch: pytest.M
 
 def test_auto_scheduler_picks_processes_only_for_real_work() -> None:
     cfg = _cfg()  # 30 steps per run
-    assert cp.choose_scheduler(cfg, 20, 2) == "threads"
+    assert cp.choose_scheduler(cfg, 20, 2) == "sync"
     assert cp.choose_scheduler(cfg, 100_000, 2) == "processes"
-    assert cp.choose_scheduler(cfg, 100_000, 1) == "threads"
+    assert cp.choose_scheduler(cfg, 100_000, 1) == "sync"

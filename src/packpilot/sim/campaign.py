@@ -51,12 +51,15 @@ if TYPE_CHECKING:
 
 FAIL_ENV = "PACKPILOT_CAMPAIGN_FAIL_RUNS"
 META_KEY = b"packpilot.campaign"
-STEP_COST_S = 300e-6
-"""Rough closed-loop cost of one step of a 12-cell pack (measured ~250-350 us on the dev box)."""
-PROCESS_BREAK_EVEN_S = 10.0
-"""Estimated single-core work above which ``auto`` picks the process LocalCluster: starting it
-(spawn, imports, numba cache load per worker) costs ~3-4 s, and threads give no speed-up because
-the loop holds the GIL outside the numba kernels (measured; see docs/campaign.md)."""
+STEP_COST_S = 250e-6
+"""Closed-loop CPU cost of one step of a 12-cell pack (measured ~250 us on the dev box)."""
+PROCESS_BREAK_EVEN_S = 6.0
+"""Estimated single-core work above which ``auto`` picks the process LocalCluster over the
+in-process synchronous scheduler. Measured on the 2-core dev box: the cluster costs ~1.5-2.5 s
+to start (spawn, imports, numba cache load per worker) and then runs ~1.75x faster; 30 runs of
+60 s took 4.9 s on it vs 4.4 s in-process, 100 runs 10.0 s vs 14.6 s. The threaded scheduler
+is *slower* than one thread here (30 runs: 9.2 s): the loop is Python holding the GIL between
+short GIL-free numba kernels, and two threads mostly trade the GIL back and forth."""
 
 # Spread name -> Parquet column (= Draw field), and the physical range draws are clipped to.
 SPREAD_NAMES: tuple[str, ...] = ("capacity", "r0", "soc0", "ambient_c")
@@ -543,11 +546,12 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
 
 
 def choose_scheduler(cfg: ScenarioConfig, n_runs: int, workers: int) -> str:
-    """``auto``: processes when the estimated work pays for the cluster start, else threads."""
+    """``auto``: processes when the estimated work pays for the cluster start, else in-process
+    (``sync``; threads are slower than that here, see ``PROCESS_BREAK_EVEN_S``)."""
     steps = math.ceil(cfg.sim.duration_s / cfg.sim.dt_s)
     cells = sum(b.n_cells for b in cfg.pack.batteries)
     work_s = n_runs * steps * STEP_COST_S * max(1.0, cells / 12.0) ** 0.5
-    return "processes" if workers > 1 and work_s > PROCESS_BREAK_EVEN_S else "threads"
+    return "processes" if workers > 1 and work_s > PROCESS_BREAK_EVEN_S else "sync"
 
 
 # --------------------------------------------------------------------------------- campaign
