@@ -51,9 +51,10 @@ if TYPE_CHECKING:
 
 FAIL_ENV = "PACKPILOT_CAMPAIGN_FAIL_RUNS"
 META_KEY = b"packpilot.campaign"
-STEP_COST_S = 250e-6
-"""Closed-loop CPU cost of one step of a 12-cell pack (measured ~250 us on the dev box)."""
-PROCESS_BREAK_EVEN_S = 6.0
+STEP_COST_S = 150e-6
+"""Closed-loop CPU cost of one step of a 12-cell pack (measured 135-250 us on the dev box as
+the plant got faster; benchmarks/bench_campaign.py)."""
+PROCESS_BREAK_EVEN_S = 5.0
 """Estimated single-core work above which ``auto`` picks the process LocalCluster over the
 in-process synchronous scheduler. Measured on the 2-core dev box: the cluster costs ~1.5-2.5 s
 to start (spawn, imports, numba cache load per worker) and then runs ~1.75x faster; 30 runs of
@@ -440,6 +441,11 @@ CONNECT_TIMEOUT_S = 10.0
 """How long to wait for an existing Dask scheduler (``--scheduler tcp://...``)."""
 
 
+QUIET_WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+"""The worker's statistical profiler samples the task thread every 10 ms and competes for the
+GIL with a Python-heavy loop: off in our own LocalCluster (measured +5-10 % runs/s)."""
+
+
 def _check_scheduler(text: str) -> str:
     name = text.strip()
     if name in ("synchronous", "single-threaded"):
@@ -518,7 +524,8 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
     dist: Any = importlib.import_module("distributed")
     Client, LocalCluster = dist.Client, dist.LocalCluster
     if scheduler == "processes":
-        with warnings.catch_warnings():
+        dask: Any = importlib.import_module("dask")
+        with warnings.catch_warnings(), dask.config.set(QUIET_WORKER_CONFIG):
             # The scheduler's small HTTP server moves off :8787 if taken; nothing to report.
             warnings.filterwarnings("ignore", message="Port .* is already in use")
             cluster = LocalCluster(
