@@ -78,6 +78,10 @@ def test_twenty_runs_on_a_local_cluster(
     )
     ok = table.filter(pa.compute.equal(table.column("status"), "ok"))
     assert ok.column("error").null_count == 19
+    # Event counts: 0 (not null) where an ok run never saw that kind; null for the failed run.
+    events = [c for c in table.column_names if c.startswith("events_")]
+    assert events and all(ok.column(c).null_count == 0 for c in events)
+    assert all(row5[c] is None for c in events)
     # Outcomes follow the draws: peak cell temperature tracks the drawn ambient.
     assert np.all(
         np.abs(ok.column("max_temp_c").to_numpy() - ok.column("ambient_c").to_numpy()) < 3
