@@ -193,36 +193,42 @@ class Supervisor:
             self.refused.clear()
             return cmds, events
         accepted = [i for i in range(n) if closed_now[i] and will_close(i)]
-        # Join the closest batteries first so a group at one level forms before outliers.
-        ref = [meas.batteries[i].voltage_v for i in accepted]
-        for i in sorted(closing, key=lambda k: meas.batteries[k].voltage_v):
-            v = meas.batteries[i].voltage_v
-            others = ref + [
-                meas.batteries[j].voltage_v for j in closing if j != i and j not in accepted
-            ]
-            spread = max((abs(v - o) for o in others), default=0.0)
-            if not math.isfinite(v) or spread > self.config.join_limit_v:
-                chg[i] = False
-                dsg[i] = False
-                if not self.refused.get(i):
-                    events.append(
-                        Event(
-                            meas.t_s,
-                            "CommandRefused",
-                            i,
-                            "relay close refused: battery too far from the bus group",
-                            {
-                                "voltage_v": v,
-                                "spread_v": spread,
-                                "join_limit_v": self.config.join_limit_v,
-                            },
-                        )
-                    )
-                self.refused[i] = True
-            else:
-                accepted.append(i)
-                ref.append(v)
+        volts = {i: meas.batteries[i].voltage_v for i in range(n)}
+        limit = self.config.join_limit_v
+        candidates = sorted((i for i in closing if math.isfinite(volts[i])), key=volts.__getitem__)
+        if not accepted and candidates:
+            # Nothing on the bus yet: seed it with the largest set of candidates that fit within
+            # the limit (ties: the lowest voltages, which is where staged charging starts).
+            best: list[int] = []
+            for a in range(len(candidates)):
+                window = [j for j in candidates[a:] if volts[j] - volts[candidates[a]] <= limit]
+                if len(window) > len(best):
+                    best = window
+            accepted = list(best)
+        for i in closing:
+            if i in accepted:
                 self.refused.pop(i, None)
+                continue
+            group = [volts[j] for j in accepted]
+            v = volts[i]
+            spread = max((abs(v - o) for o in group), default=0.0)
+            if math.isfinite(v) and max([*group, v]) - min([*group, v]) <= limit:
+                accepted.append(i)
+                self.refused.pop(i, None)
+                continue
+            chg[i] = False
+            dsg[i] = False
+            if not self.refused.get(i):
+                events.append(
+                    Event(
+                        meas.t_s,
+                        "CommandRefused",
+                        i,
+                        "relay close refused: battery too far from the bus group",
+                        {"voltage_v": v, "spread_v": spread, "join_limit_v": limit},
+                    )
+                )
+            self.refused[i] = True
         new = Commands(
             chg_on=tuple(chg),
             dsg_on=tuple(dsg),

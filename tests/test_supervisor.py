@@ -1,0 +1,131 @@
+"""Supervisor: modes, safety layers override methods, the relay join limit."""
+
+from __future__ import annotations
+
+from packpilot.config import parse_config
+from packpilot.control.supervisor import Mode, Supervisor, SupervisorConfig
+from packpilot.control.types import (
+    CLOSED,
+    OPEN,
+    BatteryMeasurement,
+    Commands,
+    ControlOutput,
+    Measurements,
+    PackInfo,
+    SwitchKind,
+)
+from packpilot.sim.runner import Runner
+from tests.conftest import dual_pack
+
+
+def _info(n: int, kind: SwitchKind = SwitchKind.RELAY) -> PackInfo:
+    return PackInfo(
+        n_batteries=n,
+        groups_per_battery=(1,) * n,
+        cells_per_group=(6,) * n,
+        switch_kind=(kind,) * n,
+        capacity_ah=(5.0,) * n,
+    )
+
+
+def _bat(v: float, i: float = 0.0, closed: bool = False) -> BatteryMeasurement:
+    return BatteryMeasurement(
+        voltage_v=v,
+        current_a=i,
+        temp_c=25.0,
+        min_cell_v=v / 6,
+        max_cell_v=v / 6,
+        soc=0.5,
+        full_capacity_ah=5.0,
+        remaining_capacity_ah=2.5,
+        group_voltages_v=(v,),
+        switch=CLOSED if closed else OPEN,
+    )
+
+
+class _CloseAll:
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        n = len(meas.batteries)
+        return ControlOutput(Commands(chg_on=(True,) * n, dsg_on=(True,) * n))
+
+
+class _Veto:
+    """A safety layer that opens battery 0's discharge path."""
+
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        return ControlOutput(Commands(dsg_on=(False, None, None)))
+
+
+def test_relay_close_between_batteries_far_apart_is_refused_and_logged() -> None:
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(3), methods=[_CloseAll()])
+    meas = Measurements(t_s=0.0, batteries=(_bat(96.0), _bat(97.0), _bat(106.0)), bus_v=0.0)
+    out = sup.step(meas, 0.1)
+    assert out.commands.chg_on == (True, True, False)
+    assert out.commands.dsg_on == (True, True, False)
+    refused = [e for e in out.events if e.kind == "CommandRefused"]
+    assert [e.battery for e in refused] == [2]
+    assert refused[0].data["spread_v"] > 3.0
+    # Logged once per refusal episode, not every period.
+    out2 = sup.step(meas, 0.1)
+    assert not [e for e in out2.events if e.kind == "CommandRefused"]
+
+
+def test_join_limit_compares_with_the_batteries_already_on_the_bus() -> None:
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(2), methods=[_CloseAll()])
+    meas = Measurements(t_s=0.0, batteries=(_bat(100.0, closed=True), _bat(102.5)), bus_v=100.0)
+    out = sup.step(meas, 0.1)
+    assert out.commands.chg_on == (True, True)  # 2.5 V <= 3 V: allowed
+    meas = Measurements(t_s=0.0, batteries=(_bat(100.0, closed=True), _bat(104.0)), bus_v=100.0)
+    out = Supervisor(SupervisorConfig(), _info(2), methods=[_CloseAll()]).step(meas, 0.1)
+    assert out.commands.chg_on == (True, False)
+
+
+def test_safety_layer_overrides_the_method() -> None:
+    sup = Supervisor(
+        SupervisorConfig(),
+        _info(3, SwitchKind.MOSFET_PAIR),
+        methods=[_CloseAll()],
+        safety=[_Veto()],
+    )
+    meas = Measurements(t_s=0.0, batteries=(_bat(24.0),) * 3, bus_v=24.0)
+    out = sup.step(meas, 0.1)
+    assert out.commands.dsg_on[0] is False
+    assert out.commands.chg_on[0] is True
+
+
+def test_modes_follow_the_pack_in_closed_loop() -> None:
+    d = dual_pack(
+        switch={"kind": "mosfet_pair"},
+        v_a=24.0,
+        v_b=24.0,
+        duration_s=40.0,
+        load={"kind": "current", "value": 20.0, "start_s": 5.0},
+    )
+    d["charger"] = {"present": True, "connect_s": 30.0, "rated_v": 60.0, "rated_a": 10.0}
+    d["controller"] = ["sequencing"]
+    d["supervisor"] = {"idle_after_s": 2.0}
+    d["load"]["profile"] = None
+    res = Runner(parse_config(d)).run()
+    path = [(e.data["from"], e.data["to"]) for e in res.events if e.kind == "ModeChanged"]
+    assert path[0] == ("init", "idle")
+    assert ("idle", "discharge") in path
+    assert path[-1][1] == "charge"  # docked at 30 s
+    mode = res.trace.status["mode"]
+    assert mode[-1][0] == Mode.CHARGE
+
+
+def test_every_trip_undocked_means_shutdown_with_all_paths_open() -> None:
+    from packpilot.control.types import Event
+
+    class _TripAll:
+        def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+            ev = tuple(Event(meas.t_s, "ProtectionTripped", i) for i in range(2))
+            return ControlOutput(Commands(), events=ev if meas.t_s < 0.15 else ())
+
+    sup = Supervisor(
+        SupervisorConfig(init_time_s=0.0), _info(2, SwitchKind.MOSFET_PAIR), methods=[_TripAll()]
+    )
+    meas = Measurements(t_s=0.1, batteries=(_bat(22.0), _bat(22.0)), bus_v=22.0)
+    out = sup.step(meas, 0.1)
+    assert sup.mode is Mode.SHUTDOWN
+    assert out.commands.chg_on == (False, False) and out.commands.dsg_on == (False, False)
