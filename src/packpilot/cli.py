@@ -305,6 +305,50 @@ def campaign(
     _guard(go)
 
 
+@app.command()
+def dashboard(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    host: Annotated[str, typer.Option(help="address to listen on")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port (0: any free port)")] = 8765,
+    speed: Annotated[
+        float, typer.Option(help="simulated seconds per wall second (0: as fast as possible)")
+    ] = 10.0,
+    db: Annotated[Path | None, typer.Option(help="also record telemetry to this SQLite")] = None,
+    duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
+) -> None:
+    """Run a scenario and watch it live in a browser (Ctrl-C stops)."""
+
+    def go() -> None:
+        import contextlib
+
+        from packpilot.config import load_config
+        from packpilot.errors import ConfigError
+        from packpilot.sim.runner import Runner
+        from packpilot.web.app import Dashboard
+
+        if speed < 0 or speed != speed:
+            raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
+        if not 0 <= port <= 65535:
+            raise ConfigError(f"--port {port}: must be 0..65535")
+        cfg = load_config(config)
+        if duration is not None:
+            cfg = cfg.model_copy(
+                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
+            )
+        runner = Runner(cfg, progress=False)
+        name = cfg.pack.name if "name" in cfg.pack.model_fields_set else config.stem
+        dash = Dashboard(runner, scenario=name, speed=speed, db=db, host=host, port=port)
+        typer.echo(f"dashboard for {name} on {dash.url}  (Ctrl-C to stop)", err=True)
+        dash.start()
+        with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C / SIGTERM: the normal way out
+            dash.serve()
+        st = dash.live.status()
+        why = f": {st['error']}" if st["error"] and st["state"] == "error" else ""
+        typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why}", err=True)
+
+    _guard(go)
+
+
 def main() -> None:
     app()
 
