@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
 import warnings
 from collections.abc import Iterator
@@ -269,3 +270,23 @@ def test_page_and_static_files_are_served() -> None:
     assert "https://" not in text
     for cid in CHART_CHANNELS:
         assert f'id="chart-{cid}"' in page.text
+
+
+def test_ws_sends_an_event_backlog_in_full() -> None:
+    live = LiveRun(scenario="x", battery_names=["A"])
+    live.on_start(["A"])
+    live.on_events([Event(0.1 * k, "BalancingUpdated", 0, f"#{k}") for k in range(1234)])
+    live.on_finish({"steps": 0}, "finished")  # nothing will change any more
+    client = TestClient(create_app(live, push_interval_s=0.05))
+    got: list[dict[str, Any]] = []
+
+    def read() -> None:
+        with client.websocket_connect("/ws") as ws:
+            ws.receive_text()
+            for _ in range(3):  # 500 + 500 + 234
+                got.extend(strict_loads(ws.receive_text())["events"])
+
+    reader = threading.Thread(target=read, daemon=True)  # a stalled stream must fail, not hang
+    reader.start()
+    reader.join(10.0)
+    assert [e["message"] for e in got] == [f"#{k}" for k in range(1234)]

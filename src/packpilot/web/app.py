@@ -27,6 +27,7 @@ from packpilot.sim.result import BATTERY_CHANNELS
 from packpilot.web.live import CHART_CHANNELS, LiveRun, SimThread
 
 STATIC = Path(__file__).resolve().parent / "static"
+MAX_EVENTS_PER_MESSAGE = 500
 
 
 def dumps(obj: Any) -> str:
@@ -76,11 +77,12 @@ def create_app(live: LiveRun, push_interval_s: float = 0.2) -> FastAPI:
             await sock.send_text(dumps(_hello(live)))
             cursor = (-1, 0)
             seen_version = -1
+            backlog = False
             while not gone.done():
                 version = live.version
-                if version != seen_version:
+                if version != seen_version or backlog:
                     seen_version = version
-                    up = live.update_since(cursor)
+                    up = live.update_since(cursor, max_events=MAX_EVENTS_PER_MESSAGE)
                     cursor = up.cursor
                     st = live.status()
                     msg = {
@@ -96,8 +98,12 @@ def create_app(live: LiveRun, push_interval_s: float = 0.2) -> FastAPI:
                         "run_id": st["run_id"],
                     }
                     await sock.send_text(dumps(msg))
-                    if len(up.events) and live.events(cursor[1], 1):
-                        continue  # more events queued than one message carries: no pause
+                    # More events queued than one message carries: send on without a pause.
+                    backlog = len(up.events) >= MAX_EVENTS_PER_MESSAGE and bool(
+                        live.events(cursor[1], 1)
+                    )
+                    if backlog:
+                        continue
                 await asyncio.wait({gone}, timeout=push_interval_s)
         except (WebSocketDisconnect, ConnectionError, RuntimeError):
             pass  # the browser went away: only this loop ends, the run goes on

@@ -73,6 +73,8 @@ function onHello(msg) {
   S.points = [];
   S.events = [];
   S.latest = null;
+  S.received = 0;
+  S.updates = 0;
   S.maxPoints = msg.max_points || 2000;
   S.duration = msg.duration_s || 0;
   S.speed = msg.speed || 0;
