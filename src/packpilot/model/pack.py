@@ -464,7 +464,7 @@ class Pack:
         return prm
 
     def step_reference(self, dt_s: float, load_kind: str, load_value: Array) -> Interval:
-        """Readable NumPy version of :meth:`step` (same contract, same results, ~6x slower).
+        """Readable NumPy version of :meth:`step` (same contract and results; ~7x slower per pack).
 
         Solve the bus for the coming period, advance every cell, return the flows.
         """
