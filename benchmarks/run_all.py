@@ -28,6 +28,17 @@ ORDER = [
 ]
 
 
+def _cpu_model() -> str:
+    """platform.processor() is empty on Linux; /proc/cpuinfo names the CPU."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
@@ -247,7 +258,7 @@ def main() -> int:
     header = (
         "# Benchmark results\n\n"
         f"- date: {_dt.datetime.now(_dt.UTC).isoformat(timespec='seconds')}\n"
-        f"- machine: {platform.machine()}, {os.cpu_count()} cores, {platform.processor() or '?'},"
+        f"- machine: {platform.machine()}, {os.cpu_count()} cores, {_cpu_model()},"
         f" Python {platform.python_version()}, {platform.platform()}\n"
         f"- command: `make bench` (`python benchmarks/run_all.py {' '.join(sys.argv[1:])}`)\n\n"
     )
