@@ -7,7 +7,10 @@ fixed conservative 3.2 V / 5 s and fixed aggressive 2.8 V / 15 s. A fourth, diag
 a table whose cut-offs are matched to this cell's impedance (see docs/discharge_protection.md).
 
 Per run: energy delivered to the load until the trip (Wh), minimum cell voltage, and the mean
-cell voltage after the 30 min rest (the rest OCV) plus the mean cell SOC left.
+cell voltage after the 30 min rest (the rest OCV) plus the mean cell SOC left. For runs that
+empty a cell (remaining Ah of the weakest cell reaches 0) also the energy delivered up to that
+moment (``energy_to_empty_wh``, terminal V x I integrated from the trace): the most any cut-off
+could deliver on this scenario without driving a cell below 0 % SOC, so a bound on the gain.
 
 Run: ``python benchmarks/bench_protection.py`` (``--sensitivity`` adds the cold-heavy study).
 """
@@ -17,6 +20,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from packpilot.config import ScenarioConfig, load_config
 from packpilot.sim.runner import Runner
@@ -68,6 +73,13 @@ def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[s
     res = runner.run()
     trips = [e for e in res.events if e.kind == "ProtectionTripped"]
     trip = trips[0] if trips else None
+    v = res.trace.channel("voltage_v")[:, 0]
+    i = res.trace.channel("current_a")[:, 0]
+    dt = float(res.trace.t_s[1] - res.trace.t_s[0])
+    empty = np.flatnonzero(res.trace.channel("remaining_ah")[:, 0] <= 0.0)
+    energy_to_empty = (
+        None if empty.size == 0 else float(np.sum(np.maximum(v * i, 0.0)[: empty[0]]) * dt / 3600)
+    )
     soc, _ = runner.pack.cell_states()
     cell_v = runner.pack.cell_voltage_now()[0]
     rest_s = runner.pack.t_s - (trip.t_s if trip else runner.pack.t_s)
@@ -84,6 +96,7 @@ def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[s
         "rest_min_cell_v": round(float(cell_v.min()), 4) if rest and trip else None,
         "soc_left": round(float(soc[0].mean()), 4),
         "below_empty": bool((soc[0] < 0.0).any()),
+        "energy_to_empty_wh": None if energy_to_empty is None else round(energy_to_empty, 2),
     }
 
 
@@ -100,6 +113,10 @@ def run(
             r["energy_vs_conservative_pct"] = round(
                 100.0 * (r["energy_wh"] / ref["energy_wh"] - 1.0), 1
             )
+            if r["energy_to_empty_wh"] is not None:
+                r["to_empty_vs_conservative_pct"] = round(
+                    100.0 * (r["energy_to_empty_wh"] / ref["energy_wh"] - 1.0), 1
+                )
             if r["rest_ocv_v"] is not None and ref["rest_ocv_v"] is not None:
                 r["rest_ocv_vs_conservative_mv"] = round(
                     1000.0 * (r["rest_ocv_v"] - ref["rest_ocv_v"]), 1

@@ -126,6 +126,19 @@ def _headlines(name: str, rows: list[dict[str, Any]]) -> list[tuple[str, str, st
                     ">= -10 mV" if sc == "warm_light" else "",
                 )
             )
+            bound = [
+                r["to_empty_vs_conservative_pct"]
+                for r in rows
+                if r["scenario"] == sc and r.get("to_empty_vs_conservative_pct") is not None
+            ]
+            if bound:
+                out.append(
+                    (
+                        f"protection {sc}: bound, energy until a cell is empty vs 3.2 V/5 s",
+                        f"{max(bound):+.1f} %",
+                        "",
+                    )
+                )
     elif name == "bench_sequencing":
         for sc in ("dual_hover_2V", "four_spread", "hot_insert"):
             d = _pick(rows, scenario=sc, strategy="direct")

@@ -129,6 +129,21 @@ class ChargingConfig(BaseModel):
         "commanded min(charger_current_limit_a, n_connected x this), so a stage that charges "
         "few batteries does not push the whole charger current through them.",
     )
+    current_law: Literal["constant", "sqrt"] = Field(
+        default="constant",
+        description="Charger current per stage. 'constant': charger_current_limit_a whatever "
+        "the number of connected batteries. 'sqrt': min(charger_current_limit_a, "
+        "I_full x sqrt(n/N)) with n batteries connected out of the N still to charge, so "
+        "every stage heats the batteries at the same total I^2 R rate (the least I^2 R heat "
+        "for a given charge time, see docs/staged_charging.md).",
+    )
+    full_current_a: float | None = Field(
+        default=None,
+        gt=0.0,
+        description="I_full of current_law = 'sqrt': the current when all N batteries still "
+        "to charge are connected (A); default charger_current_limit_a. A value above the "
+        "charger limit raises the current of the small stages, the charger limit still caps it.",
+    )
     termination_current_a: float = Field(
         default=1.0,
         gt=0.0,
@@ -230,6 +245,14 @@ class ChargingConfig(BaseModel):
             raise ValueError(
                 f"termination_current_a ({self.termination_current_a}) must be smaller than "
                 f"battery_current_limit_a ({per_battery})"
+            )
+        full = self.full_current_a
+        if full is not None and not math.isfinite(full):
+            raise ValueError("full_current_a must be a finite number")
+        if full is not None and self.termination_current_a >= full:
+            raise ValueError(
+                f"termination_current_a ({self.termination_current_a}) must be smaller than "
+                f"full_current_a ({full})"
             )
         if self.termination_current_a >= self.charger_current_limit_a:
             raise ValueError(
@@ -398,6 +421,25 @@ def cluster_levels(values: Sequence[tuple[int, float]], eps_v: float) -> list[li
     return levels
 
 
+def stage_current_a(cfg: ChargingConfig, n_connected: int, n_to_charge: int) -> float:
+    """Charger current limit for a stage with ``n_connected`` of ``n_to_charge`` batteries.
+
+    Always ``≤ charger_current_limit_a`` and, if set, ``≤ n_connected × battery_current_limit_a``.
+    With ``current_law = "sqrt"`` also ``≤ I_full·sqrt(n_connected / n_to_charge)``: a stage
+    that delivers charge Q through n similar batteries of resistance R at current I heats them
+    by ≈ Q·I·R/n in Q/I seconds, and minimising Σ Q_k·I_k·R/n_k for a fixed Σ Q_k/I_k
+    (Lagrange) gives I_k ∝ sqrt(n_k): the same heat rate I_k²·R/n_k in every stage.
+    """
+    current = cfg.charger_current_limit_a
+    n = max(n_connected, 1)
+    if cfg.current_law == "sqrt":
+        full = cfg.full_current_a if cfg.full_current_a is not None else current
+        current = min(current, full * math.sqrt(n / max(n_to_charge, n)))
+    if cfg.battery_current_limit_a is not None:
+        current = min(current, n * cfg.battery_current_limit_a)
+    return current
+
+
 def _fmt_idx(idx: Iterable[int]) -> str:
     return ",".join(str(i) for i in sorted(idx))
 
@@ -497,9 +539,7 @@ class ChargingController:
             )
         closed = tuple(i in plan.members for i in range(n))
         if plan.members:
-            current = cfg.charger_current_limit_a
-            if cfg.battery_current_limit_a is not None:
-                current = min(current, len(plan.members) * cfg.battery_current_limit_a)
+            current = stage_current_a(cfg, len(plan.members), len(eligible))
             charger = ChargerCommand(voltage_v=plan.cmd_v, current_a=current, enable=True)
         elif plan.stage is Stage.COMPLETE:
             charger = self._aux_only_charger(aux_relay)
@@ -882,4 +922,5 @@ __all__ = [
     "Stage",
     "Volts",
     "cluster_levels",
+    "stage_current_a",
 ]
