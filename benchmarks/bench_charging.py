@@ -13,6 +13,10 @@ Strategies:
   also over CAN.
 * ``staged_levels_0.2C`` — ``staged_levels`` plus ``battery_current_limit_a = 20`` (0.2C per
   connected battery): trades charge time for I²R heat (see docs/staged_charging.md).
+* ``staged_levels_sqrt`` — ``staged_levels`` plus ``current_law = "sqrt"``: the charger current
+  with n of the N batteries still to charge connected is min(100 A, I_full·sqrt(n/N)), I_full =
+  the charger limit (the same total I²R heat rate in every stage, the least heat for a given
+  charge time; docs/staged_charging.md).
 
 Per strategy: peak current into each battery (charging, A), total I²R heat of the traction
 batteries (kJ, the plant's ohmic heat), maximum cell-temperature rise over ambient (K), and the
@@ -21,6 +25,8 @@ current down to the termination current (2 A), the same criterion the method sto
 
 Run: ``python benchmarks/bench_charging.py`` (``--direct`` skips CAN and writes setpoints
 straight into the plant charger; the numbers agree to the heartbeat's one-period latency).
+``--frontier`` instead sweeps the heat/time trade-off of the two current laws (I_full for
+``sqrt``, the per-battery limit for ``constant``), direct, one row per setting.
 """
 
 from __future__ import annotations
@@ -54,14 +60,56 @@ STRATEGIES: dict[str, dict[str, Any]] = {
         "target_mode": "levels",
         "battery_current_limit_a": 20.0,
     },
+    "staged_levels_sqrt": {
+        "controller": ["charging"],
+        "target_mode": "levels",
+        "current_law": "sqrt",
+    },
 }
+CHARGING_KEYS = (
+    "target_mode",
+    "battery_current_limit_a",
+    "current_law",
+    "full_current_a",
+    "vc3_margin_v",
+)
+"""Strategy keys that are ``[charging]`` settings (the rest, ``controller``, is top level)."""
+
+FRONTIER: dict[str, dict[str, Any]] = {
+    **{
+        f"sqrt_I_full_{a:g}A": {
+            "controller": ["charging"],
+            "current_law": "sqrt",
+            "full_current_a": a,
+        }
+        for a in (100.0, 97.5, 95.0, 92.5, 90.0)
+    },
+    **{
+        f"constant_{a:g}A_per_battery": {
+            "controller": ["charging"],
+            "battery_current_limit_a": a,
+        }
+        for a in (25.0, 22.0, 20.0, 18.0)
+    },
+    **{
+        f"sqrt_I_full_{a:g}A_vc3_3V": {
+            "controller": ["charging"],
+            "current_law": "sqrt",
+            "full_current_a": a,
+            "vc3_margin_v": 3.0,
+        }
+        for a in (95.0, 92.5)
+    },
+}
+"""``--frontier``: the heat/time trade-off of each current law around the 1.2 x time budget
+(``vc3_margin_v = 3`` makes the S40 steps end in CC instead of a CV taper)."""
 
 
 def scenario(strategy: str, dt_s: float = DT_S, duration_s: float = DURATION_S) -> ScenarioConfig:
     cfg = load_config(SCENARIO)
-    spec = STRATEGIES[strategy]
+    spec = STRATEGIES[strategy] if strategy in STRATEGIES else FRONTIER[strategy]
     charging = dict(cfg.charging or {})
-    for key in ("target_mode", "battery_current_limit_a"):
+    for key in CHARGING_KEYS:
         if key in spec:
             charging[key] = spec[key]
     sim = cfg.sim.model_copy(update={"dt_s": dt_s, "duration_s": duration_s, "progress": False})
@@ -128,10 +176,14 @@ def _case(args: tuple[str, bool]) -> dict[str, Any]:
     return run_case(args[0], can=args[1])
 
 
-def run(*, can: bool = True, workers: int | None = None) -> list[dict[str, Any]]:
-    """One row per strategy; the runs are independent, so they go to a process pool."""
-    n = workers if workers is not None else min(len(STRATEGIES), os.cpu_count() or 1)
-    jobs = [(s, can) for s in STRATEGIES]
+def run(
+    *, can: bool = True, workers: int | None = None, frontier: bool = False
+) -> list[dict[str, Any]]:
+    """One row per strategy (the baseline first); the runs are independent, so they go to a
+    process pool. ``frontier``: the ``FRONTIER`` settings instead of ``STRATEGIES``."""
+    names = ["baseline", *FRONTIER] if frontier else list(STRATEGIES)
+    n = workers if workers is not None else min(len(names), os.cpu_count() or 1)
+    jobs = [(s, can) for s in names]
     if n <= 1:
         rows = [_case(j) for j in jobs]
     else:
@@ -146,7 +198,8 @@ def run(*, can: bool = True, workers: int | None = None) -> list[dict[str, Any]]
 
 
 def main(argv: list[str]) -> None:
-    rows = run(can="--direct" not in argv)
+    frontier = "--frontier" in argv
+    rows = run(can="--direct" not in argv and not frontier, frontier=frontier)
     cols = (
         "strategy",
         "link",
