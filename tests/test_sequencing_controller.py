@@ -187,6 +187,9 @@ def test_defaults_match_spec_table() -> None:
     cfg = SequencingConfig()
     assert (cfg.v_th, cfg.v_co, cfg.i_det, cfg.t_on, cfg.i_rev) == (0.5, 0.3, 0.5, 0.1, 0.5)
     assert 0.0 <= cfg.t_debounce <= cfg.t_on
+    # Rest merge [REC]: window 0.5 A x (2 x 20 mOhm + 4 x 0.1 mOhm) = 20.2 mV, i_merge <= i_rev.
+    assert cfg.i_merge <= cfg.i_rev
+    assert cfg.v_merge == pytest.approx(0.0202)
 
 
 @pytest.mark.parametrize(
@@ -199,6 +202,10 @@ def test_defaults_match_spec_table() -> None:
         ({"i_rev": float("inf")}, "i_rev"),
         ({"v_co": 0.6}, "v_co"),
         ({"t_debounce": 0.2}, "t_debounce"),
+        ({"i_merge": 0.6}, "i_merge"),
+        ({"i_merge": 0.0}, "i_merge"),
+        ({"r_loop_ohm": 0.0}, "r_loop_ohm"),
+        ({"t_rest": -0.1}, "t_rest"),
         ({"v_thresh": 0.5}, "v_thresh"),
     ],
 )

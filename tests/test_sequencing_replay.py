@@ -228,3 +228,70 @@ def test_output_table_shape_and_csv(tmp_path: Path) -> None:
     out = tmp_path / "out.csv"
     res.write_csv(out)
     assert out.read_text().splitlines()[0].startswith("t_s,mode,state_0")
+
+
+def _rest_merge_log(
+    tmp_path: Path, v0_rest: float, v1: float, i0_after: float, name: str
+) -> ReplayResult:
+    """Battery 0 (24 V) engages by R3 under 10 A; battery 1 stands by (R1, 1 V lower). From
+    t = 2 s battery 0 reads ``v0_rest`` carrying ``i0_after``; battery 1 reads ``v1``."""
+    ts = [round(0.1 * k, 1) for k in range(40)]
+    rows = _rows_2(
+        ts,
+        lambda t: 24.0 if t < 2.0 else v0_rest,
+        lambda t: 23.0 if t < 2.0 else v1,
+        lambda t: 10.0 if t < 2.0 else i0_after,
+        lambda t: 0.0,
+    )
+    return replay(_write(tmp_path / name, HDR2, rows), CFG)
+
+
+@pytest.mark.parametrize("dv", [-0.02, -0.005, 0.0, 0.01, 0.02])
+def test_rest_merge_rejoins_a_standby_battery_within_v_merge_at_rest(
+    tmp_path: Path, dv: float
+) -> None:
+    # v_merge = 0.5 A x 40.4 mOhm = 20.2 mV; rest starts at t = 2.0, t_rest = 0.2 s.
+    assert abs(dv) <= CFG.v_merge
+    res = _rest_merge_log(tmp_path, 23.0, 23.0 + dv, 0.0, "merge.csv")
+    t = _col(res, "t_s")
+    s1, c1 = _col(res, "state_1"), _col(res, "chg_1")
+    k_rest = t.index(2.0)
+    k_merge = t.index(2.2)
+    assert set(s1[:k_merge]) == {"STANDBY"} and set(c1[:k_merge]) == {0}
+    assert _col(res, "chg_0")[k_rest - 1] == 1, "battery 0 engaged (R3) before the rest"
+    assert s1[k_merge:] == ["DISCHARGING"] * (len(t) - k_merge)
+    assert set(c1[k_merge:]) == {1}
+    assert res.summary["joins"][-1] == {"t_s": 2.2, "battery": 1, "rule": "rest merge"}
+
+
+@pytest.mark.parametrize("dv", [-0.03, -0.25, 0.03])
+def test_rest_merge_does_not_merge_a_spread_above_v_merge(tmp_path: Path, dv: float) -> None:
+    # Below: closing would push more than i_merge into battery 1. Above (but < v_co): closing
+    # would push more than i_merge into battery 0; R2 waits for the full v_co.
+    assert abs(dv) > CFG.v_merge and dv < CFG.v_co
+    res = _rest_merge_log(tmp_path, 23.0, 23.0 + dv, 0.0, "nomerge.csv")
+    assert set(_col(res, "state_1")) == {"STANDBY"}
+    assert set(_col(res, "chg_1")) == {0}
+
+
+@pytest.mark.parametrize("i0", [20.0, 0.6])
+def test_rest_merge_does_not_merge_under_load(tmp_path: Path, i0: float) -> None:
+    # Same 5 mV spread as a merging case, but battery 0 carries more than i_det: not at rest
+    # (under load the terminal voltages carry I*R drops, so they say nothing about the OCVs).
+    res = _rest_merge_log(tmp_path, 23.0, 22.995, i0, "load.csv")
+    assert set(_col(res, "state_1")) == {"STANDBY"}
+    assert set(_col(res, "chg_1")) == {0}
+
+
+def test_rest_merge_waits_t_rest_after_the_load_stops(tmp_path: Path) -> None:
+    # Load pulses shorter than t_rest apart never let the pack count as at rest.
+    ts = [round(0.1 * k, 1) for k in range(40)]
+    rows = _rows_2(
+        ts,
+        lambda t: 24.0 if t < 2.0 else 23.0,
+        lambda t: 23.0 if t < 2.0 else 22.995,
+        lambda t: 10.0 if t < 2.0 or round(t * 10) % 2 == 0 else 0.0,
+        lambda t: 0.0,
+    )
+    res = replay(_write(tmp_path / "pulses.csv", HDR2, rows), CFG)
+    assert set(_col(res, "state_1")) == {"STANDBY"}

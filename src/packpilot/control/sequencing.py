@@ -29,6 +29,11 @@ Rules applied every control period in discharge mode (see ``docs/parallel_discha
   battery's terminal voltage) joins. At rest (no current anywhere) it takes over instead of
   co-discharging, because rest voltages are open-circuit voltages and co-discharge would push
   about (V_k - V_ref) / R_loop into the others.
+* Rest merge ([REC], not in the source text): when every battery has carried at most
+  ``i_det`` for ``t_rest``, a standby (or admitted, not yet engaged) battery whose voltage is
+  within ``v_merge = i_merge * r_loop_ohm`` of every engaged battery rejoins with its charge FET
+  on, like R1 admitting batteries within ``v_th`` at power-up, but with a window sized so the
+  circulating current it can cause stays at or below ``i_merge <= i_rev``.
 * R3: a battery with discharge FET on and charge FET off that sources more than ``i_det``
   (its charge diode conducts) gets its charge FET on after a debounce, no later than ``t_on``.
   Only current measured over a period in which the controller held that FET off counts.
@@ -144,12 +149,54 @@ class SequencingConfig(BaseModel):
         ),
     )
 
+    i_merge: float = Field(
+        0.5,
+        gt=0.0,
+        description=(
+            "Rest merge (A, [REC]): the largest circulating current a rest merge may cause. A "
+            "standby battery rejoins at rest only if its voltage is within i_merge * r_loop_ohm "
+            "of every engaged battery, so closing its charge FET pushes at most about i_merge "
+            "between them. Keep it at or below i_rev so a merge never trips reverse-current "
+            "protection (which would demote it again and chatter)."
+        ),
+    )
+    r_loop_ohm: float = Field(
+        0.0404,
+        gt=0.0,
+        description=(
+            "Lowest resistance (ohm) of the loop between two batteries: both internal "
+            "resistances plus the four FET on-resistances (2 x 20 mOhm + 4 x 0.1 mOhm for the "
+            "spec's example). Use the lowest expected value: a smaller r_loop_ohm only narrows "
+            "the rest-merge window i_merge * r_loop_ohm."
+        ),
+    )
+    t_rest: float = Field(
+        0.2,
+        ge=0.0,
+        description=(
+            "Rest debounce (s) for the rest merge: every present battery must carry at most "
+            "i_det for t_rest before a standby battery may rejoin, so terminal voltages are "
+            "close to open-circuit voltages and a passing load step does not count as rest."
+        ),
+    )
+
+    @property
+    def v_merge(self) -> float:
+        """Rest-merge window (V): i_merge * r_loop_ohm."""
+        return self.i_merge * self.r_loop_ohm
+
     @model_validator(mode="after")
     def _check_relations(self) -> SequencingConfig:
         if self.v_co > self.v_th:
             raise ValueError(
                 f"v_co ({self.v_co} V) must be <= v_th ({self.v_th} V): a standby battery "
                 "more than v_th above the discharging set would otherwise not join (R1 vs R2)"
+            )
+        if self.i_merge > self.i_rev:
+            raise ValueError(
+                f"i_merge ({self.i_merge} A) must be <= i_rev ({self.i_rev} A): a rest merge "
+                "pushing more than i_rev would be undone by reverse-current protection at once "
+                "and repeat every t_rest (charge FET chatter with cross-charging at rest)"
             )
         if self.t_debounce > self.t_on:
             raise ValueError(
@@ -183,6 +230,8 @@ class SequencingState:
     v_ref_v: float | None = None
     """Bus reference of the last period (highest discharging terminal voltage)."""
     fault_reason: str = ""
+    rest_since_s: float | None = None
+    """First sample of the current run of samples with every battery at or below i_det."""
 
 
 def _pattern(state: SeqState, engaged: bool) -> tuple[bool, bool]:
@@ -469,6 +518,48 @@ class SequencingController:
                 if idle:
                     v_ref = volt[k]
 
+        # Rest merge [REC]: at rest (every battery at or below i_det for t_rest), a standby or
+        # admitted battery whose voltage is within v_merge = i_merge * r_loop_ohm of every
+        # engaged battery rejoins with its charge FET on, as R1 admits batteries within v_th at
+        # power-up: closing it pushes at most about i_merge between them. Without it a battery
+        # demoted by reverse current when the load stopped can only come back by R2 (it is
+        # lower, so never) or R3 (its diode needs the bus 0.6 V below it, which the remaining
+        # batteries alone may not reach before the load's own under-voltage lock-out cuts it).
+        if idle:
+            if st.rest_since_s is None:
+                st.rest_since_s = t
+        else:
+            st.rest_since_s = None
+        rested = st.rest_since_s is not None and t - st.rest_since_s + _EPS_S >= cfg.t_rest
+        engaged_now = [
+            volt[k] for k, b in enumerate(bats) if b.state is SeqState.DISCHARGING and b.chg_on
+        ]
+        if rested and engaged_now:
+            lo, hi = min(engaged_now), max(engaged_now)
+            candidates = [
+                k
+                for k, b in enumerate(bats)
+                if k not in demoted
+                and not b.chg_on
+                and b.state in (SeqState.STANDBY, SeqState.DISCHARGING)
+            ]
+            for k in sorted(candidates, key=lambda j: -volt[j]):
+                new_lo, new_hi = min(lo, volt[k]), max(hi, volt[k])
+                if new_hi - new_lo > cfg.v_merge:
+                    continue
+                self._set(
+                    k,
+                    SeqState.DISCHARGING,
+                    True,
+                    t,
+                    events,
+                    kind="BatteryJoined",
+                    reason="rest merge",
+                    data={"v": volt[k], "v_lo": lo, "v_hi": hi, "v_merge": cfg.v_merge},
+                )
+                bats[k].conduct_since_s = None
+                lo, hi = new_lo, new_hi
+
         # Level rule: an admitted battery at or above the engaged batteries cannot be charged by
         # them, so its charge FET may close directly (this completes every R2 join at once).
         engaged_v = [
@@ -561,6 +652,7 @@ class SequencingController:
             if self._diode_rule(k, through_diode, t, dt_s, events):
                 b.dsg_on = True
         st.v_ref_v = None
+        st.rest_since_s = None
 
     # ------------------------------------------------------------------ step
     def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
@@ -590,6 +682,7 @@ class SequencingController:
                 b.conduct_since_s = None
             st.initialized = False
             st.v_ref_v = None
+            st.rest_since_s = None
             return self._output(events)
 
         st.last_t_s = meas.t_s
