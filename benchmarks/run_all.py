@@ -176,7 +176,7 @@ def _headlines(name: str, rows: list[dict[str, Any]]) -> list[tuple[str, str, st
             out.append(
                 (
                     f"charging {r['strategy']}: I2R heat vs baseline",
-                    f"{heat * 100:+.0f} %",
+                    f"{heat * 100:+.1f} %",
                     "<= -50 %",
                 )
             )
