@@ -95,6 +95,7 @@ def test_unknown_cell_set_is_named() -> None:
         ("t_s,current_a\n0,1\n0,2\n", r"row 3, column t_s: time 0 does not increase"),
         ("t_s,volts\n0,1\n", "header must be t_s plus exactly one of"),
         ("t_s,current_a\n", "no data rows"),
+        ("t_s,current_a\n0,1\n1,12,5\n", r"row 3 has 3 cells, header has 2"),
     ],
 )
 def test_bad_profile_csv_names_the_row(tmp_path: Path, body: str, match: str) -> None:
@@ -111,3 +112,22 @@ def test_profile_csv_zero_order_hold(tmp_path: Path) -> None:
     assert prof.at(9.99) == 100.0
     assert prof.at(10.0) == 200.0
     assert prof.at(25.0) == 0.0
+
+
+@pytest.mark.parametrize("axis", ["ocv_soc", "rc_soc"])
+def test_non_monotonic_soc_axis_is_named(tmp_path: Path, axis: str) -> None:
+    """A cell parameter file whose SOC axis is not strictly increasing (issue 2, bad input)."""
+    import json
+
+    from packpilot.model.cell import load_parameter_file
+
+    data = json.loads((Path(loads.__file__).parent.parent / "data/cells/uav_5ah.json").read_text())
+    data[axis][1], data[axis][2] = data[axis][2], data[axis][1]
+    p = _write(tmp_path, json.dumps(data), "bad_cell.json")
+    with pytest.raises(ConfigError, match=rf"bad_cell.json.*{axis}.*strictly increasing"):
+        load_parameter_file(p)
+    toml = _write(tmp_path, BASE.replace('"ecm_example"', f'"{p}"'))
+    from packpilot.sim.runner import Runner
+
+    with pytest.raises(ConfigError, match=axis):
+        Runner(load_config(toml))

@@ -3,6 +3,7 @@ field or row (or a normal run when the mutation happens to be valid)."""
 
 from __future__ import annotations
 
+import copy
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -71,8 +72,6 @@ def _check(result: Any, *names: str) -> None:
 )
 @given(path=st.sampled_from(PATHS), value=BAD_VALUES)
 def test_fuzzed_config_values(tmp_path: Path, path: tuple[Any, ...], value: Any) -> None:
-    import copy
-
     cfg = copy.deepcopy(BASE)
     _set(cfg, path, value)
     p = tmp_path / "fuzz.toml"
@@ -123,3 +122,84 @@ def test_fuzzed_replay_logs(tmp_path: Path, method: str, rows: list[list[str]], 
     p.write_text("\n".join(lines) + "\n")
     res = RUNNER.invoke(app, ["replay", method, str(p), "--json"])
     _check(res, "log.csv")
+
+
+# The safety and method sections (issue 7, equalization): the same mutation over the mission
+# config with each section's keys spelled out, plus a scheduled fault.
+MISSION = tomllib.loads((EXAMPLES / "uav_mission.toml").read_text())
+MISSION.pop("can", None)  # no CAN bus in a 0.2 s fuzz run
+MISSION["equalization"].update(sample_period_s=1.0, time_mode="string_current", min_current_a=0.5)
+MISSION["supervisor"].update(init_time_s=0.5, idle_after_s=5.0, fault_hold_s=10.0)
+MISSION["limits"].update(derate_fraction=0.5, context_current_c=0.05)
+MISSION["plausibility"].update(
+    cell_v_range=[0.5, 5.0], stuck_time_s=60.0, max_sample_age_s=2.0, clear_after_s=5.0
+)
+MISSION["soc"].update(rest_current_a=0.1, rest_time_s=600.0, blend=1.0, voltage="min")
+MISSION["faults"] = [{"kind": "sensor_nan", "at_s": 0.1, "battery": "A", "quantity": "temp_c"}]
+SECTIONS = ("equalization", "supervisor", "limits", "plausibility", "soc", "faults")
+MISSION_PATHS = [p for p in _paths(MISSION) if p[0] in SECTIONS]
+
+
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(path=st.sampled_from(MISSION_PATHS), value=BAD_VALUES)
+def test_fuzzed_safety_section_values(tmp_path: Path, path: tuple[Any, ...], value: Any) -> None:
+    cfg = copy.deepcopy(MISSION)
+    _set(cfg, path, value)
+    p = tmp_path / "fuzz.toml"
+    try:
+        p.write_text(tomli_w.dumps(cfg))
+    except (TypeError, ValueError):
+        return
+    res = RUNNER.invoke(app, ["simulate", str(p), "--duration", "0.2", "--json"])
+    leaf = next(str(k) for k in reversed(path) if not isinstance(k, int))
+    _check(res, leaf, "fuzz.toml")
+
+
+PROFILE_ROW = st.lists(CELL, min_size=0, max_size=3)
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(rows=st.lists(PROFILE_ROW, min_size=0, max_size=6), raw=st.binary(max_size=16))
+def test_fuzzed_load_profile_rows(tmp_path: Path, rows: list[list[str]], raw: bytes) -> None:
+    """A load profile CSV with malformed rows (gaps, text, extra cells, stray bytes)."""
+    prof = tmp_path / "prof.csv"
+    body = "\n".join(["t_s,current_a", *(",".join(r) for r in rows)]) + "\n"
+    prof.write_bytes(body.encode() + raw)
+    cfg = copy.deepcopy(BASE)
+    cfg["load"] = {"kind": "current", "value": 1.0, "profile": str(prof)}
+    p = tmp_path / "scenario.toml"
+    p.write_text(tomli_w.dumps(cfg))
+    res = RUNNER.invoke(app, ["simulate", str(p), "--duration", "0.2", "--json"])
+    _check(res, "prof.csv")
+    if res.exit_code == 2:
+        assert "row" in res.stderr or "header" in res.stderr or "UTF-8" in res.stderr
+
+
+@settings(
+    max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(raw=st.binary(max_size=64))
+def test_fuzzed_replay_bytes(tmp_path: Path, raw: bytes) -> None:
+    """Arbitrary bytes after a valid header (not UTF-8, NUL, stray separators)."""
+    p = tmp_path / "log.csv"
+    p.write_bytes(b"t_s,current_a,v_0,v_1\n0,1,3.3,3.31\n" + raw)
+    res = RUNNER.invoke(app, ["replay", "equalization", str(p), "--json"])
+    _check(res, "log.csv")
+
+
+def test_not_a_file_and_unwritable_output(tmp_path: Path) -> None:
+    res = RUNNER.invoke(app, ["simulate", str(tmp_path), "--json"])
+    _check(res, str(tmp_path))
+    assert res.exit_code == 2
+    res = RUNNER.invoke(app, ["replay", "equalization", str(tmp_path)])
+    assert res.exit_code == 2
+    log = tmp_path / "log.csv"
+    log.write_text("t_s,current_a,v_0,v_1\n0,1,3.3,3.31\n")
+    out = tmp_path / "missing" / "out.csv"
+    res = RUNNER.invoke(app, ["replay", "equalization", str(log), "--out", str(out)])
+    _check(res, "out.csv")
+    assert res.exit_code == 2

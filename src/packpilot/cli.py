@@ -38,6 +38,10 @@ def _guard(fn: Callable[[], T]) -> T:
     except PackPilotError as err:
         typer.echo(f"error: {err}", err=True)
         raise typer.Exit(code=2) from None
+    except OSError as err:  # an output path in a missing directory, a read-only file, ...
+        where = f"{err.filename}: " if err.filename else ""
+        typer.echo(f"error: {where}{err.strerror or err}", err=True)
+        raise typer.Exit(code=2) from None
 
 
 def _json_default(o: Any) -> Any:

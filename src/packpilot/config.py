@@ -303,8 +303,14 @@ def _fmt_error(source: str, err: ValidationError, prefix: str = "") -> str:
     msg = first["msg"]
     if first["type"] == "extra_forbidden":
         msg = "unknown key"
+    elif first["type"] == "value_error":
+        msg = msg.removeprefix("Value error, ")  # pydantic's prefix on a validator's message
     inp = first.get("input")
-    shown = "" if isinstance(inp, dict | list) or first["type"] == "missing" else f" (got {inp!r})"
+    shown = (
+        ""
+        if isinstance(inp, dict | list) or first["type"] == "missing" or "(got " in msg
+        else f" (got {inp!r})"
+    )
     more = len(err.errors()) - 1
     tail = f" [+{more} more error(s)]" if more else ""
     return f"{source}: {loc}: {msg}{shown}{tail}"
@@ -322,6 +328,8 @@ def validate_section(section: str, data: dict[str, Any] | None, source: str) -> 
 def read_toml(path: Path) -> dict[str, Any]:
     if not path.exists():
         raise ConfigError(f"{path}: file not found")
+    if not path.is_file():
+        raise ConfigError(f"{path}: not a file")
     try:
         with path.open("rb") as fh:
             return tomllib.load(fh)

@@ -8,6 +8,7 @@ are generated from a seeded recipe so runs are reproducible without data files.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,7 +97,13 @@ def from_csv(path: Path, scale: float = 1.0, repeat: bool = False) -> LoadProfil
     """
     if not path.exists():
         raise InputError(f"{path}: load profile file not found")
-    with path.open(newline="") as fh:
+    if not path.is_file():
+        raise InputError(f"{path}: load profile is not a file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: load profile is not a UTF-8 text file") from None
+    with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         try:
             header = [h.strip() for h in next(reader)]
@@ -112,8 +119,12 @@ def from_csv(path: Path, scale: float = 1.0, repeat: bool = False) -> LoadProfil
         ts: list[float] = []
         vs: list[float] = []
         for lineno, row in enumerate(reader, start=2):
-            if not row:
+            if not row or all(not c.strip() for c in row):
                 continue
+            if len(row) > len(header):
+                raise InputError(
+                    f"{path}: row {lineno} has {len(row)} cells, header has {len(header)}"
+                )
             for col, j in (("t_s", it), (value_cols[0], iv)):
                 cell = row[j].strip() if j < len(row) else ""
                 if cell == "":

@@ -9,6 +9,7 @@ the accumulated timers the methods depend on.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import re
 from collections.abc import Sequence
@@ -77,7 +78,13 @@ def read_log(
     """
     if not path.exists():
         raise InputError(f"{path}: file not found")
-    with path.open(newline="") as fh:
+    if not path.is_file():
+        raise InputError(f"{path}: not a file")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a UTF-8 text file") from None
+    with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         try:
             header = [h.strip() for h in next(reader)]
