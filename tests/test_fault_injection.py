@@ -149,6 +149,44 @@ def test_welded_relay_is_detected_when_commanded_open(tmp_path: Path) -> None:
     assert res.trace.channel("current_a")[-1, 0] > 0.0  # welded: it still conducts, flagged
 
 
+class _DsgOffAt:
+    """A method that turns battery B's discharge FET off at 5 s (so a shorted FET shows)."""
+
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        if meas.t_s >= 5.0:
+            return ControlOutput(Commands(dsg_on=(None, False)))
+        return ControlOutput(Commands())
+
+
+def test_shorted_discharge_fet_is_flagged_and_the_run_goes_on(tmp_path: Path) -> None:
+    from packpilot.control.plausibility import PlausibilityConfig, PlausibilityMonitor
+    from packpilot.control.supervisor import Supervisor, SupervisorConfig
+
+    d = dual_pack(
+        switch={"kind": "mosfet_pair"},
+        v_a=23.0,
+        v_b=23.0,
+        duration_s=10.0,
+        load={"kind": "current", "value": 10.0},
+    )
+    d["faults"] = [{"kind": "shorted_fet", "at_s": 1.0, "battery": "B", "fet": "dsg"}]
+    d["plausibility"] = {}
+
+    def build(runner: Runner) -> Supervisor:
+        return Supervisor(
+            SupervisorConfig(),
+            runner.info,
+            methods=[_DsgOffAt()],
+            safety=[PlausibilityMonitor(PlausibilityConfig(), runner.info)],
+        )
+
+    res = _run(d, tmp_path, controller=build)
+    t = _first(res, "Fault", kind="dsg_fet_shorted", battery=1)
+    assert 5.0 <= t <= 5.0 + 0.5 + 0.2  # switch_delay_s + a period
+    assert res.trace.channel("current_a")[-1, 1] > 0.0  # shorted: B still discharges, flagged
+    assert res.metrics["load_unsupplied_s"] == 0.0
+
+
 def test_charger_fault_flag_stops_charging_and_opens_relays(tmp_path: Path) -> None:
     res = _run(_dock({"kind": "charger_fault", "at_s": 20.0, "flag": "hardware_failure"}), tmp_path)
     k0 = _at(res, 19.0)
