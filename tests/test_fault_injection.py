@@ -95,9 +95,19 @@ def test_frozen_sensor_is_detected_as_stuck(tmp_path: Path, kind: str) -> None:
     res = _run(_flight({"kind": kind, "at_s": 5.0, "battery": "A"}), tmp_path)
     # A frozen battery voltage also disagrees with its (live) group voltages: whichever check
     # sees it first, it must be seen within stuck_time_s.
-    t = min(_first_or_inf(res, "Fault", kind=k, battery=0) for k in ("stuck", "voltage_sum"))
+    kinds = ("stuck", "voltage_sum", "stale")
+    t = min(_first_or_inf(res, "Fault", kind=k, battery=0) for k in kinds)
     assert 5.0 < t <= 5.0 + 10.0 + 0.3  # stuck_time_s under current
     assert res.metrics["load_unsupplied_s"] == 0.0
+
+
+def test_sensor_dropout_at_rest_is_detected_as_stale(tmp_path: Path) -> None:
+    """No current, so nothing looks stuck: the repeated frame's age gives the dropout away."""
+    d = _flight({"kind": "sensor_dropout", "at_s": 5.0, "battery": "A"})
+    d["load"] = {"kind": "none"}
+    res = _run(d, tmp_path)
+    t = _first(res, "Fault", kind="stale", battery=0)
+    assert 5.0 + 2.0 < t <= 5.0 + 2.0 + 0.3  # max_sample_age_s + a period
 
 
 def test_shorted_charge_fet_is_detected_from_switch_feedback(tmp_path: Path) -> None:

@@ -8,8 +8,8 @@ numbers (and the switches) can be trusted. Per battery it detects
   temperature, current in C, SOC), or min cell above max cell;
 - ``stuck``: a voltage (or temperature) that has not changed *at all* for a configured time
   while the battery carries current (a frozen ADC or a dead CAN source repeating its last
-  frame); ``stale``: a per-battery ``sample_age_s`` above a limit, used automatically once
-  :class:`~packpilot.control.types.BatteryMeasurement` carries such a field;
+  frame); ``stale``: a per-battery ``sample_age_s`` above a limit, read from any measurement
+  that carries the attribute (the simulator's ``sensor_dropout`` frames do);
 - ``voltage_sum``: battery voltage disagreeing with the sum of its group voltages;
   ``group_count``: a group-voltage tuple of the wrong length;
 - switch feedback disagreeing with the last command for longer than a delay: a welded or

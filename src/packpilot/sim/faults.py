@@ -32,6 +32,21 @@ def _with(b: BatteryMeasurement, quantity: str, value: float) -> BatteryMeasurem
     return dataclasses.replace(b, **fields)  # type: ignore[arg-type]
 
 
+@dataclass(frozen=True, slots=True)
+class StaleMeasurement(BatteryMeasurement):
+    """A repeated frame from a monitor that stopped reporting, with the age of its sample.
+
+    The plausibility monitor reads ``sample_age_s`` (``stale`` above ``max_sample_age_s``).
+    """
+
+    sample_age_s: float = 0.0
+
+
+def _stale(b: BatteryMeasurement, age_s: float) -> StaleMeasurement:
+    values = {f.name: getattr(b, f.name) for f in dataclasses.fields(BatteryMeasurement)}
+    return StaleMeasurement(**values, sample_age_s=age_s)
+
+
 def _active(f: FaultConfig, t_s: float) -> bool:
     return t_s >= f.at_s - 1e-9 and (f.until_s is None or t_s < f.until_s - 1e-9)
 
@@ -124,7 +139,7 @@ class FaultInjector:
                 value = self.stuck.setdefault((k, f.quantity), float(getattr(b, f.quantity)))
                 batteries[k] = _with(b, f.quantity, value)
             else:  # dropout: the battery's monitor stops reporting; the last frame repeats
-                batteries[k] = self.frozen.setdefault(k, b)
+                batteries[k] = _stale(self.frozen.setdefault(k, b), max(t - f.at_s, 0.0))
         if not changed:
             return meas
         return dataclasses.replace(meas, batteries=tuple(batteries))
