@@ -180,6 +180,60 @@ class SequencingConfig(BaseModel):
         ),
     )
 
+    i_guard: float = Field(
+        0.8,
+        gt=0.0,
+        description=(
+            "Cross-current guard (A, [REC]): the largest current the engaged batteries may push "
+            "into one of them if the load vanished within the next control period. Predicted "
+            "each period from each engaged battery's ohmic-free voltage V + I*R (R estimated "
+            "online); the battery that would take more is opened (-> STANDBY) before it can. "
+            "Keep it below the 1 A acceptance limit by the estimation error."
+        ),
+    )
+    r_batt_ohm: float = Field(
+        0.020,
+        gt=0.0,
+        description=(
+            "Initial estimate (ohm) of each battery's ohmic resistance, used until a current "
+            "step of at least i_step has been seen on it; then replaced by -dV/dI of that step."
+        ),
+    )
+    i_step: float = Field(
+        1.0,
+        gt=0.0,
+        description=(
+            "Smallest change (A) of a battery's current between two samples that updates its "
+            "resistance estimate (-dV/dI), so sensor noise does not dominate the quotient."
+        ),
+    )
+    v_diode: float = Field(
+        0.5,
+        gt=0.0,
+        description=(
+            "Lowest expected charge-diode forward drop (V). The guard does not open a battery "
+            "whose diode would then conduct at the present load (R3 would close it again)."
+        ),
+    )
+    v_cutoff_cell_v: float = Field(
+        3.3,
+        ge=0.0,
+        description=(
+            "Cell cut-off voltage (V per series cell; the load's under-voltage lock-out divided "
+            "by the cells in series). The guard does not open a battery when the others alone "
+            "would hold the bus less than v_reserve above cut-off: the load must stay supplied "
+            "while any battery is above cut-off, which outranks the cross-current prediction."
+        ),
+    )
+    v_reserve: float = Field(
+        0.3,
+        ge=0.0,
+        description=(
+            "Headroom (V) above cut-off the remaining batteries must keep for the guard to open "
+            "a battery (covers the polarisation that builds up after the load shifts to them)."
+        ),
+    )
+
     @property
     def v_merge(self) -> float:
         """Rest-merge window (V): i_merge * r_loop_ohm."""
@@ -198,6 +252,11 @@ class SequencingConfig(BaseModel):
                 "pushing more than i_rev would be undone by reverse-current protection at once "
                 "and repeat every t_rest (charge FET chatter with cross-charging at rest)"
             )
+        if self.i_merge > self.i_guard:
+            raise ValueError(
+                f"i_merge ({self.i_merge} A) must be <= i_guard ({self.i_guard} A): a merge the "
+                "cross-current guard would undo at once would chatter"
+            )
         if self.t_debounce > self.t_on:
             raise ValueError(
                 f"t_debounce ({self.t_debounce} s) must be <= t_on ({self.t_on} s): the debounce "
@@ -215,6 +274,11 @@ class BatterySeq:
     dsg_on: bool = False
     conduct_since_s: float | None = None
     """Time of the first sample of the current diode-conduction episode (R3/R4), if any."""
+    r_ohm: float = math.nan
+    """Ohmic resistance estimate (-dV/dI of the last current step >= i_step); NaN = none yet."""
+    last_v_v: float | None = None
+    last_i_a: float | None = None
+    """The previous sample's battery-side voltage and current (for the resistance estimate)."""
 
 
 @dataclass(slots=True)
@@ -329,6 +393,126 @@ class SequencingController:
             if b.state is SeqState.DISCHARGING
         ]
         return max(admitted) if admitted else None
+
+    # ------------------------------------------------------------------ cross-current guard
+    def _update_resistance(self, meas: Measurements) -> None:
+        """Resistance estimate per battery: -dV/dI over the last current step >= ``i_step``.
+
+        Voltages are battery-side, so the quotient is the battery's ohmic resistance whatever
+        its FETs or diodes did; over one control period OCV and polarisation hardly move.
+        """
+        for b, bm in zip(self.state.batteries, meas.batteries, strict=True):
+            if not bm.present:
+                b.last_v_v = b.last_i_a = None
+                continue
+            if b.last_v_v is not None and b.last_i_a is not None:
+                di = bm.current_a - b.last_i_a
+                if abs(di) >= self.config.i_step:
+                    r = -(bm.voltage_v - b.last_v_v) / di
+                    if 0.0 < r <= 20.0 * self.config.r_batt_ohm:
+                        b.r_ohm = r
+            b.last_v_v, b.last_i_a = bm.voltage_v, bm.current_a
+
+    def _r_est(self, k: int) -> float:
+        r = self.state.batteries[k].r_ohm
+        return self.config.r_batt_ohm if math.isnan(r) else r
+
+    def _e_fast(self, k: int, meas: Measurements) -> float:
+        """Voltage battery k shows the instant its current drops to zero: V + I*R (OCV minus
+        the polarisation, which relaxes with a time constant of tens of seconds)."""
+        bm = meas.batteries[k]
+        return bm.voltage_v + bm.current_a * self._r_est(k)
+
+    def _zero_load_into(self, group: list[int], meas: Measurements) -> dict[int, float]:
+        """Current (A, > 0 = charging) into each battery of ``group`` if the load vanished now.
+
+        The engaged batteries then form a loop of voltage sources behind their resistances; the
+        lowest ones are charged by the others. Zero load is the worst case: any load current
+        only lowers the current into every battery. FET on-resistances are left out, which
+        overestimates the current (the safe side).
+        """
+        if len(group) < 2:
+            return dict.fromkeys(group, 0.0)
+        e = {k: self._e_fast(k, meas) for k in group}
+        g = {k: 1.0 / self._r_est(k) for k in group}
+        v0 = sum(e[k] * g[k] for k in group) / sum(g.values())
+        return {k: (v0 - e[k]) * g[k] for k in group}
+
+    def _bus_without(self, group: list[int], meas: Measurements, load_a: float) -> float:
+        """Bus voltage if only ``group`` (engaged, FETs on) carried ``load_a``."""
+        g = {k: 1.0 / self._r_est(k) for k in group}
+        return (sum(self._e_fast(k, meas) * g[k] for k in group) - load_a) / sum(g.values())
+
+    def _engaged(self) -> list[int]:
+        return [
+            k
+            for k, b in enumerate(self.state.batteries)
+            if b.state is SeqState.DISCHARGING and b.chg_on
+        ]
+
+    def _safe_to_close(self, k: int, meas: Measurements, limit_a: float) -> bool:
+        """Closing battery k's charge FET keeps the zero-load current into it <= ``limit_a``.
+
+        Only k's side is checked: if k would push more than that into an engaged sibling, the
+        guard opens the sibling (k takes over), as R2 already does at rest.
+        """
+        group = sorted({*self._engaged(), k})
+        return self._zero_load_into(group, meas)[k] <= limit_a
+
+    def _guard(
+        self, meas: Measurements, t_s: float, keep: set[int], events: list[Event]
+    ) -> None:
+        """Open, before the load can fall, the charge FET of any engaged battery that would take
+        more than ``i_guard`` from its siblings at zero load (worst victim first).
+
+        A sampled controller cannot react within the period in which the load falls; between
+        that step and the next sample the plant pushes (E_a - E_b) / (R_a + R_b) into the lower
+        battery. Batteries co-discharging on one bus have equal terminal voltages, so their
+        fast voltages E = V + I*R differ by their I*R difference (16 vs 30 mOhm at 10 A: 0.14 V,
+        3 A). Not opened: a battery in ``keep`` (closed by R3 this period), the last engaged
+        one, one whose diode would conduct at the present load (R3 would re-close it), and one
+        without which the others would hold the bus less than ``v_reserve`` above cut-off.
+        """
+        cfg = self.config
+        load_a = sum(bm.current_a for bm in meas.batteries if bm.present)
+        cells = max(self.pack.cells_per_group) if self.pack.cells_per_group else 0
+        v_cut = cfg.v_cutoff_cell_v * cells
+        held: set[int] = set(keep)
+        while True:
+            group = self._engaged()
+            pred = self._zero_load_into(group, meas)
+            victims = sorted(
+                (k for k in group if pred[k] > cfg.i_guard and k not in held),
+                key=lambda j: -pred[j],
+            )
+            if not victims:
+                return
+            k = victims[0]
+            others = [j for j in group if j != k]
+            v_bus = self._bus_without(others, meas, load_a) if others else -math.inf
+            if (
+                not others
+                or self._e_fast(k, meas) - cfg.v_diode >= v_bus
+                or v_bus < v_cut + cfg.v_reserve
+            ):
+                held.add(k)
+                continue
+            self._set(
+                k,
+                SeqState.STANDBY,
+                False,
+                t_s,
+                events,
+                kind="CrossCurrentGuard",
+                reason="would be charged if the load vanished",
+                data={
+                    "predicted_a": pred[k],
+                    "i_guard": cfg.i_guard,
+                    "e_fast_v": self._e_fast(k, meas),
+                    "r_ohm": self._r_est(k),
+                },
+            )
+            self.state.batteries[k].conduct_since_s = None
 
     def _r1(self, meas: Measurements, t_s: float, events: list[Event], reason: str) -> None:
         """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
@@ -501,6 +685,11 @@ class SequencingController:
             for k in sorted(standby, key=lambda j: -volt[j]):
                 if k in demoted or volt[k] - v_ref < cfg.v_co:
                     continue
+                # Under load a joiner v_co above the *loaded* bus may still hold less charge
+                # (its rest voltage against their V + I*R): it waits until it is not the one
+                # the others would charge if the load vanished (cross-current guard).
+                if not idle and not self._safe_to_close(k, meas, cfg.i_merge):
+                    continue
                 if idle:
                     for bj in bats:
                         if bj.state is SeqState.DISCHARGING:
@@ -560,6 +749,38 @@ class SequencingController:
                 bats[k].conduct_since_s = None
                 lo, hi = new_lo, new_hi
 
+        # Load merge [REC]: under load, a standby (or admitted, not engaged) battery whose fast
+        # voltage matches the engaged ones' (zero-load current into any of them <= i_merge and
+        # none pushed past i_guard) closes its charge FET: it sources at once and the guard
+        # would not open anybody. This is the rest merge with IR-compensated voltages; it brings
+        # back a battery the guard opened as soon as the others have come down to it, before
+        # R2 (v_co above the loaded bus) or R3 (a diode drop below it) would.
+        if not idle and self._engaged():
+            candidates = [
+                k
+                for k, b in enumerate(bats)
+                if k not in demoted
+                and present[k]
+                and not b.chg_on
+                and b.state in (SeqState.STANDBY, SeqState.DISCHARGING)
+            ]
+            for k in sorted(candidates, key=lambda j: -volt[j]):
+                group = sorted({*self._engaged(), k})
+                pred = self._zero_load_into(group, meas)
+                if pred[k] > cfg.i_merge or max(pred.values()) > cfg.i_guard:
+                    continue
+                self._set(
+                    k,
+                    SeqState.DISCHARGING,
+                    True,
+                    t,
+                    events,
+                    kind="BatteryJoined",
+                    reason="load merge",
+                    data={"v": volt[k], "predicted_a": pred[k], "i_merge": cfg.i_merge},
+                )
+                bats[k].conduct_since_s = None
+
         # Level rule: an admitted battery at or above the engaged batteries cannot be charged by
         # them, so its charge FET may close directly (this completes every R2 join at once).
         engaged_v = [
@@ -573,7 +794,7 @@ class SequencingController:
                 k for k, b in enumerate(bats) if b.state is SeqState.DISCHARGING and not b.chg_on
             ]
             for k in sorted(waiting, key=lambda j: -volt[j]):
-                if volt[k] >= v_eng:
+                if volt[k] >= v_eng and self._safe_to_close(k, meas, cfg.i_merge):
                     bats[k].chg_on = True
                     bats[k].conduct_since_s = None
                     v_eng = max(v_eng, volt[k])
@@ -581,6 +802,7 @@ class SequencingController:
         # R3: charge diode conducting (charge FET off, discharge FET on, discharge current).
         # Only current measured over a period in which this controller held the charge FET off
         # and the discharge FET on can have flowed through the diode.
+        r3_closed: set[int] = set()
         for k, b in enumerate(bats):
             if b.state not in (SeqState.DISCHARGING, SeqState.STANDBY) or b.chg_on:
                 b.conduct_since_s = None
@@ -601,7 +823,9 @@ class SequencingController:
                 )
             else:
                 b.chg_on = True
+            r3_closed.add(k)
 
+        self._guard(meas, t, r3_closed, events)
         st.v_ref_v = self._v_ref(meas)
 
     def _charge_tick(
@@ -712,6 +936,7 @@ class SequencingController:
                 self._set(k, SeqState.STANDBY, False, t, events, reason="inserted")
                 inserted.append(k)
 
+        self._update_resistance(meas)
         self._update_mode(meas, events)
         if st.mode is SeqMode.CHARGE:
             self._charge_tick(meas, dt_s, was, events)
