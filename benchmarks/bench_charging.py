@@ -17,6 +17,9 @@ Strategies:
   with n of the N batteries still to charge connected is min(100 A, I_full·sqrt(n/N)), I_full =
   the charger limit (the same total I²R heat rate in every stage, the least heat for a given
   charge time; docs/staged_charging.md).
+* ``staged_levels_sqrt_budget`` — the sqrt law scaled to the 1.2 x time budget (I_full 94.5 A),
+  S40 steps ending in CC (``vc3_margin_v = 3``) and a 0.7 V join gap (``d1_v``): the least-heat
+  point of the ``--frontier`` sweep that still meets the time target.
 
 Per strategy: peak current into each battery (charging, A), total I²R heat of the traction
 batteries (kJ, the plant's ohmic heat), maximum cell-temperature rise over ambient (K), and the
@@ -26,11 +29,16 @@ current down to the termination current (2 A), the same criterion the method sto
 Run: ``python benchmarks/bench_charging.py`` (``--direct`` skips CAN and writes setpoints
 straight into the plant charger; the numbers agree to the heartbeat's one-period latency).
 ``--frontier`` instead sweeps the heat/time trade-off of the two current laws (I_full for
-``sqrt``, the per-battery limit for ``constant``), direct, one row per setting.
+``sqrt``, the per-battery limit for ``constant``, the join gap ``d1_v``), direct, one row per
+setting. ``--breakdown`` adds, per staged strategy, where the heat and the time go (one line per
+stage: duration, batteries connected, charge, mean charger current, I²R heat, effective
+resistance) and the least heat any constant-current-per-stage schedule of the same stages can
+reach in 1.2 x the baseline time (``cc_heat_bound_j``).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -65,6 +73,14 @@ STRATEGIES: dict[str, dict[str, Any]] = {
         "target_mode": "levels",
         "current_law": "sqrt",
     },
+    "staged_levels_sqrt_budget": {
+        "controller": ["charging"],
+        "target_mode": "levels",
+        "current_law": "sqrt",
+        "full_current_a": 94.5,
+        "vc3_margin_v": 3.0,
+        "d1_v": 0.7,
+    },
 }
 CHARGING_KEYS = (
     "target_mode",
@@ -72,6 +88,7 @@ CHARGING_KEYS = (
     "current_law",
     "full_current_a",
     "vc3_margin_v",
+    "d1_v",
 )
 """Strategy keys that are ``[charging]`` settings (the rest, ``controller``, is top level)."""
 
@@ -100,9 +117,24 @@ FRONTIER: dict[str, dict[str, Any]] = {
         }
         for a in (95.0, 92.5)
     },
+    **{
+        f"sqrt_I_full_{a:g}A_vc3_3V_d1_{d:g}V": {
+            "controller": ["charging"],
+            "current_law": "sqrt",
+            "full_current_a": a,
+            "vc3_margin_v": 3.0,
+            "d1_v": d,
+        }
+        for a in (96.0, 94.5, 93.0)
+        for d in (0.4, 0.7, 1.5)
+    },
 }
 """``--frontier``: the heat/time trade-off of each current law around the 1.2 x time budget
-(``vc3_margin_v = 3`` makes the S40 steps end in CC instead of a CV taper)."""
+(``vc3_margin_v = 3`` makes the S40 steps end in CC instead of a CV taper; ``d1_v`` moves the
+S30 joins: a larger gap moves charge into the stages with more batteries but costs a larger
+equalising transient, ``d1_v`` <= ``eps_eq_v`` removes the join step altogether)."""
+TIME_BUDGET = 1.2
+"""The acceptance's charge-time budget, x the baseline's time to full."""
 
 
 def scenario(strategy: str, dt_s: float = DT_S, duration_s: float = DURATION_S) -> ScenarioConfig:
@@ -132,9 +164,78 @@ def time_to_full(res: Result, v_sat_v: float, term_a: float, traction: list[int]
     return max(t_full)
 
 
-def run_case(strategy: str, *, can: bool = True, dt_s: float = DT_S) -> dict[str, Any]:
+def cc_heat_bound_j(stages: list[tuple[float, float, int]], time_s: float) -> float:
+    """Least I²R heat of delivering charge ``q`` (C) through ``n`` parallel batteries of
+    effective resistance ``r`` (Ω) per stage ``(q, r, n)``, at a constant charger current per
+    stage, all stages together in ``time_s``.
+
+    Stage k at current I_k heats q_k·I_k·r_k/n_k and lasts q_k/I_k; minimising the sum for a
+    fixed total time (Lagrange, or Cauchy-Schwarz) gives I_k ∝ sqrt(n_k/r_k) and the bound
+    (Σ q_k·sqrt(r_k/n_k))² / time_s, reached exactly when every stage heats at the same rate.
+    """
+    if time_s <= 0.0:
+        return float("inf")
+    total = sum(q * math.sqrt(r / n) for q, r, n in stages if q > 0.0 and n > 0)
+    return total * total / time_s
+
+
+def stage_breakdown(
+    res: Result, heat_steps_j: np.ndarray, traction: list[int]
+) -> list[dict[str, Any]]:
+    """Consecutive periods of one controller stage (the whole run for the baseline), each
+    with its duration, batteries connected, charge delivered, mean charger current, I²R heat
+    and the effective resistance heat / (q·I/n) that heat implies."""
+    t = res.trace.t_s
+    n_steps = min(len(t), len(heat_steps_j))
+    dt = float(t[1] - t[0]) if len(t) > 1 else DT_S
+    i_chg = np.maximum(-res.trace.channel("current_a")[:n_steps, traction], 0.0)
+    stages = res.trace.status.get("chg_stage")
+    relays = res.trace.status.get("chg_relay")
+    label = [str(s[0]) for s in stages] if stages else ["all relays closed"] * n_steps
+    rows: list[dict[str, Any]] = []
+    k0 = 0
+    for k in range(1, n_steps + 1):
+        if k < n_steps and label[k] == label[k0]:
+            continue
+        sl = slice(k0, k)
+        q_c = float(i_chg[sl].sum()) * dt
+        heat = float(heat_steps_j[sl].sum())
+        i_mean = float(i_chg[sl].sum(axis=1).mean())
+        if relays:
+            n = max(sum(1 for i in traction if relays[j][i]) for j in range(k0, k))
+        else:
+            n = len(traction)
+        r_eff = heat / (q_c * i_mean / n) if q_c > 0.0 and i_mean > 0.0 and n > 0 else math.nan
+        rows.append(
+            {
+                "stage": label[k0],
+                "t0_s": float(t[k0]),
+                "duration_s": (k - k0) * dt,
+                "n": n,
+                "charge_ah": q_c / 3600.0,
+                "mean_a": i_mean,
+                "heat_kj": heat / 1e3,
+                "r_eff_mohm": r_eff * 1e3,
+            }
+        )
+        k0 = k
+    return [r for r in rows if r["charge_ah"] > 0.05 or r["heat_kj"] > 0.05]
+
+
+def run_case(
+    strategy: str, *, can: bool = True, dt_s: float = DT_S, breakdown: bool = False
+) -> dict[str, Any]:
     cfg = scenario(strategy, dt_s=dt_s)
     runner = Runner(cfg, progress=False)
+    heat_snapshots: list[np.ndarray] = []
+    pack_step = runner.pack.step
+
+    def step_and_record(*args: Any, **kwargs: Any) -> Any:
+        interval = pack_step(*args, **kwargs)
+        heat_snapshots.append(runner.pack.joule_j[0].copy())
+        return interval
+
+    runner.pack.step = step_and_record  # type: ignore[method-assign]
     link = None
     if can and cfg.controller:
         link = CanChargerLink(runner.pack.charger.view(0))
@@ -169,21 +270,29 @@ def run_case(strategy: str, *, can: bool = True, dt_s: float = DT_S) -> dict[str
     if link is not None:
         c = link.client.counters
         row["can_frames"] = {"sent": c.sent, "received": c.received, "bad": c.malformed}
+    if breakdown:
+        cum = np.array(heat_snapshots)[:, traction].sum(axis=1)
+        row["stages"] = stage_breakdown(res, np.diff(cum, prepend=0.0), traction)
     return row
 
 
-def _case(args: tuple[str, bool]) -> dict[str, Any]:
-    return run_case(args[0], can=args[1])
+def _case(args: tuple[str, bool, bool]) -> dict[str, Any]:
+    return run_case(args[0], can=args[1], breakdown=args[2])
 
 
 def run(
-    *, can: bool = True, workers: int | None = None, frontier: bool = False
+    *,
+    can: bool = True,
+    workers: int | None = None,
+    frontier: bool = False,
+    breakdown: bool = False,
 ) -> list[dict[str, Any]]:
     """One row per strategy (the baseline first); the runs are independent, so they go to a
-    process pool. ``frontier``: the ``FRONTIER`` settings instead of ``STRATEGIES``."""
+    process pool. ``frontier``: the ``FRONTIER`` settings instead of ``STRATEGIES``;
+    ``breakdown``: each row also gets ``stages`` (``stage_breakdown``)."""
     names = ["baseline", *FRONTIER] if frontier else list(STRATEGIES)
     n = workers if workers is not None else min(len(names), os.cpu_count() or 1)
-    jobs = [(s, can) for s in names]
+    jobs = [(s, can, breakdown) for s in names]
     if n <= 1:
         rows = [_case(j) for j in jobs]
     else:
@@ -197,9 +306,43 @@ def run(
     return rows
 
 
+def print_breakdown(rows: list[dict[str, Any]]) -> None:
+    """Per strategy: the stages, then the constant-current bound at the time budget (the
+    top-off CV tail, whose current the charger does not set, is kept as measured)."""
+    budget_s = TIME_BUDGET * rows[0]["time_to_full_s"]
+    for r in rows:
+        print(f"\n{r['strategy']}:")
+        print("  stage | t0_s | duration_s | n | charge_ah | mean_a | heat_kj | r_eff_mohm")
+        for g in r["stages"]:
+            print(
+                f"  {g['stage']} | {g['t0_s']:.0f} | {g['duration_s']:.0f} | {g['n']} | "
+                f"{g['charge_ah']:.1f} | {g['mean_a']:.1f} | {g['heat_kj']:.1f} | "
+                f"{g['r_eff_mohm']:.2f}"
+            )
+        if r["strategy"] == "baseline":
+            continue
+        cc = [g for g in r["stages"] if g["stage"] in ("S20", "S30", "S40")]
+        tail = [g for g in r["stages"] if g["stage"] == "top_off"]
+        tail_s = sum(g["duration_s"] for g in tail)
+        tail_kj = sum(g["heat_kj"] for g in tail)
+        bound_kj = tail_kj + 1e-3 * cc_heat_bound_j(
+            [(g["charge_ah"] * 3600.0, g["r_eff_mohm"] * 1e-3, g["n"]) for g in cc],
+            budget_s - tail_s,
+        )
+        print(
+            f"  least heat of these stages at constant current per stage in "
+            f"{TIME_BUDGET:g} x the baseline time ({budget_s:.0f} s, top-off tail "
+            f"{tail_s:.0f} s / {tail_kj:.1f} kJ as measured): {bound_kj:.1f} kJ = "
+            f"{bound_kj / rows[0]['i2r_heat_kj']:.3f} x baseline"
+        )
+
+
 def main(argv: list[str]) -> None:
     frontier = "--frontier" in argv
-    rows = run(can="--direct" not in argv and not frontier, frontier=frontier)
+    breakdown = "--breakdown" in argv
+    rows = run(
+        can="--direct" not in argv and not frontier, frontier=frontier, breakdown=breakdown
+    )
     cols = (
         "strategy",
         "link",
@@ -220,6 +363,8 @@ def main(argv: list[str]) -> None:
     for r in rows:
         print(f"{r['strategy']}: peak charge current per battery {r['peak_charge_a']}")
     print("targets: peak and heat <= 0.5 x baseline, time <= 1.2 x baseline")
+    if breakdown:
+        print_breakdown(rows)
 
 
 if __name__ == "__main__":
