@@ -279,6 +279,13 @@ class BatterySeq:
     last_v_v: float | None = None
     last_i_a: float | None = None
     """The previous sample's battery-side voltage and current (for the resistance estimate)."""
+    hold_load_a: float | None = None
+    """Pack current at which R3 last had to close this battery's charge FET: the guard leaves
+    it engaged while the pack current stays above 0.9 of that (its diode would conduct)."""
+    guard_opened: bool = False
+    """The guard opened this battery's charge FET and no rule has closed it since."""
+    at_risk: bool = False
+    """The guard predicts more than i_guard into this battery but may not open it."""
 
 
 @dataclass(slots=True)
@@ -296,6 +303,8 @@ class SequencingState:
     fault_reason: str = ""
     rest_since_s: float | None = None
     """First sample of the current run of samples with every battery at or below i_det."""
+    zero_load_into_a: list[float] | None = None
+    """Guard prediction of the last discharge period: current into each battery at zero load."""
 
 
 def _pattern(state: SeqState, engaged: bool) -> tuple[bool, bool]:
@@ -474,10 +483,22 @@ class SequencingController:
         without which the others would hold the bus less than ``v_reserve`` above cut-off.
         """
         cfg = self.config
+        bats = self.state.batteries
         load_a = sum(bm.current_a for bm in meas.batteries if bm.present)
         cells = max(self.pack.cells_per_group) if self.pack.cells_per_group else 0
         v_cut = cfg.v_cutoff_cell_v * cells
         held: set[int] = set(keep)
+        for k, b in enumerate(bats):
+            if b.state is not SeqState.DISCHARGING or not b.chg_on:
+                b.hold_load_a = None
+                continue
+            if k not in keep:
+                b.guard_opened = False
+            if b.hold_load_a is not None:
+                if load_a >= 0.9 * b.hold_load_a:
+                    held.add(k)
+                else:
+                    b.hold_load_a = None
         while True:
             group = self._engaged()
             pred = self._zero_load_into(group, meas)
@@ -486,7 +507,7 @@ class SequencingController:
                 key=lambda j: -pred[j],
             )
             if not victims:
-                return
+                break
             k = victims[0]
             others = [j for j in group if j != k]
             v_bus = self._bus_without(others, meas, load_a) if others else -math.inf
@@ -513,6 +534,28 @@ class SequencingController:
                 },
             )
             self.state.batteries[k].conduct_since_s = None
+            self.state.batteries[k].guard_opened = True
+        # What is left above i_guard the controller knowingly keeps (R3, cut-off reserve, last
+        # battery): flagged once per episode, so the risk is visible in the event log.
+        group = self._engaged()
+        pred = self._zero_load_into(group, meas)
+        for k, b in enumerate(bats):
+            risk = pred.get(k, 0.0) > cfg.i_guard
+            if risk and not b.at_risk:
+                events.append(
+                    Event(
+                        t_s=t_s,
+                        kind="CrossCurrentRisk",
+                        battery=k,
+                        message=(
+                            f"battery {k}: {pred[k]:.2f} A would flow into it if the load "
+                            "vanished, but it must stay engaged"
+                        ),
+                        data={"predicted_a": pred[k], "i_guard": cfg.i_guard},
+                    )
+                )
+            b.at_risk = risk
+        self.state.zero_load_into_a = [pred.get(k, 0.0) for k in range(len(bats))]
 
     def _r1(self, meas: Measurements, t_s: float, events: list[Event], reason: str) -> None:
         """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
@@ -824,6 +867,11 @@ class SequencingController:
             else:
                 b.chg_on = True
             r3_closed.add(k)
+            if b.guard_opened:
+                # The guard opened it and the load made its diode conduct anyway: keep it
+                # engaged at this load instead of opening it every other period.
+                b.hold_load_a = sum(c for c, p in zip(cur, present, strict=True) if p)
+                b.guard_opened = False
 
         self._guard(meas, t, r3_closed, events)
         st.v_ref_v = self._v_ref(meas)
@@ -877,6 +925,9 @@ class SequencingController:
                 b.dsg_on = True
         st.v_ref_v = None
         st.rest_since_s = None
+        st.zero_load_into_a = None
+        for b in bats:
+            b.at_risk = False
 
     # ------------------------------------------------------------------ step
     def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
@@ -907,6 +958,9 @@ class SequencingController:
             st.initialized = False
             st.v_ref_v = None
             st.rest_since_s = None
+            st.zero_load_into_a = None
+            for b in st.batteries:
+                b.at_risk = False
             return self._output(events)
 
         st.last_t_s = meas.t_s
@@ -960,6 +1014,8 @@ class SequencingController:
                 "seq_dsg_on": [b.dsg_on for b in bats],
                 "seq_mode": [st.mode.value] * n,
                 "seq_v_ref_v": [st.v_ref_v] * n,
+                "seq_zero_load_into_a": list(st.zero_load_into_a or [0.0] * n),
+                "seq_at_risk": [b.at_risk for b in bats],
                 "seq_diode_s": [
                     0.0
                     if b.conduct_since_s is None or st.last_t_s is None
