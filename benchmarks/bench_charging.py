@@ -340,9 +340,7 @@ def print_breakdown(rows: list[dict[str, Any]]) -> None:
 def main(argv: list[str]) -> None:
     frontier = "--frontier" in argv
     breakdown = "--breakdown" in argv
-    rows = run(
-        can="--direct" not in argv and not frontier, frontier=frontier, breakdown=breakdown
-    )
+    rows = run(can="--direct" not in argv and not frontier, frontier=frontier, breakdown=breakdown)
     cols = (
         "strategy",
         "link",
