@@ -55,6 +55,15 @@ def test_simulate_json_has_the_promised_metrics(tmp_path: Path) -> None:
     assert len((tmp_path / "t.csv").read_text().splitlines()) == 201
 
 
+def test_charger_current_is_not_cross_current() -> None:
+    """A single float-charged string has no battery to push into it: charging is not crossing."""
+    proc = _run("simulate", str(EXAMPLES / "telecom_string.toml"), "--json")
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads(proc.stdout)
+    assert m["energy_in_wh"] > 0.0 and m["energy_out_wh"] > 0.0  # rectifier and load both ran
+    assert m["peak_cross_current_a"] == 0.0
+
+
 def test_bad_config_exits_2_with_one_line(tmp_path: Path) -> None:
     p = tmp_path / "bad.toml"
     p.write_text('[pack]\ncell = "ecm_example"\n[[pack.batteries]]\nname = "A"\nsoc0 = 2\n')

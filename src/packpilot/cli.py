@@ -63,7 +63,7 @@ def simulate(
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
-    no_progress: Annotated[bool, typer.Option(help="hide the progress bar")] = False,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="no progress bar")] = False,
     can_interface: Annotated[
         str | None, typer.Option(help="charger over CAN: python-can interface (virtual, socketcan)")
     ] = None,
@@ -262,7 +262,7 @@ def campaign(
     ] = None,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
-    no_progress: Annotated[bool, typer.Option(help="hide the progress bar")] = False,
+    no_progress: Annotated[bool, typer.Option("--no-progress", help="no progress bar")] = False,
 ) -> None:
     """Monte-Carlo campaign: N closed-loop runs over parameter spreads (Dask), to Parquet."""
 

@@ -381,7 +381,9 @@ def compute_metrics(runner: Runner, wall_s: float) -> dict[str, Any]:
     col = BATTERY_CHANNELS.index
     cur = bat[:, :, col("current_a")]
     traction = runner.traction
-    supplying = load_a > 1e-3
+    # "While the pack supplies a load": the load draws current and no charger feeds the bus;
+    # current into a battery while a charger (dock, float rectifier) delivers is charging.
+    supplying = (load_a > 1e-3) & (ch_a < 1e-3)
     into = np.maximum(-cur[:, traction], 0.0)
     peak_cross = float(into[supplying].max()) if supplying.any() else 0.0
     peak_idx = np.argmax(np.abs(cur), axis=0)
