@@ -94,6 +94,25 @@ def test_uav_5ah_scaling() -> None:
     assert soc_at[0] < 0.0 <= soc_at[1] + 1e-9 and soc_at[2] < 0.1
 
 
+def test_uav_5ah_resistance_is_arrhenius_20_kj_per_mol() -> None:
+    """The documented temperature law of uav_5ah (README.md, docs/discharge_protection.md):
+    R0 and R1 follow exp(Ea/R (1/T - 1/T')) with Ea = 20 kJ/mol on every table node, so the
+    30 A / 50 % DCIR is 2.9x its 25 degC value at -10 degC and 4.1x at -20 degC."""
+    p = load_parameter_set("uav_5ah")
+    inv_t = 1.0 / (p.rc_temp_c + 273.15)
+    for tab in (p.r0_ohm, p.r1_ohm):
+        ea = np.diff(np.log(tab), axis=0) / np.diff(inv_t)[:, None, None] * 8.314462618
+        np.testing.assert_allclose(ea, 20e3, rtol=1e-4)
+    from packpilot.model.cell import _np_interp3
+
+    def dcir(temp_c: float) -> float:
+        args = (np.array([temp_c]), np.array([30.0]), np.array([0.5]))
+        return float((_np_interp3(p, "r0_ohm", *args) + _np_interp3(p, "r1_ohm", *args))[0])
+
+    assert dcir(-10.0) / dcir(25.0) == pytest.approx(2.89, abs=0.01)
+    assert dcir(-20.0) / dcir(25.0) == pytest.approx(4.15, abs=0.01)
+
+
 def test_lfp_storage_shape() -> None:
     p = load_parameter_set("lfp_storage")
     ocv = ocv_v(p, np.linspace(0, 1, 101), 25.0)
