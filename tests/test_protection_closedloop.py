@@ -67,7 +67,9 @@ def test_warm_light_rest_ocv_not_below_conservative_minus_10_mv() -> None:
     strict=True,
     reason="measured +13.7 % on uav_5ah: the conservative baseline leaves only ~12 % SOC "
     "(low cell DCIR, self-heating from -10 degC); delivering until the weakest cell is empty "
-    "would give only +11.3 %, so +15 % needs over-discharge; see docs/discharge_protection.md",
+    "would give only +11.3 %, so +15 % needs over-discharge. The cell's Arrhenius law (20 "
+    "kJ/mol) was checked against PyBaMM's physics sets and kept; see "
+    "docs/discharge_protection.md",
 )
 def test_cold_heavy_method_delivers_15_percent_more_energy_than_conservative() -> None:
     method = _run("cold_heavy", "method", rest=False)
