@@ -3,7 +3,8 @@
 (a) the 1 h drone-like profile of ``tests/test_cell_pybamm.py`` on ECM_Example at 1 s steps:
     ``simulate_current`` vs PyBaMM build + solve (ratio), and the fidelity at 25 degC and 0 degC;
 (b) one PyBaMM ``Simulation.step`` (0.1 s) vs one ``thevenin`` + ``advance`` on a 12-cell pack;
-(c) fleet throughput: 10,000 cells, full tables + thermal, numba warmed up.
+(c) fleet throughput: 10,000 cells, full tables + thermal, numba warmed up: ``advance`` alone,
+    ``thevenin`` + ``advance`` (two kernels) and the fused closed-loop ``step`` (one kernel).
 
 Run: ``python benchmarks/bench_cell.py``; ``run()`` returns the figures for ``make bench``.
 The machine may be shared: every timing is the best of several repeats.
@@ -32,6 +33,7 @@ from packpilot.model.cell import (  # noqa: E402
     initial_state,
     load_parameter_set,
     simulate_current,
+    step,
     thevenin,
 )
 
@@ -147,6 +149,12 @@ def run() -> dict[str, float]:
     c_thev = _best_cpu(lambda: thevenin(uav, fleet, cur, cap, rs), 5, 50)
     out["fleet10k_advance_Mcell_steps_per_cpu_s"] = n / c_adv / 1e6
     out["fleet10k_thevenin_advance_Mcell_steps_per_cpu_s"] = n / (c_adv + c_thev) / 1e6
+    # fused step: terminal voltage + state update in one pass (what a closed-loop step needs)
+    step(uav, fleet, cur, 0.1, amb, cap, rs)
+    t_step = _best(lambda: step(uav, fleet, cur, 0.1, amb, cap, rs), 7, 20)
+    c_step = _best_cpu(lambda: step(uav, fleet, cur, 0.1, amb, cap, rs), 5, 50)
+    out["fleet10k_step_fused_Mcell_steps_per_s"] = n / t_step / 1e6
+    out["fleet10k_step_fused_Mcell_steps_per_cpu_s"] = n / c_step / 1e6
     return out
 
 

@@ -99,6 +99,12 @@ def _headlines(name: str, rows: list[dict[str, Any]]) -> list[tuple[str, str, st
                 f"{r['fleet10k_thevenin_advance_Mcell_steps_per_s']:.1f}",
                 ">= 20",
             ),
+            (
+                "fleet 10k cells, fused step (M cell-steps/s; per CPU-s)",
+                f"{r['fleet10k_step_fused_Mcell_steps_per_s']:.1f}; "
+                f"{r['fleet10k_step_fused_Mcell_steps_per_cpu_s']:.1f}",
+                ">= 20",
+            ),
         ]
     elif name == "bench_loop":
         for r in rows[1:]:

@@ -55,6 +55,7 @@ __all__ = [
     "params_from_dict",
     "params_to_dict",
     "simulate_current",
+    "step",
     "thevenin",
     "thevenin_numpy",
     "write_parameter_file",
@@ -571,11 +572,12 @@ def _planes3(
 
 
 @_jit_inline
-def _ocv_scalar(
-    soc: float, temp: float, ocv_x: F64, ocv_y: F64, du_x: F64, du_t: F64, du_y: F64,
+def _ocv_at(
+    soc: float, temp: float, jd: int, w: float, ocv_x: F64, ocv_y: F64, du_x: F64, du_y: F64,
     fmeta: F64, imeta: NDArray[np.int64],
 ) -> float:  # fmt: skip
-    """OCV including the entropic term (none when the reference temperature is NaN)."""
+    """OCV including the entropic term, given the bracket (jd, unclamped w) of ``temp`` on the
+    dU/dT temperature axis, so that a caller that already has it does not look it up again."""
     clamp = imeta[2] == 1
     u_ref = _interp1(soc, ocv_x, fmeta[3], ocv_y, clamp)
     t_ref = fmeta[6]
@@ -583,9 +585,39 @@ def _ocv_scalar(
         return u_ref
     x = u_ref if imeta[1] == 1 else soc
     i, t = _frac(x, du_x, fmeta[4])
-    j, u = _frac(temp, du_t, fmeta[5])
-    c0, c1 = _col2(du_y, i, _lim(t, clamp), j)
-    return float(u_ref + (temp - t_ref) * (c0 + _lim(u, clamp) * (c1 - c0)))
+    c0, c1 = _col2(du_y, i, _lim(t, clamp), jd)
+    return float(u_ref + (temp - t_ref) * (c0 + _lim(w, clamp) * (c1 - c0)))
+
+
+@_jit_inline
+def _ocv_scalar(
+    soc: float, temp: float, ocv_x: F64, ocv_y: F64, du_x: F64, du_t: F64, du_y: F64,
+    fmeta: F64, imeta: NDArray[np.int64],
+) -> float:  # fmt: skip
+    """OCV including the entropic term (none when the reference temperature is NaN)."""
+    jd, w = _frac(temp, du_t, fmeta[5])
+    return _ocv_at(soc, temp, jd, w, ocv_x, ocv_y, du_x, du_y, fmeta, imeta)
+
+
+@_jit_inline
+def _terminal_at(
+    soc: float, eta_sum: float, temp: float, r_scale: float, i: int, t: float, j: int, u: float,
+    jd: int, w: float, flat: F64, ax_s: F64, ocv_x: F64, ocv_y: F64, du_x: F64, du_y: F64,
+    fmeta: F64, imeta: NDArray[np.int64],
+) -> tuple[float, float]:  # fmt: skip
+    """(OCV - sum eta, R0 r_scale) given the brackets of ``temp`` (i, t on the RC axis; jd, w
+    on the dU/dT axis) and of the current (j, u); fractions may be unclamped. A step shares
+    these with its own lookups (:func:`_step_scalar`)."""
+    clamp = imeta[2] == 1
+    dk = imeta[6]
+    dj = imeta[5] * dk
+    di = imeta[4] * dj
+    k, v = _frac(soc, ax_s, fmeta[2])
+    base = i * di + j * dj + k * dk
+    p0, p1 = _planes3(flat, 0, base, di, dj, dk, _lim(u, clamp), _lim(v, clamp))
+    r0 = p0 + _lim(t, clamp) * (p1 - p0)
+    ocv = _ocv_at(soc, temp, jd, w, ocv_x, ocv_y, du_x, du_y, fmeta, imeta)
+    return ocv - eta_sum, r0 * r_scale
 
 
 @_jit_inline
@@ -595,19 +627,13 @@ def _terminal_scalar(
     du_x: F64, du_t: F64, du_y: F64, fmeta: F64, imeta: NDArray[np.int64],
 ) -> tuple[float, float]:  # fmt: skip
     """(source voltage OCV - sum eta, series resistance R0 at this current)."""
-    clamp = imeta[2] == 1
-    nt = imeta[6]
-    dk = nt
-    dj = imeta[5] * dk
-    di = imeta[4] * dj
     i, t = _frac(temp, ax_t, fmeta[0])
     j, u = _frac(cur, ax_i, fmeta[1])
-    k, v = _frac(soc, ax_s, fmeta[2])
-    base = i * di + j * dj + k * dk
-    p0, p1 = _planes3(flat, 0, base, di, dj, dk, _lim(u, clamp), _lim(v, clamp))
-    r0 = p0 + _lim(t, clamp) * (p1 - p0)
-    ocv = _ocv_scalar(soc, temp, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta)
-    return ocv - eta_sum, r0 * r_scale
+    jd, w = _frac(temp, du_t, fmeta[5])
+    return _terminal_at(
+        soc, eta_sum, temp, r_scale, i, t, j, u, jd, w,
+        flat, ax_s, ocv_x, ocv_y, du_x, du_y, fmeta, imeta,
+    )  # fmt: skip
 
 
 @_jit_inline
@@ -651,12 +677,16 @@ def _step_scalar(
     soc: float, eta1: float, eta2: float, tc: float, tj: float,
     cur: float, h: float, ta: float, cap_ah: float, r_scale: float, th: F64,
     flat: F64, ax_t: F64, ax_i: F64, ax_s: F64, ocv_x: F64, ocv_y: F64,
-    du_x: F64, du_t: F64, du_y: F64, fmeta: F64, imeta: NDArray[np.int64],
-) -> tuple[float, float, float, float, float, float]:  # fmt: skip
-    """One cell over one step of constant current: (soc, eta1, eta2, T_cell, T_jig, heat_w).
+    du_x: F64, du_t: F64, du_y: F64, fmeta: F64, imeta: NDArray[np.int64], with_v: bool,
+) -> tuple[float, float, float, float, float, float, float, float]:  # fmt: skip
+    """One cell over one step of constant current:
+    (soc, eta1, eta2, T_cell, T_jig, heat_w, e_v, r0_ohm).
 
     Tables are read at mid-step: SoC exactly (it is linear in time), the cell temperature from
     a predictor (exact half-step of the thermal network under the heat at step start).
+    ``with_v`` (a constant at each call site, so the other branch compiles away) also returns
+    :func:`_terminal_scalar` at the step-start state, reusing the temperature and current
+    brackets of the predictor; otherwise e_v = r0_ohm = 0.
     """
     clamp = imeta[2] == 1
     nt = imeta[6]
@@ -682,6 +712,12 @@ def _step_scalar(
     jd, w = _frac(tc, du_t, fmeta[5])
     d0, d1 = _col2(du_y, xi, xt, jd)
     r0 = (p0 + t * (p1 - p0)) * r_scale
+    ev, r0v = 0.0, 0.0
+    if with_v:
+        ev, r0v = _terminal_at(
+            soc, eta1 + eta2, tc, r_scale, i, tu, j, u, jd, w,
+            flat, ax_s, ocv_x, ocv_y, du_x, du_y, fmeta, imeta,
+        )  # fmt: skip
     q0 = cur * (cur * r0 + eta1 + eta2 - (tc + 273.15) * (d0 + _lim(w, clamp) * (d1 - d0)))
     yc = tc - ta
     yj = tj - ta
@@ -711,7 +747,7 @@ def _step_scalar(
     heat -= cur * (tmid + 273.15) * (d0 + _lim(w, clamp) * (d1 - d0))
     tc_new = ta + th[0] * yc + th[1] * yj + th[4] * heat
     tj_new = ta + th[2] * yc + th[3] * yj + th[5] * heat
-    return soc1, eta1_new, eta2_new, tc_new, tj_new, heat
+    return soc1, eta1_new, eta2_new, tc_new, tj_new, heat, ev, r0v
 
 
 @_jit
@@ -724,10 +760,36 @@ def _advance_kernel(
     two = imeta[0] == 2
     for c in range(soc.shape[0]):
         e2 = eta[c, 1] if two else 0.0
-        s1, a1, a2, t1, j1, q = _step_scalar(
+        s1, a1, a2, t1, j1, q, _e, _r = _step_scalar(
             soc[c], eta[c, 0], e2, tc[c], tj[c], cur[c], h, ta[c], cap[c], rs[c], th,
-            flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta,
+            flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta, False,
         )  # fmt: skip
+        soc_o[c] = s1
+        eta_o[c, 0] = a1
+        if two:
+            eta_o[c, 1] = a2
+        tc_o[c] = t1
+        tj_o[c] = j1
+        heat_o[c] = q
+
+
+@_jit
+def _step_kernel(
+    soc: F64, eta: F64, tc: F64, tj: F64, cur: F64, ta: F64, cap: F64, rs: F64,
+    h: float, th: F64, flat: F64, ax_t: F64, ax_i: F64, ax_s: F64, ocv_x: F64, ocv_y: F64,
+    du_x: F64, du_t: F64, du_y: F64, fmeta: F64, imeta: NDArray[np.int64],
+    v_o: F64, soc_o: F64, eta_o: F64, tc_o: F64, tj_o: F64, heat_o: F64,
+) -> None:  # fmt: skip
+    """``_thevenin_kernel`` then ``_advance_kernel`` in one pass, sharing the axis lookups."""
+    two = imeta[0] == 2
+    for c in range(soc.shape[0]):
+        i = cur[c]
+        e2 = eta[c, 1] if two else 0.0
+        s1, a1, a2, t1, j1, q, e, r0 = _step_scalar(
+            soc[c], eta[c, 0], e2, tc[c], tj[c], i, h, ta[c], cap[c], rs[c], th,
+            flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta, True,
+        )  # fmt: skip
+        v_o[c] = e - r0 * i
         soc_o[c] = s1
         eta_o[c, 0] = a1
         if two:
@@ -780,9 +842,9 @@ def _simulate_kernel(
     v_o[0] = ev - r0 * cur[0]
     soc_o[0], tc_o[0], tj_o[0] = soc, tc, tj
     for k in range(n):
-        soc, e1, e2, tc, tj, _q = _step_scalar(
+        soc, e1, e2, tc, tj, _q, _e, _r = _step_scalar(
             soc, e1, e2, tc, tj, cur[k], h, amb[k], cap_ah, r_scale, th,
-            flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta,
+            flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta, False,
         )  # fmt: skip
         ev, r0 = _terminal_scalar(
             soc, e1 + e2, tc, cur[k], r_scale,
@@ -884,6 +946,37 @@ def advance(
         h, th, *_tables(params), new.soc, new.eta_v, new.temp_c, new.jig_temp_c, heat,
     )  # fmt: skip
     return new, heat
+
+
+def step(
+    params: CellParams,
+    state: CellState,
+    current_a: ArrayLike,
+    dt_s: float,
+    ambient_c: ArrayLike,
+    capacity_ah: ArrayLike,
+    r_scale: ArrayLike,
+) -> tuple[F64, CellState, F64]:
+    """One closed-loop step of n cells: (terminal voltage V, new state, mean heat W).
+
+    The voltage is ``e_v - r0_ohm * I`` of :func:`thevenin` at the *start* state; the new state
+    and heat are those of :func:`advance`. Same arguments as :func:`advance`; one fused kernel
+    (one pass over the cells, shared axis lookups), so it is faster than the two calls.
+    """
+    h = float(dt_s)
+    if not h > 0.0:
+        raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
+    n, soc, eta, tc, tj = _state_arrays(params, state)
+    th = _thermal_coeffs(params, h)
+    new = CellState(np.empty(n), np.empty((n, params.n_rc)), np.empty(n), np.empty(n))
+    v = np.empty(n)
+    heat = np.empty(n)
+    _step_kernel(
+        soc, eta, tc, tj,
+        _cells(current_a, n), _cells(ambient_c, n), _cells(capacity_ah, n), _cells(r_scale, n),
+        h, th, *_tables(params), v, new.soc, new.eta_v, new.temp_c, new.jig_temp_c, heat,
+    )  # fmt: skip
+    return v, new, heat
 
 
 def simulate_current(
