@@ -252,9 +252,18 @@ def test_spread_pack_hovers_without_cross_current_and_everyone_joins(n: int) -> 
     assert run.peak_into_a <= 1.0
     assert list(run.outputs[-1].status["seq_state"]) == ["DISCHARGING"] * n
     joins = [e for e in run.events if e.kind == "BatteryJoined"]
-    assert sorted(e.battery for e in joins if e.battery is not None) == list(range(1, n))
-    # Batteries join in voltage order (highest standby first).
-    assert [e.battery for e in joins] == sorted(e.battery for e in joins if e.battery is not None)
+    first: dict[int, float] = {}
+    for e in joins:
+        assert e.battery is not None
+        first.setdefault(e.battery, e.t_s)
+    # Every standby battery joins, the first time in voltage order (highest standby first).
+    # Later joins are re-merges of batteries the cross-current guard opened (time sharing
+    # between batteries whose fast voltages V + I*R drift apart under load).
+    assert set(range(1, n)) <= set(first)
+    assert sorted(range(1, n), key=lambda b: first[b]) == list(range(1, n))
+    for e in run.events:
+        if e.kind == "CrossCurrentGuard":
+            assert any(j.battery == e.battery and j.t_s > e.t_s for j in joins)
     for out in run.outputs:
         _consistent(out)
     # Co-discharge levels them: final OCV spread is a small fraction of the initial 3 V.
@@ -310,7 +319,10 @@ def test_hot_inserted_lower_battery_stands_by_then_joins_by_r2(n: int) -> None:
     assert run.outputs[k - 1].status["seq_state"][n - 1] == "OFF"
     assert run.outputs[k].status["seq_state"][n - 1] == "STANDBY"
     join = [e for e in run.events if e.kind == "BatteryJoined" and e.battery == n - 1]
-    assert len(join) == 1 and join[0].data["reason"] == "R2" and join[0].t_s > 50.0
+    # R2 (v_co above the loaded bus) or, under a heavier load, the load merge first (its
+    # IR-compensated voltage has met the others' before its terminal voltage is v_co above).
+    assert len(join) == 1 and join[0].data["reason"] in ("R2", "load merge")
+    assert join[0].t_s > 50.0
     assert run.peak_into_a <= 1.0
 
 
@@ -327,7 +339,10 @@ def test_removed_discharging_battery_goes_off_and_the_rest_take_over() -> None:
 
 
 def test_reverse_current_demotes_only_the_victim() -> None:
-    ctrl = SequencingController(SequencingConfig(), pack_info(3))
+    # The hand-made currents (4 A vs 1 A at equal terminal voltages) also mean battery 2 has
+    # a lower fast voltage V + I*R than battery 0: the guard is switched off to test the
+    # reverse-current rule alone (see test_guard_* below).
+    ctrl = SequencingController(SequencingConfig(i_guard=1e3), pack_info(3))
     v = [24.0, 24.0, 24.0]
     for k in range(3):
         out = ctrl.step(meas(0.1 * k, v, [5.0, 5.0, 5.0]), 0.1)
@@ -338,6 +353,87 @@ def test_reverse_current_demotes_only_the_victim() -> None:
     # A reverse current below i_rev is tolerated.
     out = ctrl.step(meas(0.4, v, [4.0, 0.0, -0.4]), 0.1)
     assert out.status["seq_state"][2] == "DISCHARGING"
+
+
+def _guard_pair(cfg: SequencingConfig) -> SequencingController:
+    """Two batteries admitted at rest (24.0 V), both engaged by R3 under 20 A each."""
+    ctrl = SequencingController(cfg, pack_info(2))
+    ctrl.step(meas(0.0, [24.0, 24.0], [0.0, 0.0]), 0.1)
+    ctrl.step(meas(0.1, [23.6, 23.6], [20.0, 20.0]), 0.1)
+    out = ctrl.step(meas(0.2, [23.6, 23.6], [20.0, 20.0]), 0.1)
+    assert out.commands.chg_on == (True, True)
+    assert not any(e.kind.startswith("CrossCurrent") for e in out.events)
+    return ctrl
+
+
+# Resistance estimator off (i_step huge): the fast voltage is V + I x r_batt_ohm (20 mOhm).
+NO_EST = SequencingConfig(i_step=1e3)
+
+
+def test_guard_opens_the_battery_that_would_be_charged_at_zero_load() -> None:
+    ctrl = _guard_pair(NO_EST)
+    # Equal terminals, 5 A vs 15 A: fast voltages 23.9 vs 24.1 V. At zero load battery 1 would
+    # push 0.2 V / 40 mOhm = 5 A into battery 0. Battery 1 alone at 20 A sits at 23.7 V, above
+    # 23.9 - v_diode, so opening battery 0 takes it off the bus without diode conduction.
+    out = ctrl.step(meas(0.3, [23.8, 23.8], [5.0, 15.0]), 0.1)
+    ev = [e for e in out.events if e.kind == "CrossCurrentGuard"]
+    assert [e.battery for e in ev] == [0]
+    assert ev[0].data["predicted_a"] == pytest.approx(5.0)
+    assert out.commands.chg_on == (False, True)
+    assert list(out.status["seq_state"]) == ["STANDBY", "DISCHARGING"]
+    assert out.status["seq_zero_load_into_a"] == [0.0, 0.0]
+    assert out.status["seq_at_risk"] == [False, False]
+
+
+def test_guard_leaves_a_pair_within_i_guard_alone() -> None:
+    ctrl = _guard_pair(NO_EST)
+    # 14 mV apart in fast voltage: 0.35 A at zero load, below i_guard (0.8 A).
+    out = ctrl.step(meas(0.3, [23.8, 23.8], [9.65, 10.35]), 0.1)
+    assert out.commands.chg_on == (True, True)
+    assert out.status["seq_zero_load_into_a"][0] == pytest.approx(0.35)
+
+
+def test_guard_keeps_a_battery_whose_diode_would_conduct() -> None:
+    ctrl = _guard_pair(NO_EST)
+    # Same 0.2 V fast-voltage gap at 40 A: battery 1 alone would sit at 24.1 - 0.8 = 23.3 V,
+    # below 23.9 - v_diode = 23.4 V, so battery 0's diode would take the current (and R3 would
+    # close it again). It stays engaged and is flagged at risk, once.
+    out = ctrl.step(meas(0.3, [23.6, 23.6], [15.0, 25.0]), 0.1)
+    assert out.commands.chg_on == (True, True)
+    risk = [e for e in out.events if e.kind == "CrossCurrentRisk"]
+    assert [e.battery for e in risk] == [0] and risk[0].data["predicted_a"] == pytest.approx(5.0)
+    assert out.status["seq_at_risk"] == [True, False]
+    out = ctrl.step(meas(0.4, [23.6, 23.6], [15.0, 25.0]), 0.1)
+    assert not any(e.kind == "CrossCurrentRisk" for e in out.events)
+
+
+def test_guard_keeps_the_bus_above_cut_off() -> None:
+    # The first guard case again, but with a cut-off of 3.35 V/cell x 7 cells = 23.45 V.
+    pack = PackInfo(
+        n_batteries=2,
+        groups_per_battery=(1, 1),
+        cells_per_group=(7, 7),
+        switch_kind=(SwitchKind.MOSFET_PAIR,) * 2,
+    )
+    ctrl = SequencingController(SequencingConfig(i_step=1e3, v_cutoff_cell_v=3.35), pack)
+    ctrl.step(meas(0.0, [24.0, 24.0], [0.0, 0.0]), 0.1)
+    ctrl.step(meas(0.1, [23.6, 23.6], [20.0, 20.0]), 0.1)
+    ctrl.step(meas(0.2, [23.6, 23.6], [20.0, 20.0]), 0.1)
+    # 3.35 x 7 + 0.3 = 23.75 V > 23.7 V (battery 1 alone at 20 A): battery 0 is needed.
+    out = ctrl.step(meas(0.3, [23.8, 23.8], [5.0, 15.0]), 0.1)
+    assert out.commands.chg_on == (True, True)
+    assert [e.battery for e in out.events if e.kind == "CrossCurrentRisk"] == [0]
+
+
+def test_resistance_estimate_from_a_current_step() -> None:
+    ctrl = SequencingController(SequencingConfig(), pack_info(2))
+    ctrl.step(meas(0.0, [24.0, 24.0], [0.0, 0.0]), 0.1)
+    ctrl.step(meas(0.1, [23.7, 23.3], [20.0, 20.0]), 0.1)
+    assert ctrl.state.batteries[0].r_ohm == pytest.approx(0.015)
+    assert ctrl.state.batteries[1].r_ohm == pytest.approx(0.035)
+    # A change below i_step (1 A) leaves the estimate alone (sensor noise).
+    ctrl.step(meas(0.2, [23.69, 23.3], [20.5, 20.0]), 0.1)
+    assert ctrl.state.batteries[0].r_ohm == pytest.approx(0.015)
 
 
 def test_load_drop_after_co_discharge_is_stopped_within_one_period() -> None:

@@ -174,8 +174,9 @@ def test_charge_fet_closes_only_on_a_battery_that_cannot_be_charged(
     case: tuple[int, float, list[Sample]],
 ) -> None:
     """STANDBY never has its charge FET on; a charge FET closes only on a battery that is
-    sourcing current (R3), is at least as high as every battery already engaged (R2/level), or
-    (rest merge) is within v_merge of them after the pack has rested for t_rest."""
+    sourcing current (R3), is at least as high as every battery already engaged (R2/level),
+    (rest merge) is within v_merge of them after the pack has rested for t_rest, or (load merge)
+    is predicted to take at most i_guard from them if the load vanished."""
     n, dt, samples = case
     ctrl = SequencingController(CFG, _pack(n))
     prev_chg: tuple[bool | None, ...] = (False,) * n
@@ -208,7 +209,11 @@ def test_charge_fet_closes_only_on_a_battery_that_cannot_be_charged(
                     if j != k and chg[j] and not (newly[j] and sourcing[j])
                 ]
                 merged = rested and bool(ref) and s.volts[k] >= max(ref) - CFG.v_merge - 1e-9
-                assert sourcing[k] or not ref or s.volts[k] >= max(ref) or merged, (
+                # Load merge: closed under load only if the guard's own zero-load prediction
+                # for k (IR-compensated voltages) stays within i_guard after the period.
+                zl = out.status["seq_zero_load_into_a"][k]
+                load_merged = not idle and isinstance(zl, float) and zl <= CFG.i_guard + 1e-9
+                assert sourcing[k] or not ref or s.volts[k] >= max(ref) or merged or load_merged, (
                     k,
                     s.volts,
                     s.currs,

@@ -728,11 +728,6 @@ class SequencingController:
             for k in sorted(standby, key=lambda j: -volt[j]):
                 if k in demoted or volt[k] - v_ref < cfg.v_co:
                     continue
-                # Under load a joiner v_co above the *loaded* bus may still hold less charge
-                # (its rest voltage against their V + I*R): it waits until it is not the one
-                # the others would charge if the load vanished (cross-current guard).
-                if not idle and not self._safe_to_close(k, meas, cfg.i_merge):
-                    continue
                 if idle:
                     for bj in bats:
                         if bj.state is SeqState.DISCHARGING:
@@ -825,7 +820,12 @@ class SequencingController:
                 bats[k].conduct_since_s = None
 
         # Level rule: an admitted battery at or above the engaged batteries cannot be charged by
-        # them, so its charge FET may close directly (this completes every R2 join at once).
+        # them *now*, so its charge FET may close directly (this completes an R2 join at once),
+        # provided the cross-current guard agrees: under load a joiner v_co above the loaded
+        # bus may still have a lower fast voltage (V + I*R) than an engaged battery, which would
+        # charge it if the load vanished. Such a joiner stays admitted with its FET open (it
+        # cannot be charged, its diode still lets it feed the bus) until the others have come
+        # down to it.
         engaged_v = [
             volt[k] for k, b in enumerate(bats) if b.state is SeqState.DISCHARGING and b.chg_on
         ]
