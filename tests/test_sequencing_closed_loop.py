@@ -84,16 +84,24 @@ def test_no_current_into_any_battery_while_the_pack_discharges(name: str) -> Non
     assert seq.metrics["peak_cross_current_a"] <= 1.0
 
 
-def test_dual_hover_low_battery_waits_then_joins_by_r2() -> None:
+def test_dual_hover_low_battery_waits_then_joins() -> None:
     seq = _run("dual_hover", "sequencing")
     joins = [e for e in seq.events if e.kind == "BatteryJoined"]
-    assert [(e.battery, e.data["reason"]) for e in joins] == [(1, "R2")]
+    # Battery B joins first when its rest voltage meets A's fast voltage V + I*R (load merge),
+    # before its terminal voltage is v_co above A's loaded one (R2).
+    assert (joins[0].battery, joins[0].data["reason"]) == (1, "load merge")
     k = int(np.searchsorted(seq.trace.t_s, joins[0].t_s))
     assert not seq.trace.channel("chg_on")[:k, 1].any()
     assert np.all(seq.trace.channel("current_a")[:k, 1] == 0.0)
-    # After the join both share the hover load.
-    after = seq.trace.channel("current_a")[k + 10 : k + 200]
-    assert np.all(after > 1.0)
+    # Afterwards the guard time-shares while their fast voltages drift apart under load (a
+    # battery it opens comes back by load merge or R2 within seconds): both carry the load
+    # most of the time, and every guard opening is followed by a rejoin or the end of the run.
+    cur = seq.trace.channel("current_a")[k:]
+    both = np.mean(np.all(cur > 1.0, axis=1))
+    assert both > 0.8
+    guard = [e for e in seq.events if e.kind == "CrossCurrentGuard"]
+    for g in guard:
+        assert any(j.battery == g.battery and j.t_s > g.t_s for j in joins)
 
 
 def test_hot_inserted_fresh_battery_takes_over() -> None:
@@ -101,35 +109,21 @@ def test_hot_inserted_fresh_battery_takes_over() -> None:
     at_300 = [e for e in seq.events if e.t_s == 300.0 and e.kind == "StateChanged"]
     assert {(e.battery, e.data["to"]) for e in at_300} >= {(0, "STANDBY"), (1, "DISCHARGING")}
     rejoin = [e for e in seq.events if e.kind == "BatteryJoined"]
-    assert [e.battery for e in rejoin] == [0] and rejoin[0].t_s > 300.0
+    assert rejoin[0].battery == 0 and rejoin[0].t_s > 300.0
 
 
-def test_four_spread_cross_current_only_in_the_period_after_a_load_drop() -> None:
+def test_four_spread_never_pushes_more_than_1a_into_a_battery() -> None:
     base, seq = _run("four_spread", "direct"), _run("four_spread", "sequencing")
     assert seq.metrics["load_unsupplied_s"] == 0.0
-    into = _into(seq)
-    supplied = seq.trace.load_a > 1e-3
-    demand = seq.trace.load_demand_a
-    n = into.shape[1]
-    for k, j in zip(*np.nonzero((into > 1.0) & supplied[:, None]), strict=True):
-        recent = demand[max(k - n, 0) : k + 1]
-        assert np.any(np.diff(recent) < 0.0), f"step {k}: {into[k, j]:.2f} A into {j}"
-        assert into[k + 1, j] <= 0.5, "reverse-current protection acts within one period"
+    assert seq.metrics["peak_cross_current_a"] <= 1.0
+    assert float(_into(seq).max()) <= 1.0
+    # The guard acted (the landing step alone pushed 2.5 A without it).
+    assert seq.metrics["events"].get("CrossCurrentGuard", 0) >= 1
 
     def cross(r: Result) -> float:
         return float(_into(r)[r.trace.load_a > 1e-3].sum())
 
-    assert cross(seq) < 0.01 * cross(base)
-
-
-@pytest.mark.xfail(
-    strict=True,
-    reason="co-discharged batteries with 16-30 mOhm differ in OCV by |I_a R_a - I_b R_b|; the "
-    "landing step (39 A -> 1.5 A) pushes ~2.5 A into the 16 mOhm battery for one control "
-    "period before reverse-current protection opens its charge FET (docs/parallel_discharge.md)",
-)
-def test_four_spread_peak_cross_current_below_1a() -> None:
-    assert _run("four_spread", "sequencing").metrics["peak_cross_current_a"] <= 1.0
+    assert cross(seq) < 0.001 * cross(base)
 
 
 @pytest.mark.xfail(
@@ -165,4 +159,4 @@ def test_cli_simulate_reports_peak_cross_current() -> None:
     )
     metrics = json.loads(out.stdout.strip().splitlines()[-1])
     assert metrics["peak_cross_current_a"] <= 1.0
-    assert metrics["events"]["BatteryJoined"] == 1
+    assert metrics["events"]["BatteryJoined"] >= 1
