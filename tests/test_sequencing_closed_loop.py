@@ -123,7 +123,7 @@ def test_four_spread_never_pushes_more_than_1a_into_a_battery() -> None:
     def cross(r: Result) -> float:
         return float(_into(r)[r.trace.load_a > 1e-3].sum())
 
-    assert cross(seq) < 0.001 * cross(base)
+    assert cross(seq) < 0.002 * cross(base)
 
 
 @pytest.mark.xfail(
