@@ -52,9 +52,7 @@ def cases(draw: st.DrawFn) -> Case:
     return Case(ocv0, r, dt, tuple(times), amps, insert)
 
 
-def simulate(
-    case: Case, sequencing: dict[str, float] | None = None
-) -> tuple[Result, np.ndarray]:
+def simulate(case: Case, sequencing: dict[str, float] | None = None) -> tuple[Result, np.ndarray]:
     """Run the case; also return each battery's open-circuit voltage after every period."""
     bats = []
     for k, (v, r) in enumerate(zip(case.ocv0_v, case.r_ohm, strict=True)):

@@ -468,9 +468,7 @@ class SequencingController:
         group = sorted({*self._engaged(), k})
         return self._zero_load_into(group, meas)[k] <= limit_a
 
-    def _guard(
-        self, meas: Measurements, t_s: float, keep: set[int], events: list[Event]
-    ) -> None:
+    def _guard(self, meas: Measurements, t_s: float, keep: set[int], events: list[Event]) -> None:
         """Open, before the load can fall, the charge FET of any engaged battery that would take
         more than ``i_guard`` from its siblings at zero load (worst victim first).
 
