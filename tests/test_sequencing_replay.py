@@ -318,3 +318,23 @@ def test_rest_merge_waits_t_rest_after_the_load_stops(tmp_path: Path) -> None:
     )
     res = replay(_write(tmp_path / "pulses.csv", HDR2, rows), CFG)
     assert set(_col(res, "state_1")) == {"STANDBY"}
+
+
+def test_replay_reports_guard_openings(tmp_path: Path) -> None:
+    # Two batteries admitted at rest, engaged by R3 under 20 A each; then equal terminals at
+    # 5 A vs 15 A. The step gives r = -dV/dI = 0.2 V / 15 A = 13.3 mOhm and 0.2 V / 5 A =
+    # 40 mOhm, so fast voltages 23.87 / 24.40 V: at zero load battery 1 would push about 10 A
+    # into battery 0, which the guard opens.
+    rows = [
+        [0.0, 24.0, 24.0, 0.0, 0.0],
+        [0.1, 23.6, 23.6, 20.0, 20.0],
+        [0.2, 23.6, 23.6, 20.0, 20.0],
+        [0.3, 23.8, 23.8, 5.0, 15.0],
+    ]
+    res = replay(_write(tmp_path / "guard.csv", HDR2, rows), CFG)
+    guard = res.summary["cross_current_guard"]
+    assert isinstance(guard, list) and len(guard) == 1
+    assert guard[0]["t_s"] == 0.3 and guard[0]["battery"] == 0
+    assert isinstance(guard[0]["predicted_a"], float) and guard[0]["predicted_a"] > CFG.i_guard
+    assert res.rows[-1][2:5] == ["STANDBY", 0, 1]
+    assert res.summary["cross_current_risk"] == []
