@@ -34,9 +34,17 @@ Rules applied every control period in discharge mode (see ``docs/parallel_discha
   within ``v_merge = i_merge * r_loop_ohm`` of every engaged battery rejoins with its charge FET
   on, like R1 admitting batteries within ``v_th`` at power-up, but with a window sized so the
   circulating current it can cause stays at or below ``i_merge <= i_rev``.
+* Load merge ([REC]): under load, a standby or admitted battery whose *fast voltage*
+  ``V + I*R`` (R estimated online from current steps) matches the engaged ones' closes its
+  charge FET; the level rule (which completes R2) closes one only under the same check.
 * R3: a battery with discharge FET on and charge FET off that sources more than ``i_det``
   (its charge diode conducts) gets its charge FET on after a debounce, no later than ``t_on``.
   Only current measured over a period in which the controller held that FET off counts.
+* Cross-current guard ([REC]): a sampled controller cannot stop the current that flows between
+  co-discharging batteries in the period in which the load falls, so every period it predicts
+  that current at zero load from the fast voltages and opens (-> STANDBY) any battery that
+  would take more than ``i_guard``, unless R3 needs it closed or the bus needs it above cut-off
+  (then ``CrossCurrentRisk``).
 
 Invalid measurements (non-finite or negative voltage, non-finite current, time or period) put
 the pack in a fail-safe: every charge FET off, every present battery's discharge FET on (the
