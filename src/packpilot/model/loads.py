@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.errors import InputError
+from packpilot.errors import InputError, read_text
 
 Array = NDArray[np.float64]
 KINDS = ("current", "power", "resistance", "none")
@@ -95,14 +95,7 @@ def from_csv(path: Path, scale: float = 1.0, repeat: bool = False) -> LoadProfil
     Every cell must be a finite number and time must increase strictly; the error names the
     row (1-based, header = row 1) and column.
     """
-    if not path.exists():
-        raise InputError(f"{path}: load profile file not found")
-    if not path.is_file():
-        raise InputError(f"{path}: load profile is not a file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: load profile is not a UTF-8 text file") from None
+    text = read_text(path, "load profile")
     with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         try:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.errors import InputError
+from packpilot.errors import InputError, read_text
 
 CellValue = float | int | str | bool | None
 
@@ -76,14 +76,7 @@ def read_log(
     ``required`` columns must be present; ``indexed`` prefixes (``v`` for ``v_0, v_1, ...``)
     must have at least one column. ``t_s`` (if required) must be strictly increasing.
     """
-    if not path.exists():
-        raise InputError(f"{path}: file not found")
-    if not path.is_file():
-        raise InputError(f"{path}: not a file")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a UTF-8 text file") from None
+    text = read_text(path, "log")
     with io.StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         try:
