@@ -93,6 +93,7 @@ def summarize(cfg: ScenarioConfig, res: Result) -> dict[str, Any]:
         "reverse_events": int(m["events"].get("ReverseCurrent", 0)),
         "guard_events": int(m["events"].get("CrossCurrentGuard", 0)),
         "risk_events": int(m["events"].get("CrossCurrentRisk", 0)),
+        "iso_events": int(m["events"].get("SourceIsolated", 0)),
         "sim_s": float(m["sim_time_s"]),
     }
 
@@ -143,6 +144,7 @@ COLUMNS = (
     ("reverse_events", "{}"),
     ("guard_events", "{}"),
     ("risk_events", "{}"),
+    ("iso_events", "{}"),
     ("wall_s", "{:.1f}"),
 )
 

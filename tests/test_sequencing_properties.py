@@ -95,7 +95,10 @@ def _check_patterns(out: ControlOutput, s: Sample, n: int) -> None:
         assert state in STATES
         assert isinstance(c, bool) and isinstance(d, bool)
         if state == "STANDBY":
-            assert not c and d, "STANDBY: charge FET never on, discharge FET on"
+            # Discharge FET on (diode-OR), or off too when the guard isolated it as a source.
+            isolated = bool(out.status["seq_isolated"][k])
+            assert not c and (d or isolated), "STANDBY: charge FET never on"
+            assert d != isolated, "isolated exactly when STANDBY with the discharge FET off"
         elif state == "OFF":
             assert not c and not d
         elif state == "DISCHARGING":

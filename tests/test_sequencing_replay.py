@@ -73,9 +73,12 @@ def test_r2_standby_joins_when_v_co_above_the_discharging_battery(tmp_path: Path
     # is the subject here.)
     joins = res.summary["joins"]
     assert isinstance(joins, list)
-    assert [j for j in joins if j["battery"] == 1] == [
-        {"t_s": ts[first], "battery": 1, "rule": "R2"}
-    ]
+    mine = [j for j in joins if j["battery"] == 1]
+    assert mine[0] == {"t_s": ts[first], "battery": 1, "rule": "R2"}
+    # Once R3 has re-closed battery 0 while battery 1 would charge it (the R3 conflict), source
+    # isolation [REC] isolates battery 1 and brings it back by the isolation rules; it never
+    # rejoins by R2 again (it was not STANDBY with its discharge FET on).
+    assert all(j["rule"] in ("isolation take-over", "isolation merge") for j in mine[1:])
 
 
 @pytest.mark.parametrize(("dt", "debounce"), [(0.05, 0.02), (0.05, 0.1), (0.01, 0.02), (0.3, 0.02)])

@@ -12,7 +12,8 @@ States (per battery) and the FET pattern each one commands:
 * ``DISCHARGING`` - admitted to discharge: discharge FET on; charge FET on once *engaged*.
   Engagement follows R3 (diode conduction seen -> FET on within ``t_on``) or the *level rule*
   (the battery's voltage has reached the bus reference, so closing the FET cannot charge it).
-* ``STANDBY`` - discharge FET on, charge FET off (the charge diode blocks any charging).
+* ``STANDBY`` - discharge FET on, charge FET off (the charge diode blocks any charging); both
+  off while the battery is isolated by source isolation ([REC]).
 * ``CHARGING`` - charge FET on; discharge FET on once charging current is seen through its
   diode (R4).
 * ``OFF`` - both FETs off: the battery is not present.
@@ -45,6 +46,12 @@ Rules applied every control period in discharge mode (see ``docs/parallel_discha
   that current at zero load from the fast voltages and opens (-> STANDBY) any battery that
   would take more than ``i_guard``, unless R3 needs it closed or the bus needs it above cut-off
   (then ``CrossCurrentRisk``).
+* Source isolation ([REC], ``isolate_source``): when the guard predicts more than ``i_guard``
+  into a battery that R3 closed at the present load (opening it would only make its diode
+  conduct again: the R3 conflict), the battery pushing that current is *isolated* - STANDBY
+  with the discharge FET off too (``seq_isolated``) - if the rest carry the load with
+  pessimistic resistances. It comes back by take-over, merge, plain STANDBY or, near
+  cut-off, forced (``_release_isolated``), after at least ``t_iso_hold``.
 
 Invalid measurements (non-finite or negative voltage, non-finite current, time or period) put
 the pack in a fail-safe: every charge FET off, every present battery's discharge FET on (the
@@ -241,6 +248,39 @@ class SequencingConfig(BaseModel):
             "a battery (covers the polarisation that builds up after the load shifts to them)."
         ),
     )
+    isolate_source: bool = Field(
+        True,
+        description=(
+            "Source isolation ([REC]): when the guard predicts more than i_guard into a battery "
+            "it may not open because R3 closed it at this load (its diode conducted), turn off "
+            "both FETs of "
+            "the battery that would push that current (the highest fast voltage), provided the "
+            "rest hold the bus v_reserve + v_iso_margin above cut-off. False keeps the victim "
+            "engaged and only flags it (CrossCurrentRisk)."
+        ),
+    )
+    t_iso_hold: float = Field(
+        1.0,
+        ge=0.0,
+        description=(
+            "Source isolation: shortest time (s) an isolated battery stays isolated before it "
+            "may take over, merge or return to standby (a forced release does not wait), and "
+            "shortest time after a take-over or release before it may be isolated again (no "
+            "chatter at a load that hovers around the take-over limit)."
+        ),
+    )
+    v_iso_margin: float = Field(
+        0.2,
+        ge=0.0,
+        description=(
+            "Source isolation hysteresis (V): isolated batteries take over only if, alone at "
+            "the present load (pessimistic R), they keep the bus this far above every other "
+            "battery's fast voltage minus v_diode (their diodes stay off), and return to "
+            "standby only with their own diode this far from conducting; isolating needs the "
+            "rest this far "
+            "above cut-off + v_reserve, releasing is forced below cut-off + v_reserve."
+        ),
+    )
 
     @property
     def v_merge(self) -> float:
@@ -294,6 +334,12 @@ class BatterySeq:
     """The guard opened this battery's charge FET and no rule has closed it since."""
     at_risk: bool = False
     """The guard predicts more than i_guard into this battery but may not open it."""
+    isolated_since_s: float | None = None
+    """Source isolation: time both FETs were opened (state STANDBY); None = not isolated."""
+    released_at_s: float | None = None
+    """Source isolation: time this battery last left isolation by a take-over, the standby
+    release or a forced release; it is not isolated again within t_iso_hold of that (no
+    chatter). A merge sets no hold-off: it needs the fast voltages to agree."""
 
 
 @dataclass(slots=True)
@@ -357,6 +403,7 @@ class SequencingController:
         old = b.state
         b.state = new
         b.chg_on, b.dsg_on = _pattern(new, engaged)
+        b.isolated_since_s = None
         if old is not new:
             payload: dict[str, float | int | str | bool | None] = {
                 "from": old.value,
@@ -455,9 +502,12 @@ class SequencingController:
         v0 = sum(e[k] * g[k] for k in group) / sum(g.values())
         return {k: (v0 - e[k]) * g[k] for k in group}
 
-    def _bus_without(self, group: list[int], meas: Measurements, load_a: float) -> float:
-        """Bus voltage if only ``group`` (engaged, FETs on) carried ``load_a``."""
-        g = {k: 1.0 / self._r_est(k) for k in group}
+    def _bus_without(
+        self, group: list[int], meas: Measurements, load_a: float, r_scale: float = 1.0
+    ) -> float:
+        """Bus voltage if only ``group`` (engaged, FETs on) carried ``load_a``; ``r_scale``
+        multiplies their resistances (> 1: pessimistic, for polarisation and a prior R)."""
+        g = {k: 1.0 / (r_scale * self._r_est(k)) for k in group}
         return (sum(self._e_fast(k, meas) * g[k] for k in group) - load_a) / sum(g.values())
 
     def _engaged(self) -> list[int]:
@@ -487,13 +537,19 @@ class SequencingController:
         3 A). Not opened: a battery in ``keep`` (closed by R3 this period), the last engaged
         one, one whose diode would conduct at the present load (R3 would re-close it), and one
         without which the others would hold the bus less than ``v_reserve`` above cut-off.
+        Source isolation [REC] applies to the R3 conflict only: a victim that R3 closed this
+        period, or closed earlier at (0.9 of) the present load, cannot be opened (its diode
+        would conduct and R3 close it again), so the battery that would push the current is
+        isolated instead, if the rest can carry the load (``_isolate_source``). A victim kept
+        for any other reason (last engaged, cut-off reserve, a diode that would conduct only
+        once opened) stays engaged and is flagged, as before.
         """
         cfg = self.config
         bats = self.state.batteries
         load_a = sum(bm.current_a for bm in meas.batteries if bm.present)
-        cells = max(self.pack.cells_per_group) if self.pack.cells_per_group else 0
-        v_cut = cfg.v_cutoff_cell_v * cells
-        held: set[int] = set(keep)
+        v_cut = self._v_cut()
+        held: set[int] = set()
+        diode_held: set[int] = set(keep)
         for k, b in enumerate(bats):
             if b.state is not SeqState.DISCHARGING or not b.chg_on:
                 b.hold_load_a = None
@@ -502,7 +558,7 @@ class SequencingController:
                 b.guard_opened = False
             if b.hold_load_a is not None:
                 if load_a >= 0.9 * b.hold_load_a:
-                    held.add(k)
+                    diode_held.add(k)
                 else:
                     b.hold_load_a = None
         while True:
@@ -517,11 +573,16 @@ class SequencingController:
             k = victims[0]
             others = [j for j in group if j != k]
             v_bus = self._bus_without(others, meas, load_a) if others else -math.inf
-            if (
-                not others
-                or self._e_fast(k, meas) - cfg.v_diode >= v_bus
-                or v_bus < v_cut + cfg.v_reserve
-            ):
+            if not others or v_bus < v_cut + cfg.v_reserve:
+                held.add(k)
+                continue
+            if k in diode_held:
+                # R3 conflict: R3 closed it because its diode conducted at this load, so opening
+                # it would only make the diode conduct again. Take the source away instead.
+                if not self._isolate_source(k, group, pred, meas, load_a, t_s, events):
+                    held.add(k)
+                continue
+            if self._e_fast(k, meas) - cfg.v_diode >= v_bus:
                 held.add(k)
                 continue
             self._set(
@@ -562,6 +623,274 @@ class SequencingController:
                 )
             b.at_risk = risk
         self.state.zero_load_into_a = [pred.get(k, 0.0) for k in range(len(bats))]
+
+    def _v_cut(self) -> float:
+        """Pack cut-off voltage (V): ``v_cutoff_cell_v`` times the cells in series."""
+        cells = max(self.pack.cells_per_group) if self.pack.cells_per_group else 0
+        return self.config.v_cutoff_cell_v * cells
+
+    def _isolate_source(
+        self,
+        victim: int,
+        group: list[int],
+        pred: dict[int, float],
+        meas: Measurements,
+        load_a: float,
+        t_s: float,
+        events: list[Event],
+    ) -> bool:
+        """Source isolation [REC]: open *both* FETs of the battery that would charge ``victim``.
+
+        The guard cannot open the victim: its charge diode would conduct and R3 would close it
+        again (diode stress). So the battery with the highest fast voltage among its siblings
+        (the one pushing the current) is isolated instead: STANDBY with the discharge FET off
+        too, because with only its charge FET off it would still discharge through its charge
+        diode. Only if the rest (the victim included) hold the bus ``v_reserve`` +
+        ``v_iso_margin`` above cut-off at the present load, with pessimistic resistances
+        (``_bus_held``), and not within ``t_iso_hold`` of its last release (no chatter).
+        Isolating the victim instead (both its FETs off) was tried: it leaves the high battery
+        carrying a heavy load alone, which drags the bus under the next battery's diode, and
+        did worse in the closed-loop sweeps. Returns whether a battery was isolated.
+        """
+        cfg = self.config
+        if not cfg.isolate_source:
+            return False
+        bats = self.state.batteries
+        sources = [j for j in group if j != victim and pred[j] < 0.0]
+        if not sources:
+            return False
+        src = max(sources, key=lambda j: self._e_fast(j, meas))
+        rel = bats[src].released_at_s
+        if rel is not None and t_s - rel + _EPS_S < cfg.t_iso_hold:
+            return False
+        v_rest = self._bus_held(src, [j for j in group if j != src], meas, load_a)
+        if v_rest < self._v_cut() + cfg.v_reserve + cfg.v_iso_margin:
+            return False
+        self._set(
+            src,
+            SeqState.STANDBY,
+            False,
+            t_s,
+            events,
+            kind="SourceIsolated",
+            reason=f"would charge battery {victim}, which R3 closed at this load",
+            data={
+                "victim": victim,
+                "predicted_a": pred[victim],
+                "e_fast_v": self._e_fast(src, meas),
+                "v_rest_v": v_rest,
+            },
+        )
+        b = bats[src]
+        b.dsg_on = False
+        b.isolated_since_s = t_s
+        b.conduct_since_s = None
+        b.guard_opened = False
+        b.hold_load_a = None
+        return True
+
+    def _r_pess(self, j: int) -> float:
+        """Pessimistic resistance (ohm) of battery ``j``: 1.25 x the estimate (polarisation
+        builds up once the load has moved to it), 2 x the prior before any current step."""
+        b = self.state.batteries[j]
+        return (2.0 if math.isnan(b.r_ohm) else 1.25) * self._r_est(j)
+
+    def _bus_held(self, iso: int, rest: list[int], meas: Measurements, load_a: float) -> float:
+        """Pessimistic bus voltage (V) if battery ``iso`` stopped and ``rest`` (engaged) plus
+        every other battery with its discharge FET on (through its diode) carried ``load_a``.
+
+        Resistances are inflated: 1.25 x the estimate (polarisation builds up once the load has
+        moved to the rest), 2 x the prior for a battery that has not yet seen a current step.
+        Diodes drop ``v_diode + v_iso_margin``, the pessimistic end of the 0.5-0.7 V range.
+        """
+        cfg = self.config
+        bats = self.state.batteries
+
+        g = {j: 1.0 / self._r_pess(j) for j in rest}
+        if not g:
+            return -math.inf
+        num = sum(self._e_fast(j, meas) * g[j] for j in rest)
+        v_rest = (num - load_a) / sum(g.values())
+        diodes = [
+            j
+            for j, bj in enumerate(bats)
+            if j != iso and j not in rest and meas.batteries[j].present and bj.dsg_on
+        ]
+        v_drop = cfg.v_diode + cfg.v_iso_margin
+        for j in sorted(diodes, key=lambda i: -self._e_fast(i, meas)):
+            e_j = self._e_fast(j, meas) - v_drop
+            if v_rest >= e_j:
+                break
+            g[j] = 1.0 / self._r_pess(j)
+            num += e_j * g[j]
+            v_rest = (num - load_a) / sum(g.values())
+        return v_rest
+
+    def _release_isolated(self, meas: Measurements, t_s: float, events: list[Event]) -> None:
+        """Bring an isolated battery back when that is safe, or when the load needs it.
+
+        Not before ``t_iso_hold`` (unless forced), then the first that applies:
+
+        * take-over (``_take_over``, not while a charge diode conducts: R3 would then act on a
+          current the take-over has just changed): the highest isolated batteries, the fewest
+          that suffice and within ``v_co`` of one another, would carry the present load alone
+          (pessimistic R) ``v_iso_margin`` above every non-isolated battery's fast voltage minus
+          ``v_diode``; they discharge and the discharging ones stand by (R1 on the isolated
+          set). This is what keeps a higher isolated battery from waiting while the lower ones
+          drain, and its energy from being left behind;
+        * merge: with it engaged, the zero-load prediction puts at most ``i_merge`` into it and
+          at most ``i_guard`` into anyone (the load merge's test), or at least no more than
+          now into anyone (a battery between the engaged ones' fast voltages narrows a risk
+          the guard could not open, and then lets the guard open the victim);
+        * standby: at the present bus its charge diode stays off with ``v_iso_margin`` to
+          spare, so plain STANDBY (diode-OR) is safe and R2 / load merge take it from there;
+        * forced: the engaged batteries hold the bus less than ``v_reserve`` above cut-off (or
+          none is engaged): plain STANDBY whatever the risk (it feeds the bus through its
+          diode and R3 closes it): the load must stay supplied.
+        """
+        cfg = self.config
+        bats = self.state.batteries
+        iso = [k for k, b in enumerate(bats) if b.isolated_since_s is not None]
+        if not iso:
+            return
+        present = [bm.present for bm in meas.batteries]
+        load_a = sum(bm.current_a for bm, p in zip(meas.batteries, present, strict=True) if p)
+        # A diode conducting now (R3 pending) was driven by the present bus; a take-over would
+        # leave R3 acting on stale current. Wait until R3 has closed it.
+        diode_on = any(
+            p and bj.dsg_on and not bj.chg_on and meas.batteries[j].current_a > cfg.i_det
+            for j, (bj, p) in enumerate(zip(bats, present, strict=True))
+        )
+        if not diode_on and self._take_over(iso, meas, load_a, t_s, events):
+            return
+        for k in sorted(iso, key=lambda j: -self._e_fast(j, meas)):
+            b = bats[k]
+            since = b.isolated_since_s
+            if since is None:
+                continue
+            engaged = self._engaged()
+            # Bus estimate: the lowest engaged battery; with none engaged (R1 has just admitted
+            # batteries with their charge FETs open) the highest admitted one less a diode
+            # drop; with nobody admitted, nothing supplies the load but the diodes: forced.
+            admitted = [
+                meas.batteries[j].voltage_v
+                for j, bj in enumerate(bats)
+                if present[j] and bj.state is SeqState.DISCHARGING
+            ]
+            if engaged:
+                bus_v = min(meas.batteries[j].voltage_v for j in engaged)
+            elif admitted:
+                bus_v = max(admitted) - cfg.v_diode
+            else:
+                bus_v = -math.inf
+            forced = bus_v < self._v_cut() + cfg.v_reserve
+            if not forced and t_s - since + _EPS_S < cfg.t_iso_hold:
+                continue
+            if engaged:
+                pred = self._zero_load_into(sorted({*engaged, k}), meas)
+                worst = max(self._zero_load_into(engaged, meas).values())
+                if pred[k] <= cfg.i_merge and max(pred.values()) <= max(cfg.i_guard, worst):
+                    self._set(
+                        k,
+                        SeqState.DISCHARGING,
+                        True,
+                        t_s,
+                        events,
+                        kind="BatteryJoined",
+                        reason="isolation merge",
+                        data={"predicted_a": pred[k], "isolated_s": t_s - since},
+                    )
+                    continue
+            e_k = self._e_fast(k, meas)
+            quiet = bus_v >= e_k - cfg.v_diode + cfg.v_iso_margin
+            if not (quiet or forced):
+                continue
+            reason = "isolation ended" if quiet else "isolation forced"
+            self._set(k, SeqState.STANDBY, False, t_s, events)
+            b.released_at_s = t_s
+            events.append(
+                Event(
+                    t_s=t_s,
+                    kind="StateChanged",
+                    battery=k,
+                    message=f"battery {k}: {reason}, discharge FET on (STANDBY)",
+                    data={"from": "STANDBY", "to": "STANDBY", "reason": reason},
+                )
+            )
+
+    def _take_over(
+        self, iso: list[int], meas: Measurements, load_a: float, t_s: float, events: list[Event]
+    ) -> bool:
+        """Isolation take-over: the isolated batteries (highest fast voltage first, the fewest
+        that suffice) discharge and everybody else stands by, when that is safe.
+
+        A set ``T`` of isolated batteries held at least ``t_iso_hold`` qualifies when, carrying
+        the present load alone with pessimistic resistances (``_r_pess``), it holds the bus
+        ``v_iso_margin`` above every other battery's fast voltage minus ``v_diode`` (no charge
+        diode outside ``T`` conducts, so R3 cannot pull a lower battery back in under it) and
+        ``v_reserve`` above cut-off, and the batteries of ``T`` would not push more than
+        ``i_merge`` into one another at zero load. The discharging batteries outside ``T`` go to
+        plain STANDBY; the other isolated ones stay isolated until they merge with ``T`` (or
+        their diodes would stay off, or the load forces them back). This is R1 applied to the
+        isolated set; without it a higher isolated battery would wait
+        while the lower ones drain, and be left with its energy at the end.
+        """
+        cfg = self.config
+        bats = self.state.batteries
+        present = [bm.present for bm in meas.batteries]
+        ready = sorted(
+            (
+                k
+                for k in iso
+                if (since := bats[k].isolated_since_s) is not None
+                and t_s - since + _EPS_S >= cfg.t_iso_hold
+            ),
+            key=lambda j: -self._e_fast(j, meas),
+        )
+        for m in range(1, len(ready) + 1):
+            group = ready[:m]
+            g = {j: 1.0 / self._r_pess(j) for j in group}
+            e = {j: self._e_fast(j, meas) for j in group}
+            v_alone = (sum(e[j] * g[j] for j in group) - max(load_a, 0.0)) / sum(g.values())
+            e_rest = max(
+                (
+                    self._e_fast(j, meas)
+                    for j in range(len(bats))
+                    if present[j] and j not in group and bats[j].isolated_since_s is None
+                ),
+                default=-math.inf,
+            )
+            if max(e.values()) - min(e.values()) > cfg.v_co:
+                break
+            if v_alone < e_rest - cfg.v_diode + cfg.v_iso_margin:
+                continue
+            if v_alone < self._v_cut() + cfg.v_reserve:
+                continue
+            for j, bj in enumerate(bats):
+                if j in group or not present[j]:
+                    continue
+                if bj.state is SeqState.DISCHARGING:
+                    self._set(j, SeqState.STANDBY, False, t_s, events, reason="isolation take-over")
+            for j in group:
+                since = bats[j].isolated_since_s
+                self._set(
+                    j,
+                    SeqState.DISCHARGING,
+                    True,
+                    t_s,
+                    events,
+                    kind="BatteryJoined",
+                    reason="isolation take-over",
+                    data={
+                        "v_alone_v": v_alone,
+                        "e_rest_v": e_rest,
+                        "isolated_s": t_s - (since if since is not None else t_s),
+                    },
+                )
+                bats[j].conduct_since_s = None
+                bats[j].released_at_s = t_s
+            return True
+        return False
 
     def _r1(self, meas: Measurements, t_s: float, events: list[Event], reason: str) -> None:
         """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
@@ -715,6 +1044,9 @@ class SequencingController:
                 data={"v": volt[k], "v_ref": v_ref},
             )
 
+        # Source isolation [REC]: an isolated battery merges, takes over or is forced back.
+        self._release_isolated(meas, t, events)
+
         # Nobody admitted to discharge and no diode conducting: start over with R1.
         if not any(b.state is SeqState.DISCHARGING for b in bats) and not any(
             present[k] and cur[k] > cfg.i_det for k in range(len(bats))
@@ -730,7 +1062,11 @@ class SequencingController:
         v_ref = self._v_ref(meas)
         idle = all(abs(cur[k]) <= cfg.i_det for k in range(len(bats)) if present[k])
         if v_ref is not None:
-            standby = [k for k, b in enumerate(bats) if b.state is SeqState.STANDBY]
+            standby = [
+                k
+                for k, b in enumerate(bats)
+                if b.state is SeqState.STANDBY and b.isolated_since_s is None
+            ]
             for k in sorted(standby, key=lambda j: -volt[j]):
                 if k in demoted or volt[k] - v_ref < cfg.v_co:
                     continue
@@ -774,6 +1110,7 @@ class SequencingController:
                 for k, b in enumerate(bats)
                 if k not in demoted
                 and not b.chg_on
+                and b.isolated_since_s is None
                 and b.state in (SeqState.STANDBY, SeqState.DISCHARGING)
             ]
             for k in sorted(candidates, key=lambda j: -volt[j]):
@@ -806,6 +1143,7 @@ class SequencingController:
                 if k not in demoted
                 and present[k]
                 and not b.chg_on
+                and b.isolated_since_s is None
                 and b.state in (SeqState.STANDBY, SeqState.DISCHARGING)
             ]
             for k in sorted(candidates, key=lambda j: -volt[j]):
@@ -1022,6 +1360,7 @@ class SequencingController:
                 "seq_v_ref_v": [st.v_ref_v] * n,
                 "seq_zero_load_into_a": list(st.zero_load_into_a or [0.0] * n),
                 "seq_at_risk": [b.at_risk for b in bats],
+                "seq_isolated": [b.isolated_since_s is not None for b in bats],
                 "seq_diode_s": [
                     0.0
                     if b.conduct_since_s is None or st.last_t_s is None
