@@ -44,6 +44,7 @@ import numpy as np
 
 from packpilot.config import ScenarioConfig
 from packpilot.errors import InputError
+from packpilot.sim.lockstep import run_lockstep, stack_overrides, unsupported_reason
 from packpilot.sim.runner import Runner
 
 if TYPE_CHECKING:
@@ -54,6 +55,8 @@ META_KEY = b"packpilot.campaign"
 STEP_COST_S = 150e-6
 """Closed-loop CPU cost of one step of a 12-cell pack (measured 135-250 us on the dev box as
 the plant got faster; benchmarks/bench_campaign.py)."""
+LOCKSTEP_STEP_COST_S = 10e-6
+"""CPU cost of one pack-step of the same pack in a lockstep batch (TO MEASURE)."""
 PROCESS_BREAK_EVEN_S = 5.0
 """Estimated single-core work above which ``auto`` picks the process LocalCluster over the
 in-process synchronous scheduler. Measured on the 2-core dev box: the cluster costs ~1.5-2.5 s
@@ -253,40 +256,88 @@ def _non_finite(flat: Mapping[str, Any]) -> list[str]:
     return [k for k, v in flat.items() if isinstance(v, float) and not math.isfinite(v)]
 
 
+def _row(draw: Draw, metrics: Mapping[str, Any], wall_s: float) -> dict[str, Any]:
+    """A finished run's Parquet row: drawn parameters, status, flattened metrics."""
+    row: dict[str, Any] = asdict(draw)
+    flat = flatten_metrics(metrics)
+    bad = _non_finite(flat)
+    row.update(status="error" if bad else "ok", error=None)
+    if bad:
+        row["error"] = "non-finite metric(s): " + ", ".join(bad)
+    row["wall_time_s"] = wall_s
+    row.update(flat)
+    return row
+
+
+def _deliberate_failure(run: int) -> DeliberateFailure:
+    return DeliberateFailure(f"deliberate failure of run {run} ({FAIL_ENV})")
+
+
 def run_one(cfg: ScenarioConfig, draw: Draw, fail: bool = False) -> dict[str, Any]:
     """One closed-loop run with drawn parameters -> its Parquet row (never raises for the run)."""
-    row: dict[str, Any] = asdict(draw)
     t0 = time.perf_counter()
     hooks: list[Callable[[Runner, float], None]] = []
     if fail:
 
         def _boom(runner: Runner, t_s: float) -> None:
-            raise DeliberateFailure(f"deliberate failure of run {draw.run} ({FAIL_ENV})")
+            raise _deliberate_failure(draw.run)
 
         hooks.append(_boom)
     try:
         runner = Runner(cfg, progress=False, hooks=hooks, pack_overrides=draw.pack_overrides())
         result = runner.run()
-        flat = flatten_metrics(result.metrics)
-        bad = _non_finite(flat)
-        row.update(status="error" if bad else "ok", error=None)
-        if bad:
-            row["error"] = "non-finite metric(s): " + ", ".join(bad)
-        row["wall_time_s"] = time.perf_counter() - t0
-        row.update(flat)
+        return _row(draw, result.metrics, time.perf_counter() - t0)
     except Exception as err:  # a failing run is data, not a crash of the campaign
+        row: dict[str, Any] = asdict(draw)
         row.update(
             status="error",
             error=f"{type(err).__name__}: {err}".strip()[:2000],
             wall_time_s=time.perf_counter() - t0,
         )
-    return row
+        return row
+
+
+def run_lockstep_batch(
+    cfg: ScenarioConfig, draws: Sequence[Draw], fail_runs: frozenset[int] = frozenset()
+) -> list[dict[str, Any]] | None:
+    """The runs of ``draws`` as one lockstep batch (:mod:`packpilot.sim.lockstep`), or
+    ``None`` when that raised: the caller reruns them per pack, where a failing run fails alone.
+
+    ``wall_time_s`` of each row is the batch's wall time divided by its runs.
+    """
+    failing = [d.run for d in draws if d.run in fail_runs]
+
+    def hook(t_s: float) -> None:
+        raise _deliberate_failure(failing[0])
+
+    try:
+        res = run_lockstep(
+            cfg,
+            stack_overrides([d.pack_overrides() for d in draws]),
+            hook=hook if failing else None,
+        )
+    except Exception:  # any failure: rerun per pack, which isolates the failing run
+        return None
+    return [_row(d, met, met["wall_time_s"]) for d, met in zip(draws, res.metrics, strict=True)]
 
 
 def run_batch(
-    cfg: ScenarioConfig, draws: Sequence[Draw], fail_runs: frozenset[int] = frozenset()
+    cfg: ScenarioConfig,
+    draws: Sequence[Draw],
+    fail_runs: frozenset[int] = frozenset(),
+    lockstep: bool = True,
 ) -> list[dict[str, Any]]:
-    """The unit of work shipped to a worker: several runs, one row each (in ``draws`` order)."""
+    """The unit of work shipped to a worker: several runs, one row each (in ``draws`` order).
+
+    Scenarios the lockstep loop covers (``lockstep.unsupported_reason``) step the whole batch
+    through one vectorized plant and a batch controller; if that raises, or for any other
+    scenario, the runs go one by one through the per-pack :class:`Runner`, with the same
+    metrics.
+    """
+    if lockstep and draws and unsupported_reason(cfg) is None:
+        rows = run_lockstep_batch(cfg, draws, fail_runs)
+        if rows is not None:
+            return rows
     return [run_one(cfg, d, fail=d.run in fail_runs) for d in draws]
 
 
@@ -458,8 +509,17 @@ def _check_scheduler(text: str) -> str:
     )
 
 
-def default_batch(n_runs: int, workers: int) -> int:
-    """Enough runs per task to amortize scheduling, enough tasks (~4 per worker) to balance."""
+LOCKSTEP_MAX_BATCH = 256
+"""Largest lockstep batch: beyond ~128 packs the per-step NumPy/Python overhead is spread
+thin (bench_campaign), and a bigger batch only loses more work to an interruption."""
+
+
+def default_batch(n_runs: int, workers: int, lockstep: bool = False) -> int:
+    """Enough runs per task to amortize scheduling, enough tasks to balance: ~4 per worker
+    of at most 32 runs per-pack; ~2 per worker of at most ``LOCKSTEP_MAX_BATCH`` in lockstep,
+    where packs per batch is what makes a step cheap."""
+    if lockstep:
+        return max(1, min(LOCKSTEP_MAX_BATCH, math.ceil(n_runs / (2 * max(1, workers)))))
     return max(1, min(32, math.ceil(n_runs / (4 * max(1, workers)))))
 
 
@@ -477,6 +537,7 @@ def _run_threads(
     workers: int,
     done: BatchDone,
     sync: bool = False,
+    lockstep: bool = True,
 ) -> None:
     """Dask's local threaded (or synchronous) scheduler; each batch is stored as it finishes."""
     # dask's public API is untyped for mypy --strict: use it through Any.
@@ -485,7 +546,8 @@ def _run_threads(
 
     keys = {f"campaign-batch-{j}": b for j, b in enumerate(batches)}
     tasks = [
-        dask.delayed(run_batch, pure=False)(cfg, b, fail, dask_key_name=k) for k, b in keys.items()
+        dask.delayed(run_batch, pure=False)(cfg, b, fail, lockstep, dask_key_name=k)
+        for k, b in keys.items()
     ]
 
     def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
@@ -507,10 +569,11 @@ def _run_distributed(
     fail: frozenset[int],
     client: Any,
     done: BatchDone,
+    lockstep: bool = True,
 ) -> None:
     as_completed: Any = importlib.import_module("distributed").as_completed
 
-    futures = [client.submit(run_batch, cfg, b, fail, pure=False) for b in batches]
+    futures = [client.submit(run_batch, cfg, b, fail, lockstep, pure=False) for b in batches]
     try:
         for fut in as_completed(futures):
             done(fut.result())
@@ -552,12 +615,13 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
             client.close()
 
 
-def choose_scheduler(cfg: ScenarioConfig, n_runs: int, workers: int) -> str:
+def choose_scheduler(cfg: ScenarioConfig, n_runs: int, workers: int, lockstep: bool = False) -> str:
     """``auto``: processes when the estimated work pays for the cluster start, else in-process
     (``sync``; threads are slower than that here, see ``PROCESS_BREAK_EVEN_S``)."""
     steps = math.ceil(cfg.sim.duration_s / cfg.sim.dt_s)
     cells = sum(b.n_cells for b in cfg.pack.batteries)
-    work_s = n_runs * steps * STEP_COST_S * max(1.0, cells / 12.0) ** 0.5
+    cost = LOCKSTEP_STEP_COST_S if lockstep else STEP_COST_S
+    work_s = n_runs * steps * cost * max(1.0, cells / 12.0) ** 0.5
     return "processes" if workers > 1 and work_s > PROCESS_BREAK_EVEN_S else "sync"
 
 
@@ -577,6 +641,8 @@ class CampaignReport:
     workers: int
     batch: int
     summary: list[dict[str, Any]] = field(default_factory=list)
+    engine: str = "per-pack"
+    """``lockstep`` (batches through one vectorized plant) or ``per-pack`` (and why)."""
 
     @property
     def runs_per_s(self) -> float:
@@ -607,6 +673,7 @@ def run_campaign(
     client: Any = None,
     on_progress: Callable[[int, int], None] | None = None,
     fail_runs: Iterable[int] | None = None,
+    lockstep: bool = True,
 ) -> CampaignReport:
     """Run (or complete, with ``resume``) a campaign of ``runs`` runs and consolidate ``out``.
 
@@ -615,7 +682,9 @@ def run_campaign(
     Dask scheduler address (``tcp://host:8786``); or pass a ``distributed.Client`` as
     ``client``. ``limit`` computes at most that many of the missing runs (a partial campaign
     that ``resume`` completes later). ``on_progress(done, total)`` is called after each batch.
-    ``fail_runs`` defaults to ``PACKPILOT_CAMPAIGN_FAIL_RUNS``.
+    ``fail_runs`` defaults to ``PACKPILOT_CAMPAIGN_FAIL_RUNS``. ``lockstep=False`` runs every
+    run through the per-pack :class:`Runner` even where the lockstep batch applies (same
+    metrics, slower: for comparison).
     """
     if runs < 1:
         raise InputError(f"--runs must be >= 1 (got {runs})")
@@ -641,9 +710,12 @@ def run_campaign(
     if limit is not None:
         missing = missing[: max(0, limit)]
     draws = make_draws(sp, seed, missing, cfg.pack.ambient_c)
+    why_not = "disabled" if not lockstep else unsupported_reason(cfg)
+    vectorized = why_not is None
+    engine = "lockstep" if vectorized else f"per-pack: {why_not}"
     if sched == "auto":
-        sched = choose_scheduler(cfg, len(draws), n_workers)
-    size = batch or default_batch(len(draws), 1 if sched == "sync" else n_workers)
+        sched = choose_scheduler(cfg, len(draws), n_workers, vectorized)
+    size = batch or default_batch(len(draws), 1 if sched == "sync" else n_workers, vectorized)
     batches = _batches(draws, size)
 
     computed = 0
@@ -660,12 +732,12 @@ def run_campaign(
     t0 = time.perf_counter()
     if batches:
         if sched in ("threads", "sync"):
-            _run_threads(cfg, batches, fail, n_workers, done, sync=sched == "sync")
+            _run_threads(cfg, batches, fail, n_workers, done, sched == "sync", lockstep)
         elif sched == "client":
-            _run_distributed(cfg, batches, fail, client, done)
+            _run_distributed(cfg, batches, fail, client, done, lockstep)
         else:
             with _client_for(sched, n_workers) as cl:
-                _run_distributed(cfg, batches, fail, cl, done)
+                _run_distributed(cfg, batches, fail, cl, done, lockstep)
     wall = time.perf_counter() - t0
     table = store.consolidate()
     status = table.column("status").to_pylist() if table.num_rows else []
@@ -681,6 +753,7 @@ def run_campaign(
         workers=1 if sched == "sync" else n_workers,
         batch=size,
         summary=summarize(table),
+        engine=engine,
     )
 
 
@@ -790,6 +863,7 @@ def report_to_dict(report: CampaignReport, png: Path | None = None) -> dict[str,
         "scheduler": report.scheduler,
         "workers": report.workers,
         "batch": report.batch,
+        "engine": report.engine,
         "summary": {
             r["metric"]: {k: r[k] for k in ("n", "p5", "p50", "p95")} for r in report.summary
         },
@@ -815,7 +889,7 @@ def print_summary(report: CampaignReport, console: Any = None) -> None:
     )
     con.print(
         f"{report.runs_per_s:.2f} runs/s ({report.scheduler}, {report.workers} worker(s),"
-        f" batch {report.batch})"
+        f" batch {report.batch}, {report.engine})"
     )
     if report.failures:
         import pyarrow.compute as pc

@@ -1,0 +1,277 @@
+"""Many packs in lockstep: one vectorized plant step, batch sensors, a batch controller.
+
+A campaign runs one scenario many times with drawn parameters. Per-pack closed loops spend
+almost all their time in Python overhead (sensors, per-step samples, a controller written for
+one pack), so they cannot reach thousands of one-hour missions on two cores. Here the packs of
+a batch share one :class:`~packpilot.model.pack.Pack` with ``n_packs = P`` (per-pack capacity,
+resistance, SOC and ambient from the draws), their sensors are a few array reductions, their
+controller is a batch twin that steps all packs at once, and the run metrics are accumulated
+step by step instead of from a list of samples.
+
+The contract is :func:`packpilot.sim.runner.compute_metrics`: for every pack, the metrics equal
+those of a per-pack :class:`~packpilot.sim.runner.Runner` run with the same draw (summation
+order aside; ``tests/test_lockstep.py``). Scenarios the lockstep loop does not cover (see
+:func:`unsupported_reason`) run per pack; callers fall back to that path on any exception, so
+one bad run never costs the others their result.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.config import ScenarioConfig, validate_section
+from packpilot.control.sequencing import SequencingConfig
+from packpilot.model.pack import Pack
+from packpilot.sim.runner import load_profile
+from packpilot.sim.sensors import pack_info, traction_indices
+
+if TYPE_CHECKING:
+    from packpilot.control.sequencing_batch import BatchSequencing
+
+Array = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+BATCH_METHODS: frozenset[str] = frozenset({"sequencing"})
+"""Methods with a batch twin. A scenario with no method at all runs in lockstep too."""
+
+
+class StepHook(Protocol):
+    """Called before every control step with the step's time (test knob for failures)."""
+
+    def __call__(self, t_s: float) -> None: ...
+
+
+def unsupported_reason(cfg: ScenarioConfig) -> str | None:
+    """Why ``cfg`` cannot run in lockstep (``None``: it can).
+
+    Covered: the methods in :data:`BATCH_METHODS` (or none), no supervisor / safety layers,
+    no charger (its link is a per-pack protocol), no fault schedule. Everything else runs
+    per pack, with the same results, only slower.
+    """
+    other = [m for m in cfg.controller if m not in BATCH_METHODS]
+    if other:
+        return f"no batch twin for {', '.join(other)}"
+    if len(cfg.controller) > 1:
+        return "more than one method"
+    if cfg.supervised:
+        return "supervisor / safety layers run per pack"
+    if cfg.charger.present:
+        return "charger link runs per pack"
+    if cfg.faults:
+        return "fault schedules run per pack"
+    return None
+
+
+@dataclass
+class _Metrics:
+    """Running summaries of P packs: what ``compute_metrics`` derives from the samples."""
+
+    n_packs: int
+    n_strings: int
+    traction: list[int]
+    steps: NDArray[np.int64] = field(init=False)
+    energy_out: Array = field(init=False)
+    energy_in: Array = field(init=False)
+    min_cell_v: Array = field(init=False)
+    max_cell_v: Array = field(init=False)
+    max_temp_c: Array = field(init=False)
+    final_soc: Array = field(init=False)
+    peak_abs: Array = field(init=False)
+    peak_val: Array = field(init=False)
+    peak_cross: Array = field(init=False)
+    unsupplied_steps: NDArray[np.int64] = field(init=False)
+    events: list[Counter[str]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        P, S = self.n_packs, self.n_strings
+        self.steps = np.zeros(P, np.int64)
+        self.energy_out = np.zeros(P)
+        self.energy_in = np.zeros(P)
+        self.min_cell_v = np.full(P, np.nan)
+        self.max_cell_v = np.full(P, np.nan)
+        self.max_temp_c = np.full(P, np.nan)
+        self.final_soc = np.full((P, S), np.nan)
+        self.peak_abs = np.full((P, S), -1.0)
+        self.peak_val = np.zeros((P, S))
+        self.peak_cross = np.zeros(P)
+        self.unsupplied_steps = np.zeros(P, np.int64)
+        self.events = [Counter() for _ in range(P)]
+
+
+@dataclass
+class LockstepResult:
+    """Per-pack metrics (``compute_metrics`` layout) of one lockstep batch."""
+
+    metrics: list[dict[str, Any]]
+    wall_time_s: float
+
+
+def _controller(cfg: ScenarioConfig, pack: Pack) -> BatchSequencing | None:
+    if not cfg.controller:
+        return None
+    from packpilot.control.sequencing_batch import BatchSequencing
+
+    seq_cfg = validate_section("sequencing", cfg.sequencing, "<config>")
+    assert isinstance(seq_cfg, SequencingConfig)
+    return BatchSequencing(seq_cfg, pack_info(pack), pack.n_packs)
+
+
+def run_lockstep(
+    cfg: ScenarioConfig,
+    overrides: dict[str, Array],
+    hook: StepHook | None = None,
+) -> LockstepResult:
+    """Run ``P`` packs of ``cfg`` in lockstep; ``overrides`` are ``Pack`` keyword arrays of
+    shape (P,) (``capacity_scale``, ``r_scale``, ``soc_offset``, ``ambient_c``).
+
+    Raises ``ValueError`` for a scenario :func:`unsupported_reason` rejects. Any exception
+    inside the loop propagates: the caller reruns the batch per pack.
+    """
+    import time
+
+    reason = unsupported_reason(cfg)
+    if reason is not None:
+        raise ValueError(f"scenario cannot run in lockstep: {reason}")
+    sizes = {len(v) for v in overrides.values()}
+    if len(sizes) != 1:
+        raise ValueError(f"override arrays must share one length, got sizes {sorted(sizes)}")
+    n_packs = sizes.pop()
+    wall0 = time.perf_counter()
+    pack = Pack(cfg, n_packs=n_packs, **overrides)
+    P, S = pack.n_packs, pack.n_strings
+    traction = traction_indices(pack)
+    tr = np.array(traction, dtype=np.intp)
+    controller = _controller(cfg, pack)
+    profile = load_profile(cfg)
+    dt = cfg.sim.dt_s
+    n_steps = math.ceil(cfg.sim.duration_s / dt - 1e-9)
+    stop_s = cfg.sim.stop_when_unsupplied_s
+    starts = pack.string_cell_starts
+    cap = pack.capacity_ah
+    full = np.minimum.reduceat(cap, starts, axis=1)
+    m = _Metrics(P, S, traction)
+    running = np.ones(P, bool)
+    was_supplied = np.ones(P, bool)
+    unsupplied_s = np.zeros(P)
+    joule = np.zeros(P)
+    chg_diode = np.zeros((P, S))
+    dsg_diode = np.zeros((P, S))
+    kinds = controller.KINDS if controller is not None else ()
+
+    def freeze(mask: BoolArray) -> None:
+        """Snapshot the plant's ledgers of packs that stop now (the plant steps on)."""
+        joule[mask] = pack.joule_j[mask].sum(axis=1)
+        chg_diode[mask] = pack.chg_diode_j[mask]
+        dsg_diode[mask] = pack.dsg_diode_j[mask]
+
+    for _ in range(n_steps):
+        if not running.any():
+            break
+        t = pack.t_s
+        if hook is not None:
+            hook(t)
+        if controller is not None:
+            cell_v = pack.cell_voltage_now()
+            volts = np.add.reduceat(cell_v, starts, axis=1)[:, tr]
+            current = pack.string_a[:, tr]
+            present = pack.present()[:, tr]
+            docked = pack.charger_connected(t)
+            out = controller.step(t, volts, current, present, docked, dt)
+            chg = pack.chg_on.copy()
+            dsg = pack.dsg_on.copy()
+            chg[:, tr] = out.chg_on
+            dsg[:, tr] = out.dsg_on
+            pack.set_gates(chg, dsg)
+            for p, kind in zip(out.event_pack.tolist(), out.event_kind.tolist(), strict=True):
+                if running[p]:
+                    m.events[p][kinds[kind]] += 1
+        value = profile.at(t - cfg.load.start_s) if t >= cfg.load.start_s else 0.0
+        iv = pack.step(dt, profile.kind, np.full(P, value))
+        supplied = iv.supplied
+        run = running
+        for p in np.nonzero(run & (supplied != was_supplied))[0].tolist():
+            m.events[p]["LoadResupplied" if supplied[p] else "LoadUnsupplied"] += 1
+        was_supplied = np.where(run, supplied, was_supplied)
+        unsupplied_s = np.where(supplied, 0.0, unsupplied_s + dt)
+        # Metrics of the step just taken (compute_metrics' definitions, per pack).
+        m.steps += run
+        m.energy_out += np.where(run, iv.bus_v * iv.load_a, 0.0)
+        m.energy_in += np.where(run, iv.charger_v * iv.charger_a, 0.0)
+        cv = iv.cell_v
+        # nanmin / nanmax over the strings, as compute_metrics (fmin/fmax skip NaN).
+        lo = np.fmin.reduce(np.minimum.reduceat(cv, starts, axis=1), axis=1)
+        hi = np.fmax.reduce(np.maximum.reduceat(cv, starts, axis=1), axis=1)
+        m.min_cell_v = np.where(run, np.fmin(m.min_cell_v, lo), m.min_cell_v)
+        m.max_cell_v = np.where(run, np.fmax(m.max_cell_v, hi), m.max_cell_v)
+        soc, temp = pack.cell_states()
+        tmax = np.fmax.reduce(np.maximum.reduceat(temp, starts, axis=1), axis=1)
+        m.max_temp_c = np.where(run, np.fmax(m.max_temp_c, tmax), m.max_temp_c)
+        rem = np.minimum.reduceat(soc * cap, starts, axis=1)
+        m.final_soc = np.where(run[:, None], rem / full, m.final_soc)
+        cur = iv.string_a
+        bigger = run[:, None] & (np.abs(cur) > m.peak_abs)
+        m.peak_abs = np.where(bigger, np.abs(cur), m.peak_abs)
+        m.peak_val = np.where(bigger, cur, m.peak_val)
+        supplying = run & (iv.load_a > 1e-3) & (iv.charger_a < 1e-3)
+        into = np.max(np.maximum(-cur[:, tr], 0.0), axis=1, initial=0.0)
+        m.peak_cross = np.where(supplying, np.maximum(m.peak_cross, into), m.peak_cross)
+        demand = iv.load_demand_a
+        short = (demand > 1e-9) & (iv.load_a < demand - 1e-6)
+        m.unsupplied_steps += run & short
+        if stop_s is not None:
+            stopping = run & (unsupplied_s >= stop_s)
+            if stopping.any():
+                freeze(stopping)
+                running = running & ~stopping
+    freeze(running)
+    wall = time.perf_counter() - wall0
+    names = list(pack.names)
+    metrics = []
+    for p in range(P):
+        n = int(m.steps[p])
+        metrics.append(
+            {
+                "sim_time_s": float(n * dt),
+                "wall_time_s": wall / P,
+                "steps": n,
+                "energy_out_wh": float(m.energy_out[p] * dt / 3600.0),
+                "energy_in_wh": float(m.energy_in[p] * dt / 3600.0),
+                "min_cell_v": float(m.min_cell_v[p]),
+                "max_cell_v": float(m.max_cell_v[p]),
+                "max_temp_c": float(m.max_temp_c[p]),
+                "final_soc": [float(x) for x in m.final_soc[p]],
+                "peak_string_current_a": [float(x) for x in m.peak_val[p]],
+                "peak_cross_current_a": float(m.peak_cross[p]),
+                "joule_heat_j": float(joule[p]),
+                "load_unsupplied_s": float(m.unsupplied_steps[p] * dt),
+                "chg_diode_energy_j": [float(x) for x in chg_diode[p]],
+                "dsg_diode_energy_j": [float(x) for x in dsg_diode[p]],
+                "events": dict(m.events[p]),
+                "battery_names": names,
+            }
+        )
+    return LockstepResult(metrics, wall)
+
+
+def stack_overrides(draws: Sequence[dict[str, Array]]) -> dict[str, Array]:
+    """Per-run ``Pack`` overrides (arrays of length 1) -> one dict of (P,) arrays."""
+    keys = list(draws[0])
+    return {
+        k: np.concatenate([np.asarray(d[k], np.float64).reshape(1) for d in draws]) for k in keys
+    }
+
+
+__all__ = [
+    "BATCH_METHODS",
+    "LockstepResult",
+    "run_lockstep",
+    "stack_overrides",
+    "unsupported_reason",
+]

@@ -1,0 +1,177 @@
+"""Lockstep batches (many packs through one vectorized plant and a batch controller) give, per
+pack, the metrics of a per-pack closed-loop run with the same draw."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from packpilot.config import ScenarioConfig, load_config, parse_config
+from packpilot.sim.campaign import (
+    Draw,
+    draw_run,
+    flatten_metrics,
+    parse_spreads,
+    run_batch,
+    run_lockstep_batch,
+    run_one,
+)
+from packpilot.sim.lockstep import run_lockstep, stack_overrides, unsupported_reason
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+SPREAD = parse_spreads("capacity=5%,r0=10%,soc0=0.05,ambient_c=-10:35")
+ID_KEYS = {"run", "seed", "capacity_scale", "r0_scale", "soc0_offset", "ambient_c"}
+
+
+def _mission(duration_s: float, controller: list[str]) -> ScenarioConfig:
+    """The campaign benchmark's mission: two 6S batteries 2 V apart, 20 A."""
+    return parse_config(
+        {
+            "controller": controller,
+            "pack": {
+                "cell": "ecm_example",
+                "switch": {"kind": "mosfet_pair", "on_ohm": 0.0001},
+                "batteries": [
+                    {"name": "A", "cells_per_group": 6, "ocv0_v": 24.2, "resistance_ohm": 0.02},
+                    {"name": "B", "cells_per_group": 6, "ocv0_v": 22.2, "resistance_ohm": 0.02},
+                ],
+            },
+            "load": {"kind": "current", "value": 20.0},
+            "sim": {"dt_s": 0.1, "duration_s": duration_s, "progress": False},
+        }
+    )
+
+
+def _example(name: str, duration_s: float | None = None) -> ScenarioConfig:
+    cfg = load_config(EXAMPLES / name)
+    sim = cfg.sim.model_copy(update={"progress": False})
+    if duration_s is not None:
+        sim = sim.model_copy(update={"duration_s": duration_s})
+    return cfg.model_copy(update={"sim": sim})
+
+
+def _assert_rows_match(rows: list[dict[str, Any]], ref: list[dict[str, Any]]) -> None:
+    for row, want in zip(rows, ref, strict=True):
+        assert row["status"] == want["status"] == "ok", (row.get("error"), want.get("error"))
+        keys = (set(row) | set(want)) - {"wall_time_s", "status", "error"}
+        for k in sorted(keys):
+            a, b = row.get(k, 0), want.get(k, 0)  # absent event count = 0
+            if isinstance(b, float) and math.isnan(b):
+                assert isinstance(a, float) and math.isnan(a), k
+            else:
+                assert a == pytest.approx(b, rel=1e-9, abs=1e-12), (k, a, b, row["run"])
+
+
+def _compare(cfg: ScenarioConfig, draws: list[Draw]) -> list[dict[str, Any]]:
+    rows = run_lockstep_batch(cfg, draws)
+    assert rows is not None
+    _assert_rows_match(rows, [run_one(cfg, d) for d in draws])
+    return rows
+
+
+def test_no_controller_pack_matches_per_pack_runs() -> None:
+    """Directly paralleled batteries (no method): cross-charging, drawn spreads per pack."""
+    cfg = _mission(120.0, [])
+    rows = _compare(cfg, [draw_run(SPREAD, 3, i, 25.0) for i in range(5)])
+    assert len({r["capacity_scale"] for r in rows}) == 5
+    assert max(r["peak_cross_current_a"] for r in rows) > 5.0  # the plant really cross-charges
+
+
+def test_sequencing_mission_matches_per_pack_runs() -> None:
+    cfg = _mission(120.0, ["sequencing"])
+    rows = _compare(cfg, [draw_run(SPREAD, 4, i, 25.0) for i in range(6)])
+    assert all(r.get("events_StateChanged", 0) + r.get("events_BatteryJoined", 0) > 0 for r in rows)
+
+
+@pytest.mark.parametrize(
+    ("name", "duration_s"),
+    [
+        ("sequencing_dual_hover.toml", None),
+        ("sequencing_four_spread.toml", 300.0),
+        ("sequencing_hot_insert.toml", 400.0),
+    ],
+)
+def test_sequencing_examples_match_per_pack_runs(name: str, duration_s: float | None) -> None:
+    """The spec scenarios with drawn spreads; dual_hover runs to its brown-out stop, so packs
+    leave the batch at different times (``stop_when_unsupplied_s``)."""
+    cfg = _example(name, duration_s)
+    spread = parse_spreads("capacity=8%,r0=10%,soc0=0.04")
+    draws = [draw_run(spread, 7, i, cfg.pack.ambient_c) for i in range(4)]
+    rows = _compare(cfg, draws)
+    if duration_s is None:
+        steps = {r["steps"] for r in rows}
+        assert len(steps) > 1, "packs should stop at different times"
+        assert all(r["sim_time_s"] < cfg.sim.duration_s for r in rows)
+
+
+def test_batch_of_one_equals_member_of_a_batch() -> None:
+    cfg = _mission(60.0, ["sequencing"])
+    draws = [draw_run(SPREAD, 5, i, 25.0) for i in range(3)]
+    many = run_lockstep(cfg, stack_overrides([d.pack_overrides() for d in draws])).metrics
+    one = run_lockstep(cfg, stack_overrides([draws[1].pack_overrides()])).metrics[0]
+    assert flatten_metrics(one) == flatten_metrics(many[1])
+
+
+def test_failing_run_in_a_lockstep_batch_is_recorded_and_the_others_finish() -> None:
+    """A run that raises aborts the lockstep batch; the batch reruns per pack, where only that
+    run fails, and the others give the lockstep figures."""
+    cfg = _mission(30.0, ["sequencing"])
+    draws = [draw_run(SPREAD, 6, i, 25.0) for i in range(4)]
+    assert run_lockstep_batch(cfg, draws, frozenset({2})) is None
+    rows = run_batch(cfg, draws, frozenset({2}))
+    assert [r["status"] for r in rows] == ["ok", "ok", "error", "ok"]
+    assert "DeliberateFailure" in rows[2]["error"]
+    ok = [d for d in draws if d.run != 2]
+    _assert_rows_match([r for r in rows if r["status"] == "ok"], run_lockstep_batch(cfg, ok) or [])
+
+
+def test_non_finite_pack_is_an_error_row_and_leaves_the_others_alone() -> None:
+    """A pack whose state goes non-finite (here: zero-resistance cells, 0/0 in the bus solve
+    would be caught earlier, so a NaN ambient) is flagged alone."""
+    cfg = _mission(10.0, ["sequencing"])
+    draws = [draw_run(SPREAD, 8, i, 25.0) for i in range(3)]
+    over = stack_overrides([d.pack_overrides() for d in draws])
+    over["ambient_c"] = over["ambient_c"].copy()
+    over["ambient_c"][1] = np.nan
+    res = run_lockstep(cfg, over)
+    flat = [flatten_metrics(m) for m in res.metrics]
+    assert not math.isfinite(flat[1]["max_temp_c"])
+    for i in (0, 2):
+        assert all(math.isfinite(v) for v in flat[i].values() if isinstance(v, float))
+        ref = run_lockstep(cfg, stack_overrides([draws[i].pack_overrides()])).metrics[0]
+        assert flatten_metrics(ref) == flat[i]
+
+
+@pytest.mark.parametrize(
+    ("name", "reason"),
+    [
+        ("protection_cold_heavy.toml", "no batch twin for protection"),
+        ("evtol_charging.toml", "no batch twin for charging"),
+        ("uav_mission.toml", "no batch twin"),
+        ("sequencing_dual_hover.toml", None),
+        ("smart_battery.toml", None),
+    ],
+)
+def test_unsupported_scenarios_are_named(name: str, reason: str | None) -> None:
+    got = unsupported_reason(_example(name))
+    if reason is None:
+        assert got is None
+    else:
+        assert got is not None and reason in got
+        with pytest.raises(ValueError, match="cannot run in lockstep"):
+            run_lockstep(_example(name, 1.0), {"ambient_c": np.array([20.0])})
+
+
+def test_unsupported_scenario_batch_runs_per_pack() -> None:
+    cfg = _example("protection_warm_light.toml", 20.0)
+    draws = [draw_run({}, 0, i, cfg.pack.ambient_c) for i in range(2)]
+    rows = run_batch(cfg, draws)
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert rows == [
+        run_one(cfg, d) | {"wall_time_s": r["wall_time_s"]}
+        for d, r in zip(draws, rows, strict=True)
+    ]
