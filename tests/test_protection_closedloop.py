@@ -65,12 +65,9 @@ def test_warm_light_rest_ocv_not_below_conservative_minus_10_mv() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="measured +13.4 % on uav_5ah with its physical thermal set (120.75 J/K, 0.091 W/K "
-    "to air): the conservative baseline leaves ~12 % SOC (low cell DCIR, self-heating from "
-    "-10 to +11 degC); delivering until the weakest cell is empty would give only +11.0 %, so "
-    "+15 % needs over-discharge (method: min cell 2.450 V, rest OCV 2.849 V, SOC -1.2 %). "
-    "Knife edge: ambient -1 degC or initial SOC -2 % moves the baseline's trip into the "
-    "410-420 s burst (+20-21 %), still only by over-discharge. The cell's Arrhenius law (20 "
+    reason="measured +13.7 % on uav_5ah: the conservative baseline leaves only ~12 % SOC "
+    "(low cell DCIR, self-heating from -10 degC); delivering until the weakest cell is empty "
+    "would give only +11.3 %, so +15 % needs over-discharge. The cell's Arrhenius law (20 "
     "kJ/mol) was checked against PyBaMM's physics sets and kept; see "
     "docs/discharge_protection.md",
 )
