@@ -55,8 +55,9 @@ META_KEY = b"packpilot.campaign"
 STEP_COST_S = 150e-6
 """Closed-loop CPU cost of one step of a 12-cell pack (measured 135-250 us on the dev box as
 the plant got faster; benchmarks/bench_campaign.py)."""
-LOCKSTEP_STEP_COST_S = 10e-6
-"""CPU cost of one pack-step of the same pack in a lockstep batch (TO MEASURE)."""
+LOCKSTEP_STEP_COST_S = 6e-6
+"""CPU cost of one pack-step in a lockstep batch of that 12-cell pack (measured 4.5 us at
+256 packs per batch, 5.2 at 128, 9.8 at 32 on the 2-core dev box; bench_campaign)."""
 PROCESS_BREAK_EVEN_S = 5.0
 """Estimated single-core work above which ``auto`` picks the process LocalCluster over the
 in-process synchronous scheduler. Measured on the 2-core dev box: the cluster costs ~1.5-2.5 s
