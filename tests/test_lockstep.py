@@ -175,3 +175,32 @@ def test_unsupported_scenario_batch_runs_per_pack() -> None:
         run_one(cfg, d) | {"wall_time_s": r["wall_time_s"]}
         for d, r in zip(draws, rows, strict=True)
     ]
+
+
+def test_default_batch_sizes() -> None:
+    from packpilot.sim.campaign import LOCKSTEP_MAX_BATCH, default_batch
+
+    assert default_batch(1000, 2) == 32  # per pack: ~4 tasks per worker, at most 32
+    assert default_batch(1000, 2, lockstep=True) == 125
+    assert default_batch(100_000, 2, lockstep=True) == LOCKSTEP_MAX_BATCH
+    assert default_batch(8, 1, lockstep=True) == 8  # small campaigns: one batch, not 4 of 2
+    assert default_batch(40, 2, lockstep=True) == 16
+
+
+def test_campaign_reports_its_engine(tmp_path: Path) -> None:
+    from packpilot.sim.campaign import run_campaign
+
+    rep = run_campaign(_mission(5.0, ["sequencing"]), 3, tmp_path / "a.parquet", scheduler="sync")
+    assert rep.engine == "lockstep" and rep.failures == 0
+    per = run_campaign(
+        _mission(5.0, ["sequencing"]), 3, tmp_path / "b.parquet", scheduler="sync", lockstep=False
+    )
+    assert per.engine == "per-pack: disabled"
+    assert set(rep.table.column_names) == set(per.table.column_names)
+    for c in rep.table.column_names:
+        if c == "wall_time_s":
+            continue
+        for a, b in zip(rep.table[c].to_pylist(), per.table[c].to_pylist(), strict=True):
+            assert a == (pytest.approx(b, rel=1e-9) if isinstance(b, float) else b), c
+    prot = run_campaign(_example("protection_warm_light.toml", 2.0), 1, tmp_path / "c.parquet")
+    assert prot.engine == "per-pack: no batch twin for protection"
