@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import copy
 import math
+from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,6 +60,8 @@ CONFIGS = {
         t_iso_hold=0.2,
         r_loop_ohm=0.2,
     ),
+    # Charging current must persist 3 s before charge mode: discharge rules see negative loads.
+    "slow_mode": SequencingConfig(t_mode=3.0, t_iso_hold=0.1, t_rest=0.05, i_guard=0.6),
 }
 
 
@@ -149,14 +153,16 @@ class Case:
     docked: np.ndarray  # (T, P)
 
 
-LEVELS = np.array([19.0, 20.5, 21.0, 21.02, 21.3, 21.6, 22.0, 22.5, 23.0, 24.0])
+LEVELS = np.array([19.0, 20.0, 20.3, 20.6, 21.0, 21.02, 21.3, 21.6, 22.0, 22.5, 23.0, 24.0])
+OFFSETS = np.array([0.0, 0.0, 0.0, 0.005, 0.01, 0.03, 0.06, 0.2, 0.35, 0.6, 1.0])
 CURRENTS = np.array([0.0, 0.0, 0.0, 0.2, -0.2, 0.7, 1.5, 3.0, 8.0, 15.0, 25.0, -0.8, -3.0, -10.0])
 
 
 def gen_case(rng: np.random.Generator, n: int, config: str, n_packs: int, steps: int) -> Case:
-    """A random sequence per pack: voltages around a few levels (so spreads straddle v_th,
-    v_co, v_merge and the guard limits), currents of both signs, presence and docking flips,
-    rare NaN/inf/negative inputs, and a common time axis with repeats and backward steps."""
+    """A random sequence per pack: voltages around a few levels or clustered (so spreads
+    straddle v_th, v_co, v_merge and the guard limits), currents of both signs with idle
+    stretches, presence and docking flips, rare NaN/inf/negative inputs, and a common time axis
+    with repeats, gaps and backward steps."""
     dt0 = float(rng.choice([0.02, 0.05, 0.1, 0.2]))
     t = np.empty(steps)
     dt = np.full(steps, dt0)
@@ -184,13 +190,21 @@ def gen_case(rng: np.random.Generator, n: int, config: str, n_packs: int, steps:
     pres = np.empty((steps, n_packs, n), bool)
     dock = np.empty((steps, n_packs), bool)
     for p in range(n_packs):
-        base = rng.choice(LEVELS, size=n) + rng.normal(0.0, 0.05, size=n)
+        if rng.random() < 0.5:  # clustered: one level plus small or large offsets
+            base = rng.choice(LEVELS) + rng.choice(OFFSETS, size=n)
+        else:
+            base = rng.choice(LEVELS, size=n) + rng.normal(0.0, 0.05, size=n)
         present = rng.random(n) < 0.85
         present[0] = True
         i_now = rng.choice(CURRENTS, size=n)
         docked = rng.random() < 0.1
         hold = int(rng.integers(1, 12))  # how long currents persist (R3/R4 debounce)
         p_nan = float(rng.choice([0.0, 0.005, 0.02]))
+        noise = float(rng.choice([0.0005, 0.003, 0.01]))
+        r_true = rng.choice([0.01, 0.02, 0.02, 0.04], size=n)
+        # ADC resolution (V, A): quantised samples make exact ties (sort order, first maximum).
+        q_v, q_i = [(0.0, 0.0), (0.01, 0.1), (0.05, 0.5)][int(rng.integers(3))]
+        twin = int(rng.integers(n - 1)) if n >= 2 and rng.random() < 0.3 else -1
         for i in range(steps):
             if rng.random() < 0.04:
                 present[rng.integers(n)] ^= True
@@ -198,13 +212,19 @@ def gen_case(rng: np.random.Generator, n: int, config: str, n_packs: int, steps:
                 docked = not docked
             if rng.random() < 0.05:
                 base[rng.integers(n)] = rng.choice(LEVELS)
-            base -= 0.002 * np.maximum(i_now, 0.0) * rng.random(n)
+            base -= 0.0002 * np.maximum(i_now, 0.0) * rng.random(n)
             if i % hold == 0:
                 i_now = rng.choice(CURRENTS, size=n) * rng.choice([1.0, 1.0, 0.3])
-                if rng.random() < 0.3:  # co-discharge: currents share the sign
+                u = rng.random()
+                if u < 0.3:  # co-discharge: currents share the sign
                     i_now = np.abs(i_now)
-            v = base - 0.02 * i_now + rng.normal(0.0, 0.01, size=n)
+                elif u < 0.45:  # rest
+                    i_now = np.zeros(n)
+            v = base - r_true * i_now + rng.normal(0.0, noise, size=n)
             c = i_now + rng.normal(0.0, 0.05, size=n)
+            if q_v:
+                v = np.round(v / q_v) * q_v
+                c = np.round(c / q_i) * q_i
             for k in range(n):
                 if rng.random() < p_nan:
                     if rng.random() < 0.5:
@@ -214,6 +234,8 @@ def gen_case(rng: np.random.Generator, n: int, config: str, n_packs: int, steps:
                 if not present[k] and rng.random() < 0.5:
                     v[k] = math.nan  # an absent battery's reading is not validated
                     c[k] = math.nan
+            if twin >= 0:  # battery n-1 is an exact copy of battery twin: ties everywhere
+                v[n - 1], c[n - 1], present[n - 1] = v[twin], c[twin], present[twin]
             volt[i, p], cur[i, p], pres[i, p], dock[i, p] = v, c, present, docked
     return Case(n, config, t, dt, volt, cur, pres, dock)
 
@@ -230,15 +252,29 @@ def _meas(case: Case, i: int, p: int) -> Measurements:
     )
 
 
-def run_case(case: Case) -> dict[str, int]:
-    """Step the batch and one scalar controller per pack; compare after every step. Returns the
-    scalar event counts per kind."""
+def _reason(kind: str, data: Mapping[str, float | int | str | bool | None]) -> str:
+    """Which rule produced a scalar event (its ``reason``, diode path or fault class)."""
+    if kind in ("DiodeBypassed", "ReverseCurrent"):
+        return str(data.get("path", "chg"))
+    if kind in ("Fault", "FaultCleared"):
+        return FAULT_REASONS[_fault_code(str(data["reason"]))]
+    reason = str(data.get("reason", ""))
+    if reason.startswith("R1 battery"):
+        return "R1 battery k inserted"
+    if kind in ("SourceIsolated", "CrossCurrentGuard"):
+        return ""
+    return reason
+
+
+def run_case(case: Case) -> Counter[tuple[str, str]]:
+    """Step the batch and one scalar controller per pack; compare after every step. Returns how
+    often each (kind, rule) occurred in the scalar events."""
     cfg = CONFIGS[case.config]
     info = _info(case.n)
     n_packs = case.volt.shape[1]
     batch = BatchSequencing(cfg, info, n_packs)
     ctrls = [SequencingController(cfg, info) for _ in range(n_packs)]
-    counts = dict.fromkeys(KINDS, 0)
+    seen: Counter[tuple[str, str]] = Counter()
     for i in range(len(case.t_s)):
         res = batch.step(
             float(case.t_s[i]),
@@ -251,9 +287,8 @@ def run_case(case: Case) -> dict[str, int]:
         for p, ctrl in enumerate(ctrls):
             out = ctrl.step(_meas(case, i, p), float(case.dt_s[i]))
             assert_pack_equal(batch, res, p, ctrl.state, out, f"step {i} pack {p}")
-            for e in out.events:
-                counts[e.kind] += 1
-    return counts
+            seen.update((e.kind, _reason(e.kind, e.data)) for e in out.events)
+    return seen
 
 
 @settings(max_examples=150, deadline=None)
@@ -270,18 +305,42 @@ def test_random_sequences_match_the_scalar_controller(
     run_case(gen_case(np.random.default_rng(seed), n, config, n_packs, steps))
 
 
-def test_random_sequences_fire_every_event_kind() -> None:
-    """The random generator is not hollow: over a fixed set of cases every kind occurs (and the
-    batch matches the scalar controller on all of them)."""
-    totals = dict.fromkeys(KINDS, 0)
-    for seed in range(24):
+# Every rule that emits an event, as (kind, reason / diode path / fault class).
+RULES = {
+    *(("BatteryJoined", r) for r in ("R2", "R3", "rest merge", "load merge")),
+    *(("BatteryJoined", r) for r in ("isolation merge", "isolation take-over")),
+    *(("StateChanged", r) for r in ("R1 init", "R1 no battery discharging", "fail-safe")),
+    *(("StateChanged", r) for r in ("R1 battery k inserted", "R1 inserted above bus")),
+    *(("StateChanged", r) for r in ("removed", "inserted", "inserted while charging")),
+    *(("StateChanged", r) for r in ("charge mode", "isolation take-over")),
+    *(("StateChanged", r) for r in ("isolation ended", "isolation forced")),
+    ("DiodeBypassed", "chg"),
+    ("DiodeBypassed", "dsg"),
+    ("ReverseCurrent", "chg"),
+    ("ReverseCurrent", "dsg"),
+    ("CrossCurrentGuard", ""),
+    ("CrossCurrentRisk", ""),
+    ("SourceIsolated", ""),
+    ("ModeChanged", ""),
+    *(("Fault", r) for r in FAULT_REASONS[1:]),
+    *(("FaultCleared", r) for r in FAULT_REASONS[1:]),
+}
+
+
+def test_random_sequences_fire_every_event_kind_and_rule() -> None:
+    """The random generator is not hollow: over a fixed set of cases every event kind, and every
+    rule behind one, occurs (and the batch matches the scalar controller on all of them)."""
+    seen: Counter[tuple[str, str]] = Counter()
+    for seed in range(40):
         rng = np.random.default_rng(seed)
-        n = 1 + seed % 4
+        n = 1 + (seed // len(CONFIGS)) % 4
         config = sorted(CONFIGS)[seed % len(CONFIGS)]
-        for kind, c in run_case(gen_case(rng, n, config, 2, 100)).items():
-            totals[kind] += c
-    missing = [k for k, c in totals.items() if c == 0]
-    assert not missing, f"event kinds never fired: {missing} (totals {totals})"
+        seen += run_case(gen_case(rng, n, config, 3, 100))
+    kinds = {k for k, _ in seen}
+    assert kinds == set(KINDS), f"event kinds never fired: {set(KINDS) - kinds}"
+    assert set(seen) == RULES, (
+        f"rules never fired: {RULES - set(seen)}; unknown: {set(seen) - RULES}"
+    )
 
 
 def test_batch_of_p_equals_p_batches_of_one() -> None:
