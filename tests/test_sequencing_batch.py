@@ -66,7 +66,7 @@ CONFIGS = {
     "high_cutoff": SequencingConfig(
         v_cutoff_cell_v=3.45, t_on=0.15, t_debounce=0.05, t_mode=0.5, t_iso_hold=0.15
     ),
-    # Thresholds that are binary fractions, with samples on a 1/64 V, 1/4 A grid: differences
+    # Thresholds that are binary fractions, with samples on a 1/8 V, 1/4 A grid: differences
     # land exactly on v_th, v_co, v_merge (0.125 V), i_det... so every < / <= is exercised.
     "dyadic": SequencingConfig(
         v_th=0.5,
@@ -233,7 +233,7 @@ def gen_case(rng: np.random.Generator, n: int, config: str, n_packs: int, steps:
         q_v, q_i = [(0.0, 0.0), (0.01, 0.1), (0.05, 0.5)][int(rng.integers(3))]
         twin = int(rng.integers(n - 1)) if n >= 2 and rng.random() < 0.3 else -1
         if config == "dyadic":
-            q_v, q_i = 0.015625, 0.25
+            q_v, q_i = 0.125, 0.25
         for i in range(steps):
             if rng.random() < 0.04:
                 present[rng.integers(n)] ^= True
@@ -377,6 +377,14 @@ def test_random_sequences_fire_every_event_kind_and_rule() -> None:
     assert set(seen) == RULES, (
         f"rules never fired: {RULES - set(seen)}; unknown: {set(seen) - RULES}"
     )
+
+
+def test_threshold_ties_on_a_binary_grid_match() -> None:
+    """Exact ties at the thresholds (``<`` vs ``<=``): the dyadic config on its 1/8 V grid. Among
+    these seeds, a line tracer found R2 candidates exactly v_co above the bus (seeds 5, 17, 19,
+    ...) and a rest merge exactly v_merge wide (seed 8) when this was written."""
+    for seed in range(30):
+        run_case(gen_case(np.random.default_rng(seed), 2 + seed % 3, "dyadic", 3, 100))
 
 
 def test_batch_of_p_equals_p_batches_of_one() -> None:
