@@ -9,7 +9,9 @@ which is what makes the equivalence checkable). The scalar controller stays the 
 twin reproduces it *exactly* - same FET commands, same per-battery state (floats bit-identical,
 ``None`` stored as NaN) and the same events (kind and battery, in the same order) for each pack,
 every step, for any input sequence (``tests/test_sequencing_batch.py``: closed loop on the real
-plant and random sequences with invalid inputs, presence and docking flips, both configs).
+plant, random sequences with invalid inputs, presence and docking flips, time going backwards
+and exact threshold ties, under six configs including ``isolate_source=False``; fixed seeds
+that fire every event kind and rule and reach every reachable line of the scalar controller).
 
 How exactness is kept: floating-point expressions are evaluated in the scalar code's order
 (Python ``sum()`` starts from 0 and adds left to right; dict values in insertion order), the
