@@ -149,9 +149,11 @@ def test_non_finite_pack_is_an_error_row_and_leaves_the_others_alone() -> None:
 @pytest.mark.parametrize(
     ("name", "reason"),
     [
-        ("protection_cold_heavy.toml", "no batch twin for protection"),
-        ("evtol_charging.toml", "no batch twin for charging"),
-        ("uav_mission.toml", "no batch twin"),
+        ("evtol_charging.toml", "charger link runs per pack"),
+        ("telecom_string.toml", "charger link runs per pack"),
+        ("uav_mission.toml", "supervisor / safety layers run per pack"),
+        ("protection_cold_heavy.toml", None),
+        ("equalization_uav12s.toml", None),
         ("sequencing_dual_hover.toml", None),
         ("smart_battery.toml", None),
     ],
@@ -166,8 +168,30 @@ def test_unsupported_scenarios_are_named(name: str, reason: str | None) -> None:
             run_lockstep(_example(name, 1.0), {"ambient_c": np.array([20.0])})
 
 
+@pytest.mark.parametrize(
+    ("name", "duration_s", "spread"),
+    [
+        # Runs to its trip and the brown-out stop: packs trip at different times.
+        ("protection_cold_heavy.toml", None, "capacity=5%,r0=10%,soc0=0.03,ambient_c=-14:-6"),
+        ("protection_warming_flight.toml", 900.0, "capacity=5%,r0=10%,ambient_c=-5:5"),
+        ("equalization_uav12s.toml", 240.0, "capacity=3%,r0=10%,soc0=0.02"),
+    ],
+)
+def test_methods_without_twin_match_per_pack_runs(
+    name: str, duration_s: float | None, spread: str
+) -> None:
+    """Methods without a batch twin run one scalar controller per pack on the lockstep plant
+    and batch sensors; every metric and event count equals the per-pack run's."""
+    cfg = _example(name, duration_s)
+    draws = [draw_run(parse_spreads(spread), 9, i, cfg.pack.ambient_c) for i in range(3)]
+    rows = _compare(cfg, draws)
+    if duration_s is None:
+        assert len({r["steps"] for r in rows}) > 1, "packs should stop at different times"
+        assert all(r.get("events_ProtectionTripped", 0) == 1 for r in rows)
+
+
 def test_unsupported_scenario_batch_runs_per_pack() -> None:
-    cfg = _example("protection_warm_light.toml", 20.0)
+    cfg = _example("evtol_charging.toml", 20.0)
     draws = [draw_run({}, 0, i, cfg.pack.ambient_c) for i in range(2)]
     rows = run_batch(cfg, draws)
     assert [r["status"] for r in rows] == ["ok", "ok"]
@@ -203,4 +227,6 @@ def test_campaign_reports_its_engine(tmp_path: Path) -> None:
         for a, b in zip(rep.table[c].to_pylist(), per.table[c].to_pylist(), strict=True):
             assert a == (pytest.approx(b, rel=1e-9) if isinstance(b, float) else b), c
     prot = run_campaign(_example("protection_warm_light.toml", 2.0), 1, tmp_path / "c.parquet")
-    assert prot.engine == "per-pack: no batch twin for protection"
+    assert prot.engine == "lockstep, per-pack controllers"
+    chg = run_campaign(_example("evtol_charging.toml", 2.0), 1, tmp_path / "d.parquet")
+    assert chg.engine == "per-pack: charger link runs per pack"

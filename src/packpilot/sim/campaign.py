@@ -44,7 +44,12 @@ import numpy as np
 
 from packpilot.config import ScenarioConfig
 from packpilot.errors import InputError
-from packpilot.sim.lockstep import run_lockstep, stack_overrides, unsupported_reason
+from packpilot.sim.lockstep import (
+    controllers,
+    run_lockstep,
+    stack_overrides,
+    unsupported_reason,
+)
 from packpilot.sim.runner import Runner
 
 if TYPE_CHECKING:
@@ -730,7 +735,14 @@ def run_campaign(
     draws = make_draws(sp, seed, missing, cfg.pack.ambient_c)
     why_not = "disabled" if not lockstep else unsupported_reason(cfg)
     vectorized = why_not is None
-    engine = "lockstep" if vectorized else f"per-pack: {why_not}"
+    how = controllers(cfg)
+    engine = (
+        f"per-pack: {why_not}"
+        if not vectorized
+        else "lockstep, per-pack controllers"
+        if how == "per-pack controllers"
+        else "lockstep"
+    )
     if sched == "auto":
         sched = choose_scheduler(cfg, len(draws), n_workers, vectorized)
     size = batch or default_batch(len(draws), 1 if sched == "sync" else n_workers, vectorized)

@@ -28,9 +28,10 @@ from numpy.typing import NDArray
 
 from packpilot.config import ScenarioConfig, validate_section
 from packpilot.control.sequencing import SequencingConfig
+from packpilot.control.types import Commands
 from packpilot.model.pack import Pack
-from packpilot.sim.runner import load_profile
-from packpilot.sim.sensors import pack_info, traction_indices
+from packpilot.sim.runner import apply_commands, build_controller, load_profile
+from packpilot.sim.sensors import measure_all, pack_info, traction_indices
 
 if TYPE_CHECKING:
     from packpilot.control.sequencing_batch import BatchSequencing
@@ -39,7 +40,8 @@ Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 BATCH_METHODS: frozenset[str] = frozenset({"sequencing"})
-"""Methods with a batch twin. A scenario with no method at all runs in lockstep too."""
+"""Methods with a batch twin (one compiled call for all packs). Other methods run in lockstep
+too, as one scalar controller per pack fed from the batch sensors (``controllers()``)."""
 
 
 class StepHook(Protocol):
@@ -51,15 +53,10 @@ class StepHook(Protocol):
 def unsupported_reason(cfg: ScenarioConfig) -> str | None:
     """Why ``cfg`` cannot run in lockstep (``None``: it can).
 
-    Covered: the methods in :data:`BATCH_METHODS` (or none), no supervisor / safety layers,
-    no charger (its link is a per-pack protocol), no fault schedule. Everything else runs
-    per pack, with the same results, only slower.
+    Covered: any methods without supervisor / safety layers, no charger (its link is a
+    per-pack protocol), no fault schedule. Everything else runs per pack, with the same
+    results, only slower.
     """
-    other = [m for m in cfg.controller if m not in BATCH_METHODS]
-    if other:
-        return f"no batch twin for {', '.join(other)}"
-    if len(cfg.controller) > 1:
-        return "more than one method"
     if cfg.supervised:
         return "supervisor / safety layers run per pack"
     if cfg.charger.present:
@@ -113,9 +110,17 @@ class LockstepResult:
     wall_time_s: float
 
 
-def _controller(cfg: ScenarioConfig, pack: Pack) -> BatchSequencing | None:
+def controllers(cfg: ScenarioConfig) -> str:
+    """How a lockstep batch runs ``cfg``'s methods: ``"twin"`` (a batch twin),
+    ``"per-pack controllers"`` (one scalar controller per pack) or ``"none"``."""
     if not cfg.controller:
-        return None
+        return "none"
+    if set(cfg.controller) <= BATCH_METHODS and len(cfg.controller) == 1:
+        return "twin"
+    return "per-pack controllers"
+
+
+def _twin(cfg: ScenarioConfig, pack: Pack) -> BatchSequencing:
     from packpilot.control.sequencing_batch import BatchSequencing
 
     seq_cfg = validate_section("sequencing", cfg.sequencing, "<config>")
@@ -148,7 +153,13 @@ def run_lockstep(
     P, S = pack.n_packs, pack.n_strings
     traction = traction_indices(pack)
     tr = np.array(traction, dtype=np.intp)
-    controller = _controller(cfg, pack)
+    how = controllers(cfg)
+    twin = _twin(cfg, pack) if how == "twin" else None
+    scalar = (
+        [build_controller(cfg, pack_info(pack, p)) for p in range(P)]
+        if how == "per-pack controllers"
+        else []
+    )
     profile = load_profile(cfg)
     dt = cfg.sim.dt_s
     n_steps = math.ceil(cfg.sim.duration_s / dt - 1e-9)
@@ -163,7 +174,7 @@ def run_lockstep(
     joule = np.zeros(P)
     chg_diode = np.zeros((P, S))
     dsg_diode = np.zeros((P, S))
-    kinds = controller.KINDS if controller is not None else ()
+    kinds = twin.KINDS if twin is not None else ()
 
     def freeze(mask: BoolArray) -> None:
         """Snapshot the plant's ledgers of packs that stop now (the plant steps on)."""
@@ -177,13 +188,13 @@ def run_lockstep(
         t = pack.t_s
         if hook is not None:
             hook(t)
-        if controller is not None:
+        if twin is not None:
             cell_v = pack.cell_voltage_now()
             volts = np.add.reduceat(cell_v, starts, axis=1)[:, tr]
             current = pack.string_a[:, tr]
             present = pack.present()[:, tr]
             docked = pack.charger_connected(t)
-            out = controller.step(t, volts, current, present, docked, dt)
+            out = twin.step(t, volts, current, present, docked, dt)
             chg = pack.chg_on.copy()
             dsg = pack.dsg_on.copy()
             chg[:, tr] = out.chg_on
@@ -192,6 +203,17 @@ def run_lockstep(
             for p, kind in zip(out.event_pack.tolist(), out.event_kind.tolist(), strict=True):
                 if running[p]:
                     m.events[p][kinds[kind]] += 1
+        elif scalar:
+            # Stopped packs are no longer controlled (their metrics are frozen anyway).
+            live = np.nonzero(running)[0].tolist()
+            meas = measure_all(pack, None, None if len(live) == P else live)
+            cmds: list[Commands | None] = [None] * P
+            for p, mp in zip(live, meas, strict=True):
+                res = scalar[p].step(mp, dt)
+                cmds[p] = res.commands
+                for e in res.events:
+                    m.events[p][e.kind] += 1
+            apply_commands(pack, traction, cmds)
         value = profile.at(t - cfg.load.start_s) if t >= cfg.load.start_s else 0.0
         iv = pack.step(dt, profile.kind, np.full(P, value))
         supplied = iv.supplied
@@ -271,6 +293,7 @@ def stack_overrides(draws: Sequence[dict[str, Array]]) -> dict[str, Array]:
 __all__ = [
     "BATCH_METHODS",
     "LockstepResult",
+    "controllers",
     "run_lockstep",
     "stack_overrides",
     "unsupported_reason",

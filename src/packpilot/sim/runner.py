@@ -105,6 +105,45 @@ def _soc_estimator(cfg: ScenarioConfig, info: PackInfo, pack: Pack) -> Controlle
     return est
 
 
+def apply_commands(pack: Pack, traction: Sequence[int], cmds: Sequence[Commands | None]) -> None:
+    """Apply one controller's commands to each pack of the plant (``cmds[p]``; ``None`` or a
+    ``None`` field leaves that pack's switch, balancer or aux setting as it is). The charger
+    setpoint is not a plant input: the runner sends it over its link."""
+    chg = pack.chg_on.copy()
+    dsg = pack.dsg_on.copy()
+    bal: np.ndarray[Any, np.dtype[np.float64]] | None = None
+    aux_a: np.ndarray[Any, np.dtype[np.float64]] | None = None
+    for p, cmd in enumerate(cmds):
+        if cmd is None:
+            continue
+        for k, i in enumerate(traction):
+            if k < len(cmd.chg_on) and cmd.chg_on[k] is not None:
+                chg[p, i] = bool(cmd.chg_on[k])
+            if k < len(cmd.dsg_on) and cmd.dsg_on[k] is not None:
+                dsg[p, i] = bool(cmd.dsg_on[k])
+        if pack.aux_index is not None and cmd.aux_relay_closed is not None:
+            chg[p, pack.aux_index] = dsg[p, pack.aux_index] = cmd.aux_relay_closed
+        if cmd.balancer_a is not None:
+            if bal is None:
+                bal = pack.balancer_a.copy()
+            row = np.zeros(pack.n_groups)
+            for k, i in enumerate(traction):
+                if k < len(cmd.balancer_a):
+                    g0 = int(pack.string_group_starts[i])
+                    vals = cmd.balancer_a[k][: pack.groups_per_string[i]]
+                    row[g0 : g0 + len(vals)] = vals
+            bal[p] = row
+        if cmd.aux_charge_a is not None:
+            if aux_a is None:
+                aux_a = pack.aux_charge_a.copy()
+            aux_a[p] = cmd.aux_charge_a
+    pack.set_gates(chg, dsg)
+    if bal is not None:
+        pack.set_balancer(bal)
+    if aux_a is not None:
+        pack.set_aux_charge(aux_a)
+
+
 class ChargerLink(Protocol):
     """How charger setpoints reach the dock and its status comes back (direct or CAN)."""
 
@@ -195,27 +234,7 @@ class Runner:
 
     # ----------------------------------------------------------------- commands
     def apply(self, cmd: Commands, t_s: float) -> None:
-        pack = self.pack
-        chg = pack.chg_on.copy()
-        dsg = pack.dsg_on.copy()
-        for k, i in enumerate(self.traction):
-            if k < len(cmd.chg_on) and cmd.chg_on[k] is not None:
-                chg[0, i] = bool(cmd.chg_on[k])
-            if k < len(cmd.dsg_on) and cmd.dsg_on[k] is not None:
-                dsg[0, i] = bool(cmd.dsg_on[k])
-        if pack.aux_index is not None and cmd.aux_relay_closed is not None:
-            chg[0, pack.aux_index] = dsg[0, pack.aux_index] = cmd.aux_relay_closed
-        pack.set_gates(chg, dsg)
-        if cmd.balancer_a is not None:
-            flat = np.zeros(pack.n_groups)
-            for k, i in enumerate(self.traction):
-                if k < len(cmd.balancer_a):
-                    g0 = int(pack.string_group_starts[i])
-                    vals = cmd.balancer_a[k][: pack.groups_per_string[i]]
-                    flat[g0 : g0 + len(vals)] = vals
-            pack.set_balancer(flat[None, :])
-        if cmd.aux_charge_a is not None:
-            pack.set_aux_charge(np.array([cmd.aux_charge_a]))
+        apply_commands(self.pack, self.traction, [cmd])
         if self.charger_link is not None:
             c = self.cfg.charger
             command = cmd.charger or ChargerCommand(c.voltage_v, c.current_a, c.enable)
