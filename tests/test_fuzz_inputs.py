@@ -8,6 +8,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import pytest
 import tomli_w
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -82,6 +83,19 @@ def test_fuzzed_config_values(tmp_path: Path, path: tuple[Any, ...], value: Any)
     res = RUNNER.invoke(app, ["simulate", str(p), "--duration", "0.2", "--json"])
     leaf = str(path[-1]) if not isinstance(path[-1], int) else str(path[-2])
     _check(res, leaf, "fuzz.toml")
+
+
+@pytest.mark.parametrize("key", ["\x1e", "\x1c", "a\u2028b", "\x85", "tab\there"])
+def test_control_characters_in_a_key_stay_on_one_line(tmp_path: Path, key: str) -> None:
+    """Found by the fuzz test above: ``str.splitlines`` breaks on \\x1c-\\x1e, \\x85 and
+    U+2028, so an unknown key made of them split the one-line error; keys are escaped now."""
+    cfg = copy.deepcopy(BASE)
+    cfg["load"][key] = 0
+    p = tmp_path / "keys.toml"
+    p.write_text(tomli_w.dumps(cfg))
+    res = RUNNER.invoke(app, ["simulate", str(p), "--duration", "0.2", "--json"])
+    assert res.exit_code == 2
+    _check(res, "load", "unknown key")
 
 
 @settings(

@@ -296,9 +296,15 @@ def method_config_class(section: str) -> type[BaseModel]:
     return cls
 
 
+def _printable(text: str) -> str:
+    """A key as typed, with control / separator characters escaped: a key such as ``"\x1e"``
+    must not split the one-line error message (``str.splitlines`` breaks on it)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _fmt_error(source: str, err: ValidationError, prefix: str = "") -> str:
     first = err.errors()[0]
-    loc = ".".join(str(p) for p in first["loc"] if not str(p).startswith("function-"))
+    loc = ".".join(_printable(str(p)) for p in first["loc"] if not str(p).startswith("function-"))
     loc = f"{prefix}{loc}" if loc else prefix.rstrip(".") or "(top level)"
     msg = first["msg"]
     if first["type"] == "extra_forbidden":
