@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
+import logging
 import math
 import os
 import re
@@ -55,14 +56,20 @@ from packpilot.sim.runner import Runner
 if TYPE_CHECKING:
     import pyarrow as pa
 
+_log = logging.getLogger(__name__)
+
 FAIL_ENV = "PACKPILOT_CAMPAIGN_FAIL_RUNS"
 META_KEY = b"packpilot.campaign"
 STEP_COST_S = 150e-6
 """Closed-loop CPU cost of one step of a 12-cell pack (measured 135-250 us on the dev box as
 the plant got faster; benchmarks/bench_campaign.py)."""
 LOCKSTEP_STEP_COST_S = 6e-6
-"""CPU cost of one pack-step in a lockstep batch of that 12-cell pack (measured 4.5 us at
-256 packs per batch, 5.2 at 128, 9.8 at 32 on the 2-core dev box; bench_campaign)."""
+"""CPU cost of one pack-step in a lockstep batch of that 12-cell pack with a batch twin (or no
+method): measured 4.5 us at 256 packs per batch, 5.2 at 128, 9.8 at 32 on the 2-core dev box
+(bench_campaign)."""
+LOCKSTEP_SCALAR_STEP_COST_S = 40e-6
+"""The same with one scalar controller per pack (methods without a twin): 34-38 us per
+pack-step for protection, 56 us for 12S equalization at 64 packs per batch."""
 PROCESS_BREAK_EVEN_S = 5.0
 """Estimated single-core work above which ``auto`` picks the process LocalCluster over the
 in-process synchronous scheduler. Measured on the 2-core dev box: the cluster costs ~1.5-2.5 s
@@ -322,7 +329,14 @@ def run_lockstep_batch(
             stack_overrides([d.pack_overrides() for d in draws]),
             hook=hook if failing else None,
         )
-    except Exception:  # any failure: rerun per pack, which isolates the failing run
+    except Exception as err:  # any failure: the caller bisects, which isolates the failing run
+        _log.warning(
+            "lockstep batch of runs %d..%d raised %s: %s; splitting it",
+            draws[0].run,
+            draws[-1].run,
+            type(err).__name__,
+            err,
+        )
         return None
     return [_row(d, met, met["wall_time_s"]) for d, met in zip(draws, res.metrics, strict=True)]
 
@@ -348,9 +362,10 @@ def run_batch(
 def _lockstep_rows(
     cfg: ScenarioConfig, draws: list[Draw], fail_runs: frozenset[int]
 ) -> list[dict[str, Any]]:
-    """Lockstep rows; when a batch raises, its halves are retried (bisection), so a failing
-    run costs about one extra pass over its batch instead of rerunning every run per pack
-    (~50x slower); a single run that still fails is run per pack for its error row."""
+    """Lockstep rows; when a batch raises, its halves are retried (bisection), and a single
+    run that still fails is run per pack for its error row. A run failing at its start costs
+    about one extra pass over the batch; one failing late costs up to log2(batch) passes over
+    the halves that hold it; rerunning every run per pack would cost ~50x."""
     rows = run_lockstep_batch(cfg, draws, fail_runs)
     if rows is not None:
         return rows
@@ -643,7 +658,12 @@ def choose_scheduler(cfg: ScenarioConfig, n_runs: int, workers: int, lockstep: b
     (``sync``; threads are slower than that here, see ``PROCESS_BREAK_EVEN_S``)."""
     steps = math.ceil(cfg.sim.duration_s / cfg.sim.dt_s)
     cells = sum(b.n_cells for b in cfg.pack.batteries)
-    cost = LOCKSTEP_STEP_COST_S if lockstep else STEP_COST_S
+    if not lockstep:
+        cost = STEP_COST_S
+    elif controllers(cfg) == "per-pack controllers":
+        cost = LOCKSTEP_SCALAR_STEP_COST_S
+    else:
+        cost = LOCKSTEP_STEP_COST_S
     work_s = n_runs * steps * cost * max(1.0, cells / 12.0) ** 0.5
     return "processes" if workers > 1 and work_s > PROCESS_BREAK_EVEN_S else "sync"
 

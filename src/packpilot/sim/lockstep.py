@@ -238,8 +238,10 @@ def run_lockstep(
         rem = np.minimum.reduceat(soc * cap, starts, axis=1)
         m.final_soc = np.where(run[:, None], rem / full, m.final_soc)
         cur = iv.string_a
-        bigger = run[:, None] & (np.abs(cur) > m.peak_abs)
-        m.peak_abs = np.where(bigger, np.abs(cur), m.peak_abs)
+        # argmax semantics: the first NaN is the peak and stays it (NaN peak_abs never updates).
+        a = np.abs(cur)
+        bigger = run[:, None] & ~np.isnan(m.peak_abs) & ((a > m.peak_abs) | np.isnan(a))
+        m.peak_abs = np.where(bigger, a, m.peak_abs)
         m.peak_val = np.where(bigger, cur, m.peak_val)
         supplying = run & (iv.load_a > 1e-3) & (iv.charger_a < 1e-3)
         into = np.max(np.maximum(-cur[:, tr], 0.0), axis=1, initial=0.0)
