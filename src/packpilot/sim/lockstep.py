@@ -18,6 +18,7 @@ one bad run never costs the others their result.
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -72,7 +73,6 @@ class _Metrics:
 
     n_packs: int
     n_strings: int
-    traction: list[int]
     steps: NDArray[np.int64] = field(init=False)
     energy_out: Array = field(init=False)
     energy_in: Array = field(init=False)
@@ -139,8 +139,6 @@ def run_lockstep(
     Raises ``ValueError`` for a scenario :func:`unsupported_reason` rejects. Any exception
     inside the loop propagates: the caller reruns the batch per pack.
     """
-    import time
-
     reason = unsupported_reason(cfg)
     if reason is not None:
         raise ValueError(f"scenario cannot run in lockstep: {reason}")
@@ -167,7 +165,7 @@ def run_lockstep(
     starts = pack.string_cell_starts
     cap = pack.capacity_ah
     full = np.minimum.reduceat(cap, starts, axis=1)
-    m = _Metrics(P, S, traction)
+    m = _Metrics(P, S)
     running = np.ones(P, bool)
     was_supplied = np.ones(P, bool)
     unsupplied_s = np.zeros(P)
