@@ -510,6 +510,23 @@ class SequencingController:
         g = {k: 1.0 / (r_scale * self._r_est(k)) for k in group}
         return (sum(self._e_fast(k, meas) * g[k] for k in group) - load_a) / sum(g.values())
 
+    def _merge_candidates(
+        self, demoted: set[int], volt: list[float], present: list[bool] | None = None
+    ) -> list[int]:
+        """Batteries a rest or load merge may close, highest voltage first: standby or admitted
+        with the charge FET open, not isolated, not demoted this period (and, for the load
+        merge, ``present``)."""
+        candidates = [
+            k
+            for k, b in enumerate(self.state.batteries)
+            if k not in demoted
+            and (present is None or present[k])
+            and not b.chg_on
+            and b.isolated_since_s is None
+            and b.state in (SeqState.STANDBY, SeqState.DISCHARGING)
+        ]
+        return sorted(candidates, key=lambda j: -volt[j])
+
     def _engaged(self) -> list[int]:
         return [
             k
@@ -1105,15 +1122,7 @@ class SequencingController:
         ]
         if rested and engaged_now:
             lo, hi = min(engaged_now), max(engaged_now)
-            candidates = [
-                k
-                for k, b in enumerate(bats)
-                if k not in demoted
-                and not b.chg_on
-                and b.isolated_since_s is None
-                and b.state in (SeqState.STANDBY, SeqState.DISCHARGING)
-            ]
-            for k in sorted(candidates, key=lambda j: -volt[j]):
+            for k in self._merge_candidates(demoted, volt):
                 new_lo, new_hi = min(lo, volt[k]), max(hi, volt[k])
                 if new_hi - new_lo > cfg.v_merge:
                     continue
@@ -1137,16 +1146,7 @@ class SequencingController:
         # back a battery the guard opened as soon as the others have come down to it, before
         # R2 (v_co above the loaded bus) or R3 (a diode drop below it) would.
         if not idle and self._engaged():
-            candidates = [
-                k
-                for k, b in enumerate(bats)
-                if k not in demoted
-                and present[k]
-                and not b.chg_on
-                and b.isolated_since_s is None
-                and b.state in (SeqState.STANDBY, SeqState.DISCHARGING)
-            ]
-            for k in sorted(candidates, key=lambda j: -volt[j]):
+            for k in self._merge_candidates(demoted, volt, present):
                 group = sorted({*self._engaged(), k})
                 pred = self._zero_load_into(group, meas)
                 if pred[k] > cfg.i_merge or max(pred.values()) > cfg.i_guard:
