@@ -209,6 +209,10 @@ def test_finished_run_stays_viewable_with_screenshot(
     browser: Cdp, server: Dashboard, tmp_path: Path
 ) -> None:
     steps = round(DURATION_S / DT_S)
+    # pytest -n 2 may run this test in another worker than the live-stream test, with its own
+    # browser still on about:blank: open the dashboard here too (it failed once that way).
+    if browser.eval("location.href") != server.url:
+        browser.call("Page.navigate", url=server.url)
     # generous: the run itself needs DURATION_S / speed = 6 s, but a loaded CI machine (pytest -n)
     # can starve the server thread and Chromium; a deadline only costs time when it fails
     data = browser.wait_body(lambda d: d.get("state") == "finished", 90.0)
