@@ -1,0 +1,1 @@
+"""Golden fingerprints of the examples: behaviour pinned while the core is refactored."""
