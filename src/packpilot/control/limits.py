@@ -33,8 +33,9 @@ from dataclasses import dataclass
 from itertools import pairwise
 from typing import Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from packpilot.config.base import load_section_model
 from packpilot.control.types import (
     CHARGER_OFF,
     BatteryMeasurement,
@@ -45,7 +46,6 @@ from packpilot.control.types import (
     PackInfo,
     SwitchKind,
 )
-from packpilot.errors import ConfigError
 
 Quantity = Literal[
     "cell_v_max", "cell_v_min", "chg_c_rate", "dsg_c_rate", "temp_max_c", "temp_min_c"
@@ -76,26 +76,6 @@ EPS = 1e-9
 _NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 
 M = TypeVar("M", bound=BaseModel)
-
-
-def load_section_model(
-    cls: type[M], data: Mapping[str, Any] | None, section: str, source: str
-) -> M:
-    """Validate ``data`` as ``cls``; a bad value becomes a one-line :class:`ConfigError`.
-
-    The message names the source, the section and the field/row (``limits.rows.3``), as the
-    scenario loader in :mod:`packpilot.config` does for the method sections.
-    """
-    try:
-        return cls.model_validate(dict(data or {}))
-    except ValidationError as err:
-        first = err.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"])
-        where = f"{section}.{loc}" if loc else section
-        msg = str(first["msg"]).removeprefix("Value error, ")
-        if first["type"] == "extra_forbidden":
-            msg = "unknown key"
-        raise ConfigError(f"{source}: {where}: {msg}") from None
 
 
 def _finite(x: float) -> bool:

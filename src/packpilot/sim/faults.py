@@ -32,19 +32,9 @@ def _with(b: BatteryMeasurement, quantity: str, value: float) -> BatteryMeasurem
     return dataclasses.replace(b, **fields)  # type: ignore[arg-type]
 
 
-@dataclass(frozen=True, slots=True)
-class StaleMeasurement(BatteryMeasurement):
-    """A repeated frame from a monitor that stopped reporting, with the age of its sample.
-
-    The plausibility monitor reads ``sample_age_s`` (``stale`` above ``max_sample_age_s``).
-    """
-
-    sample_age_s: float = 0.0
-
-
-def _stale(b: BatteryMeasurement, age_s: float) -> StaleMeasurement:
-    values = {f.name: getattr(b, f.name) for f in dataclasses.fields(BatteryMeasurement)}
-    return StaleMeasurement(**values, sample_age_s=age_s)
+def _stale(b: BatteryMeasurement, age_s: float) -> BatteryMeasurement:
+    """A repeated frame from a monitor that stopped reporting, with the age of its sample."""
+    return dataclasses.replace(b, sample_age_s=age_s)
 
 
 def _active(f: FaultConfig, t_s: float) -> bool:

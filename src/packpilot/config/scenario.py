@@ -14,18 +14,19 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
+from packpilot.config.base import (
+    Finite,
+    Fraction,
+    NonNegFloat,
+    PosFloat,
+    Strict,
+    fmt_error,
+)
 from packpilot.errors import ConfigError
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+_Strict = Strict
 
 
 class SwitchConfig(_Strict):
@@ -296,39 +297,13 @@ def method_config_class(section: str) -> type[BaseModel]:
     return cls
 
 
-def _printable(text: str) -> str:
-    """A key as typed, with control / separator characters escaped: a key such as ``"\x1e"``
-    must not split the one-line error message (``str.splitlines`` breaks on it)."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
-
-
-def _fmt_error(source: str, err: ValidationError, prefix: str = "") -> str:
-    first = err.errors()[0]
-    loc = ".".join(_printable(str(p)) for p in first["loc"] if not str(p).startswith("function-"))
-    loc = f"{prefix}{loc}" if loc else prefix.rstrip(".") or "(top level)"
-    msg = first["msg"]
-    if first["type"] == "extra_forbidden":
-        msg = "unknown key"
-    elif first["type"] == "value_error":
-        msg = msg.removeprefix("Value error, ")  # pydantic's prefix on a validator's message
-    inp = first.get("input")
-    shown = (
-        ""
-        if isinstance(inp, dict | list) or first["type"] == "missing" or "(got " in msg
-        else f" (got {inp!r})"
-    )
-    more = len(err.errors()) - 1
-    tail = f" [+{more} more error(s)]" if more else ""
-    return f"{source}: {loc}: {msg}{shown}{tail}"
-
-
 def validate_section(section: str, data: dict[str, Any] | None, source: str) -> BaseModel:
     """Validate one method section, naming ``[section].field`` on error."""
     cls = method_config_class(section)
     try:
         return cls.model_validate(data or {})
     except ValidationError as err:
-        raise ConfigError(_fmt_error(source, err, prefix=f"{section}.")) from None
+        raise ConfigError(fmt_error(source, err, prefix=f"{section}.")) from None
 
 
 def read_toml(path: Path) -> dict[str, Any]:
@@ -349,7 +324,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConf
     try:
         cfg = ScenarioConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_fmt_error(source, err)) from None
+        raise ConfigError(fmt_error(source, err)) from None
     for name in METHOD_SECTIONS:
         if name in cfg.controller or getattr(cfg, name) is not None:
             validate_section(name, getattr(cfg, name), source)

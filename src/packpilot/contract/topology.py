@@ -1,0 +1,88 @@
+"""The batteries of a pack and the one battery index.
+
+A pack has *strings* (every battery behind its own switch, in config order: what the plant,
+the trace and the telemetry index) of which the *traction* batteries are the ones the control
+methods manage (their ``battery`` index in commands, status and events); an optional
+auxiliary battery powers the BMS. :class:`Topology` is the one place that maps between the
+string index, the traction index and the name shown to a user.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from packpilot.contract.bms import SwitchKind
+
+
+@dataclass(frozen=True, slots=True)
+class Topology:
+    """Names and roles of a pack's batteries, in config order."""
+
+    names: tuple[str, ...]
+    roles: tuple[str, ...]
+    """``"traction"`` or ``"aux"`` per string."""
+
+    def __post_init__(self) -> None:
+        if len(self.names) != len(self.roles):
+            raise ValueError("names and roles must have one entry per battery")
+        if sum(r == "aux" for r in self.roles) > 1:
+            raise ValueError("at most one auxiliary battery")
+
+    @property
+    def n_strings(self) -> int:
+        return len(self.names)
+
+    @property
+    def traction(self) -> tuple[int, ...]:
+        """String index of each traction battery, in traction order."""
+        return tuple(i for i, r in enumerate(self.roles) if r != "aux")
+
+    @property
+    def aux(self) -> int | None:
+        """String index of the auxiliary battery, if any."""
+        return next((i for i, r in enumerate(self.roles) if r == "aux"), None)
+
+    def string_of(self, battery: int) -> int:
+        """String index of traction battery ``battery``."""
+        return self.traction[battery]
+
+    def traction_of(self, string: int) -> int | None:
+        """Traction index of string ``string`` (``None`` for the auxiliary battery)."""
+        t = self.traction
+        return t.index(string) if string in t else None
+
+    def name_of(self, battery: int | None) -> str:
+        """Display name of traction battery ``battery`` (an event's ``battery``); the pack
+        for ``None``."""
+        if battery is None:
+            return "pack"
+        if 0 <= battery < len(self.traction):
+            return self.names[self.traction[battery]]
+        return f"battery {battery}"
+
+    def spread(self, per_traction: Sequence[object], fill: object = None) -> list[object]:
+        """A per-traction-battery list laid out over all strings (``fill`` elsewhere)."""
+        out = [fill] * self.n_strings
+        for k, i in enumerate(self.traction):
+            if k < len(per_traction):
+                out[i] = per_traction[k]
+        return out
+
+
+@dataclass(frozen=True, slots=True)
+class PackInfo:
+    """Static facts a controller is built for: its traction batteries (from the pack config)."""
+
+    n_batteries: int
+    groups_per_battery: tuple[int, ...]
+    cells_per_group: tuple[int, ...]
+    switch_kind: tuple[SwitchKind, ...]
+    has_aux: bool = False
+    has_charger: bool = False
+    has_balancers: bool = False
+    capacity_ah: tuple[float, ...] = ()
+    """Nominal capacity of each battery."""
+
+
+__all__ = ["PackInfo", "Topology"]
