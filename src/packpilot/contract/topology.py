@@ -83,6 +83,10 @@ class PackInfo:
     has_balancers: bool = False
     capacity_ah: tuple[float, ...] = ()
     """Nominal capacity of each battery."""
+    ocv_soc: tuple[float, ...] = ()
+    ocv_v: tuple[float, ...] = ()
+    """The traction cells' open-circuit voltage curve (SOC -> cell volts, at the reference
+    temperature), as a BMS has it in its parameter memory; empty when unknown."""
 
 
 __all__ = ["PackInfo", "Topology"]

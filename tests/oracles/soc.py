@@ -1,4 +1,7 @@
-"""State-of-charge estimation: coulomb counting, corrected from the OCV after a rest.
+"""ORACLE: the scalar SOC estimator as it was before the compiled core (tests only; deleted
+once the golden and equivalence tests pass).
+
+ State-of-charge estimation: coulomb counting, corrected from the OCV after a rest.
 
 Coulomb counting is exact for the charge that flowed but drifts with current-sensor offset and
 starts from whatever the initial SOC was; the open-circuit voltage tells the SOC directly, but
@@ -27,7 +30,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from packpilot.control.limits import load_section_model
+from packpilot.config.base import load_section_model
 from packpilot.control.types import (
     BatteryMeasurement,
     Commands,

@@ -1,0 +1,207 @@
+"""The SOC estimator as a core method, and its one-pack face :class:`SocEstimator`."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from itertools import pairwise
+
+import numpy as np
+
+from packpilot.config.soc import SocConfig, VoltageSource
+from packpilot.contract.bms import BatteryMeasurement, Event, Measurements, SwitchKind
+from packpilot.contract.events import Labels, Reason, fields
+from packpilot.contract.topology import PackInfo
+from packpilot.control.method import CompiledController, Method, StatusChannel
+from packpilot.control.soc import rules
+from packpilot.control.soc.rules import SocParams, SocState
+from packpilot.errors import ConfigError
+
+REASONS = (
+    Reason(
+        "SocCorrected",
+        "SOC {before:.3f} -> {after:.3f} from OCV {cell_v:.4f} V",
+        fields("before", "after", "ocv_soc", "cell_v"),
+    ),
+)
+STATUS = (StatusChannel("soc_est"), StatusChannel("soc_rest_s"))
+
+
+def _finite(x: float) -> bool:
+    return isinstance(x, int | float) and math.isfinite(x)
+
+
+def check_ocv(
+    ocv_soc: Iterable[float], ocv_v: Iterable[float]
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The OCV table as (volts, soc), or a :class:`ConfigError` saying what is wrong."""
+    soc = tuple(float(x) for x in ocv_soc)
+    volts = tuple(float(x) for x in ocv_v)
+    if len(soc) < 2 or len(soc) != len(volts):
+        raise ConfigError(
+            f"soc: OCV table needs >= 2 points and equal lengths, got {len(soc)} SOC and "
+            f"{len(volts)} voltage values"
+        )
+    if not all(_finite(x) for x in soc + volts):
+        raise ConfigError("soc: OCV table values must be finite numbers")
+    if any(b <= a for a, b in pairwise(soc)):
+        raise ConfigError("soc: ocv_soc must be strictly increasing")
+    if any(b <= a for a, b in pairwise(volts)):
+        k = next(k for k, (a, b) in enumerate(pairwise(volts)) if b <= a)
+        raise ConfigError(
+            f"soc: ocv_v must be strictly increasing to be inverted; point {k + 1} "
+            f"({volts[k + 1]} V) is not above point {k} ({volts[k]} V)"
+        )
+    return volts, soc
+
+
+def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocState]:
+    info = infos[0]
+    n = info.n_batteries
+    for pk in infos:
+        if len(pk.capacity_ah) != n:
+            raise ConfigError("soc: PackInfo.capacity_ah must give one capacity per battery")
+        for i, c in enumerate(pk.capacity_ah):
+            if not (_finite(c) and c > 0.0):
+                raise ConfigError(f"soc: capacity_ah[{i}] must be > 0 Ah, got {c}")
+    volts, soc = check_ocv(info.ocv_soc, info.ocv_v)
+    series = np.array(
+        [g * c for g, c in zip(info.groups_per_battery, info.cells_per_group, strict=True)],
+        np.int64,
+    )
+    if config.voltage == "avg" and not (series > 0).all():
+        raise ConfigError("soc: voltage = 'avg' needs series_cells > 0 for every battery")
+    prm = SocParams(
+        rest_current_a=float(config.rest_current_a),
+        rest_time_s=float(config.rest_time_s),
+        blend=float(config.blend),
+        use_min_cell=config.voltage == "min",
+        ocv_v=np.array(volts, np.float64),
+        ocv_soc=np.array(soc, np.float64),
+        series_cells=series,
+    )
+    shape = (len(infos), n)
+    st = SocState(
+        soc=np.full(shape, np.nan),
+        rest_s=np.zeros(shape),
+        next_fix_s=np.zeros(shape),
+        corrections=np.zeros(shape, np.int64),
+    )
+    return prm, st
+
+
+def _labels(prm: SocParams) -> Labels:
+    return {}
+
+
+METHOD = Method(
+    name="soc",
+    src=6,
+    config=SocConfig,
+    build=build,
+    step_packs=rules.step_packs,
+    reasons=REASONS,
+    status=STATUS,
+    labels=_labels,
+    max_events=lambda info: info.n_batteries,
+)
+
+
+class SocEstimator(CompiledController):
+    """Per-battery SOC by coulomb counting with OCV correction after a rest (one pack).
+
+    ``capacity_ah`` per battery; ``ocv_soc`` / ``ocv_v`` the cell OCV curve (``ocv_v`` strictly
+    increasing); ``series_cells`` per battery is needed for ``voltage='avg'``. ``soc0`` gives
+    initial estimates; without it (or where an entry is NaN) the first tick initialises the
+    battery from the OCV of its cell voltage, as a BMS does at power-up after the pack rested.
+    """
+
+    method = METHOD
+    prm: SocParams
+    st: SocState
+
+    def __init__(
+        self,
+        capacity_ah: Iterable[float],
+        ocv_soc: Iterable[float],
+        ocv_v: Iterable[float],
+        rest_current_a: float = 0.1,
+        rest_time_s: float = 600.0,
+        *,
+        blend: float = 1.0,
+        voltage: VoltageSource = "min",
+        series_cells: Iterable[int] | None = None,
+        soc0: Iterable[float] | None = None,
+    ) -> None:
+        cfg = SocConfig(
+            rest_current_a=rest_current_a, rest_time_s=rest_time_s, blend=blend, voltage=voltage
+        )
+        caps = tuple(float(c) for c in capacity_ah)
+        n = len(caps)
+        series = tuple(int(s) for s in series_cells) if series_cells is not None else (0,) * n
+        if len(series) != n:
+            raise ConfigError(f"soc: series_cells has {len(series)} entries, need {n}")
+        info = PackInfo(
+            n_batteries=n,
+            groups_per_battery=series,
+            cells_per_group=(1,) * n,
+            switch_kind=(SwitchKind.MOSFET_PAIR,) * n,
+            capacity_ah=caps,
+            ocv_soc=tuple(float(x) for x in ocv_soc),
+            ocv_v=tuple(float(x) for x in ocv_v),
+        )
+        super().__init__(cfg, info)
+        init = list(soc0) if soc0 is not None else [math.nan] * n
+        if len(init) != n:
+            raise ConfigError(f"soc: soc0 has {len(init)} entries, need {n}")
+        for i, s in enumerate(init):
+            self.st.soc[0, i] = min(1.0, max(0.0, float(s))) if _finite(s) else math.nan
+
+    @classmethod
+    def from_config(
+        cls,
+        config: SocConfig,
+        pack: PackInfo,
+        ocv_soc: Iterable[float] | None = None,
+        ocv_v: Iterable[float] | None = None,
+        soc0: Iterable[float] | None = None,
+    ) -> SocEstimator:
+        """Build for a pack: capacities, series counts (and the OCV curve, unless given)."""
+        if len(pack.capacity_ah) != pack.n_batteries:
+            raise ConfigError("soc: PackInfo.capacity_ah must give one capacity per battery")
+        series = tuple(
+            g * c for g, c in zip(pack.groups_per_battery, pack.cells_per_group, strict=True)
+        )
+        return cls(
+            pack.capacity_ah,
+            pack.ocv_soc if ocv_soc is None else ocv_soc,
+            pack.ocv_v if ocv_v is None else ocv_v,
+            config.rest_current_a,
+            config.rest_time_s,
+            blend=config.blend,
+            voltage=config.voltage,
+            series_cells=series,
+            soc0=soc0,
+        )
+
+    @property
+    def soc(self) -> tuple[float, ...]:
+        """Current estimates (NaN until a battery has been initialised)."""
+        return tuple(float(x) for x in self.st.soc[0])
+
+    def soc_from_ocv(self, cell_v: float) -> float:
+        """Inverse of the OCV table, clamped to its ends and to 0..1 (NaN for a NaN input)."""
+        return float(rules.soc_from_ocv(self.prm, float(cell_v) if _finite(cell_v) else math.nan))
+
+    def cell_voltage(self, i: int, bm: BatteryMeasurement) -> float:
+        if self.prm.use_min_cell:
+            return bm.min_cell_v
+        return bm.voltage_v / int(self.prm.series_cells[i])
+
+    def update(self, meas: Measurements, dt_s: float) -> tuple[tuple[float, ...], list[Event]]:
+        """Advance every battery by one tick; returns the estimates and any correction events."""
+        out = self.step(meas, dt_s)
+        return self.soc, list(out.events)
+
+
+__all__ = ["METHOD", "REASONS", "STATUS", "SocEstimator", "build", "check_ocv"]
