@@ -117,15 +117,15 @@ class _DepsStamp:
         return super().from_function(py_func, py_file)  # type: ignore[misc]
 
 
-class _UserDirLocator(_DepsStamp, caching.UserProvidedCacheLocator):  # type: ignore[misc]
+class _UserDirLocator(_DepsStamp, caching.UserProvidedCacheLocator):
     pass
 
 
-class _InTreeLocator(_DepsStamp, caching.InTreeCacheLocator):  # type: ignore[misc]
+class _InTreeLocator(_DepsStamp, caching.InTreeCacheLocator):
     pass
 
 
-class _UserWideLocator(_DepsStamp, caching.UserWideCacheLocator):  # type: ignore[misc]
+class _UserWideLocator(_DepsStamp, caching.UserWideCacheLocator):
     pass
 
 
@@ -142,7 +142,7 @@ def kernel(fn: _F) -> _F:
 
 def jit_disabled() -> bool:
     """True when kernels run as plain Python (``NUMBA_DISABLE_JIT=1``)."""
-    return bool(numba.config.DISABLE_JIT)
+    return bool(getattr(numba.config, "DISABLE_JIT", False))
 
 
 __all__ = ["add_root", "dependency_files", "dependency_stamp", "jit_disabled", "kernel"]

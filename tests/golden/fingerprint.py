@@ -125,7 +125,8 @@ def example_names() -> list[str]:
 
 def dump(name: str, result: Any, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    np.savez(out / f"{name}.npz", **{k: v for k, v in trace_arrays(result).items() if v is not None})
+    arrays = {k: v for k, v in trace_arrays(result).items() if v is not None}
+    np.savez(out / f"{name}.npz", **arrays)
     doc = {
         "events": _norm(events_of(result)),
         "metrics": _norm({k: v for k, v in result.metrics.items() if k != "wall_time_s"}),

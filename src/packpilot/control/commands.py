@@ -110,7 +110,7 @@ def emit(ev: EventBuf, p: int, src: int, code: int, battery: int, t_s: float) ->
     ev.battery[k] = battery
     ev.t_s[k] = t_s
     ev.val[k].fill(np.nan)
-    return k
+    return int(k)
 
 
 # ------------------------------------------------------------------------------ numbers
