@@ -129,3 +129,28 @@ def test_every_trip_undocked_means_shutdown_with_all_paths_open() -> None:
     out = sup.step(meas, 0.1)
     assert sup.mode is Mode.SHUTDOWN
     assert out.commands.chg_on == (False, False) and out.commands.dsg_on == (False, False)
+
+
+def test_join_limit_admits_a_difference_of_exactly_the_limit() -> None:
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(2), methods=[_CloseAll()])
+    meas = Measurements(t_s=0.0, batteries=(_bat(100.0, closed=True), _bat(103.0)), bus_v=100.0)
+    assert sup.step(meas, 0.1).commands.chg_on == (True, True)  # 3.0 V == limit: allowed
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(2), methods=[_CloseAll()])
+    meas = Measurements(t_s=0.0, batteries=(_bat(100.0, closed=True), _bat(103.5)), bus_v=100.0)
+    assert sup.step(meas, 0.1).commands.chg_on == (True, False)
+
+
+def test_discharge_becomes_idle_after_exactly_idle_after_s_of_quiet() -> None:
+    cfg = SupervisorConfig(init_time_s=0.0, idle_after_s=1.0)
+    sup = Supervisor(cfg, _info(1, SwitchKind.MOSFET_PAIR))
+    t = 0.0
+    for _ in range(3):  # 10 A: discharging
+        sup.step(Measurements(t_s=t, batteries=(_bat(24.0, i=10.0),), bus_v=24.0), 0.5)
+        t += 0.5
+    assert sup.mode is Mode.DISCHARGE
+    modes = []
+    for _ in range(4):  # quiet: 0.5 s, 1.0 s (== idle_after_s), ...
+        sup.step(Measurements(t_s=t, batteries=(_bat(24.0, i=0.0),), bus_v=24.0), 0.5)
+        modes.append(sup.mode)
+        t += 0.5
+    assert modes == [Mode.DISCHARGE, Mode.IDLE, Mode.IDLE, Mode.IDLE]

@@ -78,6 +78,9 @@ class Method:
     """Label lists of events and status (``prm`` -> names)."""
     max_events: Callable[[PackInfo], int]
     """Most events one pack can emit in one step (sizes the event buffer)."""
+    after: Callable[[Any, Any, PackArrays, MeasArrays, CmdArrays], None] | None = None
+    """``after(prm, st, tp, m, cmd)``: sees the step's final, merged commands (plausibility
+    compares switch feedback with what was commanded)."""
 
 
 def status_values(

@@ -1,4 +1,6 @@
-"""The supervisor: one BMS that runs the enabled methods together and keeps the pack safe.
+"""ORACLE (tests only): the scalar supervisor as it was before the compiled core.
+
+The supervisor: one BMS that runs the enabled methods together and keeps the pack safe.
 
 It owns the operating mode (init → idle → discharge / charge → fault → shutdown), runs every
 enabled method controller on the same measurements, then the safety layers (limits,
