@@ -9,32 +9,22 @@ Faults act where they would act in reality:
 * ``charger_fault`` raises a status flag in the dock; ``can_silence`` drops every frame between
   BMS and charger (so the dock's heartbeat times out and the BMS sees the charger offline);
 * ``cooling_failure`` cuts one battery's heat transfer to ambient.
+
+The schedule is the scenario's; a campaign batch applies it to every pack of the batch.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Any
 
 from packpilot.config import FaultConfig, ScenarioConfig
-from packpilot.control.types import BatteryMeasurement, ChargerCommand, ChargerStatus, Measurements
+from packpilot.contract.arrays import MeasArrays
+from packpilot.contract.charger import CHARGER_FLAGS, ChargerCommand, ChargerLink, ChargerStatus
 from packpilot.model.pack import Pack
 
-if TYPE_CHECKING:
-    from packpilot.sim.runner import ChargerLink, Runner
-
-
-def _with(b: BatteryMeasurement, quantity: str, value: float) -> BatteryMeasurement:
-    """A copy of ``b`` with one numeric field replaced (a lying sensor)."""
-    fields: dict[str, float] = {quantity: value}
-    return dataclasses.replace(b, **fields)  # type: ignore[arg-type]
-
-
-def _stale(b: BatteryMeasurement, age_s: float) -> BatteryMeasurement:
-    """A repeated frame from a monitor that stopped reporting, with the age of its sample."""
-    return dataclasses.replace(b, sample_age_s=age_s)
+SENSOR_KINDS = frozenset({"sensor_nan", "sensor_stuck", "sensor_dropout"})
 
 
 def _active(f: FaultConfig, t_s: float) -> bool:
@@ -57,28 +47,29 @@ class SilenceableLink:
         return None if self.silenced else status
 
     def close(self) -> None:
-        close = getattr(self.inner, "close", None)
-        if callable(close):
-            close()
+        self.inner.close()
 
 
 @dataclass
 class FaultInjector:
-    """Applies the scenario's ``[[faults]]`` to the plant, the sensors and the charger link."""
+    """Applies the scenario's ``[[faults]]`` to the plant, the sensors and the charger links."""
 
     cfg: ScenarioConfig
     pack: Pack
-    link: SilenceableLink | None = None
-    stuck: dict[tuple[int, str], float] = field(default_factory=dict)
-    frozen: dict[int, BatteryMeasurement] = field(default_factory=dict)
+    links: list[SilenceableLink] = field(default_factory=list)
+    stuck: dict[tuple[int, str], Any] = field(default_factory=dict)
+    frozen: dict[int, dict[str, Any]] = field(default_factory=dict)
     applied: set[int] = field(default_factory=set)
     cooling: dict[int, bool] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.index = {b.name: i for i, b in enumerate(self.cfg.pack.batteries)}
+        bats = self.cfg.pack.batteries
+        self.index = {b.name: i for i, b in enumerate(bats)}
+        self.traction = [i for i, b in enumerate(bats) if b.role == "traction"]
+        self.has_sensor_faults = any(f.kind in SENSOR_KINDS for f in self.cfg.faults)
 
     # ------------------------------------------------------------------ plant side
-    def before_step(self, runner: Runner, t_s: float) -> None:
+    def before_step(self, t_s: float) -> None:
         pack = self.pack
         for k, f in enumerate(self.cfg.faults):
             on = _active(f, t_s)
@@ -88,9 +79,10 @@ class FaultInjector:
             elif f.kind == "shorted_fet":
                 pack.fet_shorted[:, i, 0 if f.fet == "chg" else 1] = on
             elif f.kind == "charger_fault":
-                pack.charger.view(0).set_fault(f.flag, on)
-            elif f.kind == "can_silence" and self.link is not None:
-                self.link.silenced = on
+                pack.charger.flags[:, CHARGER_FLAGS.index(f.flag)] = on
+            elif f.kind == "can_silence":
+                for link in self.links:
+                    link.silenced = on
             elif f.kind == "cooling_failure":
                 self._cooling(i, f, on)
             if on:
@@ -104,32 +96,38 @@ class FaultInjector:
         self.pack.set_cooling(string, f.cooling_factor if on else 1.0)
 
     # ------------------------------------------------------------------ sensor side
-    def filter(self, meas: Measurements) -> Measurements:
-        """Corrupt the measurements as the active sensor faults dictate."""
-        t = meas.t_s
-        batteries = list(meas.batteries)
-        traction = [i for i, b in enumerate(self.cfg.pack.batteries) if b.role == "traction"]
-        changed = False
+    def filter(self, m: MeasArrays) -> None:
+        """Corrupt the measurements of every pack as the active sensor faults dictate."""
+        if not self.has_sensor_faults:
+            return
+        t = float(m.t_s[0])
+        bat = m.bat
         for f in self.cfg.faults:
-            if f.kind not in ("sensor_nan", "sensor_stuck", "sensor_dropout"):
+            if f.kind not in SENSOR_KINDS:
                 continue
             i = self.index[f.battery or ""]
-            if i not in traction:
+            if i not in self.traction:
                 continue
-            k = traction.index(i)
-            b = batteries[k]
+            k = self.traction.index(i)
             if not _active(f, t):
                 self.stuck.pop((k, f.quantity), None)
                 self.frozen.pop(k, None)
                 continue
-            changed = True
+            col = getattr(bat, f.quantity)
             if f.kind == "sensor_nan":
-                batteries[k] = _with(b, f.quantity, math.nan)
+                col[:, k] = math.nan
             elif f.kind == "sensor_stuck":
-                value = self.stuck.setdefault((k, f.quantity), float(getattr(b, f.quantity)))
-                batteries[k] = _with(b, f.quantity, value)
+                value = self.stuck.setdefault((k, f.quantity), col[:, k].copy())
+                col[:, k] = value
             else:  # dropout: the battery's monitor stops reporting; the last frame repeats
-                batteries[k] = _stale(self.frozen.setdefault(k, b), max(t - f.at_s, 0.0))
-        if not changed:
-            return meas
-        return dataclasses.replace(meas, batteries=tuple(batteries))
+                frame = self.frozen.setdefault(
+                    k, {name: arr[:, k].copy() for name, arr in bat._asdict().items()}
+                )
+                for name, arr in bat._asdict().items():
+                    arr[:, k] = frame[name]
+                bat.sample_age_s[:, k] = max(t - f.at_s, 0.0)
+
+
+__all__ = ["FaultInjector", "SilenceableLink"]
+
+

@@ -1,0 +1,58 @@
+"""The control methods and safety layers, each registered once: name -> config model, the
+compiled method (or, while it is being moved to the core, its scalar controller)."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from pydantic import BaseModel
+
+from packpilot.contract.bms import Controller
+from packpilot.contract.topology import PackInfo
+from packpilot.control.core import Part
+from packpilot.control.method import Method
+
+
+@dataclass(frozen=True)
+class Entry:
+    name: str
+    role: Literal["method", "safety"]
+    target: str
+    """``module:METHOD`` of the compiled method, or ``module:Class`` of a scalar controller."""
+
+    def resolve(self) -> Any:
+        mod, attr = self.target.split(":")
+        return getattr(importlib.import_module(mod), attr)
+
+    def part(self, config: BaseModel, infos: Sequence[PackInfo]) -> Part | Controller:
+        """This method for ``len(infos)`` packs (a scalar controller: one pack only)."""
+        obj = self.resolve()
+        if isinstance(obj, Method):
+            return Part.build(obj, config, infos)
+        if len(infos) != 1:
+            raise ValueError(f"{self.name} has no compiled form yet: it runs at one pack only")
+        ctl: Controller = obj(config, infos[0])
+        return ctl
+
+
+REGISTRY: dict[str, Entry] = {
+    e.name: e
+    for e in (
+        Entry("protection", "method", "packpilot.control.protection:ProtectionController"),
+        Entry("sequencing", "method", "packpilot.control.sequencing:SequencingController"),
+        Entry("charging", "method", "packpilot.control.charging:ChargingController"),
+        Entry("equalization", "method", "packpilot.control.equalization:EqualizationController"),
+        Entry("limits", "safety", "packpilot.control.limits:LimitsController"),
+        Entry("plausibility", "safety", "packpilot.control.plausibility:PlausibilityMonitor"),
+        Entry("soc", "safety", "packpilot.control.soc:METHOD"),
+    )
+}
+"""Methods run in the order a scenario lists them; safety layers after them, in this order."""
+
+METHODS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.role == "method")
+SAFETY: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.role == "safety")
+
+__all__ = ["METHODS", "REGISTRY", "SAFETY", "Entry"]

@@ -1,0 +1,127 @@
+"""Charger links of a run: setpoints out, status back, one link per pack.
+
+A link is direct (setpoints written into the plant's dock every period) or a python-can bus
+(TC/Elcon frames to an emulated dock on a virtual bus, or to a real one on ``socketcan``).
+:class:`ChargerLinks` keeps, per pack, the last status and marks the charger offline once
+nothing arrived for the heartbeat timeout, and turns the merged commands into setpoints
+(the scenario's ``[charger]`` setpoint where no controller commanded the charger).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from packpilot.config import ScenarioConfig
+from packpilot.contract.arrays import CmdArrays, MeasArrays
+from packpilot.contract.charger import CHARGER_FLAGS, ChargerCommand, ChargerLink, ChargerStatus
+from packpilot.model.charger import ChargerView
+from packpilot.model.pack import Pack
+
+
+@dataclass
+class DirectChargerLink:
+    """Setpoints written straight into the plant's charger: a request every control period."""
+
+    charger: ChargerView
+
+    def send(self, command: ChargerCommand, t_s: float) -> None:
+        self.charger.request(command.voltage_v, command.current_a, command.enable, t_s)
+
+    def poll(self, t_s: float) -> ChargerStatus | None:
+        v, a = self.charger.output()
+        f = self.charger.fault_flags
+        return ChargerStatus(output_v=v, output_a=a, online=True, **f)
+
+    def close(self) -> None:
+        pass
+
+
+def can_link(cfg: ScenarioConfig, pack: Pack, p: int = 0) -> ChargerLink:
+    """Charger setpoints over python-can: an emulated dock on a virtual bus, or real hardware."""
+    from packpilot.io.can.link import CanChargerLink
+
+    assert cfg.can is not None
+    emulate = cfg.can.interface == "virtual"
+    return CanChargerLink(
+        pack.charger.view(p) if emulate else None,
+        interface=cfg.can.interface,
+        channel=cfg.can.channel,
+        log_path=cfg.can.log,
+        heartbeat_timeout_s=cfg.charger.heartbeat_timeout_s,
+    )
+
+
+def default_links(cfg: ScenarioConfig, pack: Pack) -> list[ChargerLink]:
+    """The scenario's links: none without a charger, CAN with ``[can]``, else direct."""
+    if not cfg.charger.present:
+        return []
+    if cfg.can is not None:
+        return [can_link(cfg, pack, p) for p in range(pack.n_packs)]
+    return [DirectChargerLink(pack.charger.view(p)) for p in range(pack.n_packs)]
+
+
+class ChargerLinks:
+    """The charger link of every pack, with status tracking and the default setpoint."""
+
+    def __init__(self, cfg: ScenarioConfig, links: Sequence[ChargerLink]) -> None:
+        self.links = list(links)
+        c = cfg.charger
+        self.default = ChargerCommand(c.voltage_v, c.current_a, c.enable)
+        self.timeout_s = c.heartbeat_timeout_s
+        n = len(self.links)
+        self.last: list[ChargerStatus | None] = [None] * n
+        self.seen_s: list[float | None] = [None] * n
+
+    def __bool__(self) -> bool:
+        return bool(self.links)
+
+    def poll(self, t_s: float, m: MeasArrays) -> None:
+        """Latest status of every charger into ``m`` (offline once silent for the timeout)."""
+        ch = m.charger
+        for p, link in enumerate(self.links):
+            status = link.poll(t_s)
+            last = self.last[p]
+            seen = self.seen_s[p]
+            if status is not None:
+                self.seen_s[p] = t_s
+                last = status
+            elif (
+                last is not None
+                and seen is not None
+                and t_s - seen > self.timeout_s
+                and last.online
+            ):
+                last = dataclasses.replace(last, online=False)
+            self.last[p] = last
+            ch.reported[p] = last is not None
+            if last is None:
+                ch.output_v[p] = ch.output_a[p] = math.nan
+                ch.flags[p] = False
+                ch.online[p] = False
+                continue
+            ch.output_v[p] = last.output_v
+            ch.output_a[p] = last.output_a
+            for k, name in enumerate(CHARGER_FLAGS):
+                ch.flags[p, k] = bool(getattr(last, name))
+            ch.online[p] = last.online
+
+    def send(self, t_s: float, cmd: CmdArrays) -> None:
+        for p, link in enumerate(self.links):
+            command = self.default
+            if cmd.charger_set[p]:
+                command = ChargerCommand(
+                    float(cmd.charger_v[p]), float(cmd.charger_a[p]), bool(cmd.charger_enable[p])
+                )
+            link.send(command, t_s)
+
+    def close(self) -> None:
+        for link in self.links:
+            close = getattr(link, "close", None)
+            if callable(close):
+                close()
+
+
+__all__ = ["ChargerLinks", "DirectChargerLink", "can_link", "default_links"]

@@ -1,0 +1,248 @@
+"""The closed loop: measure → core → commands → one period of physics, for P packs.
+
+One loop serves a single run (P = 1, :class:`~packpilot.sim.runner.Runner`) and a campaign
+batch (P = N): the plant stands behind a narrow port (:class:`~.plant_io.SimulatedPlant`:
+``measure``, ``apply``, ``step``), so a CAN bus or a replayed log can stand where the
+simulator stands. Per period, for every pack at once::
+
+    faults (plant side) → charger status over the links → sensors → faults (sensor side)
+    → core.step_batch (every rule, merged, supervised) → plant gates / balancers / aux
+    → charger setpoints over the links → plant.step → plant events → record
+
+Timing: the core sees the state at ``t`` under the previous period's current (a sampling BMS)
+and its commands apply to ``[t, t + dt]``: one period of actuation delay, as in hardware.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.config import ScenarioConfig, validate_section
+from packpilot.config.supervisor import SupervisorConfig
+from packpilot.contract.arrays import MeasArrays, meas_arrays
+from packpilot.contract.bms import Controller, Event
+from packpilot.contract.charger import ChargerLink
+from packpilot.contract.record import StepSample
+from packpilot.contract.topology import PackInfo
+from packpilot.control.core import Core, Part
+from packpilot.control.registry import REGISTRY, SAFETY
+from packpilot.model import loads
+from packpilot.model.pack import Interval
+from packpilot.sim.faults import FaultInjector, SilenceableLink
+from packpilot.sim.links import ChargerLinks, default_links
+from packpilot.sim.metrics import Metrics
+from packpilot.sim.plant_io import SimulatedPlant
+
+Array = NDArray[np.float64]
+
+
+def build_core(cfg: ScenarioConfig, infos: Sequence[PackInfo]) -> Core:
+    """The BMS a scenario enables: its methods in the listed order, then the safety layers,
+    under the supervisor when any of ``[supervisor]``, ``[limits]``, ``[plausibility]``,
+    ``[soc]`` is present."""
+    parts: list[Part | Controller] = []
+    for name in cfg.controller:
+        section = validate_section(name, getattr(cfg, name), "<config>")
+        parts.append(REGISTRY[name].part(section, infos))
+    supervisor: SupervisorConfig | None = None
+    if cfg.supervised:
+        for name in SAFETY:
+            if getattr(cfg, name) is not None:
+                section = validate_section(name, getattr(cfg, name), "<config>")
+                parts.append(REGISTRY[name].part(section, infos))
+        sup = validate_section("supervisor", cfg.supervisor, "<config>")
+        assert isinstance(sup, SupervisorConfig)
+        supervisor = sup
+    return Core(infos, parts, supervisor)
+
+
+def load_profile(cfg: ScenarioConfig) -> loads.LoadProfile:
+    lc = cfg.load
+    if lc.kind == "none":
+        return loads.constant("none", 0.0)
+    if lc.profile is None:
+        return loads.constant(lc.kind, lc.value)
+    if lc.profile.endswith(".csv"):
+        return loads.from_csv(Path(lc.profile), repeat=lc.repeat)
+    prof = loads.builtin(lc.profile, lc.value, lc.kind)
+    return loads.LoadProfile(kind=prof.kind, t_s=prof.t_s, value=prof.value, repeat=lc.repeat)
+
+
+def n_steps(cfg: ScenarioConfig) -> int:
+    return math.ceil(cfg.sim.duration_s / cfg.sim.dt_s - 1e-9)
+
+
+Hook = Callable[[float], None]
+
+
+@dataclass
+class StepRecord:
+    """What one period did, for the recorders: the plant's flows and the events."""
+
+    k: int
+    iv: Interval
+    events: list[list[Event]]
+
+
+@dataclass
+class ClosedLoop:
+    """P packs of one scenario under one core, stepped together."""
+
+    cfg: ScenarioConfig
+    plant: SimulatedPlant
+    core: Core
+    links: ChargerLinks
+    faults: FaultInjector | None = None
+    hooks: Sequence[Hook] = ()
+    m: MeasArrays = field(init=False)
+    was_supplied: NDArray[np.bool_] = field(init=False)
+    unsupplied_s: Array = field(init=False)
+
+    def __post_init__(self) -> None:
+        info = self.plant.infos[0]
+        P = self.plant.n_packs
+        self.m = meas_arrays(P, info.n_batteries, max(info.groups_per_battery, default=1))
+        self.was_supplied = np.ones(P, np.bool_)
+        self.unsupplied_s = np.zeros(P)
+        self.profile = load_profile(self.cfg)
+        self.metrics = Metrics(P, self.plant.pack.n_strings, self.cfg.sim.dt_s)
+        self._traction = np.array(self.plant.topology.traction, np.int64)
+
+    @classmethod
+    def of(
+        cls,
+        cfg: ScenarioConfig,
+        n_packs: int = 1,
+        overrides: dict[str, Any] | None = None,
+        core: Core | None = None,
+        links: Sequence[ChargerLink] | None = None,
+        hooks: Sequence[Hook] = (),
+        plant: SimulatedPlant | None = None,
+    ) -> ClosedLoop:
+        if plant is None:
+            plant = SimulatedPlant(cfg, n_packs, overrides)
+        if core is None:
+            core = build_core(cfg, plant.infos)
+        raw = default_links(cfg, plant.pack) if links is None else list(links)
+        faults = None
+        if cfg.faults:
+            raw = [SilenceableLink(x) for x in raw]
+            faults = FaultInjector(cfg, plant.pack, raw)  # type: ignore[arg-type]
+        return cls(cfg, plant, core, ChargerLinks(cfg, raw), faults, hooks)
+
+    def demand(self, t_s: float) -> float:
+        start = self.cfg.load.start_s
+        return self.profile.at(t_s - start) if t_s >= start else 0.0
+
+    def step(self, k: int, dt_s: float) -> StepRecord:
+        """One period of every pack."""
+        plant, m, core = self.plant, self.m, self.core
+        t = plant.t_s
+        for hook in self.hooks:
+            hook(t)
+        if self.faults is not None:
+            self.faults.before_step(t)
+        if self.links:
+            self.links.poll(t, m)
+        plant.measure(m)
+        if self.faults is not None:
+            self.faults.filter(m)
+        core.step_batch(m, dt_s)
+        plant.apply(core.cmd)
+        if self.links:
+            self.links.send(t, core.cmd)
+        iv = plant.step(dt_s, np.full(plant.n_packs, self.demand(t)))
+        events = core.events() if core.ev.n[0] else [[] for _ in range(plant.n_packs)]
+        self._supply_events(t, iv, events, dt_s)
+        self.metrics.add(plant.pack, iv, self._traction, events)
+        stop = self.cfg.sim.stop_when_unsupplied_s
+        if stop is not None:
+            self.metrics.stop(self.unsupplied_s >= stop)
+        return StepRecord(k, iv, events)
+
+    @property
+    def running(self) -> bool:
+        """Some pack has not stopped yet."""
+        return bool(self.metrics.live.any())
+
+    def _supply_events(self, t: float, iv: Interval, events: list[list[Event]], dt: float) -> None:
+        supplied = iv.supplied
+        for p in np.nonzero(supplied != self.was_supplied)[0].tolist():
+            if not supplied[p]:
+                events[p].append(
+                    Event(
+                        t,
+                        "LoadUnsupplied",
+                        None,
+                        "bus cannot supply the load",
+                        {"bus_v": float(iv.bus_v[p]), "demand_a": float(iv.load_demand_a[p])},
+                    )
+                )
+            else:
+                events[p].append(Event(t, "LoadResupplied", None, "load supplied again"))
+        self.was_supplied = supplied.copy()
+        self.unsupplied_s = np.where(supplied, 0.0, self.unsupplied_s + dt)
+
+    def close(self) -> None:
+        self.links.close()
+
+
+def sample(loop: ClosedLoop, rec: StepRecord, p: int = 0) -> StepSample:
+    """Pack ``p``'s record of the step (plant truth, controller status over all strings)."""
+    pack = loop.plant.pack
+    iv = rec.iv
+    soc, temp = pack.cell_states()
+    chg, dsg = pack.effective_gates()
+    starts = pack.string_cell_starts
+    cap = pack.capacity_ah[p]
+    rem = np.minimum.reduceat(soc[p] * cap, starts)
+    full = np.minimum.reduceat(cap, starts)
+    rows = np.column_stack(
+        (
+            iv.battery_v[p],
+            iv.string_a[p],
+            rem / full,
+            np.maximum.reduceat(temp[p], starts),
+            np.minimum.reduceat(iv.cell_v[p], starts),
+            np.maximum.reduceat(iv.cell_v[p], starts),
+            rem,
+            full,
+            chg[p],
+            dsg[p],
+            iv.chg_diode_a[p],
+            iv.dsg_diode_a[p],
+            iv.balancer_in_w[p],
+        )
+    )
+    group = np.where(pack.group_table >= 0, iv.group_v[p][pack.group_table], np.nan)
+    topo = loop.plant.topology
+    status = {
+        name: topo.spread(vals) for name, vals in loop.core.status_of(p).items()
+    }
+    return StepSample(
+        step=rec.k,
+        t_s=iv.t_s,
+        bus_v=float(iv.bus_v[p]),
+        load_demand_a=float(iv.load_demand_a[p]),
+        load_a=float(iv.load_a[p]),
+        charger_v=float(iv.charger_v[p]),
+        charger_a=float(iv.charger_a[p]),
+        battery=rows,
+        group_v=group,
+        status=status,  # type: ignore[arg-type]
+    )
+
+
+def wall() -> float:
+    return time.perf_counter()
+
+
+__all__ = ["ClosedLoop", "StepRecord", "build_core", "load_profile", "n_steps", "sample"]
