@@ -49,7 +49,7 @@ import numpy as np
 
 from packpilot.config import ScenarioConfig, load_config
 from packpilot.io.can import CanChargerLink
-from packpilot.sim.result import Result
+from packpilot.contract.record import Result
 from packpilot.sim.runner import Runner
 
 SCENARIO = Path(__file__).resolve().parents[1] / "examples" / "evtol_charging.toml"

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from packpilot.config import ScenarioConfig, load_config
-from packpilot.sim.result import Result
+from packpilot.contract.record import Result
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

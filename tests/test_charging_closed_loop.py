@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 
 from packpilot.config import parse_config
+from packpilot.contract.record import Result
 from packpilot.io.can import (
     REQUEST_ID,
     SIM_EPOCH_S,
     STATUS_ID,
     CanChargerLink,
 )
-from packpilot.sim.result import Result
 from packpilot.sim.runner import Runner
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "evtol_charging.toml"

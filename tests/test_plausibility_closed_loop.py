@@ -10,10 +10,10 @@ from functools import reduce
 from typing import Any
 
 from packpilot.config import parse_config
+from packpilot.contract.record import Result
 from packpilot.control.limits import LimitsConfig, LimitsController
 from packpilot.control.plausibility import PlausibilityConfig, PlausibilityMonitor
 from packpilot.control.types import Commands, ControlOutput, Measurements, PackInfo, merge_commands
-from packpilot.sim.result import Result
 from packpilot.sim.runner import Runner
 from tests.conftest import dual_pack
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from packpilot.contract.record import BATTERY_CHANNELS, Result, StepSample, Trace
 from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.report.plots import figure_png_base64, plot_run, run_figure
-from packpilot.sim.result import BATTERY_CHANNELS, Result, StepSample, Trace
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CH = {c: i for i, c in enumerate(BATTERY_CHANNELS)}

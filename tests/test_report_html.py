@@ -18,6 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packpilot.config import load_config
+from packpilot.contract.record import BATTERY_CHANNELS, Result, StepSample, Trace
 from packpilot.control.types import Event
 from packpilot.io.telemetry import SQLiteRecorder, load_run
 from packpilot.report import figures as F
@@ -30,7 +31,6 @@ from packpilot.report.html import (
     run_info_from_db,
     select_events,
 )
-from packpilot.sim.result import BATTERY_CHANNELS, Result, StepSample, Trace
 from packpilot.sim.runner import Runner
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from packpilot.config import ScenarioConfig, load_config
-from packpilot.sim.result import Result
+from packpilot.contract.record import Result
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

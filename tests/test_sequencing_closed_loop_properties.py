@@ -15,10 +15,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packpilot.config import parse_config
+from packpilot.contract.record import Result
 from packpilot.control.sequencing import SequencingConfig
 from packpilot.model import loads
 from packpilot.model.cell import ocv_v
-from packpilot.sim.result import Result
 from packpilot.sim.runner import Runner
 
 CFG = SequencingConfig()

@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.record import BATTERY_CHANNELS, Result, StatusValue, StepSample, Trace
 from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.io.telemetry import (
@@ -28,7 +29,6 @@ from packpilot.io.telemetry import (
     load_run,
     trace_to_csv,
 )
-from packpilot.sim.result import BATTERY_CHANNELS, Result, StatusValue, StepSample, Trace
 
 NAMES = ["left", "right"]
 N_C = len(BATTERY_CHANNELS)

@@ -18,7 +18,7 @@ import typer
 from packpilot.errors import PackPilotError
 
 if TYPE_CHECKING:
-    from packpilot.sim.result import Result
+    from packpilot.contract.record import Result
 
 app = typer.Typer(
     add_completion=False,

@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.contract.record import BATTERY_CHANNELS, Result, StatusValue, StepSample, Trace
 from packpilot.control.types import Event
 from packpilot.errors import InputError
-from packpilot.sim.result import BATTERY_CHANNELS, Result, StatusValue, StepSample, Trace
 
 SCHEMA_VERSION = 1
 

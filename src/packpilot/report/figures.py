@@ -22,8 +22,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 
+from packpilot.contract.record import Result, StatusValue
 from packpilot.report.downsample import MAX_POINTS, downsample, step_indices
-from packpilot.sim.result import Result, StatusValue
 
 WIDTH_IN = 10.0
 MAX_CATEGORIES = 14

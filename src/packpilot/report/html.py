@@ -25,11 +25,11 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from packpilot.contract.record import Result
 from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.report import figures as F
 from packpilot.report.plots import figure_png_base64
-from packpilot.sim.result import Result
 
 SECTION_IDS: tuple[str, ...] = (
     "summary",

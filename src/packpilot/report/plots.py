@@ -19,9 +19,9 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 
+from packpilot.contract.record import Result
 from packpilot.control.types import Event
 from packpilot.errors import InputError
-from packpilot.sim.result import Result
 
 _FORMATS = ("png", "svg", "pdf")
 _MAX_EVENT_LABELS = 12

@@ -45,13 +45,7 @@ import numpy as np
 
 from packpilot.config import ScenarioConfig
 from packpilot.errors import InputError
-from packpilot.sim.lockstep import (
-    controllers,
-    run_lockstep,
-    stack_overrides,
-    unsupported_reason,
-)
-from packpilot.sim.runner import Runner
+from packpilot.sim.loop import ClosedLoop, n_steps
 
 if TYPE_CHECKING:
     import pyarrow as pa
@@ -60,16 +54,9 @@ _log = logging.getLogger(__name__)
 
 FAIL_ENV = "PACKPILOT_CAMPAIGN_FAIL_RUNS"
 META_KEY = b"packpilot.campaign"
-STEP_COST_S = 150e-6
-"""Closed-loop CPU cost of one step of a 12-cell pack (measured 135-250 us on the dev box as
-the plant got faster; benchmarks/bench_campaign.py)."""
-LOCKSTEP_STEP_COST_S = 6e-6
-"""CPU cost of one pack-step in a lockstep batch of that 12-cell pack with a batch twin (or no
-method): measured 4.5 us at 256 packs per batch, 5.2 at 128, 9.8 at 32 on the 2-core dev box
-(bench_campaign)."""
-LOCKSTEP_SCALAR_STEP_COST_S = 40e-6
-"""The same with one scalar controller per pack (methods without a twin): 34-38 us per
-pack-step for protection, 56 us for 12S equalization at 64 packs per batch."""
+BATCH_STEP_COST_S = 8e-6
+"""CPU cost of one pack-step of the whole supervised BMS and plant in a batch of 128-256
+packs (bench_campaign; used only to choose between in-process and a process cluster)."""
 PROCESS_BREAK_EVEN_S = 5.0
 """Estimated single-core work above which ``auto`` picks the process LocalCluster over the
 in-process synchronous scheduler. Measured on the 2-core dev box: the cluster costs ~1.5-2.5 s
@@ -286,93 +273,90 @@ def _deliberate_failure(run: int) -> DeliberateFailure:
     return DeliberateFailure(f"deliberate failure of run {run} ({FAIL_ENV})")
 
 
-def run_one(cfg: ScenarioConfig, draw: Draw, fail: bool = False) -> dict[str, Any]:
-    """One closed-loop run with drawn parameters -> its Parquet row (never raises for the run)."""
-    t0 = time.perf_counter()
-    hooks: list[Callable[[Runner, float], None]] = []
-    if fail:
-
-        def _boom(runner: Runner, t_s: float) -> None:
-            raise _deliberate_failure(draw.run)
-
-        hooks.append(_boom)
-    try:
-        runner = Runner(cfg, progress=False, hooks=hooks, pack_overrides=draw.pack_overrides())
-        result = runner.run()
-        return _row(draw, result.metrics, time.perf_counter() - t0)
-    except Exception as err:  # a failing run is data, not a crash of the campaign
-        row: dict[str, Any] = asdict(draw)
-        row.update(
-            status="error",
-            error=f"{type(err).__name__}: {err}".strip()[:2000],
-            wall_time_s=time.perf_counter() - t0,
-        )
-        return row
+def stack_overrides(draws: Sequence[Draw]) -> dict[str, Any]:
+    """The draws' plant overrides as (P,) arrays: one batch, one plant."""
+    per = [d.pack_overrides() for d in draws]
+    return {
+        k: np.concatenate([np.asarray(o[k], np.float64).reshape(1) for o in per]) for k in per[0]
+    }
 
 
-def run_lockstep_batch(
+def unsupported_reason(cfg: ScenarioConfig) -> str | None:
+    """Why ``cfg`` cannot run as a campaign (``None``: it can). Only a charger on a real CAN
+    interface cannot: a Monte-Carlo batch has no real dock behind each of its packs."""
+    if cfg.charger.present and cfg.can is not None and cfg.can.interface != "virtual":
+        return f"the charger is on a real CAN interface ({cfg.can.interface})"
+    return None
+
+
+def run_batch_loop(
     cfg: ScenarioConfig, draws: Sequence[Draw], fail_runs: frozenset[int] = frozenset()
-) -> list[dict[str, Any]] | None:
-    """The runs of ``draws`` as one lockstep batch (:mod:`packpilot.sim.lockstep`), or
-    ``None`` when that raised (the caller splits the batch to find the failing run).
+) -> list[dict[str, Any]]:
+    """The runs of ``draws`` as one batch of the closed loop (P = len(draws)); one row each.
 
-    ``wall_time_s`` of each row is the batch's wall time divided by its runs.
+    A run listed in ``fail_runs`` fails at its first step (the failure-handling test knob):
+    its row is an error, its pack stops, the others go on. A pack whose metrics turn
+    non-finite is an error row too. Raises only for a fault of the batch as a whole.
     """
-    failing = [d.run for d in draws if d.run in fail_runs]
-
-    def hook(t_s: float) -> None:
-        raise _deliberate_failure(failing[0])
-
+    t0 = time.perf_counter()
+    loop = ClosedLoop.of(cfg, n_packs=len(draws), overrides=stack_overrides(draws))
+    failed = np.array([d.run in fail_runs for d in draws], np.bool_)
+    loop.metrics.stop(failed)
+    dt = cfg.sim.dt_s
     try:
-        res = run_lockstep(
-            cfg,
-            stack_overrides([d.pack_overrides() for d in draws]),
-            hook=hook if failing else None,
-        )
-    except Exception as err:  # any failure: the caller bisects, which isolates the failing run
-        _log.warning(
-            "lockstep batch of runs %d..%d raised %s: %s; splitting it",
-            draws[0].run,
-            draws[-1].run,
-            type(err).__name__,
-            err,
-        )
-        return None
-    return [_row(d, met, met["wall_time_s"]) for d, met in zip(draws, res.metrics, strict=True)]
+        for k in range(n_steps(cfg)):
+            if not loop.running:
+                break
+            loop.step(k, dt)
+    finally:
+        loop.close()
+    wall = (time.perf_counter() - t0) / len(draws)
+    names = [b.name for b in cfg.pack.batteries]
+    rows = []
+    for p, d in enumerate(draws):
+        if failed[p]:
+            rows.append(_error_row(d, _deliberate_failure(d.run), wall))
+        else:
+            rows.append(_row(d, loop.metrics.of(p, wall, names), wall))
+    return rows
+
+
+def _error_row(draw: Draw, err: BaseException, wall_s: float) -> dict[str, Any]:
+    row: dict[str, Any] = asdict(draw)
+    row.update(
+        status="error", error=f"{type(err).__name__}: {err}".strip()[:2000], wall_time_s=wall_s
+    )
+    return row
+
+
+def run_one(cfg: ScenarioConfig, draw: Draw, fail: bool = False) -> dict[str, Any]:
+    """One run with drawn parameters -> its Parquet row (a batch of one; never raises)."""
+    return run_batch(cfg, [draw], frozenset({draw.run}) if fail else frozenset())[0]
 
 
 def run_batch(
     cfg: ScenarioConfig,
     draws: Sequence[Draw],
     fail_runs: frozenset[int] = frozenset(),
-    lockstep: bool = True,
 ) -> list[dict[str, Any]]:
-    """The unit of work shipped to a worker: several runs, one row each (in ``draws`` order).
-
-    Scenarios the lockstep loop covers (``lockstep.unsupported_reason``) step the whole batch
-    through one vectorized plant and a batch controller; if that raises, or for any other
-    scenario, the runs go one by one through the per-pack :class:`Runner`, with the same
-    metrics. A lockstep batch that raises is split in halves until the failing run is alone.
-    """
-    if lockstep and draws and unsupported_reason(cfg) is None:
-        return _lockstep_rows(cfg, list(draws), fail_runs)
-    return [run_one(cfg, d, fail=d.run in fail_runs) for d in draws]
-
-
-def _lockstep_rows(
-    cfg: ScenarioConfig, draws: list[Draw], fail_runs: frozenset[int]
-) -> list[dict[str, Any]]:
-    """Lockstep rows; when a batch raises, its halves are retried (bisection), and a single
-    run that still fails is run per pack for its error row. A run failing at its start costs
-    about one extra pass over the batch; one failing late costs up to log2(batch) passes over
-    the halves that hold it; rerunning every run per pack would cost ~50x."""
-    rows = run_lockstep_batch(cfg, draws, fail_runs)
-    if rows is not None:
-        return rows
-    if len(draws) == 1:
-        return [run_one(cfg, draws[0], fail=draws[0].run in fail_runs)]
-    mid = len(draws) // 2
-    return _lockstep_rows(cfg, draws[:mid], fail_runs) + _lockstep_rows(cfg, draws[mid:], fail_runs)
+    """The unit of work shipped to a worker: several runs as one batch, one row each (in
+    ``draws`` order). If the batch raises, its halves are retried (bisection, the same loop),
+    so a run that breaks the loop costs only itself: it ends as an error row naming the
+    exception, every other run gets its metrics."""
+    draws = list(draws)
+    if not draws:
+        return []
+    try:
+        return run_batch_loop(cfg, draws, fail_runs)
+    except Exception as err:  # a failing run is data, not a crash of the campaign
+        if len(draws) == 1:
+            return [_error_row(draws[0], err, 0.0)]
+        _log.warning(
+            "batch of runs %d..%d raised %s: %s; splitting it",
+            draws[0].run, draws[-1].run, type(err).__name__, err,
+        )  # fmt: skip
+        mid = len(draws) // 2
+        return run_batch(cfg, draws[:mid], fail_runs) + run_batch(cfg, draws[mid:], fail_runs)
 
 
 def fail_runs_from_env(env: Mapping[str, str] | None = None) -> frozenset[int]:
@@ -543,22 +527,17 @@ def _check_scheduler(text: str) -> str:
     )
 
 
-LOCKSTEP_MAX_BATCH = 128
-"""Largest lockstep batch: at 128 packs the per-step NumPy/Python overhead is already spread
-thin (5.2 us per pack-step vs 4.5 at 256, bench_campaign); a bigger batch only loses more work
-to an interruption and moves the progress bar less often."""
+MAX_BATCH = 256
+"""Largest batch: at 256 packs the per-step Python overhead of the loop is spread thin; a
+bigger batch only loses more work to an interruption and moves the progress bar less often."""
 
 
-def default_batch(n_runs: int, workers: int, lockstep: bool = False) -> int:
-    """Enough runs per task to amortize scheduling, enough tasks (~4 per worker) to balance:
-    at most 32 runs per pack, at most ``LOCKSTEP_MAX_BATCH`` in lockstep, where packs per batch
-    is what makes a step cheap."""
-    if lockstep:
-        # At least 16 packs per batch: below that the per-step overhead dominates (~50 us per
-        # pack-step at 2 packs against ~5 us at 128).
-        per_task = math.ceil(n_runs / (4 * max(1, workers)))
-        return max(1, min(n_runs, 16), min(LOCKSTEP_MAX_BATCH, per_task))
-    return max(1, min(32, math.ceil(n_runs / (4 * max(1, workers)))))
+def default_batch(n_runs: int, workers: int) -> int:
+    """Enough tasks (~4 per worker) to balance, as many packs per batch as that allows (what
+    makes a step cheap), at most ``MAX_BATCH``, and at least 16 (below that the per-step
+    overhead dominates)."""
+    per_task = math.ceil(n_runs / (4 * max(1, workers)))
+    return max(1, min(n_runs, 16), min(MAX_BATCH, per_task))
 
 
 def _batches(draws: Sequence[Draw], size: int) -> list[list[Draw]]:
@@ -575,7 +554,6 @@ def _run_threads(
     workers: int,
     done: BatchDone,
     sync: bool = False,
-    lockstep: bool = True,
 ) -> None:
     """Dask's local threaded (or synchronous) scheduler; each batch is stored as it finishes."""
     # dask's public API is untyped for mypy --strict: use it through Any.
@@ -584,7 +562,7 @@ def _run_threads(
 
     keys = {f"campaign-batch-{j}": b for j, b in enumerate(batches)}
     tasks = [
-        dask.delayed(run_batch, pure=False)(cfg, b, fail, lockstep, dask_key_name=k)
+        dask.delayed(run_batch, pure=False)(cfg, b, fail, dask_key_name=k)
         for k, b in keys.items()
     ]
 
@@ -607,11 +585,10 @@ def _run_distributed(
     fail: frozenset[int],
     client: Any,
     done: BatchDone,
-    lockstep: bool = True,
 ) -> None:
     as_completed: Any = importlib.import_module("distributed").as_completed
 
-    futures = [client.submit(run_batch, cfg, b, fail, lockstep, pure=False) for b in batches]
+    futures = [client.submit(run_batch, cfg, b, fail, pure=False) for b in batches]
     try:
         for fut in as_completed(futures):
             done(fut.result())
@@ -653,18 +630,12 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
             client.close()
 
 
-def choose_scheduler(cfg: ScenarioConfig, n_runs: int, workers: int, lockstep: bool = False) -> str:
+def choose_scheduler(cfg: ScenarioConfig, n_runs: int, workers: int) -> str:
     """``auto``: processes when the estimated work pays for the cluster start, else in-process
     (``sync``; threads are slower than that here, see ``PROCESS_BREAK_EVEN_S``)."""
     steps = math.ceil(cfg.sim.duration_s / cfg.sim.dt_s)
     cells = sum(b.n_cells for b in cfg.pack.batteries)
-    if not lockstep:
-        cost = STEP_COST_S
-    elif controllers(cfg) == "per-pack controllers":
-        cost = LOCKSTEP_SCALAR_STEP_COST_S
-    else:
-        cost = LOCKSTEP_STEP_COST_S
-    work_s = n_runs * steps * cost * max(1.0, cells / 12.0) ** 0.5
+    work_s = n_runs * steps * BATCH_STEP_COST_S * max(1.0, cells / 12.0) ** 0.5
     return "processes" if workers > 1 and work_s > PROCESS_BREAK_EVEN_S else "sync"
 
 
@@ -684,8 +655,8 @@ class CampaignReport:
     workers: int
     batch: int
     summary: list[dict[str, Any]] = field(default_factory=list)
-    engine: str = "per-pack"
-    """``lockstep`` (batches through one vectorized plant) or ``per-pack`` (and why)."""
+    engine: str = "batch"
+    """How the runs were stepped: ``batches of N packs`` through the one loop."""
 
     @property
     def runs_per_s(self) -> float:
@@ -716,7 +687,6 @@ def run_campaign(
     client: Any = None,
     on_progress: Callable[[int, int], None] | None = None,
     fail_runs: Iterable[int] | None = None,
-    lockstep: bool = True,
 ) -> CampaignReport:
     """Run (or complete, with ``resume``) a campaign of ``runs`` runs and consolidate ``out``.
 
@@ -725,9 +695,9 @@ def run_campaign(
     Dask scheduler address (``tcp://host:8786``); or pass a ``distributed.Client`` as
     ``client``. ``limit`` computes at most that many of the missing runs (a partial campaign
     that ``resume`` completes later). ``on_progress(done, total)`` is called after each batch.
-    ``fail_runs`` defaults to ``PACKPILOT_CAMPAIGN_FAIL_RUNS``. ``lockstep=False`` runs every
-    run through the per-pack :class:`Runner` even where the lockstep batch applies (same
-    metrics, slower: for comparison).
+    ``fail_runs`` defaults to ``PACKPILOT_CAMPAIGN_FAIL_RUNS``. Every batch steps its runs
+    together through the one closed loop (the whole supervised BMS, charger links and fault
+    schedules included).
     """
     if runs < 1:
         raise InputError(f"--runs must be >= 1 (got {runs})")
@@ -753,19 +723,13 @@ def run_campaign(
     if limit is not None:
         missing = missing[: max(0, limit)]
     draws = make_draws(sp, seed, missing, cfg.pack.ambient_c)
-    why_not = "disabled" if not lockstep else unsupported_reason(cfg)
-    vectorized = why_not is None
-    how = controllers(cfg)
-    engine = (
-        f"per-pack: {why_not}"
-        if not vectorized
-        else "lockstep, per-pack controllers"
-        if how == "per-pack controllers"
-        else "lockstep"
-    )
+    why_not = unsupported_reason(cfg)
+    if why_not is not None:
+        raise InputError(f"campaign: {why_not}; use the virtual interface (the default)")
     if sched == "auto":
-        sched = choose_scheduler(cfg, len(draws), n_workers, vectorized)
-    size = batch or default_batch(len(draws), 1 if sched == "sync" else n_workers, vectorized)
+        sched = choose_scheduler(cfg, len(draws), n_workers)
+    size = batch or default_batch(len(draws), 1 if sched == "sync" else n_workers)
+    engine = f"batches of up to {size} packs"
     batches = _batches(draws, size)
 
     computed = 0
@@ -782,12 +746,12 @@ def run_campaign(
     t0 = time.perf_counter()
     if batches:
         if sched in ("threads", "sync"):
-            _run_threads(cfg, batches, fail, n_workers, done, sched == "sync", lockstep)
+            _run_threads(cfg, batches, fail, n_workers, done, sched == "sync")
         elif sched == "client":
-            _run_distributed(cfg, batches, fail, client, done, lockstep)
+            _run_distributed(cfg, batches, fail, client, done)
         else:
             with _client_for(sched, n_workers) as cl:
-                _run_distributed(cfg, batches, fail, cl, done, lockstep)
+                _run_distributed(cfg, batches, fail, cl, done)
     wall = time.perf_counter() - t0
     table = store.consolidate()
     status = table.column("status").to_pylist() if table.num_rows else []

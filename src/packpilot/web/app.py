@@ -22,8 +22,8 @@ from fastapi import FastAPI, Query, WebSocket, WebSocketDisconnect
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 
+from packpilot.contract.record import BATTERY_CHANNELS
 from packpilot.errors import InputError
-from packpilot.sim.result import BATTERY_CHANNELS
 from packpilot.web.live import CHART_CHANNELS, LiveRun, SimThread
 
 STATIC = Path(__file__).resolve().parent / "static"

@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
+from packpilot.contract.record import BATTERY_CHANNELS, Recorder, StepSample
 from packpilot.control.types import Event
 from packpilot.errors import PackPilotError
-from packpilot.sim.result import BATTERY_CHANNELS, Recorder, StepSample
 
 CHART_CHANNELS: tuple[str, ...] = ("voltage_v", "current_a", "soc", "temp_c")
 """Per-battery channels kept in the chart history (the four charts of the page)."""
