@@ -140,6 +140,13 @@ def kernel(fn: _F) -> _F:
     return cast(_F, numba.njit(cache=True, nogil=True, error_model="numpy")(fn))
 
 
+def kernel_inline(fn: _F) -> _F:
+    """:func:`kernel`, inlined into its callers at numba IR level (helpers of a rule)."""
+    return cast(
+        _F, numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn)
+    )
+
+
 def jit_disabled() -> bool:
     """True when kernels run as plain Python (``NUMBA_DISABLE_JIT=1``)."""
     return bool(getattr(numba.config, "DISABLE_JIT", False))

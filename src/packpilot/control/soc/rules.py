@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from packpilot.contract.arrays import CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.commands import emit, fmax, fmin
-from packpilot.jit import kernel
+from packpilot.jit import kernel, kernel_inline
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -79,14 +79,14 @@ def soc_from_ocv(prm: SocParams, cell_v: float) -> float:
     return fmin(1.0, fmax(0.0, s))
 
 
-@kernel
+@kernel_inline
 def _cell_v(prm: SocParams, m: MeasArrays, p: int, i: int) -> float:
     if prm.use_min_cell:
         return float(m.bat.min_cell_v[p, i])
     return float(m.bat.voltage_v[p, i] / prm.series_cells[i])
 
 
-@kernel
+@kernel_inline
 def _battery(
     prm: SocParams, st: SocState, tp: PackArrays, m: MeasArrays, p: int, i: int, dt: float,
     ev: EventBuf, src: int,
@@ -128,7 +128,7 @@ def _battery(
     ev.val[k, 3] = v
 
 
-@kernel
+@kernel_inline
 def step_pack(
     prm: SocParams, st: SocState, tp: PackArrays, m: MeasArrays, p: int, dt_s: float,
     cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
@@ -141,7 +141,7 @@ def step_pack(
         status[p, i, s0 + ST_REST] = st.rest_s[p, i]
 
 
-@kernel
+@kernel_inline
 def step_packs(
     prm: SocParams, st: SocState, tp: PackArrays, m: MeasArrays, dt_s: float,
     cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
