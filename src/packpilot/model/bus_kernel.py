@@ -8,12 +8,12 @@ Both are tested against each other (``tests/test_bus_solve.py``).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, TypeVar, cast
+from typing import Any, TypeVar
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.jit import kernel
 from packpilot.model.bus import BusSolution, ChargerSource, LoadSink
 from packpilot.model.switches import BranchArrays
 
@@ -21,8 +21,7 @@ _F = TypeVar("_F", bound=Callable[..., Any])
 _V_FLOOR = 1e-6
 
 
-def _jit(fn: _F) -> _F:
-    return cast(_F, numba.njit(cache=True, nogil=True, error_model="numpy")(fn))
+_jit = kernel
 
 
 @_jit

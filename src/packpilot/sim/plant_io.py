@@ -9,7 +9,7 @@ The port fills those into the batch measurements of all P packs with a few array
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -19,7 +19,9 @@ from packpilot.config import ScenarioConfig
 from packpilot.contract.arrays import NO_OPINION, BatteryArrays, CmdArrays, MeasArrays
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo, Topology
+from packpilot.jit import kernel, kernel_inline
 from packpilot.model.pack import Interval, Pack
+from packpilot.model.numerics import pairwise_sum, segment_sum
 from packpilot.model.switches import KIND_RELAY
 
 Array = NDArray[np.float64]
@@ -43,6 +45,11 @@ class SimulatedPlant:
         self.traction = np.array(self.topology.traction, np.intp)
         self.aux = self.topology.aux
         self.infos = [self.pack_info(p) for p in range(n_packs)]
+        pack = self.pack
+        self._group_starts = np.asarray(pack.group_starts, np.int64)
+        self._string_group_starts = np.asarray(pack.string_group_starts, np.int64)
+        self._groups = np.array(pack.groups_per_string, np.int64)
+        self._scratch = np.zeros(pack.n_strings)
 
     @property
     def t_s(self) -> float:
@@ -80,41 +87,19 @@ class SimulatedPlant:
         return next(b.params for b in pack.banks if np.any(b.idx % pack.n_cells == first))
 
     # ------------------------------------------------------------------ sensing
-    def measure(self, m: MeasArrays, packs: Sequence[int] | None = None) -> None:
-        """Fill ``m`` with what the sensors read now (all packs; the charger status is the
-        link's business). ``packs``: only these rows (the others keep their values)."""
+    def measure(self, m: MeasArrays) -> None:
+        """Fill ``m`` with what the sensors of every pack read now (the charger status is
+        the link's business)."""
         pack = self.pack
-        rows: slice | list[int] = slice(None) if packs is None else list(packs)
-        cell_v = pack.cell_voltage_now()[rows]
         soc, temp = pack.cell_states()
-        soc, temp = soc[rows], temp[rows]
-        starts = pack.string_cell_starts
-        cap = pack.capacity_ah[rows]
-        remaining = np.minimum.reduceat(soc * cap, starts, axis=1)
-        full = np.minimum.reduceat(cap, starts, axis=1)
         chg, dsg = pack.effective_gates()
-        s = _Strings(
-            voltage_v=np.add.reduceat(cell_v, starts, axis=1),
-            current_a=pack.string_a[rows],
-            temp_c=np.maximum.reduceat(temp, starts, axis=1),
-            min_temp_c=np.minimum.reduceat(temp, starts, axis=1),
-            min_cell_v=np.minimum.reduceat(cell_v, starts, axis=1),
-            max_cell_v=np.maximum.reduceat(cell_v, starts, axis=1),
-            remaining=remaining,
-            full=full,
-            group_v=np.add.reduceat(cell_v, pack.group_starts, axis=1),
-            chg=chg[rows],
-            dsg=dsg[rows],
-            present=pack.present()[rows],
-        )
-        m.t_s[rows] = pack.t_s
-        _put(m.bat, rows, s, self.traction, pack)
-        if self.aux is not None:
-            _put(m.aux, rows, s, np.array([self.aux], np.intp), pack)
-        m.has_aux[rows] = self.aux is not None
-        m.bus_v[rows] = pack.bus_v[rows]
-        m.load_current_a[rows] = pack.string_a[rows][:, ~pack.is_aux].sum(axis=1)
-        m.docked[rows] = pack.charger_connected(pack.t_s)[rows]
+        t = pack.t_s
+        sense(
+            m, t, pack.cell_voltage_now(), soc, temp, pack.capacity_ah, pack.string_cell_starts,
+            self._group_starts, self._string_group_starts, self._groups, pack.string_a, chg, dsg,
+            pack.present_from_s <= t + 1e-12, self.traction, -1 if self.aux is None else self.aux,
+            pack.is_aux, pack.bus_v, bool(pack.charger_connected(t)[0]), self._scratch,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ actuation
     def apply(self, cmd: CmdArrays) -> None:
@@ -157,57 +142,88 @@ class SimulatedPlant:
         return self.pack.step(dt_s, self.cfg.load.kind, demand)
 
 
-class _Strings:
-    """Per-string sensor readings of the selected packs (internal)."""
-
-    __slots__ = (
-        "chg",
-        "current_a",
-        "dsg",
-        "full",
-        "group_v",
-        "max_cell_v",
-        "min_cell_v",
-        "min_temp_c",
-        "present",
-        "remaining",
-        "temp_c",
-        "voltage_v",
-    )
-
-    def __init__(self, **kw: Any) -> None:
-        for k, v in kw.items():
-            setattr(self, k, v)
+@kernel_inline
+def _npmin(a: float, b: float) -> float:
+    """``np.minimum`` on scalars: NaN propagates."""
+    return a if a <= b or a != a else b
 
 
-def _put(a: BatteryArrays, rows: slice | list[int], s: _Strings, strings: Any, pack: Pack) -> None:
-    """Readings of ``strings`` (string indices) into battery columns 0.. of ``a``."""
-    idx = np.asarray(strings, np.intp)
-    full = s.full[:, idx]
-    rem = s.remaining[:, idx]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        soc = np.where(full > 0, rem / np.where(full > 0, full, 1.0), np.nan)
-    n = idx.size
-    a.voltage_v[rows, :n] = s.voltage_v[:, idx]
-    a.current_a[rows, :n] = s.current_a[:, idx]
-    a.temp_c[rows, :n] = s.temp_c[:, idx]
-    a.min_temp_c[rows, :n] = s.min_temp_c[:, idx]
-    a.min_cell_v[rows, :n] = s.min_cell_v[:, idx]
-    a.max_cell_v[rows, :n] = s.max_cell_v[:, idx]
-    a.soc[rows, :n] = soc
-    a.full_capacity_ah[rows, :n] = full
-    a.remaining_capacity_ah[rows, :n] = rem
-    a.sample_age_s[rows, :n] = np.nan
-    for k, i in enumerate(idx):
-        g0 = int(pack.string_group_starts[i])
-        ng = pack.groups_per_string[i]
-        a.group_v[rows, k, :ng] = s.group_v[:, g0 : g0 + ng]
-        a.group_v[rows, k, ng:] = np.nan
-        a.n_groups[rows, k] = ng
-    a.sw_chg[rows, :n] = s.chg[:, idx]
-    a.sw_dsg[rows, :n] = s.dsg[:, idx]
-    a.present[rows, :n] = s.present[:, idx]
-    a.reported[rows, :n] = True
+@kernel_inline
+def _npmax(a: float, b: float) -> float:
+    """``np.maximum`` on scalars: NaN propagates."""
+    return a if a >= b or a != a else b
+
+
+@kernel_inline
+def _read_string(
+    bat: BatteryArrays, p: int, k: int, s: int, cell_v: Array, soc: Array, temp: Array,
+    cap: Array, starts: Any, group_starts: Any, string_group_starts: Any, groups: Any,
+    string_a: Array, chg: Any, dsg: Any, present: Any,
+) -> None:  # fmt: skip
+    """String ``s`` of pack ``p`` into battery column ``k`` of ``bat``: the reductions NumPy's
+    ``reduceat`` does, in its order (sums first item + pairwise rest; NaN propagates)."""
+    C = cell_v.shape[1]
+    lo = starts[s]
+    hi = starts[s + 1] if s + 1 < starts.shape[0] else C
+    row = cell_v[p]
+    vmin = vmax = row[lo]
+    tmax = tmin = temp[p, lo]
+    rem = soc[p, lo] * cap[p, lo]
+    full = cap[p, lo]
+    for c in range(lo + 1, hi):
+        vmin = _npmin(vmin, row[c])
+        vmax = _npmax(vmax, row[c])
+        tmax = _npmax(tmax, temp[p, c])
+        tmin = _npmin(tmin, temp[p, c])
+        rem = _npmin(rem, soc[p, c] * cap[p, c])
+        full = _npmin(full, cap[p, c])
+    bat.voltage_v[p, k] = segment_sum(row, starts, s)
+    bat.current_a[p, k] = string_a[p, s]
+    bat.temp_c[p, k] = tmax
+    bat.min_temp_c[p, k] = tmin
+    bat.min_cell_v[p, k] = vmin
+    bat.max_cell_v[p, k] = vmax
+    bat.soc[p, k] = rem / full if full > 0 else np.nan
+    bat.full_capacity_ah[p, k] = full
+    bat.remaining_capacity_ah[p, k] = rem
+    bat.sample_age_s[p, k] = np.nan
+    g0 = string_group_starts[s]
+    ng = groups[s]
+    for g in range(bat.group_v.shape[2]):
+        bat.group_v[p, k, g] = segment_sum(row, group_starts, g0 + g) if g < ng else np.nan
+    bat.n_groups[p, k] = ng
+    bat.sw_chg[p, k] = chg[p, s]
+    bat.sw_dsg[p, k] = dsg[p, s]
+    bat.present[p, k] = present[s]
+    bat.reported[p, k] = True
+
+
+@kernel
+def sense(
+    m: MeasArrays, t_s: float, cell_v: Array, soc: Array, temp: Array, cap: Array,
+    starts: Any, group_starts: Any, string_group_starts: Any, groups: Any, string_a: Array,
+    chg: Any, dsg: Any, present: Any, traction: Any, aux: int, is_aux: Any, bus_v: Array,
+    docked: bool, scratch: Array,
+) -> None:  # fmt: skip
+    """What the sensors of every pack read now (all but the charger status)."""
+    for p in range(cell_v.shape[0]):
+        m.t_s[p] = t_s
+        for k in range(traction.shape[0]):
+            _read_string(m.bat, p, k, traction[k], cell_v, soc, temp, cap, starts,
+                         group_starts, string_group_starts, groups, string_a, chg, dsg,
+                         present)  # fmt: skip
+        if aux >= 0:
+            _read_string(m.aux, p, 0, aux, cell_v, soc, temp, cap, starts, group_starts,
+                         string_group_starts, groups, string_a, chg, dsg, present)  # fmt: skip
+        m.has_aux[p] = aux >= 0
+        m.bus_v[p] = bus_v[p]
+        n = 0
+        for s in range(string_a.shape[1]):  # np.sum over the traction strings: NumPy's order
+            if not is_aux[s]:
+                scratch[n] = string_a[p, s]
+                n += 1
+        m.load_current_a[p] = scratch[0] + pairwise_sum(scratch, 1, n - 1)
+        m.docked[p] = docked
 
 
 __all__ = ["SimulatedPlant", "topology"]
