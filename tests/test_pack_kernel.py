@@ -21,9 +21,9 @@ from hypothesis import strategies as st
 from packpilot.config import parse_config
 from packpilot.model import cell as cellmod
 from packpilot.model.charger import FLAG_NAMES
-from packpilot.model.pack import Interval, Pack
 from packpilot.model.numerics import pairwise_sum as _pairwise
 from packpilot.model.numerics import segment_sum as _segment
+from packpilot.model.pack import Interval, Pack
 from packpilot.model.pack_kernel import segment_sums
 from tests.conftest import dual_pack
 

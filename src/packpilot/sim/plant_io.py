@@ -20,8 +20,8 @@ from packpilot.contract.arrays import NO_OPINION, BatteryArrays, CmdArrays, Meas
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo, Topology
 from packpilot.jit import kernel, kernel_inline
-from packpilot.model.pack import Interval, Pack
 from packpilot.model.numerics import pairwise_sum, segment_sum
+from packpilot.model.pack import Interval, Pack
 from packpilot.model.switches import KIND_RELAY
 
 Array = NDArray[np.float64]
