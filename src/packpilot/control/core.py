@@ -16,11 +16,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.arena import Arena
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.arrays import (
     CmdArrays,
@@ -62,11 +63,13 @@ class Part:
     prm: Any
     st: Any
     s0: int = 0
+    owner: CompiledController | None = None
+    """The one-pack controller whose state this is (it follows the state into the arena)."""
 
     @classmethod
     def of(cls, ctl: CompiledController) -> Part:
         """Share a one-pack controller's state (its accessors keep working)."""
-        return cls(ctl.method, ctl.prm, ctl.st)
+        return cls(ctl.method, ctl.prm, ctl.st, owner=ctl)
 
     @classmethod
     def build(cls, method: Method, config: Any, infos: Sequence[PackInfo]) -> Part:
@@ -74,6 +77,26 @@ class Part:
             config = method.config.model_validate(config or {})
         prm, st = method.build(config, infos)
         return cls(method, prm, st)
+
+
+class StatusBuf(NamedTuple):
+    """The status channels of every part, (P, B, slots)."""
+
+    values: F64
+
+
+# Rows of ``Core.directory``: where each bundle's layout starts, and per part its method.
+DIR_TP, DIR_M, DIR_CMD, DIR_EV, DIR_STATUS = 0, 1, 2, 3, 4
+DIR_N_PARTS, DIR_SUP_PRM, DIR_SUP_ST, DIR_SUP_S0 = 5, 6, 7, 8
+DIR_PARTS, DIR_STRIDE = 16, 4
+"""Part ``j``: ``directory[16 + 4 j:][:4]`` = (method id, params row, state row, status s0)."""
+METHOD_IDS: dict[str, int] = {
+    name: k
+    for k, name in enumerate(
+        ("protection", "sequencing", "charging", "equalization", "limits", "plausibility", "soc")
+    )
+}
+"""Method ids of the compiled core step (``-1``: run through its own kernel)."""
 
 
 @dataclass
@@ -147,15 +170,47 @@ class Core:
             self.supervisor = Supervised(prm, st, s0)
             s0 += len(sup_ctl.STATUS)
             self.sources.append(Source(sup_ctl.REASONS, sup_ctl.LABELS))
-        self.status: F64 = np.full((self.n_packs, n, max(s0, 1)), np.nan)
         per_pack = sum(x.method.max_events(info) for x in self.compiled)
         per_pack += 0 if supervisor is None else sup_ctl.max_events(info)
         per_pack += 64 * (len(self.parts) - len(self.compiled))
-        self.ev: EventBuf = event_buf(max(per_pack, 1) * self.n_packs)
-        self.cmd: CmdArrays = cmd_arrays(self.n_packs, n, g)
-        self._m: MeasArrays | None = None
+        self._home(
+            StatusBuf(np.full((self.n_packs, n, max(s0, 1)), np.nan)),
+            event_buf(max(per_pack, 1) * self.n_packs),
+            cmd_arrays(self.n_packs, n, g),
+            meas_arrays(self.n_packs, n, g),
+        )
         self._foreign: list[Event] = []
         self._foreign_status: dict[int, dict[str, list[StatusValue]]] = {}
+
+    def _home(self, status: StatusBuf, ev: EventBuf, cmd: CmdArrays, m: MeasArrays) -> None:
+        """Move every array of the core into one arena: Python keeps views, and a kernel gets
+        the whole core as six arrays plus ``directory`` (see :mod:`packpilot.arena`)."""
+        ar = Arena()
+        fixed = [ar.add(x) for x in (self.tp, m, cmd, ev, status)]
+        parts = [(ar.add(x.prm), ar.add(x.st)) for x in self.compiled]
+        sup = self.supervisor
+        sup_rows = (ar.add(sup.prm), ar.add(sup.st)) if sup is not None else None
+        self.arenas, views, rows = ar.seal()
+        self.tp, self.m, self.cmd, self.ev, status_v = views[: len(fixed)]
+        self.status = status_v.values
+        d = np.full(DIR_PARTS + DIR_STRIDE * len(self.parts), -1, np.int64)
+        d[: len(fixed)] = rows[: len(fixed)]
+        d[DIR_N_PARTS] = len(self.parts)
+        k = len(fixed)
+        for x, (pr, sr_) in zip(self.compiled, parts, strict=True):
+            x.prm, x.st = views[pr], views[sr_]
+            if x.owner is not None:
+                x.owner.prm, x.owner.st = x.prm, x.st
+            j = self.parts.index(x)
+            d[DIR_PARTS + DIR_STRIDE * j : DIR_PARTS + DIR_STRIDE * (j + 1)] = (
+                METHOD_IDS.get(x.method.name, -1), rows[pr], rows[sr_], x.s0,
+            )  # fmt: skip
+            k += 2
+        if sup is not None and sup_rows is not None:
+            sup.prm, sup.st = views[sup_rows[0]], views[sup_rows[1]]
+            d[DIR_SUP_PRM], d[DIR_SUP_ST] = rows[sup_rows[0]], rows[sup_rows[1]]
+            d[DIR_SUP_S0] = sup.s0
+        self.directory = d
 
     @property
     def compiled(self) -> list[Part]:
@@ -249,11 +304,8 @@ class Core:
     # ------------------------------------------------------------------ one pack
     def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
         """The one-pack face: scalar measurements in, scalar output out."""
-        if self._m is None:
-            info = self.infos[0]
-            self._m = meas_arrays(1, info.n_batteries, max(info.groups_per_battery, default=1))
-        put_measurements(self._m, 0, meas)
-        self.step_batch(self._m, float(dt_s), meas)
+        put_measurements(self.m, 0, meas)
+        self.step_batch(self.m, float(dt_s), meas)
         return ControlOutput(
             commands=commands(self.cmd, 0, self.infos[0].groups_per_battery),
             events=tuple(self.events()[0]),

@@ -27,12 +27,12 @@ from numpy.typing import NDArray
 
 from packpilot.config import ScenarioConfig, validate_section
 from packpilot.config.supervisor import SupervisorConfig
-from packpilot.contract.arrays import MeasArrays, meas_arrays
+from packpilot.contract.arrays import MeasArrays
 from packpilot.contract.bms import Controller, Event
 from packpilot.contract.charger import ChargerLink
 from packpilot.contract.record import StepSample
 from packpilot.contract.topology import PackInfo
-from packpilot.control.core import Core, Part
+from packpilot.control.core import DIR_CMD, DIR_M, Core, Part
 from packpilot.control.registry import REGISTRY, SAFETY
 from packpilot.model import loads
 from packpilot.model.pack import Interval
@@ -107,9 +107,8 @@ class ClosedLoop:
     unsupplied_s: Array = field(init=False)
 
     def __post_init__(self) -> None:
-        info = self.plant.infos[0]
         P = self.plant.n_packs
-        self.m = meas_arrays(P, info.n_batteries, max(info.groups_per_battery, default=1))
+        self.m = self.core.m
         self.was_supplied = np.ones(P, np.bool_)
         self.unsupplied_s = np.zeros(P)
         self.profile = load_profile(self.cfg)
@@ -152,11 +151,11 @@ class ClosedLoop:
             self.faults.before_step(t)
         if self.links:
             self.links.poll(t, m)
-        plant.measure(m)
+        plant.measure(core.arenas, int(core.directory[DIR_M]))
         if self.faults is not None:
             self.faults.filter(m)
         core.step_batch(m, dt_s)
-        plant.apply(core.cmd)
+        plant.apply(core.arenas, int(core.directory[DIR_CMD]))
         if self.links:
             self.links.send(t, core.cmd)
         iv = plant.step(dt_s, np.full(plant.n_packs, self.demand(t)))

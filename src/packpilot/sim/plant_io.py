@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.arena import Arenas, unpack
 from packpilot.config import ScenarioConfig
 from packpilot.contract.arrays import NO_OPINION, BatteryArrays, CmdArrays, MeasArrays
 from packpilot.contract.bms import SwitchKind
@@ -87,54 +88,35 @@ class SimulatedPlant:
         return next(b.params for b in pack.banks if np.any(b.idx % pack.n_cells == first))
 
     # ------------------------------------------------------------------ sensing
-    def measure(self, m: MeasArrays) -> None:
-        """Fill ``m`` with what the sensors of every pack read now (the charger status is
-        the link's business)."""
+    def measure(self, arenas: Arenas, m_row: int) -> None:
+        """Fill the measurements at ``m_row`` of a core's arenas with what the sensors of every
+        pack read now (the charger status is the link's business)."""
         pack = self.pack
         soc, temp = pack.cell_states()
         chg, dsg = pack.effective_gates()
         t = pack.t_s
         sense(
-            m, t, pack.cell_voltage_now(), soc, temp, pack.capacity_ah, pack.string_cell_starts,
+            *arenas, m_row, t, pack.cell_voltage_now(), soc, temp, pack.capacity_ah,
+            pack.string_cell_starts,
             self._group_starts, self._string_group_starts, self._groups, pack.string_a, chg, dsg,
             pack.present_from_s <= t + 1e-12, self.traction, -1 if self.aux is None else self.aux,
             pack.is_aux, pack.bus_v, bool(pack.charger_connected(t)[0]), self._scratch,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ actuation
-    def apply(self, cmd: CmdArrays) -> None:
-        """Gates, balancer currents and the aux DC/DC as commanded (no opinion: unchanged).
-        The charger setpoint is not a plant input: it travels over the charger link."""
-        pack = self.pack
-        tr = self.traction
-        chg = pack.chg_on.copy()
-        dsg = pack.dsg_on.copy()
-        sub = chg[:, tr]
-        sub = np.where(cmd.chg_on == NO_OPINION, sub, cmd.chg_on == 1)
-        chg[:, tr] = sub
-        sub = dsg[:, tr]
-        sub = np.where(cmd.dsg_on == NO_OPINION, sub, cmd.dsg_on == 1)
-        dsg[:, tr] = sub
-        aux = pack.aux_index
-        if aux is not None:
-            said = cmd.aux_relay != NO_OPINION
-            chg[said, aux] = cmd.aux_relay[said] == 1
-            dsg[said, aux] = cmd.aux_relay[said] == 1
-        pack.set_gates(chg, dsg)
-        if cmd.balancer_set.any():
-            bal = pack.balancer_a.copy()
-            for p in np.nonzero(cmd.balancer_set)[0]:
-                row = np.zeros(pack.n_groups)
-                for k, i in enumerate(tr):
-                    g0 = int(pack.string_group_starts[i])
-                    ng = pack.groups_per_string[i]
-                    row[g0 : g0 + ng] = cmd.balancer_a[p, k, :ng]
-                bal[p] = row
-            pack.set_balancer(bal)
-        if cmd.aux_charge_set.any():
-            aux_a = pack.aux_charge_a.copy()
-            aux_a[cmd.aux_charge_set] = cmd.aux_charge_a[cmd.aux_charge_set]
-            pack.set_aux_charge(aux_a)
+    def apply(self, arenas: Arenas, cmd_row: int) -> None:
+        """Gates, balancer currents and the aux DC/DC as the commands at ``cmd_row`` of a
+        core's arenas say (no opinion: unchanged). The charger setpoint is not a plant input:
+        it travels over the charger link."""
+        pack, cfg = self.pack, self.cfg
+        bal = cfg.balancer
+        actuate(
+            *arenas, cmd_row, self.traction, -1 if self.aux is None else self.aux,
+            self._string_group_starts, self._groups, pack.chg_on, pack.dsg_on,
+            pack.balancer_a, pack.aux_charge_a, bal.present,
+            -bal.max_current_a if bal.bidirectional else 0.0, bal.max_current_a,
+            cfg.aux.dcdc_max_a,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ physics
     def step(self, dt_s: float, demand: Array) -> Interval:
@@ -200,12 +182,15 @@ def _read_string(
 
 @kernel
 def sense(
-    m: MeasArrays, t_s: float, cell_v: Array, soc: Array, temp: Array, cap: Array,
+    f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, m_row: int,
+    t_s: float, cell_v: Array, soc: Array, temp: Array, cap: Array,
     starts: Any, group_starts: Any, string_group_starts: Any, groups: Any, string_a: Array,
     chg: Any, dsg: Any, present: Any, traction: Any, aux: int, is_aux: Any, bus_v: Array,
     docked: bool, scratch: Array,
 ) -> None:  # fmt: skip
-    """What the sensors of every pack read now (all but the charger status)."""
+    """What the sensors of every pack read now (all but the charger status), into the
+    measurements at layout row ``m_row`` of the core's arena."""
+    m = unpack(MeasArrays, f, i, h, c, b, lay, m_row)
     for p in range(cell_v.shape[0]):
         m.t_s[p] = t_s
         for k in range(traction.shape[0]):
@@ -226,4 +211,46 @@ def sense(
         m.docked[p] = docked
 
 
-__all__ = ["SimulatedPlant", "topology"]
+@kernel_inline
+def _clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip(np.nan_to_num(x), lo, hi)``."""
+    if x != x:
+        x = 0.0
+    return min(max(x, lo), hi)
+
+
+@kernel
+def actuate(
+    f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, cmd_row: int, traction: Any, aux: int,
+    string_group_starts: Any, groups: Any, chg_on: Any, dsg_on: Any, balancer_a: Array,
+    aux_charge_a: Array, balancer_present: bool, bal_lo: float, bal_hi: float, aux_max: float,
+) -> None:  # fmt: skip
+    """The merged commands into the plant's gates, balancers and aux DC/DC (in place)."""
+    cmd = unpack(CmdArrays, f, i, h, c, b, lay, cmd_row)
+    for p in range(chg_on.shape[0]):
+        for k in range(traction.shape[0]):
+            s = traction[k]
+            if cmd.chg_on[p, k] != NO_OPINION:
+                chg_on[p, s] = cmd.chg_on[p, k] == 1
+            if cmd.dsg_on[p, k] != NO_OPINION:
+                dsg_on[p, s] = cmd.dsg_on[p, k] == 1
+        if aux >= 0 and cmd.aux_relay[p] != NO_OPINION:
+            chg_on[p, aux] = cmd.aux_relay[p] == 1
+            dsg_on[p, aux] = cmd.aux_relay[p] == 1
+        if cmd.balancer_set[p]:
+            balancer_a[p].fill(0.0)
+            for k in range(traction.shape[0]):
+                s = traction[k]
+                g0 = string_group_starts[s]
+                for g in range(groups[s]):
+                    balancer_a[p, g0 + g] = cmd.balancer_a[p, k, g]
+            for g in range(balancer_a.shape[1]):
+                if balancer_present:
+                    balancer_a[p, g] = _clip(balancer_a[p, g], bal_lo, bal_hi)
+                else:
+                    balancer_a[p, g] = 0.0
+        if cmd.aux_charge_set[p]:
+            aux_charge_a[p] = _clip(cmd.aux_charge_a[p], 0.0, aux_max)
+
+
+__all__ = ["SimulatedPlant", "actuate", "sense", "topology"]
