@@ -42,7 +42,7 @@ def _run(scenario: str, strategy: str, rest: bool) -> dict[str, Any]:
     runner = Runner(cfg.model_copy(update=update), progress=False)
     res = runner.run()
     (trip,) = [e for e in res.events if e.kind == "ProtectionTripped"]
-    t = np.array([s.t_s for s in runner.samples])
+    t = res.trace.t_s
     current = res.trace.channel("current_a")[:, 0]
     dsg = res.trace.channel("dsg_on")[:, 0]
     return {

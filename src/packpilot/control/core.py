@@ -45,10 +45,10 @@ from packpilot.contract.bms import (
     Measurements,
     StatusValue,
 )
-from packpilot.contract.events import Source, render_one
+from packpilot.contract.events import Labels, Source, render_one
 from packpilot.contract.topology import PackInfo
 from packpilot.control import commands as ck
-from packpilot.control.method import CompiledController, Method, status_values
+from packpilot.control.method import CompiledController, Method, StatusChannel, status_values
 from packpilot.control.supervisor import controller as sup_ctl
 from packpilot.control.supervisor import rules as sr
 
@@ -284,6 +284,27 @@ class Core:
             out[int(ev.pack[k])].append(
                 render_one(reason, ev.t_s[k], int(ev.battery[k]), ev.val[k], s.labels)
             )
+        return out
+
+    def status_channels(self) -> list[tuple[int, StatusChannel, Labels]]:
+        """(slot, channel, labels) of every compiled status channel, in output order."""
+        out: list[tuple[int, StatusChannel, Labels]] = []
+        for src, x in enumerate(self.parts):
+            if isinstance(x, Part):
+                labels = self.sources[src].labels
+                out += [(x.s0 + j, ch, labels) for j, ch in enumerate(x.method.status)]
+        if self.supervisor is not None:
+            labels = self.sources[-1].labels
+            out += [(self.supervisor.s0 + j, ch, labels) for j, ch in enumerate(sup_ctl.STATUS)]
+        return out
+
+    def python_status(self) -> dict[str, list[StatusValue]] | None:
+        """The last step's status of the Python parts (``None`` when there are none)."""
+        if len(self.compiled) == len(self.parts):
+            return None
+        out: dict[str, list[StatusValue]] = {}
+        for src in range(len(self.parts)):
+            out.update(self._foreign_status.get(src, {}))
         return out
 
     def status_of(self, p: int) -> dict[str, list[StatusValue]]:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -362,30 +363,68 @@ class Pack:
         self.banks = banks
 
     # ------------------------------------------------------------------ step
-    def step(self, dt_s: float, load_kind: str, load_value: Array) -> Interval:
+    def _out(self, reuse: bool) -> dict[str, Any]:
+        """Output arrays of one step: fresh, or one of two sets used in turn (``reuse``: the
+        loop's fast path, where an :class:`Interval` is dead after the next step)."""
+        if reuse:
+            self._flip = 1 - getattr(self, "_flip", 0)
+            sets = self.__dict__.setdefault("_sets", [None, None])
+            if sets[self._flip] is None:
+                sets[self._flip] = self._new_out()
+            out: dict[str, Any] = sets[self._flip]
+            return out
+        return self._new_out()
+
+    def _new_out(self) -> dict[str, Any]:
+        P, S, C, G = self.n_packs, self.n_strings, self.n_cells, self.n_groups
+        out: dict[str, Any] = {k: np.empty(P) for k in ("bus", "dem", "load", "cha", "ov", "chv")}
+        out.update(sup=np.empty(P, dtype=bool), con=np.empty(P, dtype=bool))
+        for k in ("sa", "bv", "cd", "dd", "pin", "hs"):
+            out[k] = np.empty((P, S))
+        for k in ("cv", "ca", "heat", "e", "r"):
+            out[k] = np.empty((P, C))
+        out["gv"] = np.empty((P, G))
+        out["banks"] = [
+            cellmod.CellState(
+                np.empty(b.state.soc.shape[0]),
+                np.empty((b.state.soc.shape[0], b.params.n_rc)),
+                np.empty(b.state.soc.shape[0]),
+                np.empty(b.state.soc.shape[0]),
+            )
+            for b in self.banks
+        ]
+        return out
+
+    def step(self, dt_s: float, load_kind: str, load_value: Array, reuse: bool = False) -> Interval:
         """Solve the bus for the coming period, advance every cell, return the flows.
 
         Compiled (:mod:`packpilot.model.pack_kernel`): one kernel for the electrical part and
         the ledgers, one per cell bank for the cell model. Same results as
         :meth:`step_reference`, the readable NumPy version (``tests/test_pack_kernel.py``).
+        ``reuse``: write into two alternating sets of arrays instead of fresh ones (the
+        returned :class:`Interval` is then valid until the step after next).
         """
         h = float(dt_s)
         if not h > 0.0:
             raise ValueError(f"dt_s must be > 0, got {dt_s!r}")
-        P, S, C, G = self.n_packs, self.n_strings, self.n_cells, self.n_groups
+        P = self.n_packs
         t = self.t_s
         prm = self._kernel_params()
         ch = self.charger
         demand = np.asarray(load_value, np.float64).reshape(P)
         kind = pack_kernel.LOAD_KINDS.get(load_kind, pack_kernel.LOAD_NONE)
-        # Fresh output arrays, as the reference makes: callers may keep an Interval.
-        bus_v, demand_a, load_a = np.empty(P), np.empty(P), np.empty(P)
-        charger_a, out_v, charger_v = np.empty(P), np.empty(P), np.empty(P)
-        supplied, connected = np.empty(P, dtype=bool), np.empty(P, dtype=bool)
-        string_a, battery_v = np.empty((P, S)), np.empty((P, S))
-        chg_d, dsg_d, p_in = np.empty((P, S)), np.empty((P, S)), np.empty((P, S))
-        cell_v, cell_a = np.empty((P, C)), np.empty((P, C))
-        group_v = np.empty((P, G))
+        ids = [id(b) for b in self.banks]
+        if ids != getattr(self, "_bank_ids", None):  # banks re-made (a cooling fault): new sets
+            self._bank_ids = ids
+            self.__dict__.pop("_sets", None)
+        o = self._out(reuse)
+        bus_v, demand_a, load_a = o["bus"], o["dem"], o["load"]
+        charger_a, out_v, charger_v = o["cha"], o["ov"], o["chv"]
+        supplied, connected = o["sup"], o["con"]
+        string_a, battery_v = o["sa"], o["bv"]
+        chg_d, dsg_d, p_in = o["cd"], o["dd"], o["pin"]
+        cell_v, cell_a = o["cv"], o["ca"]
+        group_v = o["gv"]
         pack_kernel.pack_electrical(
             self.cell_string, self.cell_group, self.string_cell_starts, self.group_starts,
             self.string_group_starts, self.sw_kind, self.sw_on_ohm, self.sw_drop_v,
@@ -400,13 +439,9 @@ class Pack:
             self.chg_diode_s, self.dsg_diode_s, self.chg_diode_j, self.dsg_diode_j,
             self.charge_in_ah, self.joule_j,
         )  # fmt: skip
-        heat, e_cell, r_cell = np.empty((P, C)), np.empty((P, C)), np.empty((P, C))
-        for bank in self.banks:
+        heat, e_cell, r_cell = o["heat"], o["e"], o["r"]
+        for bank, new in zip(self.banks, o["banks"], strict=True):
             st = bank.state
-            n = st.soc.shape[0]
-            new = cellmod.CellState(
-                np.empty(n), np.empty((n, bank.params.n_rc)), np.empty(n), np.empty(n)
-            )
             pack_kernel.bank_cells(
                 bank.idx, cell_a, self.cell_ambient, self.capacity_ah, self.cell_r_scale,
                 st.soc, st.eta_v, st.temp_c, st.jig_temp_c,
@@ -414,7 +449,7 @@ class Pack:
                 new.soc, new.eta_v, new.temp_c, new.jig_temp_c, heat, e_cell, r_cell,
             )  # fmt: skip
             bank.state = new
-        heat_string = np.empty((P, S))
+        heat_string = o["hs"]
         pack_kernel.segment_sums(heat, self.string_cell_starts, heat_string)
 
         self.cell_a = cell_a

@@ -164,7 +164,7 @@ class ClosedLoop:
         self.metrics.add(plant.pack, iv, self._traction, events)
         stop = self.cfg.sim.stop_when_unsupplied_s
         if stop is not None:
-            self.metrics.stop(self.unsupplied_s >= stop)
+            self.metrics.stop(self.unsupplied_s >= stop, plant.pack)
         return StepRecord(k, iv, events)
 
     @property

@@ -175,19 +175,28 @@ class Metrics:
         for p, evs in enumerate(events):
             if evs and self.live[p]:
                 self.events[p].update(e.kind for e in evs)
-        self._ledgers(pack, self.live)
+        self.pack = pack
 
     def _ledgers(self, pack: Pack, mask: B1) -> None:
+        """The plant's integrals of the packs in ``mask``, as they are now."""
         self.joule[mask] = pack.joule_j[mask].sum(axis=1)
         self.chg_diode[mask] = pack.chg_diode_j[mask]
         self.dsg_diode[mask] = pack.dsg_diode_j[mask]
 
-    def stop(self, mask: B1) -> None:
-        """Packs in ``mask`` stop here: their metrics freeze."""
+    def stop(self, mask: B1, pack: Pack | None = None) -> None:
+        """Packs in ``mask`` stop here: their metrics freeze (ledgers as they are now)."""
+        mask = mask & self.live
+        if pack is not None and mask.any():
+            self._ledgers(pack, mask)
         self.live &= ~mask
 
     def of(self, p: int, wall_s: float, names: Sequence[str]) -> dict[str, Any]:
-        """Pack ``p``'s metrics, JSON-able."""
+        """Pack ``p``'s metrics, JSON-able (a live pack's ledgers as the plant has them)."""
+        pack: Pack | None = getattr(self, "pack", None)
+        if pack is not None and self.live[p]:
+            mask = np.zeros(self.n_packs, np.bool_)
+            mask[p] = True
+            self._ledgers(pack, mask)
         n = int(self.steps[p])
         dt = self.dt_s
         return {

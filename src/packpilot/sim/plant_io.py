@@ -121,7 +121,7 @@ class SimulatedPlant:
     # ------------------------------------------------------------------ physics
     def step(self, dt_s: float, demand: Array) -> Interval:
         """One period of every pack under the load ``demand`` (P,)."""
-        return self.pack.step(dt_s, self.cfg.load.kind, demand)
+        return self.pack.step(dt_s, self.cfg.load.kind, demand, reuse=True)
 
 
 @kernel_inline

@@ -16,13 +16,14 @@ from typing import Any
 from packpilot.config import ScenarioConfig
 from packpilot.contract.bms import Controller, Event
 from packpilot.contract.charger import ChargerLink
-from packpilot.contract.record import Recorder, Result, StepSample, Trace
+from packpilot.contract.record import Recorder, Result
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
 from packpilot.model.pack import Pack
 from packpilot.sim.links import default_links
-from packpilot.sim.loop import ClosedLoop, build_core, load_profile, n_steps, sample
+from packpilot.sim.loop import ClosedLoop, build_core, load_profile, n_steps
 from packpilot.sim.plant_io import SimulatedPlant
+from packpilot.sim.record import TraceBuffer
 
 
 def as_core(controller: Any, info: PackInfo) -> Core:
@@ -61,7 +62,6 @@ class Runner:
             self.charger_link = default_links(self.cfg, self.pack)[0]
         self.profile = load_profile(self.cfg)
         self.events: list[Event] = []
-        self.samples: list[StepSample] = []
 
     @property
     def pack(self) -> Pack:
@@ -77,6 +77,14 @@ class Runner:
         hooks = [lambda t, h=h: h(self, t) for h in self.hooks]
         loop = ClosedLoop.of(cfg, core=core, links=links, hooks=hooks, plant=self.plant)
         self.loop = loop
+        buf = TraceBuffer(
+            self.pack,
+            self.plant.topology,
+            core.status_channels(),
+            core.status.shape[2],
+            capacity=min(total, 1 << 16),
+        )
+        self.trace_buffer = buf
         self.run_id: int | None = None
         if self.recorder is not None:
             self.run_id = self.recorder.start(cfg.model_dump(mode="json"), self.pack.names)
@@ -86,13 +94,12 @@ class Runner:
         try:
             for k in range(total):
                 rec = loop.step(k, dt)
-                smp = sample(loop, rec)
-                self.samples.append(smp)
+                buf.add(k, rec.iv, core.status, core.python_status())
                 new_events = rec.events[0]
                 if new_events:
                     self.events.extend(new_events)
                 if self.recorder is not None:
-                    self.recorder.record(smp)
+                    self.recorder.record(buf.sample(buf.n - 1))
                     if new_events:
                         self.recorder.record_events(new_events)
                 bar.update(k + 1)
@@ -106,13 +113,13 @@ class Runner:
             loop.close()
             wall = time.perf_counter() - wall0
             metrics = (
-                loop.metrics.of(0, wall, self.pack.names) if self.samples else {"wall_time_s": wall}
+                loop.metrics.of(0, wall, self.pack.names) if buf.n else {"wall_time_s": wall}
             )
             if self.recorder is not None:
                 self.recorder.finish(metrics, status=status)
         return Result(
             battery_names=list(self.pack.names),
-            trace=Trace.from_samples(self.samples),
+            trace=buf.trace(),
             events=self.events,
             metrics=metrics,
             run_id=self.run_id,

@@ -1,0 +1,188 @@
+"""The in-memory trace of a single run, written by a kernel into growing column blocks.
+
+Every step of a P = 1 run is recorded as plant truth (the battery channels of
+:data:`~packpilot.contract.record.BATTERY_CHANNELS`, per-group voltages, bus and charger) plus
+every compiled status channel as a number; labels and ``None`` are rendered once, at the end
+(:meth:`TraceBuffer.trace`), not every step. A recorder that streams (SQLite, the dashboard)
+gets one :class:`StepSample` per step built from the same row.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.contract.bms import StatusValue
+from packpilot.contract.events import value as field_value
+from packpilot.contract.record import BATTERY_CHANNELS, StepSample, Trace
+from packpilot.contract.topology import Topology
+from packpilot.jit import kernel
+from packpilot.model.pack import Interval, Pack
+
+F64 = NDArray[np.float64]
+N_CH = len(BATTERY_CHANNELS)
+
+
+@kernel
+def _row(
+    k: int, p: int, starts: Any, group_table: Any, cell_v: F64, soc: F64, temp: F64, cap: F64,
+    chg: Any, dsg: Any, battery_v: F64, string_a: F64, chg_d: F64, dsg_d: F64, bal_w: F64,
+    group_v: F64, status: F64, out_bat: F64, out_group: F64, out_status: F64,
+) -> None:  # fmt: skip
+    """Row ``k`` of the trace: pack ``p``'s truth after the step (``Runner._sample`` order)."""
+    S = starts.shape[0]
+    C = cell_v.shape[1]
+    for s in range(S):
+        lo = starts[s]
+        hi = starts[s + 1] if s + 1 < S else C
+        rem, full = soc[p, lo] * cap[p, lo], cap[p, lo]
+        tmax, vmin, vmax = temp[p, lo], cell_v[p, lo], cell_v[p, lo]
+        for c in range(lo + 1, hi):  # np.minimum / np.maximum.reduceat: NaN propagates
+            r = soc[p, c] * cap[p, c]
+            rem = rem if rem <= r or rem != rem else r
+            full = full if full <= cap[p, c] or full != full else cap[p, c]
+            tmax = tmax if tmax >= temp[p, c] or tmax != tmax else temp[p, c]
+            vmin = vmin if vmin <= cell_v[p, c] or vmin != vmin else cell_v[p, c]
+            vmax = vmax if vmax >= cell_v[p, c] or vmax != vmax else cell_v[p, c]
+        row = out_bat[k, s]
+        row[0] = battery_v[p, s]
+        row[1] = string_a[p, s]
+        row[2] = rem / full
+        row[3] = tmax
+        row[4] = vmin
+        row[5] = vmax
+        row[6] = rem
+        row[7] = full
+        row[8] = 1.0 if chg[p, s] else 0.0
+        row[9] = 1.0 if dsg[p, s] else 0.0
+        row[10] = chg_d[p, s]
+        row[11] = dsg_d[p, s]
+        row[12] = bal_w[p, s]
+        for g in range(group_table.shape[1]):
+            gi = group_table[s, g]
+            out_group[k, s, g] = group_v[p, gi] if gi >= 0 else np.nan
+    for i in range(status.shape[1]):
+        for j in range(status.shape[2]):
+            out_status[k, i, j] = status[p, i, j]
+
+
+class TraceBuffer:
+    """The trace of pack ``p`` of a run, in blocks that double as they fill."""
+
+    def __init__(
+        self,
+        pack: Pack,
+        topology: Topology,
+        channels: Sequence[tuple[int, Any, Any]],
+        n_status: int,
+        p: int = 0,
+        capacity: int = 1024,
+    ) -> None:
+        self.pack, self.topology, self.p = pack, topology, p
+        self.channels = list(channels)
+        """(slot, StatusChannel, labels) of every compiled status channel, in output order."""
+        S, G = pack.n_strings, pack.max_groups
+        n_b = len(topology.traction)
+        self.n = 0
+        self._cols = ("t_s", "bus_v", "load_demand_a", "load_a", "charger_v", "charger_a")
+        self.scalars = np.zeros((capacity, len(self._cols)))
+        self.step = np.zeros(capacity, np.int64)
+        self.battery = np.zeros((capacity, S, N_CH))
+        self.group_v = np.zeros((capacity, S, G))
+        self.status = np.zeros((capacity, n_b, max(n_status, 1)))
+        self.foreign: list[dict[str, list[StatusValue]]] = []
+        """Per step, the status of Python parts (P = 1 only)."""
+
+    def _grow(self) -> None:
+        for name in ("scalars", "step", "battery", "group_v", "status"):
+            a = getattr(self, name)
+            b = np.zeros((2 * a.shape[0], *a.shape[1:]), a.dtype)
+            b[: a.shape[0]] = a
+            setattr(self, name, b)
+
+    def add(
+        self, k: int, iv: Interval, status: F64, foreign: dict[str, list[StatusValue]] | None
+    ) -> None:
+        if self.n == self.step.shape[0]:
+            self._grow()
+        pack, p, n = self.pack, self.p, self.n
+        soc, temp = pack.cell_states()
+        chg, dsg = pack.effective_gates()
+        self.step[n] = k
+        sc = self.scalars[n]
+        sc[0] = iv.t_s
+        sc[1], sc[2], sc[3] = iv.bus_v[p], iv.load_demand_a[p], iv.load_a[p]
+        sc[4], sc[5] = iv.charger_v[p], iv.charger_a[p]
+        _row(
+            n, p, pack.string_cell_starts, pack.group_table, iv.cell_v, soc, temp,
+            pack.capacity_ah, chg, dsg, iv.battery_v, iv.string_a, iv.chg_diode_a,
+            iv.dsg_diode_a, iv.balancer_in_w, iv.group_v, status, self.battery, self.group_v,
+            self.status,
+        )  # fmt: skip
+        if foreign is not None:
+            self.foreign.append(foreign)
+        self.n = n + 1
+
+    def _status_row(self, n: int) -> dict[str, list[StatusValue]]:
+        out: dict[str, list[StatusValue]] = {}
+        if self.foreign:
+            out.update(self.foreign[n])
+        for slot, ch, labels in self.channels:
+            vals = [field_value(float(x), ch.kind, labels) for x in self.status[n, :, slot]]
+            out[ch.name] = vals
+        return out
+
+    def sample(self, n: int) -> StepSample:
+        """Row ``n`` as the recorders' unit of telemetry."""
+        sc = self.scalars[n]
+        return StepSample(
+            step=int(self.step[n]),
+            t_s=float(sc[0]),
+            bus_v=float(sc[1]),
+            load_demand_a=float(sc[2]),
+            load_a=float(sc[3]),
+            charger_v=float(sc[4]),
+            charger_a=float(sc[5]),
+            battery=self.battery[n].copy(),
+            group_v=self.group_v[n].copy(),
+            status={k: self.topology.spread(v) for k, v in self._status_row(n).items()},  # type: ignore[misc]
+        )
+
+    def trace(self) -> Trace:
+        """Everything recorded, as the run's :class:`Trace`."""
+        n = self.n
+        if n == 0:
+            raise ValueError("a trace needs at least one sample")
+        names = [ch.name for _, ch, _ in self.channels]
+        status: dict[str, list[Sequence[StatusValue]]] = {}
+        if self.foreign:
+            for row in self.foreign[:n]:
+                for key, vals in row.items():
+                    status.setdefault(key, []).append(self.topology.spread(vals))  # type: ignore[arg-type]
+        spread = self.topology.spread
+        for (slot, ch, labels), name in zip(self.channels, names, strict=True):
+            col = self.status[:n, :, slot]
+            status[name] = [
+                spread([field_value(float(x), ch.kind, labels) for x in row])  # type: ignore[misc]
+                for row in col
+            ]
+        sc = self.scalars[:n]
+        return Trace(
+            t_s=sc[:, 0].copy(),
+            bus_v=sc[:, 1].copy(),
+            load_demand_a=sc[:, 2].copy(),
+            load_a=sc[:, 3].copy(),
+            charger_v=sc[:, 4].copy(),
+            charger_a=sc[:, 5].copy(),
+            battery=self.battery[:n].copy(),
+            group_v=self.group_v[:n].copy(),
+            status=status,
+            aux=None,
+            step=self.step[:n].copy(),
+        )
+
+
+__all__ = ["TraceBuffer"]
