@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +48,18 @@ from packpilot.contract.bms import (
 from packpilot.contract.events import Labels, Source, render_one
 from packpilot.contract.topology import PackInfo
 from packpilot.control import commands as ck
+from packpilot.control.core_kernel import (
+    COMPILED,
+    DIR_N_PARTS,
+    DIR_PARTS,
+    DIR_STRIDE,
+    DIR_SUP_PRM,
+    DIR_SUP_S0,
+    DIR_SUP_ST,
+    METHOD_IDS,
+    StatusBuf,
+    core_step,
+)
 from packpilot.control.method import CompiledController, Method, StatusChannel, status_values
 from packpilot.control.supervisor import controller as sup_ctl
 from packpilot.control.supervisor import rules as sr
@@ -77,26 +89,6 @@ class Part:
             config = method.config.model_validate(config or {})
         prm, st = method.build(config, infos)
         return cls(method, prm, st)
-
-
-class StatusBuf(NamedTuple):
-    """The status channels of every part, (P, B, slots)."""
-
-    values: F64
-
-
-# Rows of ``Core.directory``: where each bundle's layout starts, and per part its method.
-DIR_TP, DIR_M, DIR_CMD, DIR_EV, DIR_STATUS = 0, 1, 2, 3, 4
-DIR_N_PARTS, DIR_SUP_PRM, DIR_SUP_ST, DIR_SUP_S0 = 5, 6, 7, 8
-DIR_PARTS, DIR_STRIDE = 16, 4
-"""Part ``j``: ``directory[16 + 4 j:][:4]`` = (method id, params row, state row, status s0)."""
-METHOD_IDS: dict[str, int] = {
-    name: k
-    for k, name in enumerate(
-        ("protection", "sequencing", "charging", "equalization", "limits", "plausibility", "soc")
-    )
-}
-"""Method ids of the compiled core step (``-1``: run through its own kernel)."""
 
 
 @dataclass
@@ -211,6 +203,8 @@ class Core:
             d[DIR_SUP_PRM], d[DIR_SUP_ST] = rows[sup_rows[0]], rows[sup_rows[1]]
             d[DIR_SUP_S0] = sup.s0
         self.directory = d
+        self.fused = all(isinstance(x, Part) and x.method.name in COMPILED for x in self.parts)
+        """Every part is known to the one compiled step (else: part by part)."""
 
     @property
     def compiled(self) -> list[Part]:
@@ -231,6 +225,9 @@ class Core:
 
         ``meas`` (P = 1 only) is what Python parts see; compiled parts read ``m``.
         """
+        if self.fused:
+            core_step(*self.arenas, self.directory, dt_s)
+            return
         cmd, ev, tp, status = self.cmd, self.ev, self.tp, self.status
         clear_commands(cmd)
         ev.n[0] = 0

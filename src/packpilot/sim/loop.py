@@ -32,7 +32,8 @@ from packpilot.contract.bms import Controller, Event
 from packpilot.contract.charger import ChargerLink
 from packpilot.contract.record import StepSample
 from packpilot.contract.topology import PackInfo
-from packpilot.control.core import DIR_CMD, DIR_M, Core, Part
+from packpilot.control.core import Core, Part
+from packpilot.control.core_kernel import DIR_CMD, DIR_M
 from packpilot.control.registry import REGISTRY, SAFETY
 from packpilot.model import loads
 from packpilot.model.pack import Interval

@@ -1,0 +1,39 @@
+"""The one compiled step of a core gives what stepping its parts one by one gives."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from packpilot.config.soc import SocConfig
+from packpilot.config.supervisor import SupervisorConfig
+from packpilot.contract.bms import SwitchKind
+from packpilot.contract.topology import PackInfo
+from packpilot.control.core import Core, Part
+from packpilot.control.soc import METHOD as SOC
+from tests.equivalence.common import assert_same_output, sequence
+
+
+def _core(info: PackInfo) -> Core:
+    return Core([info], [Part.build(SOC, SocConfig(rest_time_s=1.0), [info])], SupervisorConfig())
+
+
+@settings(max_examples=40, deadline=None)
+@given(data=st.data(), n=st.integers(1, 3))
+def test_fused_and_part_by_part_agree(data: Any, n: int) -> None:
+    info = PackInfo(
+        n_batteries=n,
+        groups_per_battery=(2,) * n,
+        cells_per_group=(3,) * n,
+        switch_kind=(SwitchKind.RELAY,) * n,
+        capacity_ah=(5.0,) * n,
+        ocv_soc=(0.0, 0.5, 1.0),
+        ocv_v=(3.0, 3.7, 4.2),
+    )
+    fused, parts = _core(info), _core(info)
+    assert fused.fused
+    parts.fused = False
+    for k, (meas, dt) in enumerate(data.draw(sequence(n, 2, current=(-1.0, 1.0)))):
+        assert_same_output(fused.step(meas, dt), parts.step(meas, dt), n, f"step {k}")
