@@ -172,7 +172,7 @@ def unpack(
 
 
 @intrinsic
-def _view(typingctx, buf, off, shape):  # type: ignore[no-untyped-def]  # noqa: ANN
+def _view(typingctx, buf, off, shape):  # type: ignore[no-untyped-def]
     """C-contiguous view of ``buf[off:off + prod(shape)]`` shaped ``shape``, sharing ``buf``'s
     memory. Unchecked: the layout comes from :meth:`Arena.seal`.
 
@@ -242,7 +242,7 @@ _CLASSES: dict[str, Any] = {}
 
 
 @overload(unpack)
-def _unpack_compiled(cls, f, i, h, c, b, lay, k):  # type: ignore[no-untyped-def]  # noqa: ANN
+def _unpack_compiled(cls, f, i, h, c, b, lay, k):  # type: ignore[no-untyped-def]
     # no annotations: numba compares this signature with the generated one, names and all
     target = cls.instance_class
     if target not in SPECS:
