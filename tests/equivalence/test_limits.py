@@ -16,7 +16,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from hypothesis import given, settings
+from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from packpilot.config import load_config, parse_config
@@ -184,9 +184,21 @@ def test_same_as_the_scalar_controller(data: Any, n: int, groups: int) -> None:
     for k, (meas, dt) in enumerate(seq):
         if data.draw(st.integers(0, 7)) == 0:  # an operator's explicit reset
             b = data.draw(st.sampled_from([None, -1, n, *range(n)]))
-            assert new.reset_trips(b) == old.reset_trips(b), f"reset before step {k}"
-        assert_same_output(new.step(meas, dt), old.step(meas, dt), n, f"step {k}")
+            cleared = new.reset_trips(b)
+            assert cleared == old.reset_trips(b), f"reset before step {k}"
+            if cleared:
+                event("explicit reset cleared a row")
+        out = new.step(meas, dt)
+        assert_same_output(out, old.step(meas, dt), n, f"step {k}")
         same_queries(new, old, f"step {k}")
+        for e in out.events:
+            event(e.message.split(": ")[0].split(" ", 1)[1])  # "warn", "trip cleared", ...
+        if out.commands.charger is not None:
+            event("charger off")
+        if any(x is False for x in out.commands.chg_on + out.commands.dsg_on):
+            event("path opened")
+        if any(math.isnan(x) for x in out.status["pack_limit_dsg_a"]):
+            event("pack limit unknown")
 
 
 # ------------------------------------------------------------------------------ closed loops

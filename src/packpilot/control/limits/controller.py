@@ -144,7 +144,7 @@ def build(config: LimitsConfig, infos: Sequence[PackInfo]) -> tuple[LimitsParams
     P, R = len(infos), len(rows)
     shape = (P, n, R)
     st = LimitsState(
-        count=np.zeros(shape, np.int64),
+        seen=np.zeros(shape, np.int64),
         held_s=np.zeros(shape),
         active=np.zeros(shape, np.bool_),
         active_s=np.zeros(shape),
@@ -216,11 +216,12 @@ class LimitsController(CompiledController):
         super().__init__(cfg, pack)
         self.rows = cfg.rows
         self.ladders = ladders(cfg)
+        self._tiers = np.zeros((1, pack.n_batteries, max(len(self.ladders), 1)))
 
     # -- queries --------------------------------------------------------------------------
 
     def _battery(self, battery: int) -> int:
-        n = self.st.active.shape[1]
+        n = int(self.st.active.shape[1])
         if not -n <= battery < n:
             raise IndexError(f"battery {battery} out of range (pack of {n})")
         return battery % n
@@ -230,15 +231,15 @@ class LimitsController(CompiledController):
 
     def active_tier(self, battery: int, limit: str) -> str:
         """Highest active tier of one limit for one battery: 'ok', 'warn', 'derate' or 'trip'."""
-        names = list(self.ladders)
         if limit not in self.ladders:
             return "ok"
         i = self._battery(battery)
-        return TIER_STATES[rules.tier_of(self.prm, self.st, 0, i, names.index(limit))]
+        rules.tiers_into(self.prm, self.st, 0, i, self._tiers, 0)
+        return TIER_STATES[int(self._tiers[0, i, list(self.ladders).index(limit)])]
 
     def tripped(self, battery: int, path: Path) -> bool:
-        i = self._battery(battery)
-        return bool(rules.tripped(self.prm, self.st, 0, i, path == "charge"))
+        chg, dsg, _, _ = rules.path_tiers(self.prm, self.st, 0, self._battery(battery))
+        return bool(chg if path == "charge" else dsg)
 
     @property
     def limit_chg_a(self) -> tuple[float, ...]:

@@ -131,7 +131,7 @@ class LimitsParams(NamedTuple):
 
 
 class LimitsState(NamedTuple):
-    count: I64
+    seen: I64
     """(P, B, R) consecutive violating samples (up to ``debounce``)."""
     held_s: F64
     """(P, B, R) time the violation persisted after the debounce."""
@@ -169,16 +169,17 @@ def curve_at(prm: LimitsParams, c: int, x: float) -> float:
     table's smallest (safest) value."""
     if not math.isfinite(x):
         return float(prm.curve_min[c])
-    xs, ys = prm.curve_x[c], prm.curve_y[c]
-    n = prm.curve_n[c]
-    if x <= xs[0]:
-        return float(ys[0])
-    if x >= xs[n - 1]:
-        return float(ys[n - 1])
+    # Indexed [c, j] through prm: a row slice or a local alias costs a reference count per call.
+    last = prm.curve_n[c] - 1
+    if x <= prm.curve_x[c, 0]:
+        return float(prm.curve_y[c, 0])
+    if x >= prm.curve_x[c, last]:
+        return float(prm.curve_y[c, last])
     k = 1
-    while xs[k] <= x:  # bisect_right: the first point above x
+    while prm.curve_x[c, k] <= x:  # bisect_right: the first point above x
         k += 1
-    x0, x1, y0, y1 = xs[k - 1], xs[k], ys[k - 1], ys[k]
+    x0, x1 = prm.curve_x[c, k - 1], prm.curve_x[c, k]
+    y0, y1 = prm.curve_y[c, k - 1], prm.curve_y[c, k]
     return float(y0 + (y1 - y0) * (x - x0) / (x1 - x0))
 
 
@@ -211,30 +212,34 @@ def discharge_c(prm: LimitsParams, m: MeasArrays, p: int, i: int) -> float:
 
 
 @kernel
-def tier_of(prm: LimitsParams, st: LimitsState, p: int, i: int, ladder: int) -> int:
-    """Highest active tier of one limit for one battery: 0 ok, 1 + ``T_*`` otherwise."""
-    best = 0
+def tiers_into(prm: LimitsParams, st: LimitsState, p: int, i: int, out: F64, o0: int) -> None:
+    """Highest active tier of every limit of battery ``i`` into ``out[p, i, o0 + ladder]``:
+    0 ok, 1 + ``T_*`` otherwise."""
+    for j in range(prm.n_ladders):
+        out[p, i, o0 + j] = 0.0
     for k in range(prm.tier.shape[0]):
-        if prm.ladder[k] == ladder and st.active[p, i, k] and prm.tier[k] + 1 > best:
-            best = prm.tier[k] + 1
-    return int(best)
+        if st.active[p, i, k] and prm.tier[k] + 1 > out[p, i, o0 + prm.ladder[k]]:
+            out[p, i, o0 + prm.ladder[k]] = prm.tier[k] + 1
 
 
 @kernel
-def tripped(prm: LimitsParams, st: LimitsState, p: int, i: int, charge_path: bool) -> bool:
-    """A trip row of that path is active for battery ``i``."""
+def path_tiers(prm: LimitsParams, st: LimitsState, p: int, i: int) -> tuple[bool, bool, bool, bool]:
+    """(charge tripped, discharge tripped, charge derated, discharge derated) for battery ``i``:
+    some row of that tier and path is active."""
+    trip_chg = trip_dsg = der_chg = der_dsg = False
     for k in range(prm.tier.shape[0]):
-        if st.active[p, i, k] and prm.tier[k] == T_TRIP and prm.charge_path[k] == charge_path:
-            return True
-    return False
-
-
-@kernel
-def _derated(prm: LimitsParams, st: LimitsState, p: int, i: int, charge_path: bool) -> bool:
-    for k in range(prm.tier.shape[0]):
-        if st.active[p, i, k] and prm.tier[k] == T_DERATE and prm.charge_path[k] == charge_path:
-            return True
-    return False
+        if st.active[p, i, k]:
+            if prm.tier[k] == T_TRIP:
+                if prm.charge_path[k]:
+                    trip_chg = True
+                else:
+                    trip_dsg = True
+            elif prm.tier[k] == T_DERATE:
+                if prm.charge_path[k]:
+                    der_chg = True
+                else:
+                    der_dsg = True
+    return trip_chg, trip_dsg, der_chg, der_dsg
 
 
 # ------------------------------------------------------------------------------ events
@@ -268,7 +273,7 @@ def _emit_row(
 def _deactivate(st: LimitsState, p: int, i: int, k: int) -> None:
     st.active[p, i, k] = False
     st.active_s[p, i, k] = 0.0
-    st.count[p, i, k] = 0
+    st.seen[p, i, k] = 0
     st.held_s[p, i, k] = 0.0
 
 
@@ -296,91 +301,6 @@ def reset_trips(prm: LimitsParams, st: LimitsState, p: int, battery: int) -> int
 
 
 @kernel
-def _quantities(
-    prm: LimitsParams, st: LimitsState, tp: PackArrays, m: MeasArrays, p: int, i: int,
-    docked: bool,
-) -> None:  # fmt: skip
-    """The quantities and contexts of battery ``i`` into the scratch rows of pack ``p``."""
-    vals, ctx = st.values[p], st.ctx[p]
-    ctx[W_ALWAYS] = True
-    if not (m.bat.reported[p, i] and m.bat.present[p, i]):
-        vals.fill(math.nan)
-        ctx[W_CHARGING] = docked
-        ctx[W_DISCHARGING] = False
-        return
-    cap = capacity_ah(tp, m, p, i)
-    cur = m.bat.current_a[p, i]
-    temp = m.bat.temp_c[p, i]
-    cold = m.bat.min_temp_c[p, i]
-    vals[Q_CELL_V_MAX] = m.bat.max_cell_v[p, i]
-    vals[Q_CELL_V_MIN] = m.bat.min_cell_v[p, i]
-    if math.isfinite(cur):
-        vals[Q_CHG_C_RATE] = fmax(0.0, -cur) / cap
-        vals[Q_DSG_C_RATE] = fmax(0.0, cur) / cap
-    else:
-        vals[Q_CHG_C_RATE] = math.nan
-        vals[Q_DSG_C_RATE] = math.nan
-    vals[Q_TEMP_MAX_C] = temp
-    vals[Q_TEMP_MIN_C] = cold if math.isfinite(cold) else temp
-    band = prm.context_current_c * cap if math.isfinite(cap) else 0.0
-    ctx[W_CHARGING] = docked or (math.isfinite(cur) and cur < -band)
-    ctx[W_DISCHARGING] = math.isfinite(cur) and cur > band and not docked
-
-
-@kernel
-def _battery(
-    prm: LimitsParams, st: LimitsState, tp: PackArrays, m: MeasArrays, p: int, i: int,
-    dt: float, docked: bool, ev: EventBuf, src: int,
-) -> None:  # fmt: skip
-    """Every row of battery ``i``: count, time, activate (event) or clear (event)."""
-    _quantities(prm, st, tp, m, p, i, docked)
-    for k in range(prm.tier.shape[0]):
-        v = st.values[p, prm.quantity[k]]
-        st.value[p, i, k] = v
-        violating = False
-        if not st.ctx[p, prm.when[k]]:
-            st.count[p, i, k] = 0
-            st.held_s[p, i, k] = 0.0
-            st.clear_ok[p, i, k] = True
-        elif not math.isfinite(v):
-            st.clear_ok[p, i, k] = False  # unknown: hold counters and the active state
-        else:
-            if prm.above[k]:
-                violating = v > prm.threshold[k]
-                st.clear_ok[p, i, k] = v <= prm.reset[k]
-            else:
-                violating = v < prm.threshold[k]
-                st.clear_ok[p, i, k] = v >= prm.reset[k]
-            if violating:
-                if st.count[p, i, k] >= prm.debounce[k]:
-                    st.held_s[p, i, k] += dt
-                else:
-                    st.count[p, i, k] += 1
-                    st.held_s[p, i, k] = 0.0
-            else:
-                st.count[p, i, k] = 0
-                st.held_s[p, i, k] = 0.0
-        if st.active[p, i, k]:
-            st.active_s[p, i, k] += dt
-            if (
-                st.clear_ok[p, i, k]
-                and not prm.manual[k]
-                and st.active_s[p, i, k] >= prm.latch_s[k] - EPS
-            ):
-                _deactivate(st, p, i, k)
-                e = _emit_row(prm, st, ev, p, src, CLEARED, i, k, m.t_s[p], v)
-                ev.val[e, S_MANUAL] = 0.0
-        elif (
-            violating
-            and st.count[p, i, k] >= prm.debounce[k]
-            and st.held_s[p, i, k] >= prm.delay_s[k] - EPS
-        ):
-            st.active[p, i, k] = True
-            st.active_s[p, i, k] = 0.0
-            _emit_row(prm, st, ev, p, src, prm.tier[k], i, k, m.t_s[p], v)
-
-
-@kernel
 def _pack_limits(prm: LimitsParams, st: LimitsState, tp: PackArrays, m: MeasArrays, p: int) -> None:
     """Per-battery limits from the tables and the active tiers; the pack limits."""
     n_chg = 0
@@ -397,15 +317,14 @@ def _pack_limits(prm: LimitsParams, st: LimitsState, tp: PackArrays, m: MeasArra
         cap = capacity_ah(tp, m, p, i)
         lim_chg = charge_c(prm, m, p, i) * cap
         lim_dsg = discharge_c(prm, m, p, i) * cap
-        chg_trip = tripped(prm, st, p, i, True)
-        dsg_trip = tripped(prm, st, p, i, False)
+        chg_trip, dsg_trip, chg_der, dsg_der = path_tiers(prm, st, p, i)
         if chg_trip:
             lim_chg = 0.0
-        elif _derated(prm, st, p, i, True):
+        elif chg_der:
             lim_chg *= prm.derate_fraction  # once per path, however many derate rows
         if dsg_trip:
             lim_dsg = 0.0
-        elif _derated(prm, st, p, i, False):
+        elif dsg_der:
             lim_dsg *= prm.derate_fraction
         st.limit_chg_a[p, i] = lim_chg
         st.limit_dsg_a[p, i] = lim_dsg
@@ -438,29 +357,95 @@ def step_pack(
     st.t_s[p] = m.t_s[p]
     first = ev.n[0]
     docked = bool(m.docked[p])
-    for i in range(n_bat):
-        _battery(prm, st, tp, m, p, i, dt, docked, ev, src)
+    for i in range(n_bat):  # every row of battery i: count, time, activate or clear
+        st.ctx[p, W_ALWAYS] = True
+        if not (m.bat.reported[p, i] and m.bat.present[p, i]):
+            for q in range(N_QUANTITIES):
+                st.values[p, q] = math.nan
+            st.ctx[p, W_CHARGING] = docked
+            st.ctx[p, W_DISCHARGING] = False
+        else:
+            cap = capacity_ah(tp, m, p, i)
+            cur = m.bat.current_a[p, i]
+            temp = m.bat.temp_c[p, i]
+            cold = m.bat.min_temp_c[p, i]
+            st.values[p, Q_CELL_V_MAX] = m.bat.max_cell_v[p, i]
+            st.values[p, Q_CELL_V_MIN] = m.bat.min_cell_v[p, i]
+            if math.isfinite(cur):
+                st.values[p, Q_CHG_C_RATE] = fmax(0.0, -cur) / cap
+                st.values[p, Q_DSG_C_RATE] = fmax(0.0, cur) / cap
+            else:
+                st.values[p, Q_CHG_C_RATE] = math.nan
+                st.values[p, Q_DSG_C_RATE] = math.nan
+            st.values[p, Q_TEMP_MAX_C] = temp
+            st.values[p, Q_TEMP_MIN_C] = cold if math.isfinite(cold) else temp
+            band = prm.context_current_c * cap if math.isfinite(cap) else 0.0
+            st.ctx[p, W_CHARGING] = docked or (math.isfinite(cur) and cur < -band)
+            st.ctx[p, W_DISCHARGING] = math.isfinite(cur) and cur > band and not docked
+        for k in range(prm.tier.shape[0]):
+            v = st.values[p, prm.quantity[k]]
+            st.value[p, i, k] = v
+            violating = False
+            if not st.ctx[p, prm.when[k]]:
+                st.seen[p, i, k] = 0
+                st.held_s[p, i, k] = 0.0
+                st.clear_ok[p, i, k] = True
+            elif not math.isfinite(v):
+                st.clear_ok[p, i, k] = False  # unknown: hold counters and the active state
+            else:
+                if prm.above[k]:
+                    violating = v > prm.threshold[k]
+                    st.clear_ok[p, i, k] = v <= prm.reset[k]
+                else:
+                    violating = v < prm.threshold[k]
+                    st.clear_ok[p, i, k] = v >= prm.reset[k]
+                if violating:
+                    if st.seen[p, i, k] >= prm.debounce[k]:
+                        st.held_s[p, i, k] += dt
+                    else:
+                        st.seen[p, i, k] += 1
+                        st.held_s[p, i, k] = 0.0
+                else:
+                    st.seen[p, i, k] = 0
+                    st.held_s[p, i, k] = 0.0
+            if st.active[p, i, k]:
+                st.active_s[p, i, k] += dt
+                if (
+                    st.clear_ok[p, i, k]
+                    and not prm.manual[k]
+                    and st.active_s[p, i, k] >= prm.latch_s[k] - EPS
+                ):
+                    _deactivate(st, p, i, k)
+                    e = _emit_row(prm, st, ev, p, src, CLEARED, i, k, m.t_s[p], v)
+                    ev.val[e, S_MANUAL] = 0.0
+            elif (
+                violating
+                and st.seen[p, i, k] >= prm.debounce[k]
+                and st.held_s[p, i, k] >= prm.delay_s[k] - EPS
+            ):
+                st.active[p, i, k] = True
+                st.active_s[p, i, k] = 0.0
+                _emit_row(prm, st, ev, p, src, prm.tier[k], i, k, m.t_s[p], v)
     _pack_limits(prm, st, tp, m, p)
     for e in range(first, ev.n[0]):  # the pack limits after this tick, in this tick's events
         ev.val[e, S_PACK_CHG] = _known(st.pack_chg_a[p])
         ev.val[e, S_PACK_DSG] = _known(st.pack_dsg_a[p])
     any_chg_trip = False
-    for i in range(n_bat):
-        if tripped(prm, st, p, i, True):
-            put_chg(cmd, p, i, False)
-            any_chg_trip = True
-        if tripped(prm, st, p, i, False):
-            put_dsg(cmd, p, i, False)
-    if docked and any_chg_trip:
-        put_charger_off(cmd, p)
     n_lad = prm.n_ladders
     for i in range(n_bat):
-        for j in range(n_lad):
-            status[p, i, s0 + j] = tier_of(prm, st, p, i, j)
+        chg_trip, dsg_trip, _, _ = path_tiers(prm, st, p, i)
+        if chg_trip:
+            put_chg(cmd, p, i, False)
+            any_chg_trip = True
+        if dsg_trip:
+            put_dsg(cmd, p, i, False)
+        tiers_into(prm, st, p, i, status, s0)
         status[p, i, s0 + n_lad + ST_LIMIT_CHG] = st.limit_chg_a[p, i]
         status[p, i, s0 + n_lad + ST_LIMIT_DSG] = st.limit_dsg_a[p, i]
         status[p, i, s0 + n_lad + ST_PACK_CHG] = st.pack_chg_a[p]
         status[p, i, s0 + n_lad + ST_PACK_DSG] = st.pack_dsg_a[p]
+    if docked and any_chg_trip:
+        put_charger_off(cmd, p)
 
 
 @kernel
