@@ -253,9 +253,11 @@ def _known(x: float) -> float:
 
 @kernel
 def _emit_row(
-    prm: LimitsParams, st: LimitsState, ev: EventBuf, p: int, src: int, code: int, i: int,
-    k: int, t_s: float, value: float,
+    prm: LimitsParams, ev: EventBuf, p: int, src: int, code: int, i: int, k: int, t_s: float,
+    value: float,
 ) -> int:  # fmt: skip
+    """Emit ``code`` for row ``k`` of battery ``i`` with the row's fields (the caller adds
+    ``manual`` and the pack limits)."""
     e = emit(ev, p, src, code, i, t_s)
     ev.val[e, S_ROW] = k
     ev.val[e, S_LIMIT] = prm.ladder[k]
@@ -351,7 +353,7 @@ def step_pack(
     for q in range(st.n_pending[p]):  # explicit resets since the last step, at its time
         i = st.pending[p, q] // n_rows
         k = st.pending[p, q] % n_rows
-        e = _emit_row(prm, st, ev, p, src, RESET, i, k, st.t_s[p], st.value[p, i, k])
+        e = _emit_row(prm, ev, p, src, RESET, i, k, st.t_s[p], st.value[p, i, k])
         ev.val[e, S_MANUAL] = 1.0
     st.n_pending[p] = 0
     st.t_s[p] = m.t_s[p]
@@ -416,7 +418,7 @@ def step_pack(
                     and st.active_s[p, i, k] >= prm.latch_s[k] - EPS
                 ):
                     _deactivate(st, p, i, k)
-                    e = _emit_row(prm, st, ev, p, src, CLEARED, i, k, m.t_s[p], v)
+                    e = _emit_row(prm, ev, p, src, CLEARED, i, k, m.t_s[p], v)
                     ev.val[e, S_MANUAL] = 0.0
             elif (
                 violating
@@ -425,7 +427,7 @@ def step_pack(
             ):
                 st.active[p, i, k] = True
                 st.active_s[p, i, k] = 0.0
-                _emit_row(prm, st, ev, p, src, prm.tier[k], i, k, m.t_s[p], v)
+                _emit_row(prm, ev, p, src, prm.tier[k], i, k, m.t_s[p], v)
     _pack_limits(prm, st, tp, m, p)
     for e in range(first, ev.n[0]):  # the pack limits after this tick, in this tick's events
         ev.val[e, S_PACK_CHG] = _known(st.pack_chg_a[p])
