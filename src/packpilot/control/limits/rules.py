@@ -368,7 +368,7 @@ def step_pack(
             st.ctx[p, W_DISCHARGING] = False
         else:
             cap = capacity_ah(tp, m, p, i)
-            cur = m.bat.current_a[p, i]
+            cur = float(m.bat.current_a[p, i])  # without the JIT: no NumPy overflow warning
             temp = m.bat.temp_c[p, i]
             cold = m.bat.min_temp_c[p, i]
             st.values[p, Q_CELL_V_MAX] = m.bat.max_cell_v[p, i]
