@@ -192,7 +192,7 @@ METHOD_SECTIONS: dict[str, str] = {
 
 SAFETY_SECTIONS: dict[str, str] = {
     "supervisor": "packpilot.control.supervisor:SupervisorConfig",
-    "limits": "packpilot.control.limits:LimitsConfig",
+    "limits": "packpilot.config.limits:LimitsConfig",
     "plausibility": "packpilot.control.plausibility:PlausibilityConfig",
     "soc": "packpilot.control.soc:SocConfig",
 }
