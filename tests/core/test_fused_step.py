@@ -7,17 +7,23 @@ from typing import Any
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.config.limits import LimitsConfig
 from packpilot.config.soc import SocConfig
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core, Part
+from packpilot.control.limits import method_for
 from packpilot.control.soc import METHOD as SOC
 from tests.equivalence.common import assert_same_output, sequence
 
 
 def _core(info: PackInfo) -> Core:
-    return Core([info], [Part.build(SOC, SocConfig(rest_time_s=1.0), [info])], SupervisorConfig())
+    parts = [
+        Part.build(method_for(LimitsConfig()), LimitsConfig(), [info]),
+        Part.build(SOC, SocConfig(rest_time_s=1.0), [info]),
+    ]
+    return Core([info], parts, SupervisorConfig())
 
 
 @settings(max_examples=40, deadline=None)

@@ -27,11 +27,23 @@ class Entry:
         mod, attr = self.target.split(":")
         return getattr(importlib.import_module(mod), attr)
 
+    def method(self, config: BaseModel) -> Method | None:
+        """The compiled method for ``config`` (a method whose status channels depend on its
+        config, such as the limits table, provides ``method_for``)."""
+        mod = importlib.import_module(self.target.split(":")[0])
+        method_for = getattr(mod, "method_for", None)
+        if callable(method_for):
+            m: Method = method_for(config)
+            return m
+        obj = self.resolve()
+        return obj if isinstance(obj, Method) else None
+
     def part(self, config: BaseModel, infos: Sequence[PackInfo]) -> Part | Controller:
         """This method for ``len(infos)`` packs (a scalar controller: one pack only)."""
+        method = self.method(config)
+        if method is not None:
+            return Part.build(method, config, infos)
         obj = self.resolve()
-        if isinstance(obj, Method):
-            return Part.build(obj, config, infos)
         if len(infos) != 1:
             raise ValueError(f"{self.name} has no compiled form yet: it runs at one pack only")
         ctl: Controller = obj(config, infos[0])
@@ -45,7 +57,7 @@ REGISTRY: dict[str, Entry] = {
         Entry("sequencing", "method", "packpilot.control.sequencing:SequencingController"),
         Entry("charging", "method", "packpilot.control.charging:ChargingController"),
         Entry("equalization", "method", "packpilot.control.equalization:EqualizationController"),
-        Entry("limits", "safety", "packpilot.control.limits:LimitsController"),
+        Entry("limits", "safety", "packpilot.control.limits:METHOD"),
         Entry("plausibility", "safety", "packpilot.control.plausibility:PlausibilityMonitor"),
         Entry("soc", "safety", "packpilot.control.soc:METHOD"),
     )
