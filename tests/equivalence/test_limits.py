@@ -20,7 +20,7 @@ from typing import Any
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from packpilot.config import load_config, parse_config
+from packpilot.config import load_config, parse_config, validate_section
 from packpilot.config.limits import (
     QUANTITY_DIRECTION,
     TIERS,
@@ -31,6 +31,7 @@ from packpilot.config.limits import (
 )
 from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
+from packpilot.control.core import Core, Part
 from packpilot.control.limits import LimitsController
 from packpilot.sim.runner import Runner
 from tests.conftest import EXAMPLES, dual_pack
@@ -353,11 +354,14 @@ def _supervised(
 ) -> Checked:
     """Put a :class:`Checked` in place of the supervisor's limits layer (with its table, or
     ``table``)."""
-    sup: Any = runner.controller
-    (k,) = [j for j, part in enumerate(sup.safety) if isinstance(part, LimitsController)]
-    lim = sup.safety[k]
-    chk = Checked(table or lim.config, runner.info, side, reset_every)
-    sup.safety = [*sup.safety[:k], chk, *sup.safety[k + 1 :]]
+    core = runner.controller
+    assert isinstance(core, Core)
+    (k,) = [j for j, x in enumerate(core.parts) if isinstance(x, Part) and x.method.name == "limits"]
+    config = validate_section("limits", runner.cfg.limits, "<test>")
+    assert isinstance(config, LimitsConfig)
+    chk = Checked(table or config, runner.info, side, reset_every)
+    parts = [*core.parts[:k], chk, *core.parts[k + 1 :]]
+    runner.controller = Core(core.infos, parts, core.supervisor_config)
     return chk
 
 

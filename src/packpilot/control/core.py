@@ -124,6 +124,34 @@ def put_commands(cmd: CmdArrays, p: int, c: Commands) -> None:
         ck.put_aux_charge(cmd, p, float(c.aux_charge_a))
 
 
+_KNOWN: set[str] = set()
+
+
+def _know_every_branch(infos: Sequence[PackInfo]) -> None:
+    """The fused step compiles a branch for every method (and the supervisor) whether or not
+    this core has it; each branch rebuilds its named tuples from the arena, so their layouts
+    must be known: build each default once, on this topology, and record its layout."""
+    from packpilot.control.registry import REGISTRY
+
+    for name in sorted(COMPILED | {"supervisor"}):
+        if name in _KNOWN:
+            continue
+        ar = Arena()
+        if name == "supervisor":
+            ev_class = np.zeros((1, 1), np.int64)
+            prm, st = sup_ctl.build_supervisor(SupervisorConfig(), list(infos), ev_class)
+        else:
+            entry = REGISTRY[name]
+            base = entry.resolve()
+            assert isinstance(base, Method), name
+            config = base.config.model_validate({})
+            method = entry.method(config) or base
+            prm, st = method.build(config, list(infos))
+        ar.add(prm)
+        ar.add(st)
+        _KNOWN.add(name)
+
+
 class Core:
     """The supervised (or plainly composed) BMS of P packs of one topology.
 
@@ -141,6 +169,7 @@ class Core:
         info = self.infos[0]
         self.n_packs = len(self.infos)
         self.parts = list(parts)
+        self.supervisor_config = supervisor
         if len(self.parts) >= sr.FOREIGN_SRC:
             raise ValueError(f"a core runs at most {sr.FOREIGN_SRC - 1} parts")
         if self.n_packs > 1 and not all(isinstance(x, Part) for x in self.parts):
@@ -205,6 +234,8 @@ class Core:
         self.directory = d
         self.fused = all(isinstance(x, Part) and x.method.name in COMPILED for x in self.parts)
         """Every part is known to the one compiled step (else: part by part)."""
+        if self.fused:
+            _know_every_branch(self.infos)
 
     @property
     def compiled(self) -> list[Part]:

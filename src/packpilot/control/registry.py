@@ -6,14 +6,16 @@ from __future__ import annotations
 import importlib
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel
 
 from packpilot.contract.bms import Controller
 from packpilot.contract.topology import PackInfo
-from packpilot.control.core import Part
 from packpilot.control.method import Method
+
+if TYPE_CHECKING:
+    from packpilot.control.core import Part
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,8 @@ class Entry:
 
     def part(self, config: BaseModel, infos: Sequence[PackInfo]) -> Part | Controller:
         """This method for ``len(infos)`` packs (a scalar controller: one pack only)."""
+        from packpilot.control.core import Part  # the core also reads the registry
+
         method = self.method(config)
         if method is not None:
             return Part.build(method, config, infos)

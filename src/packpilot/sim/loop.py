@@ -159,7 +159,7 @@ class ClosedLoop:
         plant.apply(core.arenas, int(core.directory[DIR_CMD]))
         if self.links:
             self.links.send(t, core.cmd)
-        iv = plant.step(dt_s, np.full(plant.n_packs, self.demand(t)))
+        iv = plant.step(dt_s, np.full(plant.n_packs, self.demand(t)), self.profile.kind)
         events = core.events() if core.ev.n[0] else [[] for _ in range(plant.n_packs)]
         self._supply_events(t, iv, events, dt_s)
         self.metrics.add(plant.pack, iv, self._traction, events)

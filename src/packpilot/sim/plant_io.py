@@ -119,9 +119,10 @@ class SimulatedPlant:
         )  # fmt: skip
 
     # ------------------------------------------------------------------ physics
-    def step(self, dt_s: float, demand: Array) -> Interval:
-        """One period of every pack under the load ``demand`` (P,)."""
-        return self.pack.step(dt_s, self.cfg.load.kind, demand, reuse=True)
+    def step(self, dt_s: float, demand: Array, kind: str | None = None) -> Interval:
+        """One period of every pack under the load ``demand`` (P,) of ``kind`` (``current``,
+        ``power``, ``resistance``, ``none``; the scenario's by default)."""
+        return self.pack.step(dt_s, kind or self.cfg.load.kind, demand, reuse=True)
 
 
 @kernel_inline

@@ -19,6 +19,7 @@ from packpilot.contract.charger import ChargerLink
 from packpilot.contract.record import Recorder, Result
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
+from packpilot.model import loads
 from packpilot.model.pack import Pack
 from packpilot.sim.links import default_links
 from packpilot.sim.loop import ClosedLoop, build_core, load_profile, n_steps
@@ -60,8 +61,21 @@ class Runner:
             self.controller = build_core(self.cfg, self.plant.infos)
         if self.charger_link is None and self.cfg.charger.present:
             self.charger_link = default_links(self.cfg, self.pack)[0]
-        self.profile = load_profile(self.cfg)
+        self._profile = load_profile(self.cfg)
+        self.loop: ClosedLoop | None = None
         self.events: list[Event] = []
+
+    @property
+    def profile(self) -> loads.LoadProfile:
+        """The load demand of the run; set it (before or during a run, e.g. from a hook) to
+        change what the loop draws from the next period on."""
+        return self._profile
+
+    @profile.setter
+    def profile(self, value: loads.LoadProfile) -> None:
+        self._profile = value
+        if self.loop is not None:
+            self.loop.profile = value
 
     @property
     def pack(self) -> Pack:
@@ -76,6 +90,7 @@ class Runner:
         links = [self.charger_link] if self.charger_link is not None else []
         hooks = [lambda t, h=h: h(self, t) for h in self.hooks]
         loop = ClosedLoop.of(cfg, core=core, links=links, hooks=hooks, plant=self.plant)
+        loop.profile = self._profile
         self.loop = loop
         buf = TraceBuffer(
             self.pack,
