@@ -142,9 +142,7 @@ def kernel(fn: _F) -> _F:
 
 def kernel_inline(fn: _F) -> _F:
     """:func:`kernel`, inlined into its callers at numba IR level (helpers of a rule)."""
-    return cast(
-        _F, numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn)
-    )
+    return cast(_F, numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn))
 
 
 def jit_disabled() -> bool:

@@ -28,10 +28,14 @@ WEIRD = [math.nan, math.inf, -math.inf]
 
 def num(lo: float, hi: float, weird: float = 0.05) -> st.SearchStrategy[float]:
     """Mostly finite values in [lo, hi], sometimes NaN / inf."""
-    return st.one_of(
-        st.floats(lo, hi, allow_nan=False),
-        st.sampled_from(WEIRD),
-    ) if weird else st.floats(lo, hi, allow_nan=False)
+    return (
+        st.one_of(
+            st.floats(lo, hi, allow_nan=False),
+            st.sampled_from(WEIRD),
+        )
+        if weird
+        else st.floats(lo, hi, allow_nan=False)
+    )
 
 
 @st.composite

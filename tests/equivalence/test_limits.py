@@ -356,7 +356,9 @@ def _supervised(
     ``table``)."""
     core = runner.controller
     assert isinstance(core, Core)
-    (k,) = [j for j, x in enumerate(core.parts) if isinstance(x, Part) and x.method.name == "limits"]
+    (k,) = [
+        j for j, x in enumerate(core.parts) if isinstance(x, Part) and x.method.name == "limits"
+    ]
     config = validate_section("limits", runner.cfg.limits, "<test>")
     assert isinstance(config, LimitsConfig)
     chk = Checked(table or config, runner.info, side, reset_every)

@@ -122,5 +122,3 @@ def test_same_with_a_compiled_part(data: Any, cfg: SupervisorConfig, n: int, see
     )
     for k, (meas, dt) in enumerate(data.draw(sequence(n, 2, current=(-1.0, 1.0)))):
         assert_same_output(new.step(meas, dt), old.step(meas, dt), n, f"step {k}")
-
-

@@ -351,15 +351,20 @@ class Pack:
                 banks.append(bank)
                 continue
             if (~m).any():
-                banks.append(CellBank(bank.params, bank.idx[~m], _take(bank.state, ~m),
-                                      bank.base))
+                banks.append(CellBank(bank.params, bank.idx[~m], _take(bank.state, ~m), bank.base))
             base = bank.base or bank.params
             th = base.thermal
-            params = base if factor == 1.0 else dataclasses.replace(
-                base, thermal=dataclasses.replace(th, jig_air_w_per_k=th.jig_air_w_per_k * factor)
+            params = (
+                base
+                if factor == 1.0
+                else dataclasses.replace(
+                    base,
+                    thermal=dataclasses.replace(th, jig_air_w_per_k=th.jig_air_w_per_k * factor),
+                )
             )
-            banks.append(CellBank(params, bank.idx[m], _take(bank.state, m),
-                                  None if factor == 1.0 else base))
+            banks.append(
+                CellBank(params, bank.idx[m], _take(bank.state, m), None if factor == 1.0 else base)
+            )
         self.banks = banks
 
     # ------------------------------------------------------------------ step

@@ -58,7 +58,6 @@ def segment_sums(x: Any, starts: Any, out: Any) -> None:
             out[p, k] = segment_sum(row, starts, k)
 
 
-
 @kernel
 def pack_electrical(
     cell_string: Any,
@@ -301,6 +300,7 @@ def pack_electrical(
             charge_in_ah[p, s] += _npmax(-cur, 0.0) * dt / 3600.0
             joule_j[p, s] += dt * segment_sum(jl, cell_starts, s)
 
+
 @kernel
 def bank_cells(
     idx: Any,
@@ -371,4 +371,3 @@ def bank_cells(
         heat[p, c] = q[k]
         e_cell[p, c] = e[k]
         r_cell[p, c] = r[k]
-

@@ -129,5 +129,3 @@ class FaultInjector:
 
 
 __all__ = ["FaultInjector", "SilenceableLink"]
-
-

@@ -224,9 +224,7 @@ def sample(loop: ClosedLoop, rec: StepRecord, p: int = 0) -> StepSample:
     )
     group = np.where(pack.group_table >= 0, iv.group_v[p][pack.group_table], np.nan)
     topo = loop.plant.topology
-    status = {
-        name: topo.spread(vals) for name, vals in loop.core.status_of(p).items()
-    }
+    status = {name: topo.spread(vals) for name, vals in loop.core.status_of(p).items()}
     return StepSample(
         step=rec.k,
         t_s=iv.t_s,

@@ -74,9 +74,7 @@ class SimulatedPlant:
             has_aux=pack.aux_index is not None,
             has_charger=cfg.charger.present,
             has_balancers=cfg.balancer.present,
-            capacity_ah=tuple(
-                float(pack.capacity_ah[p, pack.cell_string == i].min()) for i in tr
-            ),
+            capacity_ah=tuple(float(pack.capacity_ah[p, pack.cell_string == i].min()) for i in tr),
             ocv_soc=tuple(float(x) for x in params.ocv_soc),
             ocv_v=tuple(float(x) for x in params.ocv_table_v),
         )

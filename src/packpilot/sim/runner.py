@@ -127,9 +127,7 @@ class Runner:
             bar.close()
             loop.close()
             wall = time.perf_counter() - wall0
-            metrics = (
-                loop.metrics.of(0, wall, self.pack.names) if buf.n else {"wall_time_s": wall}
-            )
+            metrics = loop.metrics.of(0, wall, self.pack.names) if buf.n else {"wall_time_s": wall}
             if self.recorder is not None:
                 self.recorder.finish(metrics, status=status)
         return Result(
