@@ -1,0 +1,585 @@
+"""Condition-dependent discharge protection rules, compiled (US10868343B2;
+``spec/discharge_protection.md``).
+
+A fixed "cut-off voltage + longest sustainable time" wastes capacity when the load is heavy or
+the battery is cold (the voltage sags under load while plenty of charge is left) and is too lax
+when the load is light. Here the protection parameter (cut-off, t_max) is looked up every tick
+from the battery's status (current, temperature, optionally SOH) in an N-dimensional range
+table, and the time spent at or below the *active* cut-off is accumulated with the weight
+``n = m / t_max`` (``m`` = LCM of all t_max). The battery's discharge path is opened, and stays
+open until the next discharge cycle, once the weighted sum reaches ``m``; this is the same as
+``sum(t_k / t_max_k) >= 1``: each second under parameter k uses up ``1 / t_max_k`` of the
+allowance.
+
+Exactness: the sum is kept as an exact fraction in weighted milliseconds, a pair of int64
+(numerator, denominator) reduced by their gcd (``n`` is an integer because ``m`` is the LCM of
+whole-millisecond durations), so the spec's worked examples trip exactly at 5 s, 15 s and 10 s
+and never one tick late from float round-off. A tick's duration enters as
+``Fraction(dt_s * 1000).limit_denominator(1000)`` (:func:`dt_ms`, CPython's continued-fraction
+algorithm on the float's exact value: 0.1 s -> 100 ms, 1/3 s -> 1000/3 ms).
+
+Bounds (``build`` guarantees ``m <= 2**43`` ms): the pair is kept with numerator <= 2**53 and
+denominator * m <= 2**53, so every comparison is exact and ``n / d`` as floats is the correctly
+rounded value Python's ``float(Fraction)`` gives. Outside those bounds the rules fail safe
+instead of overflowing: a tick whose weighted duration alone exceeds 2**53 ms (dt of more than
+about 10**12 s, an infinite product) *saturates* the sum at 2**53 weighted ms, which trips; a
+sum whose exact denominator would grow past the bound (many ticks with different, coprime
+fractional durations) is rounded *up* to whole weighted microseconds (a trip can only come
+earlier, by at most a microsecond of weighted time). Neither happens with the durations a
+simulation or a log produces; the scalar reference kept a Python big-integer ``Fraction``
+there (and raised ``OverflowError`` for an infinite tick).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.contract.arrays import CmdArrays, EventBuf, MeasArrays, PackArrays
+from packpilot.control.commands import emit, fmin, put_dsg
+from packpilot.jit import kernel
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+B1 = NDArray[np.bool_]
+U8 = NDArray[np.uint8]
+
+# Axis codes: the index of the axis name in ``packpilot.config.protection.AXES``.
+AX_CURRENT = 0
+AX_TEMP = 1
+AX_SOH = 2
+N_AXES = 3
+FIELD_MIN_CELL = N_AXES
+"""Fault fields: the axis codes, then the check voltage."""
+N_FIELDS = N_AXES + 1
+
+# Sources of the check voltage (label list ``vsources``).
+VS_MIN_CELL = 0
+VS_GROUPS = 1
+VS_MEAN = 2
+VS_NONE = 3
+
+# New-cycle reasons (label list ``resets``).
+RESET_REINSERTED = 0
+RESET_CHARGE = 1
+
+# Reason codes (rows of the reason table in controller.py).
+FAULT_CURRENT = 0
+FAULT_AXIS = 1
+FAULT_V_GROUPS = 2
+FAULT_V_MEAN = 3
+FAULT_V_NONE = 4
+RESET = 5
+TRIPPED = 6
+EVENTS_PER_BATTERY = 2 + N_FIELDS + 1
+"""At most one reset each for re-insertion and charge, one fault per field, one trip."""
+
+# Status channels, in order.
+ST_PARAM = 0
+ST_CUTOFF = 1
+ST_TMAX = 2
+ST_FRACTION = 3
+ST_TRIPPED = 4
+
+LIM = 2**53
+"""Largest numerator (and denominator * m) of the weighted sum: exact as a float."""
+M_MAX = 2**43
+"""Largest m (ms) ``build`` accepts: ``1000 * m <= LIM`` for the microsecond fallback."""
+FALLBACK_DEN = 1000
+"""Denominator of the rounded-up sum when the exact one would not fit (weighted µs)."""
+MAX_DEN_MS = 1000
+"""``limit_denominator(1000)`` of a tick's milliseconds."""
+
+
+class ProtectionParams(NamedTuple):
+    axis_code: I64
+    """(A,) code of each table axis (``AX_*``), in the table's axis order."""
+    row_param: I64
+    """(R,) parameter index of each table row."""
+    row_lo: F64
+    """(R, A) lower edge of each row's range per axis (-inf = unbounded) ..."""
+    row_hi: F64
+    """(R, A) ... upper edge ..."""
+    row_lo_closed: B1
+    """(R, A) ... lower edge included ..."""
+    row_hi_closed: B1
+    """(R, A) ... upper edge included."""
+    cutoff_v: F64
+    """(K,) cut-off of each parameter the table uses (order of first appearance)."""
+    t_max_s: F64
+    """(K,) longest sustainable time."""
+    weight: I64
+    """(K,) n = m / t_max (exact integers)."""
+    m_ms: int
+    band: F64
+    """(A,) hysteresis band per axis (0 = none)."""
+    use_hysteresis: bool
+    tau_s: F64
+    """(A,) filter time constant per axis ..."""
+    has_filter: B1
+    """(A,) ... and whether that axis is filtered."""
+    voltage_le: bool
+    """Accumulate when the check voltage is <= the cut-off (else <)."""
+    trip_ge: bool
+    """Trip when the sum is >= m (else >)."""
+    discharge_threshold_a: float
+    charge_threshold_a: float
+    charge_detect_s: float
+    reset_on_recovery: bool
+    reset_on_reinsert: bool
+    name_len: I64
+    """(K,) UTF-8 byte length of each parameter name ..."""
+    name_utf8: U8
+    """... and the names concatenated (the label list; never read by the rules)."""
+
+
+class ProtectionState(NamedTuple):
+    acc_num: I64
+    """(P, B) weighted sum in weight x milliseconds: numerator ..."""
+    acc_den: I64
+    """(P, B) ... and denominator (>= 1, coprime with the numerator)."""
+    tripped: B1
+    row: I64
+    """(P, B) active table row (-1 before the first tick)."""
+    discharging: B1
+    """(P, B) last known discharge state (held while the current is not finite)."""
+    charge_s: F64
+    charge_cycle_started: B1
+    absent: B1
+    filtered: F64
+    """(P, B, A) filtered axis value ..."""
+    filtered_set: B1
+    """(P, B, A) ... once the axis has had a finite reading."""
+    faults: B1
+    """(P, B, N_FIELDS) field currently not finite (one Fault event per episode)."""
+    values: F64
+    """(P, B, A) scratch: this tick's axis values (NaN = unknown)."""
+
+
+# ------------------------------------------------------------------------- exact fractions
+
+
+@kernel
+def _gcd(a: int, b: int) -> int:
+    while b != 0:
+        a, b = b, a % b
+    return a
+
+
+@kernel
+def dt_ms(dt: float) -> tuple[int, int]:
+    """``Fraction(dt * 1000.0).limit_denominator(1000)`` as (numerator, denominator) for a
+    finite ``dt >= 0``; (-1, 1) when the numerator would not fit (2**62 ms or more).
+
+    Float noise snaps (0.1 s -> 100 ms, 1/3 s -> 1000/3 ms): CPython's continued-fraction
+    algorithm, run on the exact binary value ``x = n / 2**e`` of ``dt * 1000``.
+    """
+    x = dt * 1000.0
+    if not (x > 0.0):
+        return 0, 1
+    if not (x < 4611686018427387904.0):  # 2**62 (or inf / NaN)
+        return -1, 1
+    mant, ex = math.frexp(x)  # x = mant * 2**ex, 0.5 <= mant < 1
+    n = int(mant * 9007199254740992.0)  # mant * 2**53: an integer
+    e = 53 - ex
+    while n % 2 == 0 and e > 0:
+        n //= 2
+        e -= 1
+    if e <= 0:
+        return n << (-e), 1  # an integer number of ms, < 2**62
+    if e >= 63:
+        # x < 2**-10 < 1/1000: the candidates are 0/1 and 1/1000; CPython keeps 0/1 when
+        # 2 * n * 1000 <= 2**e, i.e. 125 * n <= 2**(e - 4) (125 * n < 2**60).
+        if e - 4 >= 61 or 125 * n <= (1 << (e - 4)):
+            return 0, 1
+        return 1, MAX_DEN_MS
+    den = 1 << e
+    if den <= MAX_DEN_MS:
+        return n, den
+    p0, q0, p1, q1 = 0, 1, 1, 0
+    nn, dd = n, den
+    while True:
+        a = nn // dd
+        if q1 > 0 and a > MAX_DEN_MS:
+            break  # q0 + a * q1 > max_denominator (and no overflow)
+        q2 = q0 + a * q1
+        if q2 > MAX_DEN_MS:
+            break
+        p0, q0, p1, q1 = p1, q1, p0 + a * p1, q2
+        nn, dd = dd, nn - a * dd
+    k = (MAX_DEN_MS - q0) // q1
+    qk = q0 + k * q1
+    # |p1/q1 - x| <= |bound1 - x|  <=>  2 * dd * qk <= den  <=>  2 * qk <= den // dd
+    if 2 * qk <= den // dd:
+        return p1, q1
+    return p0 + k * p1, qk
+
+
+@kernel
+def _saturate(st: ProtectionState, p: int, i: int) -> None:
+    st.acc_num[p, i] = LIM
+    st.acc_den[p, i] = 1
+
+
+@kernel
+def acc_add(st: ProtectionState, p: int, i: int, w: int, a: int, b: int, m: int) -> None:
+    """``acc += w * a / b`` exactly (``a >= 0`` or -1 = huge, ``1 <= b <= 1000``), within the
+    bounds of the module docstring (saturate / round up beyond them)."""
+    if a == 0:
+        return
+    if a < 0 or a > LIM // w:
+        _saturate(st, p, i)  # w * a / b > LIM / 1000 > M_MAX >= m: trips
+        return
+    inc = w * a
+    g = _gcd(inc, b)
+    inc //= g
+    b //= g
+    an = st.acc_num[p, i]
+    ad = st.acc_den[p, i]
+    g = _gcd(ad, b)
+    ad_g = ad // g
+    b_g = b // g
+    if ad_g > (LIM // m) // b:
+        # The exact denominator would not fit: round the sum up to whole weighted µs.
+        v = (float(an) / float(ad) + float(inc) / float(b)) * float(FALLBACK_DEN)
+        if not (v < float(LIM - 2)):
+            _saturate(st, p, i)
+            return
+        st.acc_num[p, i] = int(math.ceil(v)) + 1
+        st.acc_den[p, i] = FALLBACK_DEN
+        g = _gcd(st.acc_num[p, i], FALLBACK_DEN)
+        st.acc_num[p, i] //= g
+        st.acc_den[p, i] //= g
+        return
+    den = ad_g * b
+    if an > LIM // b_g or inc > LIM // ad_g:
+        _saturate(st, p, i)  # numerator > LIM with den * m <= LIM: the sum is above m
+        return
+    t1 = an * b_g
+    t2 = inc * ad_g
+    if t1 > LIM - t2:
+        _saturate(st, p, i)
+        return
+    num = t1 + t2
+    g = _gcd(num, den)
+    st.acc_num[p, i] = num // g
+    st.acc_den[p, i] = den // g
+
+
+@kernel
+def acc_value(st: ProtectionState, p: int, i: int) -> float:
+    """``float(acc)``: correctly rounded (both ints <= 2**53)."""
+    return float(st.acc_num[p, i]) / float(st.acc_den[p, i])
+
+
+@kernel
+def acc_fraction(prm: ProtectionParams, st: ProtectionState, p: int, i: int) -> float:
+    """``float(acc / m)``: correctly rounded (numerator and denominator * m <= 2**53)."""
+    return float(st.acc_num[p, i]) / float(st.acc_den[p, i] * prm.m_ms)
+
+
+# ------------------------------------------------------------------------------- the table
+
+
+@kernel
+def contains(
+    lo: float, hi: float, lo_closed: bool, hi_closed: bool, x: float, band: float
+) -> bool:  # fmt: skip
+    """``x`` in the range widened by ``band`` on both sides (a NaN ``x`` reads as inside, as
+    in the scalar reference; the callers never pass one where it matters)."""
+    lo_b = lo - band
+    hi_b = hi + band
+    if x < lo_b or (x == lo_b and not lo_closed):
+        return False
+    return not (x > hi_b or (x == hi_b and not hi_closed))
+
+
+@kernel
+def lookup(
+    row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, values: F64
+) -> int:  # fmt: skip
+    """First row containing every value (fully known values; -1 if none)."""
+    for k in range(row_lo.shape[0]):
+        ok = True
+        for a in range(row_lo.shape[1]):
+            if not contains(
+                row_lo[k, a], row_hi[k, a], row_lo_closed[k, a], row_hi_closed[k, a],
+                values[a], 0.0,
+            ):  # fmt: skip
+                ok = False
+                break
+        if ok:
+            return k
+    return -1
+
+
+@kernel
+def most_conservative(
+    row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, row_param: I64,
+    cutoff_v: F64, t_max_s: F64, values: F64,
+) -> int:  # fmt: skip
+    """Among rows consistent with the finite values (NaN = unknown), the highest cut-off;
+    ties to the shortest t_max, then to the first row (-1 if none): when a sensor fails the
+    battery is protected as if the unknown status were the worst the table allows."""
+    best = -1
+    best_cut = 0.0
+    best_neg_t = 0.0
+    for k in range(row_lo.shape[0]):
+        ok = True
+        for a in range(row_lo.shape[1]):
+            x = values[a]
+            if not math.isnan(x) and not contains(
+                row_lo[k, a], row_hi[k, a], row_lo_closed[k, a], row_hi_closed[k, a], x, 0.0
+            ):
+                ok = False
+                break
+        if not ok:
+            continue
+        q = row_param[k]
+        cut = cutoff_v[q]
+        neg_t = -t_max_s[q]
+        if best < 0 or cut > best_cut or (cut == best_cut and neg_t > best_neg_t):
+            best = k
+            best_cut = cut
+            best_neg_t = neg_t
+    return best
+
+
+@kernel
+def _select(prm: ProtectionParams, st: ProtectionState, p: int, i: int) -> int:
+    values = st.values[p, i]
+    n_axes = values.shape[0]
+    for a in range(n_axes):
+        if math.isnan(values[a]):
+            return most_conservative(
+                prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, prm.row_param,
+                prm.cutoff_v, prm.t_max_s, values,
+            )  # fmt: skip
+    row = st.row[p, i]
+    if prm.use_hysteresis and row >= 0:
+        keep = True
+        for a in range(n_axes):
+            if not contains(
+                prm.row_lo[row, a], prm.row_hi[row, a], prm.row_lo_closed[row, a],
+                prm.row_hi_closed[row, a], values[a], prm.band[a],
+            ):  # fmt: skip
+                keep = False
+                break
+        if keep:
+            return row
+    return lookup(prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, values)
+
+
+@kernel
+def _axis_value(code: int, tp: PackArrays, m: MeasArrays, p: int, i: int) -> float:
+    if code == AX_CURRENT:
+        return float(m.bat.current_a[p, i])
+    if code == AX_TEMP:
+        return float(m.bat.temp_c[p, i])
+    # AX_SOH: full / nominal capacity; NaN (unknown) without a nominal value
+    cap = tp.capacity_ah[p, i]
+    if cap > 0.0:
+        return float(m.bat.full_capacity_ah[p, i] / cap)
+    return math.nan
+
+
+# ------------------------------------------------------------------------------- the rules
+
+
+@kernel
+def _fault(
+    st: ProtectionState, p: int, i: int, field: int, ok: bool, code: int, m: MeasArrays,
+    ev: EventBuf, src: int,
+) -> None:  # fmt: skip
+    """One ``Fault`` per episode of a non-finite field."""
+    if ok:
+        st.faults[p, i, field] = False
+    elif not st.faults[p, i, field]:
+        st.faults[p, i, field] = True
+        k = emit(ev, p, src, code, i, m.t_s[p])
+        ev.val[k, 0] = 0.0  # source: "protection"
+        ev.val[k, 1] = field
+
+
+@kernel
+def _new_cycle(
+    st: ProtectionState, p: int, i: int, reason: int, m: MeasArrays, ev: EventBuf, src: int
+) -> None:  # fmt: skip
+    if st.acc_num[p, i] != 0 or st.tripped[p, i]:
+        k = emit(ev, p, src, RESET, i, m.t_s[p])
+        ev.val[k, 0] = reason
+        ev.val[k, 1] = 1.0 if st.tripped[p, i] else 0.0
+        ev.val[k, 2] = acc_value(st, p, i) / 1000.0
+    st.acc_num[p, i] = 0
+    st.acc_den[p, i] = 1
+    st.tripped[p, i] = False
+
+
+@kernel
+def check_voltage(tp: PackArrays, m: MeasArrays, p: int, i: int) -> tuple[float, int]:
+    """Min cell voltage; else the weakest group's mean cell; else the mean cell; else NaN.
+
+    A group is ``cells_per_group`` cells in series, so ``group_v / cells_per_group`` is that
+    group's mean cell voltage (>= its minimum: the fallbacks under-count, never over-trip).
+    """
+    v = m.bat.min_cell_v[p, i]
+    if math.isfinite(v):
+        return float(v), VS_MIN_CELL
+    per_group = tp.cells_per_group[i] if i < tp.cells_per_group.shape[0] else 0
+    n_groups = tp.groups[i] if i < tp.groups.shape[0] else 0
+    ng = min(m.bat.n_groups[p, i], m.bat.group_v.shape[2])
+    if per_group > 0 and ng > 0:
+        ok = True
+        g_min = m.bat.group_v[p, i, 0]
+        for g in range(ng):
+            x = m.bat.group_v[p, i, g]
+            if not math.isfinite(x):
+                ok = False
+                break
+            g_min = fmin(g_min, x)
+        if ok:
+            return g_min / per_group, VS_GROUPS
+    vb = m.bat.voltage_v[p, i]
+    if per_group > 0 and n_groups > 0 and math.isfinite(vb):
+        return vb / (n_groups * per_group), VS_MEAN
+    return math.nan, VS_NONE
+
+
+@kernel
+def _battery(
+    prm: ProtectionParams, st: ProtectionState, tp: PackArrays, m: MeasArrays, p: int, i: int,
+    dt: float, a_ms: int, b_ms: int, ev: EventBuf, src: int,
+) -> None:  # fmt: skip
+    if not (m.bat.reported[p, i] and m.bat.present[p, i]):
+        st.absent[p, i] = True
+        st.charge_s[p, i] = 0.0
+        return
+    if st.absent[p, i]:
+        st.absent[p, i] = False
+        if prm.reset_on_reinsert:
+            _new_cycle(st, p, i, RESET_REINSERTED, m, ev, src)
+
+    cur = m.bat.current_a[p, i]
+    cur_ok = math.isfinite(cur)
+    _fault(st, p, i, AX_CURRENT, cur_ok, FAULT_CURRENT, m, ev, src)
+    # New discharge cycle: sustained charging (spec §7/§10.4).
+    if cur_ok and cur < -prm.charge_threshold_a:
+        st.charge_s[p, i] += dt
+        if st.charge_s[p, i] >= prm.charge_detect_s and not st.charge_cycle_started[p, i]:
+            st.charge_cycle_started[p, i] = True
+            _new_cycle(st, p, i, RESET_CHARGE, m, ev, src)
+    else:
+        st.charge_s[p, i] = 0.0
+        st.charge_cycle_started[p, i] = False
+    if cur_ok:
+        st.discharging[p, i] = cur > prm.discharge_threshold_a
+
+    values = st.values[p, i]
+    for a in range(prm.axis_code.shape[0]):
+        code = prm.axis_code[a]
+        x = _axis_value(code, tp, m, p, i)
+        if code != AX_CURRENT:
+            _fault(st, p, i, code, math.isfinite(x), FAULT_AXIS, m, ev, src)
+        if not math.isfinite(x):
+            values[a] = math.nan
+            continue
+        if prm.has_filter[a]:
+            if st.filtered_set[p, i, a]:
+                prev = st.filtered[p, i, a]
+                x = prev + (1.0 - math.exp(-dt / prm.tau_s[a])) * (x - prev)
+            st.filtered[p, i, a] = x
+            st.filtered_set[p, i, a] = True
+        values[a] = x
+    row = _select(prm, st, p, i)
+    st.row[p, i] = row
+    q = prm.row_param[row]  # row -1 (never, the table covers everything) reads the last row
+
+    v_chk, source = check_voltage(tp, m, p, i)
+    if source == VS_GROUPS:
+        code = FAULT_V_GROUPS
+    elif source == VS_MEAN:
+        code = FAULT_V_MEAN
+    else:
+        code = FAULT_V_NONE
+    _fault(st, p, i, FIELD_MIN_CELL, source == VS_MIN_CELL, code, m, ev, src)
+    if st.tripped[p, i] or math.isnan(v_chk):
+        return
+    cut = prm.cutoff_v[q]
+    below = v_chk <= cut if prm.voltage_le else v_chk < cut
+    if below and st.discharging[p, i]:
+        acc_add(st, p, i, prm.weight[q], a_ms, b_ms, prm.m_ms)
+    elif not below and prm.reset_on_recovery:
+        st.acc_num[p, i] = 0
+        st.acc_den[p, i] = 1
+    m_den = prm.m_ms * st.acc_den[p, i]
+    an = st.acc_num[p, i]
+    if an > m_den or (prm.trip_ge and an == m_den):
+        st.tripped[p, i] = True
+        k = emit(ev, p, src, TRIPPED, i, m.t_s[p])
+        val = ev.val[k]
+        val[0] = q
+        val[1] = cut
+        val[2] = prm.t_max_s[q]
+        val[3] = prm.weight[q]
+        val[4] = acc_value(st, p, i) / 1000.0
+        val[5] = prm.m_ms / 1000.0
+        val[6] = acc_fraction(prm, st, p, i)
+        val[7] = v_chk
+        val[8] = source
+        val[9] = m.bat.min_cell_v[p, i]
+        val[10] = m.bat.voltage_v[p, i]
+        val[11] = cur
+        val[12] = m.bat.temp_c[p, i]
+        val[13] = m.bat.soc[p, i]
+        val[14] = m.bat.remaining_capacity_ah[p, i]
+        val[15] = m.bat.full_capacity_ah[p, i]
+
+
+@kernel
+def _status(
+    prm: ProtectionParams, st: ProtectionState, p: int, i: int, status: F64, s0: int
+) -> None:  # fmt: skip
+    row = st.row[p, i]
+    if row < 0:
+        status[p, i, s0 + ST_PARAM] = -1.0
+        status[p, i, s0 + ST_CUTOFF] = math.nan
+        status[p, i, s0 + ST_TMAX] = math.nan
+    else:
+        q = prm.row_param[row]
+        status[p, i, s0 + ST_PARAM] = q
+        status[p, i, s0 + ST_CUTOFF] = prm.cutoff_v[q]
+        status[p, i, s0 + ST_TMAX] = prm.t_max_s[q]
+    status[p, i, s0 + ST_FRACTION] = acc_fraction(prm, st, p, i)
+    status[p, i, s0 + ST_TRIPPED] = 1.0 if st.tripped[p, i] else 0.0
+
+
+@kernel
+def step_pack(
+    prm: ProtectionParams, st: ProtectionState, tp: PackArrays, m: MeasArrays, p: int,
+    dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
+) -> None:  # fmt: skip
+    """One tick of pack ``p``: the discharge path of a tripped battery off, else no opinion.
+
+    Tick semantics: each sample is taken to hold for ``dt_s``; the trip fires on the tick whose
+    ``dt_s`` makes the weighted sum reach ``m``. A ``dt_s`` that is not a finite number > 0
+    counts as 0.
+    """
+    dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
+    a_ms, b_ms = dt_ms(dt)
+    for i in range(st.tripped.shape[1]):
+        _battery(prm, st, tp, m, p, i, dt, a_ms, b_ms, ev, src)
+        if st.tripped[p, i]:
+            put_dsg(cmd, p, i, False)
+        _status(prm, st, p, i, status, s0)
+
+
+@kernel
+def step_packs(
+    prm: ProtectionParams, st: ProtectionState, tp: PackArrays, m: MeasArrays, dt_s: float,
+    cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
+) -> None:  # fmt: skip
+    for p in range(m.t_s.shape[0]):
+        step_pack(prm, st, tp, m, p, dt_s, cmd, ev, src, status, s0)
