@@ -136,7 +136,7 @@ def test_huge_dt_saturates_and_trips_instead_of_overflowing() -> None:
     bm = _bm(10.0, 25.0, 3.1)
     for dt in (1e300, math.inf, 1e20):
         c = ProtectionController(ProtectionConfig(), info)
-        out = c.step(Measurements(t_s=0.0, batteries=(bm,)), dt)
+        out = c.step(Measurements(t_s=0.0, batteries=(bm,), bus_v=18.6), dt)
         if dt == math.inf:  # not a finite dt: counts as 0
             assert out.commands.dsg_on == (None,)
         else:
@@ -144,7 +144,7 @@ def test_huge_dt_saturates_and_trips_instead_of_overflowing() -> None:
             (ev,) = out.events
             assert ev.kind == "ProtectionTripped" and ev.data["accumulated_s"] == 2.0**53 / 1000
     # a tiny dt counts as 0 ms, as Fraction.limit_denominator(1000) has it
-    ctl.step(Measurements(t_s=0.0, batteries=(bm,)), 1e-300)
+    ctl.step(Measurements(t_s=0.0, batteries=(bm,), bus_v=18.6), 1e-300)
     assert ctl.fraction(0) == 0.0
 
 
@@ -152,7 +152,7 @@ def test_coprime_fractional_ticks_round_up_instead_of_overflowing() -> None:
     """Durations k/p ms for many primes p: the exact denominator outgrows int64; the sum is
     then rounded up to weighted microseconds and keeps counting (and trips) without error."""
     cfg = ProtectionConfig.model_validate(
-        {"parameters": _params(("fixed", 3.2, 3.0)), "table": [{"param": "fixed"}]}
+        {"parameters": _params(("fixed", 3.2, 0.2)), "table": [{"param": "fixed"}]}
     )
     ctl = ProtectionController(cfg, _info(1, 6, 1))
     primes = [p for p in range(500, 1000) if all(p % d for d in range(2, 32))]
@@ -161,7 +161,7 @@ def test_coprime_fractional_ticks_round_up_instead_of_overflowing() -> None:
     tripped_at = None
     for k, p in enumerate(primes * 3):
         dt = 1.0 / p  # seconds: 1000/p ms
-        out = ctl.step(Measurements(t_s=t, batteries=(_bm(10.0, 25.0, 3.1),)), dt)
+        out = ctl.step(Measurements(t_s=t, batteries=(_bm(10.0, 25.0, 3.1),), bus_v=18.6), dt)
         t += dt
         exact += Fraction(dt * 1000.0).limit_denominator(1000)
         got = ctl.battery(0).acc_wms
@@ -169,7 +169,9 @@ def test_coprime_fractional_ticks_round_up_instead_of_overflowing() -> None:
             assert got >= exact and got - exact <= Fraction(k + 1, 1000)
         if any(e.kind == "ProtectionTripped" for e in out.events):
             tripped_at = exact
-    assert tripped_at is not None and 3000 - 2 <= tripped_at <= 3000 + 1000 / 500
+    assert exact.denominator > 2**53  # the exact sum did not fit
+    assert ctl.battery(0).tripped and tripped_at is not None
+    assert 200 - 1 <= tripped_at <= 200 + 2  # m = 200 ms; ticks of 1 to 2 ms
 
 
 # ------------------------------------------------------------------------------ open loop
@@ -329,3 +331,47 @@ def test_closed_loop_with_injected_faults(monkeypatch: pytest.MonkeyPatch) -> No
     ]
     stats = _run_twin(parse_config(d), monkeypatch)
     assert stats["faults"] >= 3 and stats["steps"] > 100
+
+
+@pytest.mark.parametrize(
+    ("example", "update", "expect"),
+    [
+        (  # flight, landing, docking, staged charging under the supervisor: trips, then
+            # the charge starts new cycles
+            "uav_mission.toml",
+            {
+                "duration_s": 1500.0,
+                "protection": {
+                    "parameters": _params(("hi", 3.75, 900.0), ("lo", 3.6, 300.0)),
+                    "table": [
+                        {"param": "hi", "ranges": {"current_a": "(-inf, 10]"}},
+                        {"param": "lo", "ranges": {"current_a": "(10, inf)"}},
+                    ],
+                },
+            },
+            {"trips": 2, "resets": 2},
+        ),
+        (  # a battery inserted at 300 s (absent before)
+            "sequencing_hot_insert.toml",
+            {
+                "duration_s": 900.0,
+                "controller": ["sequencing", "protection"],
+                "protection": {
+                    "parameters": _params(("hi", 4.0, 600.0)),
+                    "table": [{"param": "hi"}],
+                },
+            },
+            {},
+        ),
+    ],
+)
+def test_closed_loop_composed(
+    example: str, update: dict[str, Any], expect: dict[str, int], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cfg = load_config(EXAMPLES / example)
+    upd = dict(update)
+    upd["sim"] = cfg.sim.model_copy(update={"duration_s": upd.pop("duration_s")})
+    stats = _run_twin(cfg.model_copy(update=upd), monkeypatch)
+    assert stats["steps"] > 5000
+    for key, n in expect.items():
+        assert stats[key] == n, stats
