@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from fractions import Fraction
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import pytest
 from hypothesis import example, given, settings
@@ -245,7 +245,7 @@ class Twin:
     """Runs the compiled controller and the oracle on the same measurements; the loop is
     closed through the compiled one. Counts steps, events and trips seen."""
 
-    seen: list[dict[str, int]] = []
+    seen: ClassVar[list[dict[str, int]]] = []
 
     def __init__(self, config: ProtectionConfig, pack: PackInfo) -> None:
         self.new = ProtectionController(config, pack)
@@ -299,9 +299,7 @@ def test_closed_loop_examples(
     scenario: str, protection: dict[str, Any] | None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     cfg = load_config(EXAMPLES / f"protection_{scenario}.toml")
-    update: dict[str, Any] = {
-        "sim": cfg.sim.model_copy(update={"stop_when_unsupplied_s": 20.0})
-    }
+    update: dict[str, Any] = {"sim": cfg.sim.model_copy(update={"stop_when_unsupplied_s": 20.0})}
     if protection is not None:
         update["protection"] = protection
     stats = _run_twin(cfg.model_copy(update=update), monkeypatch)
@@ -324,9 +322,21 @@ def test_closed_loop_with_injected_faults(monkeypatch: pytest.MonkeyPatch) -> No
     d["plausibility"] = {"stuck_time_s": 10.0}
     d["protection"] = {"parameters": FAST}
     d["faults"] = [
-        {"kind": "sensor_nan", "at_s": 5.0, "until_s": 30.0, "battery": "A", "quantity": "min_cell_v"},
+        {
+            "kind": "sensor_nan",
+            "at_s": 5.0,
+            "until_s": 30.0,
+            "battery": "A",
+            "quantity": "min_cell_v",
+        },
         {"kind": "sensor_nan", "at_s": 20.0, "until_s": 40.0, "battery": "B", "quantity": "temp_c"},
-        {"kind": "sensor_nan", "at_s": 50.0, "until_s": 60.0, "battery": "B", "quantity": "current_a"},
+        {
+            "kind": "sensor_nan",
+            "at_s": 50.0,
+            "until_s": 60.0,
+            "battery": "B",
+            "quantity": "current_a",
+        },
         {"kind": "sensor_dropout", "at_s": 70.0, "until_s": 90.0, "battery": "A"},
     ]
     stats = _run_twin(parse_config(d), monkeypatch)

@@ -343,9 +343,7 @@ class ProtectionConfig(BaseModel):
         return tuple(a for a in AXES if a in used)
 
     @classmethod
-    def load(
-        cls, data: Mapping[str, Any] | None, source: str = "<protection>"
-    ) -> ProtectionConfig:
+    def load(cls, data: Mapping[str, Any] | None, source: str = "<protection>") -> ProtectionConfig:
         return load_section_model(cls, data, "protection", source)
 
 

@@ -15,7 +15,7 @@ from packpilot.contract.events import Labels, Reason, fields
 from packpilot.contract.topology import PackInfo
 from packpilot.control.method import CompiledController, Method, StatusChannel
 from packpilot.control.protection import rules
-from packpilot.control.protection.rules import ProtectionParams, ProtectionState
+from packpilot.control.protection.rules import B1, F64, ProtectionParams, ProtectionState
 from packpilot.errors import ConfigError
 
 assert AXES[rules.AX_CURRENT] == "current_a" and AXES[rules.AX_TEMP] == "temp_c"
@@ -44,7 +44,9 @@ REASONS = (
         "protection: {field} is not finite; checking group_voltages_v instead",
         fields(*_FAULT),
     ),
-    Reason("Fault", "protection: {field} is not finite; checking voltage_v instead", fields(*_FAULT)),
+    Reason(
+        "Fault", "protection: {field} is not finite; checking voltage_v instead", fields(*_FAULT)
+    ),
     Reason(
         "Fault",
         "protection: {field} is not finite; no accumulation until a voltage is available",
@@ -105,8 +107,16 @@ class CompiledTable:
     m_ms: int
     weights: tuple[int, ...]
     """n = m / t_max per parameter (exact integers)."""
-    ranges: tuple[np.ndarray, ...] = field(default=(), compare=False, repr=False)
-    """(lo, hi, lo_closed, hi_closed), each (rows, axes), as the rules read them."""
+    lo: F64 = field(default_factory=lambda: np.zeros((0, 0)), compare=False, repr=False)
+    """(rows, axes) lower edges as the rules read them; likewise ``hi``, ``lo_closed``,
+    ``hi_closed``."""
+    hi: F64 = field(default_factory=lambda: np.zeros((0, 0)), compare=False, repr=False)
+    lo_closed: B1 = field(
+        default_factory=lambda: np.zeros((0, 0), np.bool_), compare=False, repr=False
+    )
+    hi_closed: B1 = field(
+        default_factory=lambda: np.zeros((0, 0), np.bool_), compare=False, repr=False
+    )
 
     @classmethod
     def from_config(cls, cfg: ProtectionConfig) -> CompiledTable:
@@ -132,17 +142,22 @@ class CompiledTable:
             params=params,
             m_ms=m_ms,
             weights=tuple(m_ms // p.t_max_ms for p in params),
-            ranges=(lo, hi, lo_c, hi_c),
+            lo=lo,
+            hi=hi,
+            lo_closed=lo_c,
+            hi_closed=hi_c,
         )
 
-    def _values(self, values: Sequence[float]) -> np.ndarray:
+    def _values(self, values: Sequence[float]) -> F64:
         if len(values) != len(self.axes):
             raise ValueError(f"need one value per axis {self.axes}, got {len(values)}")
         return np.array([float(x) for x in values], np.float64).reshape(len(self.axes))
 
     def lookup(self, values: Sequence[float]) -> int:
         """Row index for fully known axis values (the table covers everything exactly once)."""
-        k = int(rules.lookup(*self.ranges, self._values(values)))
+        k = int(
+            rules.lookup(self.lo, self.hi, self.lo_closed, self.hi_closed, self._values(values))
+        )
         if k < 0:  # pragma: no cover
             raise AssertionError("validated table does not cover the point")
         return k
@@ -152,7 +167,10 @@ class CompiledTable:
         ties to the shortest t_max, then to the first row."""
         return int(
             rules.most_conservative(
-                *self.ranges,
+                self.lo,
+                self.hi,
+                self.lo_closed,
+                self.hi_closed,
                 np.array([p for p, _ in self.rows], np.int64),
                 np.array([p.cutoff_v for p in self.params], np.float64),
                 np.array([p.t_max_s for p in self.params], np.float64),
@@ -178,10 +196,10 @@ def build(
     prm = ProtectionParams(
         axis_code=np.array([AXES.index(a) for a in axes], np.int64),
         row_param=np.array([p for p, _ in table.rows], np.int64),
-        row_lo=table.ranges[0],
-        row_hi=table.ranges[1],
-        row_lo_closed=table.ranges[2],
-        row_hi_closed=table.ranges[3],
+        row_lo=table.lo,
+        row_hi=table.hi,
+        row_lo_closed=table.lo_closed,
+        row_hi_closed=table.hi_closed,
         cutoff_v=np.array([float(p.cutoff_v) for p in table.params], np.float64),
         t_max_s=np.array([float(p.t_max_s) for p in table.params], np.float64),
         weight=np.array(table.weights, np.int64),

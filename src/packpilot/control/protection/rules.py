@@ -21,13 +21,13 @@ algorithm on the float's exact value: 0.1 s -> 100 ms, 1/3 s -> 1000/3 ms).
 Bounds (``build`` guarantees ``m <= 2**43`` ms): the pair is kept with numerator <= 2**53 and
 denominator * m <= 2**53, so every comparison is exact and ``n / d`` as floats is the correctly
 rounded value Python's ``float(Fraction)`` gives. Outside those bounds the rules fail safe
-instead of overflowing: a tick whose weighted duration alone exceeds 2**53 ms (dt of more than
-about 10**12 s, an infinite product) *saturates* the sum at 2**53 weighted ms, which trips; a
-sum whose exact denominator would grow past the bound (many ticks with different, coprime
-fractional durations) is rounded *up* to whole weighted microseconds (a trip can only come
-earlier, by at most a microsecond of weighted time). Neither happens with the durations a
-simulation or a log produces; the scalar reference kept a Python big-integer ``Fraction``
-there (and raised ``OverflowError`` for an infinite tick).
+instead of overflowing: a tick whose weighted numerator alone exceeds 2**53 (a dt of roughly
+10**9 s or more; ``dt * 1000`` at or above 2**62 or infinite) *saturates* the sum at 2**53
+weighted ms, which trips; a sum whose exact denominator would grow past the bound (many ticks
+with different, coprime fractional durations) is rounded *up* to whole weighted microseconds
+(a trip can only come earlier, by at most two weighted microseconds per such tick). Neither
+happens with the durations a simulation or a log produces; the scalar reference kept a Python
+big-integer ``Fraction`` there (and raised ``OverflowError`` for an infinite ``dt * 1000``).
 """
 
 from __future__ import annotations
@@ -248,7 +248,7 @@ def acc_add(st: ProtectionState, p: int, i: int, w: int, a: int, b: int, m: int)
         if not (v < float(LIM - 2)):
             _saturate(st, p, i)
             return
-        st.acc_num[p, i] = int(math.ceil(v)) + 1
+        st.acc_num[p, i] = math.ceil(v) + 1
         st.acc_den[p, i] = FALLBACK_DEN
         g = _gcd(st.acc_num[p, i], FALLBACK_DEN)
         st.acc_num[p, i] //= g
@@ -369,7 +369,7 @@ def _select(prm: ProtectionParams, st: ProtectionState, p: int, i: int) -> int:
                 keep = False
                 break
         if keep:
-            return row
+            return int(row)
     return lookup(prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, values)
 
 
