@@ -49,7 +49,8 @@ def battery(
         gv = gv[: draw(st.integers(0, groups))]
     cur = draw(st.one_of(st.floats(*current), st.sampled_from([0.0, *WEIRD])))
     return BatteryMeasurement(
-        voltage_v=draw(st.one_of(st.just(sum(gv)), num(0.0, 5.0 * groups))),
+        # float(): a float 0.0 (not the int 0) when there are no group voltages
+        voltage_v=draw(st.one_of(st.just(float(sum(gv))), num(0.0, 5.0 * groups))),
         current_a=cur,
         temp_c=draw(num(-30.0, 80.0)),
         min_cell_v=draw(st.one_of(st.just(min(gv, default=cell)), num(2.0, 4.5))),

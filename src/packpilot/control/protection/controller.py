@@ -151,13 +151,12 @@ class CompiledTable:
     def _values(self, values: Sequence[float]) -> F64:
         if len(values) != len(self.axes):
             raise ValueError(f"need one value per axis {self.axes}, got {len(values)}")
-        return np.array([float(x) for x in values], np.float64).reshape(len(self.axes))
+        return np.array([float(x) for x in values], np.float64).reshape(1, 1, len(self.axes))
 
     def lookup(self, values: Sequence[float]) -> int:
         """Row index for fully known axis values (the table covers everything exactly once)."""
-        k = int(
-            rules.lookup(self.lo, self.hi, self.lo_closed, self.hi_closed, self._values(values))
-        )
+        vals = self._values(values)
+        k = int(rules.lookup(self.lo, self.hi, self.lo_closed, self.hi_closed, vals, 0, 0))
         if k < 0:  # pragma: no cover
             raise AssertionError("validated table does not cover the point")
         return k
@@ -175,6 +174,8 @@ class CompiledTable:
                 np.array([p.cutoff_v for p in self.params], np.float64),
                 np.array([p.t_max_s for p in self.params], np.float64),
                 self._values(values),
+                0,
+                0,
             )
         )
 
@@ -364,7 +365,8 @@ class ProtectionController(CompiledController):
 
     def fraction(self, battery: int) -> float:
         """Used-up share of the allowance, sum(t_k / t_max_k): 0 .. 1 (and above at a trip)."""
-        return float(rules.acc_fraction(self.prm, self.st, 0, battery))
+        st = self.st
+        return float(rules.acc_fraction(st.acc_num, st.acc_den, 0, battery, self.prm.m_ms))
 
     def start_new_cycle(self, battery: int) -> None:
         """Host command: clear the sum and the latch (e.g. battery charged off-pack)."""

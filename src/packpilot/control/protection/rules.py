@@ -219,26 +219,22 @@ def dt_ms(dt: float) -> tuple[int, int]:
 
 
 @kernel
-def _saturate(st: ProtectionState, p: int, i: int) -> None:
-    st.acc_num[p, i] = LIM
-    st.acc_den[p, i] = 1
-
-
-@kernel
-def acc_add(st: ProtectionState, p: int, i: int, w: int, a: int, b: int, m: int) -> None:
-    """``acc += w * a / b`` exactly (``a >= 0`` or -1 = huge, ``1 <= b <= 1000``), within the
-    bounds of the module docstring (saturate / round up beyond them)."""
+def acc_add(num: I64, den: I64, p: int, i: int, w: int, a: int, b: int, m: int) -> None:
+    """``acc += w * a / b`` exactly for the sum ``num[p, i] / den[p, i]`` (``a >= 0`` or -1 =
+    huge, ``1 <= b <= 1000``), within the bounds of the module docstring (saturate / round up
+    beyond them)."""
     if a == 0:
         return
     if a < 0 or a > LIM // w:
-        _saturate(st, p, i)  # w * a / b > LIM / 1000 > M_MAX >= m: trips
+        num[p, i] = LIM  # w * a / b > LIM / 1000 > M_MAX >= m: saturate (trips)
+        den[p, i] = 1
         return
     inc = w * a
     g = _gcd(inc, b)
     inc //= g
     b //= g
-    an = st.acc_num[p, i]
-    ad = st.acc_den[p, i]
+    an = num[p, i]
+    ad = den[p, i]
     g = _gcd(ad, b)
     ad_g = ad // g
     b_g = b // g
@@ -246,39 +242,35 @@ def acc_add(st: ProtectionState, p: int, i: int, w: int, a: int, b: int, m: int)
         # The exact denominator would not fit: round the sum up to whole weighted µs.
         v = (float(an) / float(ad) + float(inc) / float(b)) * float(FALLBACK_DEN)
         if not (v < float(LIM - 2)):
-            _saturate(st, p, i)
+            num[p, i] = LIM
+            den[p, i] = 1
             return
-        st.acc_num[p, i] = math.ceil(v) + 1
-        st.acc_den[p, i] = FALLBACK_DEN
-        g = _gcd(st.acc_num[p, i], FALLBACK_DEN)
-        st.acc_num[p, i] //= g
-        st.acc_den[p, i] //= g
+        n_up = math.ceil(v) + 1
+        g = _gcd(n_up, FALLBACK_DEN)
+        num[p, i] = n_up // g
+        den[p, i] = FALLBACK_DEN // g
         return
-    den = ad_g * b
     if an > LIM // b_g or inc > LIM // ad_g:
-        _saturate(st, p, i)  # numerator > LIM with den * m <= LIM: the sum is above m
+        num[p, i] = LIM  # numerator > LIM with den * m <= LIM: the sum is above m
+        den[p, i] = 1
         return
     t1 = an * b_g
     t2 = inc * ad_g
     if t1 > LIM - t2:
-        _saturate(st, p, i)
+        num[p, i] = LIM
+        den[p, i] = 1
         return
-    num = t1 + t2
-    g = _gcd(num, den)
-    st.acc_num[p, i] = num // g
-    st.acc_den[p, i] = den // g
+    n_new = t1 + t2
+    d_new = ad_g * b
+    g = _gcd(n_new, d_new)
+    num[p, i] = n_new // g
+    den[p, i] = d_new // g
 
 
 @kernel
-def acc_value(st: ProtectionState, p: int, i: int) -> float:
-    """``float(acc)``: correctly rounded (both ints <= 2**53)."""
-    return float(st.acc_num[p, i]) / float(st.acc_den[p, i])
-
-
-@kernel
-def acc_fraction(prm: ProtectionParams, st: ProtectionState, p: int, i: int) -> float:
+def acc_fraction(num: I64, den: I64, p: int, i: int, m: int) -> float:
     """``float(acc / m)``: correctly rounded (numerator and denominator * m <= 2**53)."""
-    return float(st.acc_num[p, i]) / float(st.acc_den[p, i] * prm.m_ms)
+    return float(num[p, i]) / float(den[p, i] * m)
 
 
 # ------------------------------------------------------------------------------- the table
@@ -299,15 +291,15 @@ def contains(
 
 @kernel
 def lookup(
-    row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, values: F64
+    row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, values: F64, p: int, i: int
 ) -> int:  # fmt: skip
-    """First row containing every value (fully known values; -1 if none)."""
+    """First row containing every value ``values[p, i, :]`` (fully known; -1 if none)."""
     for k in range(row_lo.shape[0]):
         ok = True
         for a in range(row_lo.shape[1]):
             if not contains(
                 row_lo[k, a], row_hi[k, a], row_lo_closed[k, a], row_hi_closed[k, a],
-                values[a], 0.0,
+                values[p, i, a], 0.0,
             ):  # fmt: skip
                 ok = False
                 break
@@ -319,18 +311,19 @@ def lookup(
 @kernel
 def most_conservative(
     row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, row_param: I64,
-    cutoff_v: F64, t_max_s: F64, values: F64,
+    cutoff_v: F64, t_max_s: F64, values: F64, p: int, i: int,
 ) -> int:  # fmt: skip
-    """Among rows consistent with the finite values (NaN = unknown), the highest cut-off;
-    ties to the shortest t_max, then to the first row (-1 if none): when a sensor fails the
-    battery is protected as if the unknown status were the worst the table allows."""
+    """Among rows consistent with the finite values ``values[p, i, :]`` (NaN = unknown), the
+    highest cut-off; ties to the shortest t_max, then to the first row (-1 if none): when a
+    sensor fails the battery is protected as if the unknown status were the worst the table
+    allows."""
     best = -1
     best_cut = 0.0
     best_neg_t = 0.0
     for k in range(row_lo.shape[0]):
         ok = True
         for a in range(row_lo.shape[1]):
-            x = values[a]
+            x = values[p, i, a]
             if not math.isnan(x) and not contains(
                 row_lo[k, a], row_hi[k, a], row_lo_closed[k, a], row_hi_closed[k, a], x, 0.0
             ):
@@ -349,211 +342,110 @@ def most_conservative(
 
 
 @kernel
-def _select(prm: ProtectionParams, st: ProtectionState, p: int, i: int) -> int:
-    values = st.values[p, i]
-    n_axes = values.shape[0]
-    for a in range(n_axes):
-        if math.isnan(values[a]):
-            return most_conservative(
-                prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, prm.row_param,
-                prm.cutoff_v, prm.t_max_s, values,
-            )  # fmt: skip
-    row = st.row[p, i]
-    if prm.use_hysteresis and row >= 0:
-        keep = True
-        for a in range(n_axes):
-            if not contains(
-                prm.row_lo[row, a], prm.row_hi[row, a], prm.row_lo_closed[row, a],
-                prm.row_hi_closed[row, a], values[a], prm.band[a],
-            ):  # fmt: skip
-                keep = False
-                break
-        if keep:
-            return int(row)
-    return lookup(prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, values)
-
-
-@kernel
-def _axis_value(code: int, tp: PackArrays, m: MeasArrays, p: int, i: int) -> float:
-    if code == AX_CURRENT:
-        return float(m.bat.current_a[p, i])
-    if code == AX_TEMP:
-        return float(m.bat.temp_c[p, i])
-    # AX_SOH: full / nominal capacity; NaN (unknown) without a nominal value
-    cap = tp.capacity_ah[p, i]
-    if cap > 0.0:
-        return float(m.bat.full_capacity_ah[p, i] / cap)
-    return math.nan
+def _in_band(
+    row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, band: F64, row: int,
+    values: F64, p: int, i: int,
+) -> bool:  # fmt: skip
+    """The values are still inside ``row`` widened by the hysteresis bands."""
+    for a in range(row_lo.shape[1]):
+        if not contains(
+            row_lo[row, a], row_hi[row, a], row_lo_closed[row, a], row_hi_closed[row, a],
+            values[p, i, a], band[a],
+        ):  # fmt: skip
+            return False
+    return True
 
 
 # ------------------------------------------------------------------------------- the rules
+# Per-battery helpers take arrays and numbers, not the named tuples: a call that is not
+# inlined pays a reference-count update for every array of every tuple it receives.
 
 
 @kernel
-def _fault(
-    st: ProtectionState, p: int, i: int, field: int, ok: bool, code: int, m: MeasArrays,
-    ev: EventBuf, src: int,
-) -> None:  # fmt: skip
-    """One ``Fault`` per episode of a non-finite field."""
+def _fault_edge(faults: B1, p: int, i: int, field: int, ok: bool) -> bool:
+    """Track a field's non-finite episode; True at its start (one ``Fault`` per episode)."""
     if ok:
-        st.faults[p, i, field] = False
-    elif not st.faults[p, i, field]:
-        st.faults[p, i, field] = True
-        k = emit(ev, p, src, code, i, m.t_s[p])
-        ev.val[k, 0] = 0.0  # source: "protection"
-        ev.val[k, 1] = field
+        faults[p, i, field] = False
+        return False
+    if faults[p, i, field]:
+        return False
+    faults[p, i, field] = True
+    return True
+
+
+@kernel
+def _emit_fault(ev: EventBuf, p: int, src: int, code: int, i: int, t_s: float, field: int) -> None:
+    k = emit(ev, p, src, code, i, t_s)
+    ev.val[k, 0] = 0.0  # source: "protection"
+    ev.val[k, 1] = field
 
 
 @kernel
 def _new_cycle(
-    st: ProtectionState, p: int, i: int, reason: int, m: MeasArrays, ev: EventBuf, src: int
+    st: ProtectionState, p: int, i: int, reason: int, t_s: float, ev: EventBuf, src: int
 ) -> None:  # fmt: skip
     if st.acc_num[p, i] != 0 or st.tripped[p, i]:
-        k = emit(ev, p, src, RESET, i, m.t_s[p])
+        k = emit(ev, p, src, RESET, i, t_s)
         ev.val[k, 0] = reason
         ev.val[k, 1] = 1.0 if st.tripped[p, i] else 0.0
-        ev.val[k, 2] = acc_value(st, p, i) / 1000.0
+        ev.val[k, 2] = float(st.acc_num[p, i]) / float(st.acc_den[p, i]) / 1000.0
     st.acc_num[p, i] = 0
     st.acc_den[p, i] = 1
     st.tripped[p, i] = False
 
 
 @kernel
-def check_voltage(tp: PackArrays, m: MeasArrays, p: int, i: int) -> tuple[float, int]:
-    """Min cell voltage; else the weakest group's mean cell; else the mean cell; else NaN.
-
-    A group is ``cells_per_group`` cells in series, so ``group_v / cells_per_group`` is that
-    group's mean cell voltage (>= its minimum: the fallbacks under-count, never over-trip).
-    """
-    v = m.bat.min_cell_v[p, i]
-    if math.isfinite(v):
-        return float(v), VS_MIN_CELL
-    per_group = tp.cells_per_group[i] if i < tp.cells_per_group.shape[0] else 0
-    n_groups = tp.groups[i] if i < tp.groups.shape[0] else 0
-    ng = min(m.bat.n_groups[p, i], m.bat.group_v.shape[2])
+def fallback_voltage(
+    group_v: F64, n_groups: I64, voltage_v: F64, cells_per_group: I64, groups: I64, p: int,
+    i: int,
+) -> tuple[float, int]:  # fmt: skip
+    """Without a finite min cell voltage: the weakest group's mean cell; else the mean cell;
+    else NaN. A group is ``cells_per_group`` cells in series, so ``group_v / cells_per_group``
+    is that group's mean cell voltage (>= its minimum: the fallbacks under-count, never
+    over-trip)."""
+    per_group = cells_per_group[i] if i < cells_per_group.shape[0] else 0
+    n_series = groups[i] if i < groups.shape[0] else 0
+    ng = min(n_groups[p, i], group_v.shape[2])
     if per_group > 0 and ng > 0:
         ok = True
-        g_min = m.bat.group_v[p, i, 0]
+        g_min = group_v[p, i, 0]
         for g in range(ng):
-            x = m.bat.group_v[p, i, g]
+            x = group_v[p, i, g]
             if not math.isfinite(x):
                 ok = False
                 break
             g_min = fmin(g_min, x)
         if ok:
             return g_min / per_group, VS_GROUPS
-    vb = m.bat.voltage_v[p, i]
-    if per_group > 0 and n_groups > 0 and math.isfinite(vb):
-        return vb / (n_groups * per_group), VS_MEAN
+    vb = voltage_v[p, i]
+    if per_group > 0 and n_series > 0 and math.isfinite(vb):
+        return vb / (n_series * per_group), VS_MEAN
     return math.nan, VS_NONE
 
 
 @kernel
-def _battery(
-    prm: ProtectionParams, st: ProtectionState, tp: PackArrays, m: MeasArrays, p: int, i: int,
-    dt: float, a_ms: int, b_ms: int, ev: EventBuf, src: int,
+def _trip_event(
+    prm: ProtectionParams, st: ProtectionState, m: MeasArrays, p: int, i: int, q: int,
+    v_chk: float, source: int, ev: EventBuf, src: int,
 ) -> None:  # fmt: skip
-    if not (m.bat.reported[p, i] and m.bat.present[p, i]):
-        st.absent[p, i] = True
-        st.charge_s[p, i] = 0.0
-        return
-    if st.absent[p, i]:
-        st.absent[p, i] = False
-        if prm.reset_on_reinsert:
-            _new_cycle(st, p, i, RESET_REINSERTED, m, ev, src)
-
-    cur = m.bat.current_a[p, i]
-    cur_ok = math.isfinite(cur)
-    _fault(st, p, i, AX_CURRENT, cur_ok, FAULT_CURRENT, m, ev, src)
-    # New discharge cycle: sustained charging (spec §7/§10.4).
-    if cur_ok and cur < -prm.charge_threshold_a:
-        st.charge_s[p, i] += dt
-        if st.charge_s[p, i] >= prm.charge_detect_s and not st.charge_cycle_started[p, i]:
-            st.charge_cycle_started[p, i] = True
-            _new_cycle(st, p, i, RESET_CHARGE, m, ev, src)
-    else:
-        st.charge_s[p, i] = 0.0
-        st.charge_cycle_started[p, i] = False
-    if cur_ok:
-        st.discharging[p, i] = cur > prm.discharge_threshold_a
-
-    values = st.values[p, i]
-    for a in range(prm.axis_code.shape[0]):
-        code = prm.axis_code[a]
-        x = _axis_value(code, tp, m, p, i)
-        if code != AX_CURRENT:
-            _fault(st, p, i, code, math.isfinite(x), FAULT_AXIS, m, ev, src)
-        if not math.isfinite(x):
-            values[a] = math.nan
-            continue
-        if prm.has_filter[a]:
-            if st.filtered_set[p, i, a]:
-                prev = st.filtered[p, i, a]
-                x = prev + (1.0 - math.exp(-dt / prm.tau_s[a])) * (x - prev)
-            st.filtered[p, i, a] = x
-            st.filtered_set[p, i, a] = True
-        values[a] = x
-    row = _select(prm, st, p, i)
-    st.row[p, i] = row
-    q = prm.row_param[row]  # row -1 (never, the table covers everything) reads the last row
-
-    v_chk, source = check_voltage(tp, m, p, i)
-    if source == VS_GROUPS:
-        code = FAULT_V_GROUPS
-    elif source == VS_MEAN:
-        code = FAULT_V_MEAN
-    else:
-        code = FAULT_V_NONE
-    _fault(st, p, i, FIELD_MIN_CELL, source == VS_MIN_CELL, code, m, ev, src)
-    if st.tripped[p, i] or math.isnan(v_chk):
-        return
-    cut = prm.cutoff_v[q]
-    below = v_chk <= cut if prm.voltage_le else v_chk < cut
-    if below and st.discharging[p, i]:
-        acc_add(st, p, i, prm.weight[q], a_ms, b_ms, prm.m_ms)
-    elif not below and prm.reset_on_recovery:
-        st.acc_num[p, i] = 0
-        st.acc_den[p, i] = 1
-    m_den = prm.m_ms * st.acc_den[p, i]
-    an = st.acc_num[p, i]
-    if an > m_den or (prm.trip_ge and an == m_den):
-        st.tripped[p, i] = True
-        k = emit(ev, p, src, TRIPPED, i, m.t_s[p])
-        val = ev.val[k]
-        val[0] = q
-        val[1] = cut
-        val[2] = prm.t_max_s[q]
-        val[3] = prm.weight[q]
-        val[4] = acc_value(st, p, i) / 1000.0
-        val[5] = prm.m_ms / 1000.0
-        val[6] = acc_fraction(prm, st, p, i)
-        val[7] = v_chk
-        val[8] = source
-        val[9] = m.bat.min_cell_v[p, i]
-        val[10] = m.bat.voltage_v[p, i]
-        val[11] = cur
-        val[12] = m.bat.temp_c[p, i]
-        val[13] = m.bat.soc[p, i]
-        val[14] = m.bat.remaining_capacity_ah[p, i]
-        val[15] = m.bat.full_capacity_ah[p, i]
-
-
-@kernel
-def _status(
-    prm: ProtectionParams, st: ProtectionState, p: int, i: int, status: F64, s0: int
-) -> None:  # fmt: skip
-    row = st.row[p, i]
-    if row < 0:
-        status[p, i, s0 + ST_PARAM] = -1.0
-        status[p, i, s0 + ST_CUTOFF] = math.nan
-        status[p, i, s0 + ST_TMAX] = math.nan
-    else:
-        q = prm.row_param[row]
-        status[p, i, s0 + ST_PARAM] = q
-        status[p, i, s0 + ST_CUTOFF] = prm.cutoff_v[q]
-        status[p, i, s0 + ST_TMAX] = prm.t_max_s[q]
-    status[p, i, s0 + ST_FRACTION] = acc_fraction(prm, st, p, i)
-    status[p, i, s0 + ST_TRIPPED] = 1.0 if st.tripped[p, i] else 0.0
+    k = emit(ev, p, src, TRIPPED, i, m.t_s[p])
+    val = ev.val[k]
+    val[0] = q
+    val[1] = prm.cutoff_v[q]
+    val[2] = prm.t_max_s[q]
+    val[3] = prm.weight[q]
+    val[4] = float(st.acc_num[p, i]) / float(st.acc_den[p, i]) / 1000.0
+    val[5] = prm.m_ms / 1000.0
+    val[6] = acc_fraction(st.acc_num, st.acc_den, p, i, prm.m_ms)
+    val[7] = v_chk
+    val[8] = source
+    val[9] = m.bat.min_cell_v[p, i]
+    val[10] = m.bat.voltage_v[p, i]
+    val[11] = m.bat.current_a[p, i]
+    val[12] = m.bat.temp_c[p, i]
+    val[13] = m.bat.soc[p, i]
+    val[14] = m.bat.remaining_capacity_ah[p, i]
+    val[15] = m.bat.full_capacity_ah[p, i]
 
 
 @kernel
@@ -569,11 +461,128 @@ def step_pack(
     """
     dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
     a_ms, b_ms = dt_ms(dt)
+    t_s = m.t_s[p]
+    bat = m.bat
+    n_axes = prm.axis_code.shape[0]
     for i in range(st.tripped.shape[1]):
-        _battery(prm, st, tp, m, p, i, dt, a_ms, b_ms, ev, src)
+        if not (bat.reported[p, i] and bat.present[p, i]):
+            st.absent[p, i] = True
+            st.charge_s[p, i] = 0.0
+        else:
+            if st.absent[p, i]:
+                st.absent[p, i] = False
+                if prm.reset_on_reinsert:
+                    _new_cycle(st, p, i, RESET_REINSERTED, t_s, ev, src)
+
+            cur = bat.current_a[p, i]
+            cur_ok = math.isfinite(cur)
+            if _fault_edge(st.faults, p, i, AX_CURRENT, cur_ok):
+                _emit_fault(ev, p, src, FAULT_CURRENT, i, t_s, AX_CURRENT)
+            # New discharge cycle: sustained charging (spec §7/§10.4).
+            if cur_ok and cur < -prm.charge_threshold_a:
+                st.charge_s[p, i] += dt
+                if st.charge_s[p, i] >= prm.charge_detect_s and not st.charge_cycle_started[p, i]:
+                    st.charge_cycle_started[p, i] = True
+                    _new_cycle(st, p, i, RESET_CHARGE, t_s, ev, src)
+            else:
+                st.charge_s[p, i] = 0.0
+                st.charge_cycle_started[p, i] = False
+            if cur_ok:
+                st.discharging[p, i] = cur > prm.discharge_threshold_a
+
+            # Status values of the table's axes (NaN = unknown), filtered where configured.
+            known = True
+            for a in range(n_axes):
+                code = prm.axis_code[a]
+                if code == AX_CURRENT:
+                    x = cur  # its fault is reported above
+                else:
+                    if code == AX_TEMP:
+                        x = bat.temp_c[p, i]
+                    else:  # AX_SOH: full / nominal capacity; unknown without a nominal value
+                        cap = tp.capacity_ah[p, i]
+                        x = bat.full_capacity_ah[p, i] / cap if cap > 0.0 else math.nan
+                    if _fault_edge(st.faults, p, i, code, math.isfinite(x)):
+                        _emit_fault(ev, p, src, FAULT_AXIS, i, t_s, code)
+                if not math.isfinite(x):
+                    st.values[p, i, a] = math.nan
+                    known = False
+                    continue
+                if prm.has_filter[a]:
+                    if st.filtered_set[p, i, a]:
+                        prev = st.filtered[p, i, a]
+                        x = prev + (1.0 - math.exp(-dt / prm.tau_s[a])) * (x - prev)
+                    st.filtered[p, i, a] = x
+                    st.filtered_set[p, i, a] = True
+                if math.isnan(x):
+                    known = False
+                st.values[p, i, a] = x
+            row = st.row[p, i]
+            if not known:
+                row = most_conservative(
+                    prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, prm.row_param,
+                    prm.cutoff_v, prm.t_max_s, st.values, p, i,
+                )  # fmt: skip
+            elif not (
+                prm.use_hysteresis
+                and row >= 0
+                and _in_band(
+                    prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, prm.band, row,
+                    st.values, p, i,
+                )
+            ):  # fmt: skip
+                row = lookup(
+                    prm.row_lo, prm.row_hi, prm.row_lo_closed, prm.row_hi_closed, st.values, p, i
+                )
+            st.row[p, i] = row
+            q = prm.row_param[row]  # row -1 (never: the table covers everything) reads the last
+
+            # The check voltage: the min cell voltage, else a fallback.
+            v_chk = bat.min_cell_v[p, i]
+            source = VS_MIN_CELL
+            if not math.isfinite(v_chk):
+                v_chk, source = fallback_voltage(
+                    bat.group_v, bat.n_groups, bat.voltage_v, tp.cells_per_group, tp.groups, p, i
+                )
+            if _fault_edge(st.faults, p, i, FIELD_MIN_CELL, source == VS_MIN_CELL):
+                if source == VS_GROUPS:
+                    code = FAULT_V_GROUPS
+                elif source == VS_MEAN:
+                    code = FAULT_V_MEAN
+                else:
+                    code = FAULT_V_NONE
+                _emit_fault(ev, p, src, code, i, t_s, FIELD_MIN_CELL)
+
+            if not (st.tripped[p, i] or math.isnan(v_chk)):
+                cut = prm.cutoff_v[q]
+                below = v_chk <= cut if prm.voltage_le else v_chk < cut
+                if below and st.discharging[p, i]:
+                    acc_add(st.acc_num, st.acc_den, p, i, prm.weight[q], a_ms, b_ms, prm.m_ms)
+                elif not below and prm.reset_on_recovery:
+                    st.acc_num[p, i] = 0
+                    st.acc_den[p, i] = 1
+                m_den = prm.m_ms * st.acc_den[p, i]
+                an = st.acc_num[p, i]
+                if an > m_den or (prm.trip_ge and an == m_den):
+                    st.tripped[p, i] = True
+                    _trip_event(prm, st, m, p, i, q, v_chk, source, ev, src)
+
         if st.tripped[p, i]:
             put_dsg(cmd, p, i, False)
-        _status(prm, st, p, i, status, s0)
+        row = st.row[p, i]
+        if row < 0:
+            status[p, i, s0 + ST_PARAM] = -1.0
+            status[p, i, s0 + ST_CUTOFF] = math.nan
+            status[p, i, s0 + ST_TMAX] = math.nan
+        else:
+            q = prm.row_param[row]
+            status[p, i, s0 + ST_PARAM] = q
+            status[p, i, s0 + ST_CUTOFF] = prm.cutoff_v[q]
+            status[p, i, s0 + ST_TMAX] = prm.t_max_s[q]
+        status[p, i, s0 + ST_FRACTION] = float(st.acc_num[p, i]) / float(
+            st.acc_den[p, i] * prm.m_ms
+        )
+        status[p, i, s0 + ST_TRIPPED] = 1.0 if st.tripped[p, i] else 0.0
 
 
 @kernel
