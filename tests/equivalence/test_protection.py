@@ -24,7 +24,7 @@ from packpilot.config.protection import ProtectionConfig, TableRow
 from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.protection import ProtectionController, rules
-from packpilot.sim import runner as runner_mod
+from packpilot.control.registry import REGISTRY, Entry
 from packpilot.sim.runner import Runner
 from tests.conftest import dual_pack
 from tests.equivalence.common import DTS, assert_same_output, sequence
@@ -268,9 +268,10 @@ class Twin:
 
 
 def _run_twin(cfg: Any, monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
-    monkeypatch.setitem(
-        runner_mod.CONTROLLER_CLASSES, "protection", "tests.equivalence.test_protection:Twin"
-    )
+    """Run ``cfg`` with the protection part replaced by a :class:`Twin` (a Python part of the
+    core, at P = 1), everything else as the scenario has it."""
+    twin = Entry("protection", "method", "tests.equivalence.test_protection:Twin")
+    monkeypatch.setitem(REGISTRY, "protection", twin)
     Twin.seen.clear()
     Runner(cfg, progress=False).run()
     (stats,) = Twin.seen

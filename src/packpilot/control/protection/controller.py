@@ -217,7 +217,7 @@ def build(
         reset_on_recovery=bool(config.reset_on_recovery),
         reset_on_reinsert=bool(config.reset_on_reinsert),
         name_len=np.array([len(b) for b in names], np.int64),
-        name_utf8=np.frombuffer(b"".join(names), np.uint8).copy(),
+        name_utf8=np.array(list(b"".join(names)), np.int64),
     )
     shape = (len(infos), n)
     na = len(axes)
@@ -239,7 +239,7 @@ def build(
 
 
 def param_names(prm: ProtectionParams) -> tuple[str, ...]:
-    raw = prm.name_utf8.tobytes()
+    raw = bytes(int(b) for b in prm.name_utf8)
     out: list[str] = []
     k = 0
     for n in prm.name_len:

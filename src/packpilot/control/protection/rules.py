@@ -40,12 +40,11 @@ from numpy.typing import NDArray
 
 from packpilot.contract.arrays import CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.commands import emit, fmin, put_dsg
-from packpilot.jit import kernel
+from packpilot.jit import kernel, kernel_inline
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 B1 = NDArray[np.bool_]
-U8 = NDArray[np.uint8]
 
 # Axis codes: the index of the axis name in ``packpilot.config.protection.AXES``.
 AX_CURRENT = 0
@@ -132,8 +131,8 @@ class ProtectionParams(NamedTuple):
     reset_on_reinsert: bool
     name_len: I64
     """(K,) UTF-8 byte length of each parameter name ..."""
-    name_utf8: U8
-    """... and the names concatenated (the label list; never read by the rules)."""
+    name_utf8: I64
+    """... and the names' bytes concatenated (the label list; never read by the rules)."""
 
 
 class ProtectionState(NamedTuple):
@@ -162,7 +161,7 @@ class ProtectionState(NamedTuple):
 # ------------------------------------------------------------------------- exact fractions
 
 
-@kernel
+@kernel_inline
 def _gcd(a: int, b: int) -> int:
     while b != 0:
         a, b = b, a % b
@@ -267,7 +266,7 @@ def acc_add(num: I64, den: I64, p: int, i: int, w: int, a: int, b: int, m: int) 
     den[p, i] = d_new // g
 
 
-@kernel
+@kernel_inline
 def acc_fraction(num: I64, den: I64, p: int, i: int, m: int) -> float:
     """``float(acc / m)``: correctly rounded (numerator and denominator * m <= 2**53)."""
     return float(num[p, i]) / float(den[p, i] * m)
@@ -276,7 +275,7 @@ def acc_fraction(num: I64, den: I64, p: int, i: int, m: int) -> float:
 # ------------------------------------------------------------------------------- the table
 
 
-@kernel
+@kernel_inline
 def contains(
     lo: float, hi: float, lo_closed: bool, hi_closed: bool, x: float, band: float
 ) -> bool:  # fmt: skip
@@ -341,7 +340,7 @@ def most_conservative(
     return best
 
 
-@kernel
+@kernel_inline
 def _in_band(
     row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, band: F64, row: int,
     values: F64, p: int, i: int,
@@ -357,11 +356,12 @@ def _in_band(
 
 
 # ------------------------------------------------------------------------------- the rules
-# Per-battery helpers take arrays and numbers, not the named tuples: a call that is not
-# inlined pays a reference-count update for every array of every tuple it receives.
+# Per-battery helpers are inlined or take arrays and numbers, not the named tuples: a call
+# that is not inlined pays a reference-count update for every array of every tuple it receives
+# (the helpers that do take tuples run only when they emit an event).
 
 
-@kernel
+@kernel_inline
 def _fault_edge(faults: B1, p: int, i: int, field: int, ok: bool) -> bool:
     """Track a field's non-finite episode; True at its start (one ``Fault`` per episode)."""
     if ok:
@@ -448,7 +448,7 @@ def _trip_event(
     val[15] = m.bat.full_capacity_ah[p, i]
 
 
-@kernel
+@kernel_inline
 def step_pack(
     prm: ProtectionParams, st: ProtectionState, tp: PackArrays, m: MeasArrays, p: int,
     dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
