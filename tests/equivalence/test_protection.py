@@ -74,6 +74,16 @@ CONFIGS: dict[str, ProtectionConfig] = {
     "one_row": ProtectionConfig.model_validate(
         {"parameters": _params(("fixed", 3.1, 0.7)), "table": [{"param": "fixed"}]}
     ),
+    "ties": ProtectionConfig.model_validate(  # equal cut-offs: the shorter t_max must win
+        {
+            "parameters": _params(("A", 3.2, 1.0), ("B", 3.2, 0.5), ("C", 3.0, 2.0)),
+            "table": [
+                {"param": "A", "ranges": {"temp_c": "(-inf, 10)"}},
+                {"param": "B", "ranges": {"temp_c": "[10, 30)"}},
+                {"param": "C", "ranges": {"temp_c": "[30, inf)"}},
+            ],
+        }
+    ),
     "odd_weights": ProtectionConfig.model_validate(
         {
             "parameters": _params(("a", 3.0, 1.5), ("b", 3.1, 2.0), ("c", 3.2, 0.7)),
@@ -122,6 +132,7 @@ def _reference_ms(dt: float) -> tuple[int, int]:
 @example(dt=0.5 / 1000 / 1000)
 @example(dt=1 / 3)
 @example(dt=0.1)
+@example(dt=0.00031128626493226084)  # floor(den / dd) == 2 * qk: the bound comparison
 @example(dt=2.0**62 / 1000.0 * 0.999)
 def test_dt_snapping_is_cpython_limit_denominator(dt: float) -> None:
     if not dt * 1000.0 < 2.0**62:
@@ -236,6 +247,78 @@ def _bm(current_a: float, temp_c: float, v: float) -> Any:
         full_capacity_ah=5.0,
         remaining_capacity_ah=0.5,
     )
+
+
+def _bm_full(
+    current_a: float,
+    temp_c: float,
+    v: float,
+    *,
+    min_cell_v: float | None = None,
+    voltage_v: float | None = None,
+    present: bool = True,
+) -> Any:
+    from packpilot.contract.bms import BatteryMeasurement
+
+    return BatteryMeasurement(
+        voltage_v=6 * v if voltage_v is None else voltage_v,
+        current_a=current_a,
+        temp_c=temp_c,
+        min_cell_v=v if min_cell_v is None else min_cell_v,
+        max_cell_v=v,
+        soc=0.1,
+        full_capacity_ah=5.0,
+        remaining_capacity_ah=0.5,
+        present=present,
+    )
+
+
+SCRIPTS: dict[str, tuple[str, int, int, list[tuple[Any, float]]]] = {
+    # (config, groups, cells per group, [(battery measurement, dt)])
+    "absence_restarts_charge_detection": (
+        "options",
+        6,
+        1,
+        [
+            (_bm_full(10.0, 25.0, 3.1), 0.2),  # accumulates under P3
+            (_bm_full(-5.0, 25.0, 3.3), 0.3),  # charging 0.3 s of the 0.5 s needed
+            (_bm_full(-5.0, 25.0, 3.3, present=False), 0.1),
+            (_bm_full(-5.0, 25.0, 3.3), 0.3),  # 0.3 s again: not yet a new cycle
+            (_bm_full(-5.0, 25.0, 3.3), 0.3),  # 0.6 s: a new cycle
+        ],
+    ),
+    "mean_cell_counts_series_cells": (
+        "default",
+        3,
+        2,
+        [
+            (_bm_full(10.0, 25.0, 3.1, min_cell_v=math.nan, voltage_v=6 * 3.1), 1.0),
+            (_bm_full(10.0, 25.0, 3.3, min_cell_v=math.nan, voltage_v=6 * 3.3), 1.0),
+        ]
+        * 3,
+    ),
+    "equal_cutoffs_take_the_shorter_t_max": (
+        "ties",
+        6,
+        1,
+        [(_bm_full(10.0, math.nan, 3.1), 0.1)] * 3 + [(_bm_full(10.0, 5.0, 3.1), 0.1)] * 4,
+    ),
+}
+
+
+@pytest.mark.parametrize("script", sorted(SCRIPTS))
+def test_scripted_edges(script: str) -> None:
+    """Hand-made sequences for rules the random sequences rarely reach."""
+    name, groups, cells, rows = SCRIPTS[script]
+    info = _info(1, groups, cells)
+    new = ProtectionController(CONFIGS[name], info)
+    old = Oracle(CONFIGS[name], info)
+    t = 0.0
+    for k, (bm, dt) in enumerate(rows):
+        meas = Measurements(t_s=t, batteries=(bm,), bus_v=20.0)
+        assert_same_output(new.step(meas, dt), old.step(meas, dt), 1, f"{script} step {k}")
+        _same_accessors(new, old, 1)
+        t += dt
 
 
 # ------------------------------------------------------------------------------ closed loop
