@@ -136,9 +136,9 @@ def test_fraction_is_sum_of_t_over_tmax(rows: list[Row]) -> None:
     expected = Fraction(0)
     for k, (i, t, v, dt) in enumerate(rows):
         ctl.step(Measurements(t_s=float(k), batteries=(_bm(i, t, v),), bus_v=6 * v), dt)
-        if ctl.state.batteries[0].tripped:
+        if ctl.battery(0).tripped:
             break
         p = params[_reference_param(i, t)]
         if i > CFG.discharge_threshold_a and v <= p.cutoff_v:
             expected += Fraction(round(dt * 1000), p.t_max_ms)
-        assert ctl.state.batteries[0].acc_wms / TABLE.m_ms == expected
+        assert ctl.battery(0).acc_wms / TABLE.m_ms == expected

@@ -8,18 +8,27 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packpilot.config.limits import LimitsConfig
+from packpilot.config.protection import ProtectionConfig
 from packpilot.config.soc import SocConfig
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core, Part
 from packpilot.control.limits import method_for
+from packpilot.control.protection import METHOD as PROTECTION
 from packpilot.control.soc import METHOD as SOC
 from tests.equivalence.common import assert_same_output, sequence
 
 
 def _core(info: PackInfo) -> Core:
+    fast = [
+        {"name": "P1", "cutoff_v": 2.8, "t_max_s": 1.5},
+        {"name": "P2", "cutoff_v": 3.0, "t_max_s": 1.0},
+        {"name": "P3", "cutoff_v": 3.2, "t_max_s": 0.5},
+    ]
+    protection = ProtectionConfig.model_validate({"parameters": fast})
     parts = [
+        Part.build(PROTECTION, protection, [info]),
         Part.build(method_for(LimitsConfig()), LimitsConfig(), [info]),
         Part.build(SOC, SocConfig(rest_time_s=1.0), [info]),
     ]

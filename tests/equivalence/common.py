@@ -53,7 +53,8 @@ def battery(
         gv = gv[: draw(st.integers(0, groups))]
     cur = draw(st.one_of(st.floats(*current), st.sampled_from([0.0, *WEIRD])))
     return BatteryMeasurement(
-        voltage_v=draw(st.one_of(st.just(sum(gv)), num(0.0, 5.0 * groups))),
+        # float(): a float 0.0 (not the int 0) when there are no group voltages
+        voltage_v=draw(st.one_of(st.just(float(sum(gv))), num(0.0, 5.0 * groups))),
         current_a=cur,
         temp_c=draw(num(-30.0, 80.0)),
         min_cell_v=draw(st.one_of(st.just(min(gv, default=cell)), num(2.0, 4.5))),
@@ -83,16 +84,26 @@ def charger(draw: Any) -> ChargerStatus | None:
     )
 
 
+DTS = (0.1, 0.2, 0.5, 1.0, 5.0, 0.0, -0.1, math.nan, 0.3)
+"""The tick lengths :func:`sequence` draws from by default."""
+
+
 @st.composite
 def sequence(
-    draw: Any, n: int, groups: int, steps: int = 60, **kw: Any
+    draw: Any,
+    n: int,
+    groups: int,
+    steps: int = 60,
+    dts: Sequence[float] = DTS,
+    **kw: Any,
 ) -> list[tuple[Measurements, float]]:
-    """A run of samples: mostly advancing time with sticky values, with jumps."""
+    """A run of samples: mostly advancing time with sticky values, with jumps (``dts``: the
+    tick lengths to draw from)."""
     out: list[tuple[Measurements, float]] = []
     t = 0.0
     bats = [draw(battery(groups, **kw)) for _ in range(n)]
     for _ in range(draw(st.integers(1, steps))):
-        dt = draw(st.sampled_from([0.1, 0.2, 0.5, 1.0, 5.0, 0.0, -0.1, math.nan, 0.3]))
+        dt = draw(st.sampled_from(list(dts)))
         k = draw(st.integers(0, n))  # change one battery (k == n: none)
         if k < n:
             bats[k] = draw(battery(groups, **kw))

@@ -184,7 +184,7 @@ class SimConfig(_Strict):
 
 
 METHOD_SECTIONS: dict[str, str] = {
-    "protection": "packpilot.control.protection:ProtectionConfig",
+    "protection": "packpilot.config.protection:ProtectionConfig",
     "sequencing": "packpilot.control.sequencing:SequencingConfig",
     "charging": "packpilot.control.charging:ChargingConfig",
     "equalization": "packpilot.control.equalization:EqualizationConfig",

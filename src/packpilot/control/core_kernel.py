@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from packpilot.arena import unpack
 from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.limits import rules as limits
+from packpilot.control.protection import rules as protection
 from packpilot.control.soc import rules as soc
 from packpilot.control.supervisor import rules as sup
 from packpilot.jit import kernel, kernel_inline
@@ -45,7 +46,7 @@ METHOD_IDS: dict[str, int] = {
         ("protection", "sequencing", "charging", "equalization", "limits", "plausibility", "soc")
     )
 }
-COMPILED = frozenset({"limits", "soc"})
+COMPILED = frozenset({"limits", "protection", "soc"})
 """Methods this step knows (a core with any other part steps part by part)."""
 
 
@@ -78,7 +79,13 @@ def core_step(f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, d: Any, dt_s: fl
     for j in range(n_parts):
         k = DIR_PARTS + DIR_STRIDE * j
         mid, pr, sr, s0 = d[k], d[k + 1], d[k + 2], d[k + 3]
-        if mid == LIMITS:
+        if mid == PROTECTION:
+            protection.step_packs(
+                unpack(protection.ProtectionParams, f, i, h, c, b, lay, pr),
+                unpack(protection.ProtectionState, f, i, h, c, b, lay, sr),
+                tp, m, dt_s, cmd, ev, j, status, s0,
+            )  # fmt: skip
+        elif mid == LIMITS:
             limits.step_packs(
                 unpack(limits.LimitsParams, f, i, h, c, b, lay, pr),
                 unpack(limits.LimitsState, f, i, h, c, b, lay, sr),

@@ -57,7 +57,7 @@ class Entry:
 REGISTRY: dict[str, Entry] = {
     e.name: e
     for e in (
-        Entry("protection", "method", "packpilot.control.protection:ProtectionController"),
+        Entry("protection", "method", "packpilot.control.protection:METHOD"),
         Entry("sequencing", "method", "packpilot.control.sequencing:SequencingController"),
         Entry("charging", "method", "packpilot.control.charging:ChargingController"),
         Entry("equalization", "method", "packpilot.control.equalization:EqualizationController"),

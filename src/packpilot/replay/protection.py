@@ -62,7 +62,7 @@ def replay(log_path: Path, config: ProtectionConfig) -> ReplayResult:
             trip_time = round(float(t[k] + dur[k]), 9)
             param_at_trip = None if p is None else p.name
             cutoff_at_trip = None if p is None else p.cutoff_v
-        st = ctl.state.batteries[0]
+        st = ctl.battery(0)
         rows.append(
             [
                 float(t[k]),

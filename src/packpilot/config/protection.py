@@ -1,0 +1,361 @@
+"""``[protection]``: condition-dependent discharge protection (US10868343B2;
+``spec/discharge_protection.md``): the protection parameters, the N-dimensional range table
+that selects one from the battery's status, and the options of the accumulation.
+
+Validation only (pydantic); the compiled rules are in :mod:`packpilot.control.protection`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from itertools import product
+from typing import Any, Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from packpilot.config.base import load_section_model
+
+CUTOFF_MIN_V = 2.0
+CUTOFF_MAX_V = 4.5
+"""Allowed cut-off range: the values are cell-level Li-ion voltages (spec §3)."""
+
+AXES: tuple[str, ...] = ("current_a", "temp_c", "soh")
+"""Status parameters a table may use as axes, in their stable order; an axis' index here is
+its code in the compiled rules (``control/protection/rules.py`` reads the value of each code:
+current_a and temp_c as measured, soh = full_capacity_ah / nominal capacity, NaN without a
+nominal capacity). Internal resistance and cycle count (spec §2) need a field in the
+measurement first; then they are one name here and one case in the rules."""
+
+_INTERVAL_RE = re.compile(r"^\s*([\[(])\s*([^,\s]+)\s*,\s*([^,\s]+)\s*([\])])\s*$")
+
+
+def _fmt(x: float) -> str:
+    if math.isinf(x):
+        return "inf" if x > 0 else "-inf"
+    return f"{x:g}"
+
+
+class AxisRange(BaseModel):
+    """An interval of one status parameter with explicit open/closed edges.
+
+    In TOML write it in interval notation, e.g. ``"(15, 25]"`` (15 excluded, 25 included) or
+    ``"[5, inf)"``; or as a table ``{lo = 15, hi = 25, lo_closed = false, hi_closed = true}``.
+    Edges default to *open*, so an edge value is only covered when a row says so explicitly.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lo: float = Field(default=-math.inf, description="Lower edge (-inf = unbounded).")
+    hi: float = Field(default=math.inf, description="Upper edge (inf = unbounded).")
+    lo_closed: bool = Field(default=False, description="True: the lower edge value is inside.")
+    hi_closed: bool = Field(default=False, description="True: the upper edge value is inside.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _parse_interval(cls, data: object) -> object:
+        if not isinstance(data, str):
+            return data
+        m = _INTERVAL_RE.match(data)
+        if m is None:
+            raise ValueError(
+                f"range {data!r}: expected interval notation such as '(15, 25]' or '[5, inf)'"
+            )
+        lo_b, lo_s, hi_s, hi_b = m.groups()
+        try:
+            lo, hi = float(lo_s), float(hi_s)
+        except ValueError:
+            raise ValueError(f"range {data!r}: edges must be numbers or inf/-inf") from None
+        return {"lo": lo, "hi": hi, "lo_closed": lo_b == "[", "hi_closed": hi_b == "]"}
+
+    @model_validator(mode="after")
+    def _check(self) -> AxisRange:
+        if math.isnan(self.lo) or math.isnan(self.hi):
+            raise ValueError("range edges must not be NaN")
+        if (self.lo_closed and math.isinf(self.lo)) or (self.hi_closed and math.isinf(self.hi)):
+            raise ValueError(f"range {self}: an infinite edge must be open, use '(' or ')'")
+        if self.lo > self.hi or (self.lo == self.hi and not (self.lo_closed and self.hi_closed)):
+            raise ValueError(f"range {self} is empty")
+        return self
+
+    def contains(self, x: float, band: float = 0.0) -> bool:
+        """True when ``x`` lies in the range widened by ``band`` on both sides."""
+        lo, hi = self.lo - band, self.hi + band
+        if x < lo or (x == lo and not self.lo_closed):
+            return False
+        return not (x > hi or (x == hi and not self.hi_closed))
+
+    def __str__(self) -> str:
+        return (
+            f"{'[' if self.lo_closed else '('}{_fmt(self.lo)}, "
+            f"{_fmt(self.hi)}{']' if self.hi_closed else ')'}"
+        )
+
+
+_ALL = AxisRange()
+
+
+class ProtectionParameter(BaseModel):
+    """One discharge protection parameter: a cut-off voltage and how long it may be held."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(description="Identifier used by table rows and telemetry, e.g. 'P1'.")
+    cutoff_v: float = Field(
+        description=f"Cell-level cut-off voltage, {CUTOFF_MIN_V}..{CUTOFF_MAX_V} V."
+    )
+    t_max_s: float = Field(
+        description="Longest sustainable time at or below the cut-off (> 0, whole milliseconds "
+        "so that the LCM m and the weights are exact)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> ProtectionParameter:
+        who = f"parameter {self.name!r}"
+        if not self.name.strip():
+            raise ValueError("parameter name: must not be empty")
+        if not (math.isfinite(self.cutoff_v) and CUTOFF_MIN_V <= self.cutoff_v <= CUTOFF_MAX_V):
+            raise ValueError(
+                f"{who}: cutoff_v must be between {CUTOFF_MIN_V} and {CUTOFF_MAX_V} V "
+                f"(cell level), got {self.cutoff_v}"
+            )
+        if not (math.isfinite(self.t_max_s) and self.t_max_s > 0.0):
+            raise ValueError(f"{who}: t_max_s must be a positive duration, got {self.t_max_s}")
+        ms = self.t_max_s * 1000.0
+        if abs(ms - round(ms)) > 1e-6 * max(1.0, ms):
+            raise ValueError(
+                f"{who}: t_max_s must be a whole number of milliseconds, got {self.t_max_s}"
+            )
+        return self
+
+    @property
+    def t_max_ms(self) -> int:
+        return round(self.t_max_s * 1000.0)
+
+
+class TableRow(BaseModel):
+    """Status-parameter ranges (one per axis; a missing axis = any value) -> a parameter."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    param: str = Field(description="Name of the protection parameter this row selects.")
+    ranges: dict[str, AxisRange] = Field(
+        default_factory=dict,
+        description="Axis name (current_a, temp_c, soh) -> interval, e.g. '(15, 25]'.",
+    )
+
+
+def _row(param: str, current_a: str, temp_c: str) -> TableRow:
+    return TableRow.model_validate(
+        {"param": param, "ranges": {"current_a": current_a, "temp_c": temp_c}}
+    )
+
+
+DEFAULT_PARAMETERS: tuple[ProtectionParameter, ...] = (
+    ProtectionParameter(name="P1", cutoff_v=2.8, t_max_s=15.0),
+    ProtectionParameter(name="P2", cutoff_v=3.0, t_max_s=10.0),
+    ProtectionParameter(name="P3", cutoff_v=3.2, t_max_s=5.0),
+)
+
+_I_LOW, _I_MID, _I_HIGH = "(-inf, 15]", "(15, 25]", "(25, inf)"
+_T_COLD, _T_COOL, _T_WARM = "(-inf, 5)", "[5, 15)", "[15, inf)"
+DEFAULT_TABLE: tuple[TableRow, ...] = (
+    # spec §4 grid, boundaries per §10.1: I <= 15 low, 15 < I <= 25 mid, I > 25 high;
+    # T < 5 cold, 5 <= T < 15 cool, T >= 15 warm.
+    _row("P1", _I_LOW, _T_COLD),
+    _row("P2", _I_LOW, _T_COOL),
+    _row("P3", _I_LOW, _T_WARM),
+    _row("P1", _I_MID, _T_COLD),
+    _row("P2", _I_MID, _T_COOL),
+    _row("P2", _I_MID, _T_WARM),
+    _row("P1", _I_HIGH, _T_COLD),
+    _row("P1", _I_HIGH, _T_COOL),
+    _row("P1", _I_HIGH, _T_WARM),
+)
+
+
+@dataclass(frozen=True)
+class _Atom:
+    """An elementary piece of one axis between breakpoints: a point or an open interval."""
+
+    rep: float
+    text: str
+
+
+def _axis_atoms(axis: str, rows: Sequence[TableRow]) -> list[_Atom]:
+    pts = sorted(
+        {
+            x
+            for r in rows
+            if axis in r.ranges
+            for x in (r.ranges[axis].lo, r.ranges[axis].hi)
+            if math.isfinite(x)
+        }
+    )
+    if not pts:
+        return [_Atom(0.0, f"{axis} any")]
+    atoms = [_Atom(pts[0] - 1.0, f"{axis} in (-inf, {_fmt(pts[0])})")]
+    for a, b in zip(pts, [*pts[1:], math.inf], strict=True):
+        atoms.append(_Atom(a, f"{axis} = {_fmt(a)}"))
+        rep = a + 1.0 if math.isinf(b) else (a + b) / 2.0
+        atoms.append(_Atom(rep, f"{axis} in ({_fmt(a)}, {_fmt(b)})"))
+    return atoms
+
+
+def check_coverage(rows: Sequence[TableRow], axes: Sequence[str]) -> None:
+    """Raise ValueError unless every point of the status space is covered by exactly one row.
+
+    Exact: between consecutive breakpoints every row either contains a whole open interval or
+    none of it, so checking one representative per breakpoint and per open interval suffices.
+    """
+    per_axis = [_axis_atoms(a, rows) for a in axes]
+    for combo in product(*per_axis):
+        hits = [
+            k
+            for k, r in enumerate(rows)
+            if all(
+                r.ranges.get(a, _ALL).contains(at.rep) for a, at in zip(axes, combo, strict=True)
+            )
+        ]
+        where = " and ".join(at.text for at in combo)
+        if not hits:
+            raise ValueError(f"table has a gap: no row covers {where}")
+        if len(hits) > 1:
+            a, b = hits[0], hits[1]
+            raise ValueError(
+                f"table rows overlap: table[{a}] ({rows[a].param}) and table[{b}] "
+                f"({rows[b].param}) both cover {where}"
+            )
+
+
+class ProtectionConfig(BaseModel):
+    """Condition-dependent discharge protection (spec/discharge_protection.md)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    parameters: tuple[ProtectionParameter, ...] = Field(
+        default=DEFAULT_PARAMETERS,
+        description="Protection parameters (name, cutoff_v, t_max_s). Only those referenced by "
+        "the table enter m = LCM(t_max).",
+    )
+    table: tuple[TableRow, ...] = Field(
+        default=DEFAULT_TABLE,
+        description="Range rows -> parameter; must cover the status space exactly once.",
+    )
+    voltage_comparison: Literal["<=", "<"] = Field(
+        default="<=", description="Accumulate when min cell voltage <= (or <) the cut-off."
+    )
+    trip_comparison: Literal[">=", ">"] = Field(
+        default=">=", description="Trip when the weighted sum >= (or >) m (spec §10.2)."
+    )
+    discharge_threshold_a: float = Field(
+        default=0.5, description="Current above which the battery counts as discharging (A)."
+    )
+    charge_threshold_a: float = Field(
+        default=0.5, description="Charging is current below minus this value (A)."
+    )
+    charge_detect_s: float = Field(
+        default=10.0, description="Charging this long starts a new discharge cycle (s)."
+    )
+    reset_on_recovery: bool = Field(
+        default=False,
+        description="Reset the sum when the voltage rises above the cut-off (spec §10.4: off).",
+    )
+    reset_on_reinsert: bool = Field(
+        default=True,
+        description="A battery re-inserted after being absent starts a new discharge cycle "
+        "(it may have been charged elsewhere; a relay battery cannot charge in the pack).",
+    )
+    hysteresis: dict[str, float] = Field(
+        default_factory=dict,
+        description="Per-axis band, e.g. {current_a = 0.5, temp_c = 0.5}: keep the active row "
+        "until the value leaves it by more than the band. Empty = off.",
+    )
+    filter_tau_s: dict[str, float] = Field(
+        default_factory=dict,
+        description="Per-axis first-order low-pass time constant (s) applied before the "
+        "lookup. Empty = off.",
+    )
+
+    @field_validator("discharge_threshold_a", "charge_threshold_a", "charge_detect_s")
+    @classmethod
+    def _non_negative(cls, v: float, info: ValidationInfo) -> float:
+        name = info.field_name
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        return v
+
+    @field_validator("hysteresis")
+    @classmethod
+    def _check_hysteresis(cls, v: dict[str, float]) -> dict[str, float]:
+        for axis, band in v.items():
+            if axis not in AXES:
+                raise ValueError(f"hysteresis.{axis}: unknown axis; known: {', '.join(AXES)}")
+            if not (math.isfinite(band) and band >= 0.0):
+                raise ValueError(f"hysteresis.{axis} must be a finite number >= 0, got {band}")
+        return v
+
+    @field_validator("filter_tau_s")
+    @classmethod
+    def _check_filter(cls, v: dict[str, float]) -> dict[str, float]:
+        for axis, tau in v.items():
+            if axis not in AXES:
+                raise ValueError(f"filter_tau_s.{axis}: unknown axis; known: {', '.join(AXES)}")
+            if not (math.isfinite(tau) and tau > 0.0):
+                raise ValueError(f"filter_tau_s.{axis} must be a finite number > 0, got {tau}")
+        return v
+
+    @model_validator(mode="after")
+    def _check_table(self) -> ProtectionConfig:
+        names = [p.name for p in self.parameters]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"parameters: duplicate name(s) {', '.join(dup)}")
+        if not self.table:
+            raise ValueError("table: must have at least one row")
+        for k, row in enumerate(self.table):
+            if row.param not in names:
+                raise ValueError(
+                    f"table[{k}].param: unknown parameter {row.param!r}; "
+                    f"defined: {', '.join(names)}"
+                )
+            for axis in row.ranges:
+                if axis not in AXES:
+                    raise ValueError(
+                        f"table[{k}].ranges.{axis}: unknown axis; known: {', '.join(AXES)}"
+                    )
+        check_coverage(self.table, self.axes)
+        return self
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        """Axes used by the table, in a stable order."""
+        used = {a for r in self.table for a in r.ranges}
+        return tuple(a for a in AXES if a in used)
+
+    @classmethod
+    def load(cls, data: Mapping[str, Any] | None, source: str = "<protection>") -> ProtectionConfig:
+        return load_section_model(cls, data, "protection", source)
+
+
+__all__ = [
+    "AXES",
+    "CUTOFF_MAX_V",
+    "CUTOFF_MIN_V",
+    "DEFAULT_PARAMETERS",
+    "DEFAULT_TABLE",
+    "AxisRange",
+    "ProtectionConfig",
+    "ProtectionParameter",
+    "TableRow",
+    "check_coverage",
+]
