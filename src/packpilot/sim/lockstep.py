@@ -5,8 +5,8 @@ almost all their time in Python overhead (sensors, per-step samples, a controlle
 one pack), so they cannot reach thousands of one-hour missions on two cores. Here the packs of
 a batch share one :class:`~packpilot.model.pack.Pack` with ``n_packs = P`` (per-pack capacity,
 resistance, SOC and ambient from the draws), their sensors are a few array reductions, their
-controller is a batch twin that steps all packs at once, and the run metrics are accumulated
-step by step instead of from a list of samples.
+controller is the method's compiled rules stepping all packs at once, and the run metrics are
+accumulated step by step instead of from a list of samples.
 
 The contract is :func:`packpilot.sim.runner.compute_metrics`: for every pack, the metrics equal
 those of a per-pack :class:`~packpilot.sim.runner.Runner` run with the same draw (summation
@@ -28,21 +28,28 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.config import ScenarioConfig, validate_section
-from packpilot.control.sequencing import SequencingConfig
+from packpilot.contract.arrays import (
+    clear_commands,
+    cmd_arrays,
+    event_buf,
+    meas_arrays,
+    pack_arrays,
+)
 from packpilot.control.types import Commands
 from packpilot.model.pack import Pack
 from packpilot.sim.runner import apply_commands, build_controller, load_profile
 from packpilot.sim.sensors import measure_all, pack_info, traction_indices
 
 if TYPE_CHECKING:
-    from packpilot.control.sequencing_batch import BatchSequencing
+    from packpilot.control.method import Method
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 BATCH_METHODS: frozenset[str] = frozenset({"sequencing"})
-"""Methods with a batch twin (one compiled call for all packs). Other methods run in lockstep
-too, as one scalar controller per pack fed from the batch sensors (``controllers()``)."""
+"""Methods run as one compiled call for all packs (their core rules, ``step_packs``). Other
+methods run in lockstep too, as one scalar controller per pack fed from the batch sensors
+(``controllers()``)."""
 
 
 class StepHook(Protocol):
@@ -120,12 +127,45 @@ def controllers(cfg: ScenarioConfig) -> str:
     return "per-pack controllers"
 
 
-def _twin(cfg: ScenarioConfig, pack: Pack) -> BatchSequencing:
-    from packpilot.control.sequencing_batch import BatchSequencing
+class _Compiled:
+    """A compiled core method stepping every pack of the batch at once (``step_packs``)."""
+
+    def __init__(self, method: Method, config: Any, pack: Pack) -> None:
+        infos = [pack_info(pack, p) for p in range(pack.n_packs)]
+        info = infos[0]
+        P, n = pack.n_packs, info.n_batteries
+        self.method = method
+        self.prm, self.st = method.build(config, infos)
+        self.tp = pack_arrays(infos)
+        self.m = meas_arrays(P, n, 1)
+        self.m.bat.reported.fill(True)
+        self.cmd = cmd_arrays(P, n, 1)
+        self.ev = event_buf(P * max(method.max_events(info), 1))
+        self.status = np.full((P, n, max(len(method.status), 1)), np.nan)
+        self.kinds = tuple(r.kind for r in method.reasons)
+
+    def step(
+        self, t: float, volts: Array, current: Array, present: BoolArray, docked: BoolArray,
+        dt: float,
+    ) -> None:  # fmt: skip
+        m = self.m
+        m.t_s.fill(t)
+        m.bat.voltage_v[:] = volts
+        m.bat.current_a[:] = current
+        m.bat.present[:] = present
+        m.docked[:] = docked
+        clear_commands(self.cmd)
+        self.ev.n[0] = 0
+        self.method.step_packs(
+            self.prm, self.st, self.tp, m, float(dt), self.cmd, self.ev, 0, self.status, 0
+        )
+
+
+def _twin(cfg: ScenarioConfig, pack: Pack) -> _Compiled:
+    from packpilot.control.sequencing import METHOD
 
     seq_cfg = validate_section("sequencing", cfg.sequencing, "<config>")
-    assert isinstance(seq_cfg, SequencingConfig)
-    return BatchSequencing(seq_cfg, pack_info(pack), pack.n_packs)
+    return _Compiled(METHOD, seq_cfg, pack)
 
 
 def run_lockstep(
@@ -172,7 +212,7 @@ def run_lockstep(
     joule = np.zeros(P)
     chg_diode = np.zeros((P, S))
     dsg_diode = np.zeros((P, S))
-    kinds = twin.KINDS if twin is not None else ()
+    kinds = twin.kinds if twin is not None else ()
 
     def freeze(mask: BoolArray) -> None:
         """Snapshot the plant's ledgers of packs that stop now (the plant steps on)."""
@@ -192,15 +232,17 @@ def run_lockstep(
             current = pack.string_a[:, tr]
             present = pack.present()[:, tr]
             docked = pack.charger_connected(t)
-            out = twin.step(t, volts, current, present, docked, dt)
+            twin.step(t, volts, current, present, docked, dt)
             chg = pack.chg_on.copy()
             dsg = pack.dsg_on.copy()
-            chg[:, tr] = out.chg_on
-            dsg[:, tr] = out.dsg_on
+            chg[:, tr] = twin.cmd.chg_on == 1
+            dsg[:, tr] = twin.cmd.dsg_on == 1
             pack.set_gates(chg, dsg)
-            for p, kind in zip(out.event_pack.tolist(), out.event_kind.tolist(), strict=True):
+            ev = twin.ev
+            n_ev = int(ev.n[0])
+            for p, code in zip(ev.pack[:n_ev].tolist(), ev.code[:n_ev].tolist(), strict=True):
                 if running[p]:
-                    m.events[p][kinds[kind]] += 1
+                    m.events[p][kinds[code]] += 1
         elif scalar:
             # Stopped packs are no longer controlled (their metrics are frozen anyway).
             live = np.nonzero(running)[0].tolist()
