@@ -20,7 +20,7 @@ import copy
 import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -100,6 +100,19 @@ CONFIGS = {
         t_iso_hold=0.25,
     ),
 }
+EPS = 1e-9
+"""The oracle's tolerance on accumulated times (``_EPS_S``)."""
+# Timers one tolerance above a binary fraction, on a time grid of 1/16 s: ``elapsed + EPS >=
+# timer`` ties exactly (R3/R4 debounce, mode debounce, rest, isolation hold).
+CONFIGS["timer_ties"] = CONFIGS["dyadic"].model_copy(
+    update={
+        "t_debounce": 0.0625 + EPS,
+        "t_on": 0.25,
+        "t_mode": 0.5 + EPS,
+        "t_rest": 0.125 + EPS,
+        "t_iso_hold": 0.25 + EPS,
+    }
+)
 COVERAGE_CONFIGS = ("default", "fast_iso", "fast_no_iso", "high_cutoff", "slow_mode")
 
 
@@ -269,7 +282,7 @@ def gen_case(rng: np.random.Generator, n: int, config: str, n_packs: int, steps:
         # ADC resolution (V, A): quantised samples make exact ties (sort order, first maximum).
         q_v, q_i = [(0.0, 0.0), (0.01, 0.1), (0.05, 0.5)][int(rng.integers(3))]
         twin = int(rng.integers(n - 1)) if n >= 2 and rng.random() < 0.3 else -1
-        if config == "dyadic":
+        if config in ("dyadic", "timer_ties"):
             q_v, q_i = 0.125, 0.25
         for i in range(steps):
             if rng.random() < 0.04:
@@ -436,6 +449,21 @@ def test_random_sequences_fire_every_event_kind_and_rule() -> None:
     )
 
 
+def on_time_grid(case: Case, dt: float = 0.0625) -> Case:
+    """``case`` sampled every ``dt`` s exactly (no jumps, no invalid times)."""
+    steps, n_packs = case.t_s.shape
+    t = dt * np.arange(steps)[:, None] + 0.25 * np.arange(n_packs)[None, :]
+    return replace(case, t_s=t, dt_s=np.full(steps, dt))
+
+
+def test_timer_ties_on_a_binary_time_grid_match() -> None:
+    """Exact ties of the timers (``elapsed + EPS >= timer``): timers one EPS above a multiple
+    of the 1/16 s sample period."""
+    for seed in range(30):
+        case = gen_case(np.random.default_rng(seed), 2 + seed % 3, "timer_ties", 3, 100)
+        run_case(on_time_grid(case))
+
+
 def test_threshold_ties_on_a_binary_grid_match() -> None:
     """Exact ties at the thresholds (``<`` vs ``<=``): the dyadic config on its 1/8 V grid. Among
     these seeds, a line tracer found R2 candidates exactly v_co above the bus (seeds 5, 17, 19,
@@ -460,7 +488,11 @@ def test_generic_sequences_match_the_oracle(data: Any, n: int, config: str) -> N
     new = SequencingController(cfg, info)
     old = Oracle(cfg, info)
     seq = data.draw(sequence(n, 6, v_cell=(3.3, 4.2), current=(-12.0, 25.0)))
-    for k, (meas, dt) in enumerate(seq):
+    for k, (raw, dt) in enumerate(seq):
+        # ``sum(())`` makes an int 0 V reading, which the oracle would echo as an int in its
+        # event data; readings are floats in the contract (the arrays store them as floats).
+        bats = tuple(replace(b, voltage_v=float(b.voltage_v)) for b in raw.batteries)
+        meas = replace(raw, batteries=bats)
         assert_same_output(new.step(meas, dt), old.step(meas, dt), n, f"step {k}")
         assert_state_equal(new.st, 0, n, old.state, f"step {k}")
 
@@ -484,6 +516,23 @@ def test_directed_missing_battery() -> None:
         assert_same_output(out, old.step(meas, dt), 3, f"step {k}")
         reasons += [e.data["reason"] for e in out.events if e.kind.startswith("Fault")]
     assert reasons == ["expected 3 batteries in the measurements, got 2"] * 2
+
+
+def test_directed_fault_time_after_a_negative_zero_time() -> None:
+    """A non-finite time faults at the last valid time, ``last_t_s or 0.0``: +0.0 after -0.0
+    (the sign of zero is compared here, which ``same`` does not)."""
+    info = _info(2)
+    new = SequencingController(SequencingConfig(), info)
+    old = Oracle(SequencingConfig(), info)
+    bats = (battery_measurement(24.0, 1.0), battery_measurement(23.0, 0.0))
+    for t in (-0.0, math.nan):
+        meas = Measurements(t, bats, math.nan)
+        a, b = new.step(meas, 0.1), old.step(meas, 0.1)
+        assert_same_output(a, b, 2, f"t={t}")
+        assert [math.copysign(1.0, e.t_s) for e in a.events] == [
+            math.copysign(1.0, e.t_s) for e in b.events
+        ]
+    assert a.events[0].kind == "Fault" and math.copysign(1.0, a.events[0].t_s) == 1.0
 
 
 def test_directed_take_over_refused_below_cut_off_then_forced_release() -> None:
