@@ -246,6 +246,7 @@ def build(
         fault_text=fault,
     )
     pb = (P, n)
+    b = (n,)
 
     def nan(shape: tuple[int, ...]) -> F64:
         return np.full(shape, np.nan)
@@ -254,7 +255,7 @@ def build(
         return np.zeros(shape, np.bool_)
 
     def idx() -> rules.I64:
-        return np.zeros(pb, np.int64)
+        return np.zeros(b, np.int64)
 
     st = SequencingState(
         state=np.full(pb, rules.OFF, np.int64),
@@ -278,26 +279,26 @@ def build(
         rest_since_s=nan((P,)),
         zero_load_valid=no((P,)),
         fault=fault,
-        ef=nan(pb),
-        g=nan(pb),
-        gp=nan(pb),
-        pred=np.zeros(pb),
-        pred2=np.zeros(pb),
+        ef=nan(b),
+        g=nan(b),
+        gp=nan(b),
+        pred=np.zeros(b),
+        pred2=np.zeros(b),
         grp=idx(),
         grp2=idx(),
         order=idx(),
         ready=idx(),
         diodes=idx(),
         iso=idx(),
-        demoted=no(pb),
-        keep=no(pb),
-        held=no(pb),
-        dheld=no(pb),
-        ing=no(pb),
-        inserted=no(pb),
-        rest=no(pb),
-        was_c=no(pb),
-        was_d=no(pb),
+        demoted=no(b),
+        keep=no(b),
+        held=no(b),
+        dheld=no(b),
+        ing=no(b),
+        inserted=no(b),
+        rest=no(b),
+        was_c=no(b),
+        was_d=no(b),
     )
     return prm, st
 

@@ -64,7 +64,8 @@ control period, used to predict whether waiting one more period would miss the `
 deadline). The kernels are the line-by-line form of the scalar controller they replaced
 (``tests/oracles/sequencing.py``): ``None`` is NaN (floats) or -1 (indices), ``sorted(...,
 key=-x)`` a stable insertion sort, ``max(seq, key=...)`` the first maximum, sums from 0 left to
-right. Every ``*_row`` scratch array is (P, B) so packs never share scratch.
+right. Arrays are bound to local names once per function (a tuple attribute read in a loop
+costs a reference-count round trip in numba).
 """
 
 from __future__ import annotations
@@ -255,7 +256,8 @@ class SequencingState(NamedTuple):
     fault: F64
     """(P, N_FAULT) the last fail-safe reason: code (FAULT_*), then its numbers; kept after
     the fault clears (the FaultCleared event names it)."""
-    # Scratch, (P, B): per-step values, nothing carried between steps.
+    # Scratch, (B,): values of the pack being stepped, nothing carried between steps (packs
+    # are stepped one after the other; a State is never stepped by two threads at once).
     ef: F64
     """Fast voltage V + I*R of each battery."""
     g: F64
@@ -281,19 +283,29 @@ class SequencingState(NamedTuple):
     was_d: B1
 
 
+class Switches(NamedTuple):
+    """The arrays a state change writes (built once per kernel from the State)."""
+
+    state: I64
+    chg_on: B1
+    dsg_on: B1
+    isolated_since_s: F64
+
+
 # ------------------------------------------------------------------------------ helpers
 
 
 @kernel
 def _set(
-    st: SequencingState, ev: EventBuf, src: int, p: int, k: int, new: int, engaged: bool,
-    t: float, code: int, reason: int,
+    sw: Switches, ev: EventBuf, src: int, p: int, k: int, new: int, engaged: bool, t: float,
+    code: int, reason: int,
 ) -> int:  # fmt: skip
     """Move battery k to ``new`` with its FET pattern (``engaged``: the R3/R4-controlled FET
     of that state) and emit one event if its state changed; returns the event row (data from
     slot ``V_DATA``) or -1."""
-    old = st.state[p, k]
-    st.state[p, k] = new
+    state = sw.state
+    old = state[p, k]
+    state[p, k] = new
     if new == DISCHARGING:
         c = engaged
         d = True
@@ -306,9 +318,9 @@ def _set(
     else:
         c = False
         d = False
-    st.chg_on[p, k] = c
-    st.dsg_on[p, k] = d
-    st.isolated_since_s[p, k] = np.nan
+    sw.chg_on[p, k] = c
+    sw.dsg_on[p, k] = d
+    sw.isolated_since_s[p, k] = np.nan
     if old == new:
         return -1
     r = emit(ev, p, src, code, k, t)
@@ -333,12 +345,12 @@ def _sort_desc(idx: I64, m: int, key: F64) -> None:
 
 
 @kernel
-def _engaged(st: SequencingState, p: int, grp: I64, extra: int) -> int:
+def _engaged(state: I64, chg_on: B1, p: int, grp: I64, extra: int) -> int:
     """Indices (ascending) of the engaged batteries (DISCHARGING, charge FET on) into
     ``grp``, plus ``extra`` (>= 0) if given; returns how many."""
     m = 0
-    for k in range(st.state.shape[1]):
-        if (st.state[p, k] == DISCHARGING and st.chg_on[p, k]) or k == extra:
+    for k in range(state.shape[1]):
+        if (state[p, k] == DISCHARGING and chg_on[p, k]) or k == extra:
             grp[m] = k
             m += 1
     return m
@@ -380,7 +392,7 @@ def _max_over(grp: I64, m: int, x: F64) -> float:
 
 
 @kernel
-def _v_ref(st: SequencingState, p: int, volt: F64) -> float:
+def _v_ref(state: I64, p: int, volt: F64) -> float:
     """Bus reference for R2: highest terminal voltage of the DISCHARGING batteries (NaN: none).
 
     Admitted batteries whose charge FET is still open count too, so a standby battery joins
@@ -388,8 +400,8 @@ def _v_ref(st: SequencingState, p: int, volt: F64) -> float:
     """
     have = False
     v = np.nan
-    for k in range(st.state.shape[1]):
-        if st.state[p, k] == DISCHARGING and (not have or volt[k] > v):
+    for k in range(state.shape[1]):
+        if state[p, k] == DISCHARGING and (not have or volt[k] > v):
             v = volt[k]
             have = True
     return v
@@ -417,7 +429,13 @@ def _r1(
     pres: B1, t: float, reason: int,
 ) -> None:  # fmt: skip
     """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
-    n = st.state.shape[1]
+    chg_on = st.chg_on
+    dsg_on = st.dsg_on
+    isolated_since_s = st.isolated_since_s
+    state = st.state
+    conduct_since_s = st.conduct_since_s
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
     have = False
     v_max = 0.0
     for k in range(n):
@@ -430,17 +448,17 @@ def _r1(
         if not pres[k]:
             continue
         new = DISCHARGING if v_max - volt[k] < prm.v_th else STANDBY
-        r = _set(st, ev, src, p, k, new, False, t, SET_R1, reason)
+        r = _set(sw, ev, src, p, k, new, False, t, SET_R1, reason)
         if r >= 0:
             ev.val[r, V_DATA] = volt[k]
             ev.val[r, V_DATA + 1] = v_max
-        st.conduct_since_s[p, k] = np.nan
+        conduct_since_s[p, k] = np.nan
 
 
 @kernel
 def _diode_rule(
-    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, k: int,
-    conducting: bool, t: float, dt: float,
+    prm: SequencingParams, state: I64, conduct_since_s: F64, ev: EventBuf, src: int, p: int,
+    k: int, conducting: bool, t: float, dt: float,
 ) -> bool:  # fmt: skip
     """R3/R4 timer for battery k. Returns True when the FET must be switched on now.
 
@@ -448,16 +466,16 @@ def _diode_rule(
     period (``dt``) would overrun ``t_on``.
     """
     if not conducting:
-        st.conduct_since_s[p, k] = np.nan
+        conduct_since_s[p, k] = np.nan
         return False
-    if math.isnan(st.conduct_since_s[p, k]):
-        st.conduct_since_s[p, k] = t
-    elapsed = t - st.conduct_since_s[p, k]
+    if math.isnan(conduct_since_s[p, k]):
+        conduct_since_s[p, k] = t
+    elapsed = t - conduct_since_s[p, k]
     due: bool = elapsed + EPS_S >= prm.t_debounce or elapsed + dt > prm.t_on + EPS_S
     if due:
-        st.conduct_since_s[p, k] = np.nan
+        conduct_since_s[p, k] = np.nan
         r = emit(ev, p, src, DIODE, k, t)
-        ev.val[r, 0] = PATH_CHG if st.state[p, k] != CHARGING else PATH_DSG
+        ev.val[r, 0] = PATH_CHG if state[p, k] != CHARGING else PATH_DSG
         ev.val[r, 1] = elapsed
         ev.val[r, 2] = k
     return due
@@ -479,11 +497,13 @@ def _bus_held(
     moved to the rest), 2 x the prior for a battery that has not yet seen a current step.
     Diodes drop ``v_diode + v_iso_margin``, the pessimistic end of the 0.5-0.7 V range.
     """
-    ef = st.ef[p]
-    gp = st.gp[p]
-    rest = st.rest[p]
-    diodes = st.diodes[p]
-    n = st.state.shape[1]
+    state = st.state
+    dsg_on = st.dsg_on
+    ef = st.ef
+    gp = st.gp
+    rest = st.rest
+    diodes = st.diodes
+    n = state.shape[1]
     for j in range(n):
         rest[j] = False
     cnt = 0
@@ -504,7 +524,7 @@ def _bus_held(
     v_rest = (num - load_a) / den
     nd = 0
     for j in range(n):
-        if j != iso and not rest[j] and pres[j] and st.dsg_on[p, j]:
+        if j != iso and not rest[j] and pres[j] and dsg_on[p, j]:
             diodes[nd] = j
             nd += 1
     _sort_desc(diodes, nd, ef)
@@ -538,9 +558,14 @@ def _isolate_source(
     carrying a heavy load alone, which drags the bus under the next battery's diode, and
     did worse in the closed-loop sweeps. Returns whether a battery was isolated.
     """
+    state = st.state
+    chg_on = st.chg_on
+    dsg_on = st.dsg_on
+    isolated_since_s = st.isolated_since_s
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
     if not prm.isolate_source:
         return False
-    ef = st.ef[p]
+    ef = st.ef
     s = -1
     for i in range(m):
         j = grp[i]
@@ -556,7 +581,7 @@ def _isolate_source(
         return False
     n = st.state.shape[1]
     reason = N_FIXED_REASONS + n + victim
-    r = _set(st, ev, src, p, s, STANDBY, False, t, ISOLATED, reason)
+    r = _set(sw, ev, src, p, s, STANDBY, False, t, ISOLATED, reason)
     if r >= 0:
         ev.val[r, V_DATA] = victim
         ev.val[r, V_DATA + 1] = pred[victim]
@@ -592,32 +617,43 @@ def _guard(
     for any other reason (last engaged, cut-off reserve, a diode that would conduct only
     once opened) stays engaged and is flagged (``CrossCurrentRisk``, once per episode).
     """
-    ef = st.ef[p]
-    g = st.g[p]
-    pred = st.pred[p]
-    grp = st.grp[p]
-    keep = st.keep[p]
-    held = st.held[p]
-    dheld = st.dheld[p]
-    n = st.state.shape[1]
+    dsg_on = st.dsg_on
+    isolated_since_s = st.isolated_since_s
+    state = st.state
+    chg_on = st.chg_on
+    conduct_since_s = st.conduct_since_s
+    hold_load_a = st.hold_load_a
+    guard_opened = st.guard_opened
+    at_risk = st.at_risk
+    zero_load_into_a = st.zero_load_into_a
+    zero_load_valid = st.zero_load_valid
+    ef = st.ef
+    g = st.g
+    pred = st.pred
+    grp = st.grp
+    keep = st.keep
+    held = st.held
+    dheld = st.dheld
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
     load_a = _load(pres, cur)
     v_cut = prm.v_cut
     for k in range(n):
         held[k] = False
         dheld[k] = keep[k]
     for k in range(n):
-        if st.state[p, k] != DISCHARGING or not st.chg_on[p, k]:
-            st.hold_load_a[p, k] = np.nan
+        if state[p, k] != DISCHARGING or not chg_on[p, k]:
+            hold_load_a[p, k] = np.nan
             continue
         if not keep[k]:
-            st.guard_opened[p, k] = False
-        if not math.isnan(st.hold_load_a[p, k]):
-            if load_a >= 0.9 * st.hold_load_a[p, k]:
+            guard_opened[p, k] = False
+        if not math.isnan(hold_load_a[p, k]):
+            if load_a >= 0.9 * hold_load_a[p, k]:
                 dheld[k] = True
             else:
-                st.hold_load_a[p, k] = np.nan
+                hold_load_a[p, k] = np.nan
     while True:
-        m = _engaged(st, p, grp, -1)
+        m = _engaged(state, chg_on, p, grp, -1)
         _zero_load(grp, m, ef, g, pred)
         k = -1
         for i in range(m):
@@ -652,30 +688,30 @@ def _guard(
         if ef[k] - prm.v_diode >= v_bus:
             held[k] = True
             continue
-        r = _set(st, ev, src, p, k, STANDBY, False, t, GUARD, R_GUARD)
+        r = _set(sw, ev, src, p, k, STANDBY, False, t, GUARD, R_GUARD)
         if r >= 0:
             ev.val[r, V_DATA] = pred[k]
             ev.val[r, V_DATA + 1] = prm.i_guard
             ev.val[r, V_DATA + 2] = ef[k]
             ev.val[r, V_DATA + 3] = _r_est(prm, st, p, k)
-        st.conduct_since_s[p, k] = np.nan
-        st.guard_opened[p, k] = True
+        conduct_since_s[p, k] = np.nan
+        guard_opened[p, k] = True
     # What is left above i_guard the controller knowingly keeps (R3, cut-off reserve, last
     # battery): flagged once per episode, so the risk is visible in the event log.
-    m = _engaged(st, p, grp, -1)
+    m = _engaged(state, chg_on, p, grp, -1)
     for k in range(n):
         pred[k] = 0.0
     _zero_load(grp, m, ef, g, pred)
     for k in range(n):
         risk = pred[k] > prm.i_guard
-        if risk and not st.at_risk[p, k]:
+        if risk and not at_risk[p, k]:
             r = emit(ev, p, src, RISK, k, t)
             ev.val[r, 0] = pred[k]
             ev.val[r, 1] = prm.i_guard
             ev.val[r, 2] = k
-        st.at_risk[p, k] = risk
-        st.zero_load_into_a[p, k] = pred[k]
-    st.zero_load_valid[p] = True
+        at_risk[p, k] = risk
+        zero_load_into_a[p, k] = pred[k]
+    zero_load_valid[p] = True
 
 
 @kernel
@@ -697,15 +733,22 @@ def _take_over(
     higher isolated battery would wait while the lower ones drain, and be left with its
     energy at the end.
     """
-    ef = st.ef[p]
-    gp = st.gp[p]
-    ready = st.ready[p]
-    ing = st.ing[p]
-    n = st.state.shape[1]
+    chg_on = st.chg_on
+    dsg_on = st.dsg_on
+    state = st.state
+    conduct_since_s = st.conduct_since_s
+    isolated_since_s = st.isolated_since_s
+    released_at_s = st.released_at_s
+    ef = st.ef
+    gp = st.gp
+    ready = st.ready
+    ing = st.ing
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
     r = 0
     for i in range(ni):
         k = iso[i]
-        since = st.isolated_since_s[p, k]
+        since = isolated_since_s[p, k]
         if not math.isnan(since) and t - since + EPS_S >= prm.t_iso_hold:
             ready[r] = k
             r += 1
@@ -725,7 +768,7 @@ def _take_over(
         v_alone = (num - load0) / den
         e_rest = -np.inf
         for j in range(n):
-            if pres[j] and not ing[j] and math.isnan(st.isolated_since_s[p, j]) and ef[j] > e_rest:
+            if pres[j] and not ing[j] and math.isnan(isolated_since_s[p, j]) and ef[j] > e_rest:
                 e_rest = ef[j]
         e_max = ef[ready[0]]
         e_min = ef[ready[0]]
@@ -744,18 +787,18 @@ def _take_over(
         for j in range(n):
             if ing[j] or not pres[j]:
                 continue
-            if st.state[p, j] == DISCHARGING:
-                _set(st, ev, src, p, j, STANDBY, False, t, SET, R_TAKE_OVER)
+            if state[p, j] == DISCHARGING:
+                _set(sw, ev, src, p, j, STANDBY, False, t, SET, R_TAKE_OVER)
         for i in range(m):
             j = ready[i]
-            since = st.isolated_since_s[p, j]
-            row = _set(st, ev, src, p, j, DISCHARGING, True, t, JOIN_TAKE_OVER, R_TAKE_OVER)
+            since = isolated_since_s[p, j]
+            row = _set(sw, ev, src, p, j, DISCHARGING, True, t, JOIN_TAKE_OVER, R_TAKE_OVER)
             if row >= 0:
                 ev.val[row, V_DATA] = v_alone
                 ev.val[row, V_DATA + 1] = e_rest
                 ev.val[row, V_DATA + 2] = t - (t if math.isnan(since) else since)
-            st.conduct_since_s[p, j] = np.nan
-            st.released_at_s[p, j] = t
+            conduct_since_s[p, j] = np.nan
+            released_at_s[p, j] = t
         return True
     return False
 
@@ -781,27 +824,33 @@ def _release_isolated(
       none is engaged): plain STANDBY whatever the risk (it feeds the bus through its
       diode and R3 closes it): the load must stay supplied.
     """
-    ef = st.ef[p]
-    g = st.g[p]
-    pred = st.pred[p]
-    pred2 = st.pred2[p]
-    grp = st.grp[p]
-    grp2 = st.grp2[p]
-    iso = st.iso[p]
-    n = st.state.shape[1]
+    state = st.state
+    chg_on = st.chg_on
+    dsg_on = st.dsg_on
+    isolated_since_s = st.isolated_since_s
+    released_at_s = st.released_at_s
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
+    iso = st.iso
     ni = 0
     for k in range(n):
-        if not math.isnan(st.isolated_since_s[p, k]):
+        if not math.isnan(isolated_since_s[p, k]):
             iso[ni] = k
             ni += 1
     if ni == 0:
         return
+    ef = st.ef
+    g = st.g
+    pred = st.pred
+    pred2 = st.pred2
+    grp = st.grp
+    grp2 = st.grp2
     load_a = _load(pres, cur)
     # A diode conducting now (R3 pending) was driven by the present bus; a take-over would
     # leave R3 acting on stale current. Wait until R3 has closed it.
     diode_on = False
     for j in range(n):
-        if pres[j] and st.dsg_on[p, j] and not st.chg_on[p, j] and cur[j] > prm.i_det:
+        if pres[j] and dsg_on[p, j] and not chg_on[p, j] and cur[j] > prm.i_det:
             diode_on = True
             break
     if not diode_on and _take_over(prm, st, ev, src, p, pres, iso, ni, load_a, t):
@@ -810,17 +859,17 @@ def _release_isolated(
     v_floor = prm.v_cut + prm.v_reserve
     for i in range(ni):
         k = iso[i]
-        since = st.isolated_since_s[p, k]
+        since = isolated_since_s[p, k]
         if math.isnan(since):
             continue
-        m = _engaged(st, p, grp, -1)
+        m = _engaged(state, chg_on, p, grp, -1)
         # Bus estimate: the lowest engaged battery; with none engaged (R1 has just admitted
         # batteries with their charge FETs open) the highest admitted one less a diode drop;
         # with nobody admitted, nothing supplies the load but the diodes: forced.
         have_adm = False
         adm_max = 0.0
         for j in range(n):
-            if pres[j] and st.state[p, j] == DISCHARGING and (not have_adm or volt[j] > adm_max):
+            if pres[j] and state[p, j] == DISCHARGING and (not have_adm or volt[j] > adm_max):
                 adm_max = volt[j]
                 have_adm = True
         if m > 0:
@@ -836,13 +885,13 @@ def _release_isolated(
         if not forced and t - since + EPS_S < prm.t_iso_hold:
             continue
         if m > 0:
-            m2 = _engaged(st, p, grp2, k)
+            m2 = _engaged(state, chg_on, p, grp2, k)
             _zero_load(grp2, m2, ef, g, pred)
             _zero_load(grp, m, ef, g, pred2)
             worst = _max_over(grp, m, pred2)
             lim = worst if worst > prm.i_guard else prm.i_guard
             if pred[k] <= prm.i_merge and _max_over(grp2, m2, pred) <= lim:
-                r = _set(st, ev, src, p, k, DISCHARGING, True, t, JOIN_ISO_MERGE, R_ISO_MERGE)
+                r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_ISO_MERGE, R_ISO_MERGE)
                 if r >= 0:
                     ev.val[r, V_DATA] = pred[k]
                     ev.val[r, V_DATA + 1] = t - since
@@ -851,8 +900,8 @@ def _release_isolated(
         quiet = bus_v >= e_k - prm.v_diode + prm.v_iso_margin
         if not (quiet or forced):
             continue
-        _set(st, ev, src, p, k, STANDBY, False, t, SET, R_NONE)
-        st.released_at_s[p, k] = t
+        _set(sw, ev, src, p, k, STANDBY, False, t, SET, R_NONE)
+        released_at_s[p, k] = t
         r = emit(ev, p, src, RELEASED, k, t)
         ev.val[r, V_FROM] = STANDBY
         ev.val[r, V_TO] = STANDBY
@@ -868,22 +917,33 @@ def _discharge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     cur: F64, pres: B1, t: float, dt: float, n_inserted: int,
 ) -> None:  # fmt: skip
-    ef = st.ef[p]
-    g = st.g[p]
-    pred = st.pred[p]
-    grp = st.grp[p]
-    order = st.order[p]
-    demoted = st.demoted[p]
-    inserted = st.inserted[p]
-    keep = st.keep[p]
-    was_c = st.was_c[p]
-    was_d = st.was_d[p]
-    n = st.state.shape[1]
+    dsg_on = st.dsg_on
+    state = st.state
+    chg_on = st.chg_on
+    conduct_since_s = st.conduct_since_s
+    hold_load_a = st.hold_load_a
+    guard_opened = st.guard_opened
+    isolated_since_s = st.isolated_since_s
+    initialized = st.initialized
+    v_ref_v = st.v_ref_v
+    rest_since_s = st.rest_since_s
+    ef = st.ef
+    g = st.g
+    pred = st.pred
+    grp = st.grp
+    order = st.order
+    demoted = st.demoted
+    inserted = st.inserted
+    keep = st.keep
+    was_c = st.was_c
+    was_d = st.was_d
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
     i_det = prm.i_det
 
-    if not st.initialized[p]:
+    if not initialized[p]:
         _r1(prm, st, ev, src, p, volt, pres, t, R_R1_INIT)
-        st.initialized[p] = True
+        initialized[p] = True
         n_inserted = 0
 
     # Reverse current: a sibling is charging an engaged discharging battery. Only when some
@@ -891,18 +951,18 @@ def _discharge_tick(
     for k in range(n):
         demoted[k] = False
     for k in range(n):
-        if st.state[p, k] == DISCHARGING and st.chg_on[p, k] and cur[k] < -prm.i_rev:
+        if state[p, k] == DISCHARGING and chg_on[p, k] and cur[k] < -prm.i_rev:
             feeder = False
             for j in range(n):
                 if j != k and pres[j] and cur[j] > i_det:
                     feeder = True
                     break
             if feeder:
-                r = _set(st, ev, src, p, k, STANDBY, False, t, REVERSE, R_REVERSE)
+                r = _set(sw, ev, src, p, k, STANDBY, False, t, REVERSE, R_REVERSE)
                 if r >= 0:
                     ev.val[r, V_DATA] = cur[k]
                     ev.val[r, V_DATA + 1] = prm.i_rev
-                st.conduct_since_s[p, k] = np.nan
+                conduct_since_s[p, k] = np.nan
                 demoted[k] = True
 
     # Hot insertion (R1 re-applied to the newcomer): a battery v_th above the bus takes over
@@ -911,24 +971,27 @@ def _discharge_tick(
         for k in range(n):
             if not inserted[k]:
                 continue
-            v_ref = _v_ref(st, p, volt)
+            v_ref = _v_ref(state, p, volt)
             if math.isnan(v_ref) or volt[k] - v_ref < prm.v_th:
                 continue
             for j in range(n):
-                if st.state[p, j] == DISCHARGING and volt[k] - volt[j] >= prm.v_th:
-                    _set(st, ev, src, p, j, STANDBY, False, t, SET, N_FIXED_REASONS + k)
-            r = _set(st, ev, src, p, k, DISCHARGING, False, t, INSERTED_ABOVE, R_INSERTED_ABOVE)
+                if state[p, j] == DISCHARGING and volt[k] - volt[j] >= prm.v_th:
+                    _set(sw, ev, src, p, j, STANDBY, False, t, SET, N_FIXED_REASONS + k)
+            r = _set(sw, ev, src, p, k, DISCHARGING, False, t, INSERTED_ABOVE, R_INSERTED_ABOVE)
             if r >= 0:
                 ev.val[r, V_DATA] = volt[k]
                 ev.val[r, V_DATA + 1] = v_ref
 
     # Source isolation [REC]: an isolated battery merges, takes over or is forced back.
-    _release_isolated(prm, st, ev, src, p, volt, cur, pres, t)
+    for k in range(n):
+        if not math.isnan(isolated_since_s[p, k]):
+            _release_isolated(prm, st, ev, src, p, volt, cur, pres, t)
+            break
 
     # Nobody admitted to discharge and no diode conducting: start over with R1.
     any_d = False
     for k in range(n):
-        if st.state[p, k] == DISCHARGING:
+        if state[p, k] == DISCHARGING:
             any_d = True
             break
     if not any_d:
@@ -946,7 +1009,7 @@ def _discharge_tick(
     # voltages, so a joiner v_co above the engaged batteries would push about
     # (V_k - V_ref) / R_loop into them: it takes over instead, and they stay admitted with
     # their charge FETs open until the load brings the bus down to them (level rule).
-    v_ref = _v_ref(st, p, volt)
+    v_ref = _v_ref(state, p, volt)
     idle = True
     for k in range(n):
         if pres[k] and not abs(cur[k]) <= i_det:
@@ -955,7 +1018,7 @@ def _discharge_tick(
     if not math.isnan(v_ref):
         m = 0
         for k in range(n):
-            if st.state[p, k] == STANDBY and math.isnan(st.isolated_since_s[p, k]):
+            if state[p, k] == STANDBY and math.isnan(isolated_since_s[p, k]):
                 order[m] = k
                 m += 1
         _sort_desc(order, m, volt)
@@ -965,9 +1028,9 @@ def _discharge_tick(
                 continue
             if idle:
                 for j in range(n):
-                    if st.state[p, j] == DISCHARGING:
-                        st.chg_on[p, j] = False
-            r = _set(st, ev, src, p, k, DISCHARGING, idle, t, JOIN_R2, R_R2)
+                    if state[p, j] == DISCHARGING:
+                        chg_on[p, j] = False
+            r = _set(sw, ev, src, p, k, DISCHARGING, idle, t, JOIN_R2, R_R2)
             if r >= 0:
                 ev.val[r, V_DATA] = volt[k]
                 ev.val[r, V_DATA + 1] = v_ref
@@ -984,17 +1047,17 @@ def _discharge_tick(
     # lower, so never) or R3 (its diode needs the bus 0.6 V below it, which the remaining
     # batteries alone may not reach before the load's own under-voltage lock-out cuts it).
     if idle:
-        if math.isnan(st.rest_since_s[p]):
-            st.rest_since_s[p] = t
+        if math.isnan(rest_since_s[p]):
+            rest_since_s[p] = t
     else:
-        st.rest_since_s[p] = np.nan
-    rest = st.rest_since_s[p]
+        rest_since_s[p] = np.nan
+    rest = rest_since_s[p]
     rested = not math.isnan(rest) and t - rest + EPS_S >= prm.t_rest
     have_eng = False
     lo = 0.0
     hi = 0.0
     for k in range(n):
-        if st.state[p, k] == DISCHARGING and st.chg_on[p, k]:
+        if state[p, k] == DISCHARGING and chg_on[p, k]:
             v = volt[k]
             if not have_eng:
                 lo = v
@@ -1010,9 +1073,9 @@ def _discharge_tick(
         for k in range(n):
             if (
                 not demoted[k]
-                and not st.chg_on[p, k]
-                and math.isnan(st.isolated_since_s[p, k])
-                and (st.state[p, k] == STANDBY or st.state[p, k] == DISCHARGING)
+                and not chg_on[p, k]
+                and math.isnan(isolated_since_s[p, k])
+                and (state[p, k] == STANDBY or state[p, k] == DISCHARGING)
             ):
                 order[m] = k
                 m += 1
@@ -1023,13 +1086,13 @@ def _discharge_tick(
             new_hi = volt[k] if volt[k] > hi else hi
             if new_hi - new_lo > prm.v_merge:
                 continue
-            r = _set(st, ev, src, p, k, DISCHARGING, True, t, JOIN_REST, R_REST_MERGE)
+            r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_REST, R_REST_MERGE)
             if r >= 0:
                 ev.val[r, V_DATA] = volt[k]
                 ev.val[r, V_DATA + 1] = lo
                 ev.val[r, V_DATA + 2] = hi
                 ev.val[r, V_DATA + 3] = prm.v_merge
-            st.conduct_since_s[p, k] = np.nan
+            conduct_since_s[p, k] = np.nan
             lo = new_lo
             hi = new_hi
 
@@ -1039,31 +1102,31 @@ def _discharge_tick(
     # would not open anybody. This is the rest merge with IR-compensated voltages; it brings
     # back a battery the guard opened as soon as the others have come down to it, before
     # R2 (v_co above the loaded bus) or R3 (a diode drop below it) would.
-    if not idle and _engaged(st, p, grp, -1) > 0:
+    if not idle and _engaged(state, chg_on, p, grp, -1) > 0:
         m = 0
         for k in range(n):
             if (
                 not demoted[k]
                 and pres[k]
-                and not st.chg_on[p, k]
-                and math.isnan(st.isolated_since_s[p, k])
-                and (st.state[p, k] == STANDBY or st.state[p, k] == DISCHARGING)
+                and not chg_on[p, k]
+                and math.isnan(isolated_since_s[p, k])
+                and (state[p, k] == STANDBY or state[p, k] == DISCHARGING)
             ):
                 order[m] = k
                 m += 1
         _sort_desc(order, m, volt)
         for i in range(m):
             k = order[i]
-            m2 = _engaged(st, p, grp, k)
+            m2 = _engaged(state, chg_on, p, grp, k)
             _zero_load(grp, m2, ef, g, pred)
             if pred[k] > prm.i_merge or _max_over(grp, m2, pred) > prm.i_guard:
                 continue
-            r = _set(st, ev, src, p, k, DISCHARGING, True, t, JOIN_LOAD, R_LOAD_MERGE)
+            r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_LOAD, R_LOAD_MERGE)
             if r >= 0:
                 ev.val[r, V_DATA] = volt[k]
                 ev.val[r, V_DATA + 1] = pred[k]
                 ev.val[r, V_DATA + 2] = prm.i_merge
-            st.conduct_since_s[p, k] = np.nan
+            conduct_since_s[p, k] = np.nan
 
     # Level rule: an admitted battery at or above the engaged batteries cannot be charged by
     # them *now*, so its charge FET may close directly (this completes an R2 join at once),
@@ -1076,24 +1139,24 @@ def _discharge_tick(
     have_eng = False
     v_eng = 0.0
     for k in range(n):
-        if st.state[p, k] == DISCHARGING and st.chg_on[p, k] and (not have_eng or volt[k] > v_eng):
+        if state[p, k] == DISCHARGING and chg_on[p, k] and (not have_eng or volt[k] > v_eng):
             v_eng = volt[k]
             have_eng = True
     if have_eng:
         m = 0
         for k in range(n):
-            if st.state[p, k] == DISCHARGING and not st.chg_on[p, k]:
+            if state[p, k] == DISCHARGING and not chg_on[p, k]:
                 order[m] = k
                 m += 1
         _sort_desc(order, m, volt)
         for i in range(m):
             k = order[i]
             if volt[k] >= v_eng:
-                m2 = _engaged(st, p, grp, k)
+                m2 = _engaged(state, chg_on, p, grp, k)
                 _zero_load(grp, m2, ef, g, pred)
                 if pred[k] <= prm.i_merge:
-                    st.chg_on[p, k] = True
-                    st.conduct_since_s[p, k] = np.nan
+                    chg_on[p, k] = True
+                    conduct_since_s[p, k] = np.nan
                     if volt[k] > v_eng:
                         v_eng = volt[k]
 
@@ -1103,28 +1166,28 @@ def _discharge_tick(
     for k in range(n):
         keep[k] = False
     for k in range(n):
-        if (st.state[p, k] != DISCHARGING and st.state[p, k] != STANDBY) or st.chg_on[p, k]:
-            st.conduct_since_s[p, k] = np.nan
+        if (state[p, k] != DISCHARGING and state[p, k] != STANDBY) or chg_on[p, k]:
+            conduct_since_s[p, k] = np.nan
             continue
         through = (not was_c[k]) and was_d[k] and cur[k] > i_det
-        if not _diode_rule(prm, st, ev, src, p, k, through, t, dt):
+        if not _diode_rule(prm, state, conduct_since_s, ev, src, p, k, through, t, dt):
             continue
-        if st.state[p, k] == STANDBY:
-            r = _set(st, ev, src, p, k, DISCHARGING, True, t, JOIN_R3, R_R3)
+        if state[p, k] == STANDBY:
+            r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_R3, R_R3)
             if r >= 0:
                 ev.val[r, V_DATA] = volt[k]
                 ev.val[r, V_DATA + 1] = cur[k]
         else:
-            st.chg_on[p, k] = True
+            chg_on[p, k] = True
         keep[k] = True
-        if st.guard_opened[p, k]:
+        if guard_opened[p, k]:
             # The guard opened it and the load made its diode conduct anyway: keep it
             # engaged at this load instead of opening it every other period.
-            st.hold_load_a[p, k] = _load(pres, cur)
-            st.guard_opened[p, k] = False
+            hold_load_a[p, k] = _load(pres, cur)
+            guard_opened[p, k] = False
 
     _guard(prm, st, ev, src, p, pres, cur, t)
-    st.v_ref_v[p] = _v_ref(st, p, volt)
+    v_ref_v[p] = _v_ref(state, p, volt)
 
 
 @kernel
@@ -1132,31 +1195,43 @@ def _charge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, cur: F64,
     pres: B1, t: float, dt: float,
 ) -> None:  # fmt: skip
-    was_c = st.was_c[p]
-    was_d = st.was_d[p]
-    n = st.state.shape[1]
+    chg_on = st.chg_on
+    isolated_since_s = st.isolated_since_s
+    state = st.state
+    dsg_on = st.dsg_on
+    conduct_since_s = st.conduct_since_s
+    at_risk = st.at_risk
+    zero_load_into_a = st.zero_load_into_a
+    initialized = st.initialized
+    v_ref_v = st.v_ref_v
+    rest_since_s = st.rest_since_s
+    zero_load_valid = st.zero_load_valid
+    was_c = st.was_c
+    was_d = st.was_d
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
     i_det = prm.i_det
-    if not st.initialized[p]:
+    if not initialized[p]:
         for k in range(n):
             if pres[k]:
-                _set(st, ev, src, p, k, CHARGING, False, t, SET, R_CHARGE_MODE)
-                st.conduct_since_s[p, k] = np.nan
-        st.initialized[p] = True
+                _set(sw, ev, src, p, k, CHARGING, False, t, SET, R_CHARGE_MODE)
+                conduct_since_s[p, k] = np.nan
+        initialized[p] = True
     for k in range(n):
-        if pres[k] and st.state[p, k] != CHARGING:
-            _set(st, ev, src, p, k, CHARGING, False, t, SET, R_INSERTED_CHARGING)
+        if pres[k] and state[p, k] != CHARGING:
+            _set(sw, ev, src, p, k, CHARGING, False, t, SET, R_INSERTED_CHARGING)
     # Mirror of the reverse-current rule: a charging battery feeding a sibling opens its
     # discharge FET, so its discharge diode blocks discharge again.
     for k in range(n):
-        if st.state[p, k] == CHARGING and st.dsg_on[p, k] and cur[k] > prm.i_rev:
+        if state[p, k] == CHARGING and dsg_on[p, k] and cur[k] > prm.i_rev:
             sink = False
             for j in range(n):
                 if j != k and pres[j] and cur[j] < -i_det:
                     sink = True
                     break
             if sink:
-                st.dsg_on[p, k] = False
-                st.conduct_since_s[p, k] = np.nan
+                dsg_on[p, k] = False
+                conduct_since_s[p, k] = np.nan
                 r = emit(ev, p, src, REVERSE_DSG, k, t)
                 ev.val[r, 0] = cur[k]
                 ev.val[r, 1] = prm.i_rev
@@ -1164,41 +1239,43 @@ def _charge_tick(
                 ev.val[r, 3] = k
     # R4: discharge diode conducting (discharge FET off, charging current).
     for k in range(n):
-        if st.state[p, k] != CHARGING or st.dsg_on[p, k]:
-            st.conduct_since_s[p, k] = np.nan
+        if state[p, k] != CHARGING or dsg_on[p, k]:
+            conduct_since_s[p, k] = np.nan
             continue
         through = was_c[k] and (not was_d[k]) and cur[k] < -i_det
-        if _diode_rule(prm, st, ev, src, p, k, through, t, dt):
-            st.dsg_on[p, k] = True
-    st.v_ref_v[p] = np.nan
-    st.rest_since_s[p] = np.nan
-    st.zero_load_valid[p] = False
+        if _diode_rule(prm, state, conduct_since_s, ev, src, p, k, through, t, dt):
+            dsg_on[p, k] = True
+    v_ref_v[p] = np.nan
+    rest_since_s[p] = np.nan
+    zero_load_valid[p] = False
     for k in range(n):
-        st.zero_load_into_a[p, k] = np.nan
-        st.at_risk[p, k] = False
+        zero_load_into_a[p, k] = np.nan
+        at_risk[p, k] = False
 
 
 # ------------------------------------------------------------------------------ the step
 
 
 @kernel
-def _validate(st: SequencingState, m: MeasArrays, p: int, dt_s: float) -> bool:
-    """Why the sample is unusable, into ``st.fault[p]`` if the pack is not in the fail-safe
-    yet (then the reason stays the first one of the episode); returns False if it is fine."""
-    n = st.state.shape[1]
+def _validate(
+    mode: I64, last_t_s: F64, fault: F64, p: int, t: float, dt_s: float, reported: B1,
+    pres: B1, volt: F64, cur: F64,
+) -> bool:  # fmt: skip
+    """Why the sample is unusable, into ``fault[p]`` if the pack is not in the fail-safe yet
+    (then the reason stays the first one of the episode); returns False if it is fine."""
+    n = reported.shape[0]
     code = FAULT_NONE
     a = 0.0
     x = np.nan
     y = np.nan
-    reported = 0
+    n_reported = 0
     for k in range(n):
-        if m.bat.reported[p, k]:
-            reported += 1
-    t = m.t_s[p]
-    last = st.last_t_s[p]
-    if reported != n:
+        if reported[k]:
+            n_reported += 1
+    last = last_t_s[p]
+    if n_reported != n:
         code = FAULT_COUNT
-        a = reported
+        a = n_reported
     elif not math.isfinite(t):
         code = FAULT_T
         x = t
@@ -1211,15 +1288,15 @@ def _validate(st: SequencingState, m: MeasArrays, p: int, dt_s: float) -> bool:
         y = t
     else:
         for k in range(n):
-            if not m.bat.present[p, k]:
+            if not pres[k]:
                 continue
-            v = m.bat.voltage_v[p, k]
+            v = volt[k]
             if not math.isfinite(v) or v < 0.0:
                 code = FAULT_VOLTAGE
                 a = k
                 x = v
                 break
-            c = m.bat.current_a[p, k]
+            c = cur[k]
             if not math.isfinite(c):
                 code = FAULT_CURRENT
                 a = k
@@ -1227,48 +1304,62 @@ def _validate(st: SequencingState, m: MeasArrays, p: int, dt_s: float) -> bool:
                 break
     if code == FAULT_NONE:
         return False
-    if st.mode[p] != MODE_FAULT:
-        st.fault[p, 0] = code
-        st.fault[p, 1] = a
-        st.fault[p, 2] = x
-        st.fault[p, 3] = y
+    if mode[p] != MODE_FAULT:
+        fault[p, 0] = code
+        fault[p, 1] = a
+        fault[p, 2] = x
+        fault[p, 3] = y
     return True
 
 
 @kernel
 def _fail_safe(
-    st: SequencingState, m: MeasArrays, p: int, ev: EventBuf, src: int, t: float
+    st: SequencingState, p: int, reported: B1, pres: B1, ev: EventBuf, src: int, t: float
 ) -> None:
     """Every charge FET off, every present battery's discharge FET on (STANDBY), one Fault
     event per episode."""
-    n = st.state.shape[1]
-    if st.mode[p] != MODE_FAULT:
+    chg_on = st.chg_on
+    dsg_on = st.dsg_on
+    isolated_since_s = st.isolated_since_s
+    state = st.state
+    conduct_since_s = st.conduct_since_s
+    at_risk = st.at_risk
+    zero_load_into_a = st.zero_load_into_a
+    mode = st.mode
+    initialized = st.initialized
+    v_ref_v = st.v_ref_v
+    rest_since_s = st.rest_since_s
+    zero_load_valid = st.zero_load_valid
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
+    if mode[p] != MODE_FAULT:
         r = emit(ev, p, src, FAULT, -1, t)
         ev.val[r, 0] = p  # the reason is read from st.fault[p] by the renderer
-        ev.val[r, 1] = st.mode[p]
-        st.mode[p] = MODE_FAULT
+        ev.val[r, 1] = mode[p]
+        mode[p] = MODE_FAULT
     same_n = True
     for k in range(n):
-        if not m.bat.reported[p, k]:
+        if not reported[k]:
             same_n = False
     for k in range(n):
-        present = m.bat.present[p, k] if same_n else st.state[p, k] != OFF
+        present = pres[k] if same_n else state[p, k] != OFF
         new = STANDBY if present else OFF
-        _set(st, ev, src, p, k, new, False, t, SET, R_FAIL_SAFE)
-        st.conduct_since_s[p, k] = np.nan
-    st.initialized[p] = False
-    st.v_ref_v[p] = np.nan
-    st.rest_since_s[p] = np.nan
-    st.zero_load_valid[p] = False
+        _set(sw, ev, src, p, k, new, False, t, SET, R_FAIL_SAFE)
+        conduct_since_s[p, k] = np.nan
+    initialized[p] = False
+    v_ref_v[p] = np.nan
+    rest_since_s[p] = np.nan
+    zero_load_valid[p] = False
     for k in range(n):
-        st.zero_load_into_a[p, k] = np.nan
-        st.at_risk[p, k] = False
+        zero_load_into_a[p, k] = np.nan
+        at_risk[p, k] = False
 
 
 @kernel
 def _update_resistance(
-    prm: SequencingParams, st: SequencingState, p: int, volt: F64, cur: F64, pres: B1
-) -> None:
+    prm: SequencingParams, r_ohm: F64, last_v_v: F64, last_i_a: F64, ef: F64, g: F64, gp: F64,
+    p: int, volt: F64, cur: F64, pres: B1,
+) -> None:  # fmt: skip
     """Resistance estimate per battery: -dV/dI over the last current step >= ``i_step``.
 
     Voltages are battery-side, so the quotient is the battery's ohmic resistance whatever
@@ -1277,27 +1368,25 @@ def _update_resistance(
     shows the instant its current drops to zero: OCV minus the polarisation), 1 / R and
     1 / the pessimistic R (1.25 x the estimate, 2 x the prior before any current step).
     """
+    n = pres.shape[0]
     r_batt = prm.r_batt_ohm
-    for k in range(st.state.shape[1]):
+    for k in range(n):
         if not pres[k]:
-            st.last_v_v[p, k] = np.nan
-            st.last_i_a[p, k] = np.nan
+            last_v_v[p, k] = np.nan
+            last_i_a[p, k] = np.nan
             continue
-        lv = st.last_v_v[p, k]
-        li = st.last_i_a[p, k]
+        lv = last_v_v[p, k]
+        li = last_i_a[p, k]
         if not math.isnan(lv) and not math.isnan(li):
             di = cur[k] - li
             if abs(di) >= prm.i_step:
                 r = -(volt[k] - lv) / di
                 if 0.0 < r <= 20.0 * r_batt:
-                    st.r_ohm[p, k] = r
-        st.last_v_v[p, k] = volt[k]
-        st.last_i_a[p, k] = cur[k]
-    ef = st.ef[p]
-    g = st.g[p]
-    gp = st.gp[p]
-    for k in range(st.state.shape[1]):
-        r = st.r_ohm[p, k]
+                    r_ohm[p, k] = r
+        last_v_v[p, k] = volt[k]
+        last_i_a[p, k] = cur[k]
+    for k in range(n):
+        r = r_ohm[p, k]
         nan_r = math.isnan(r)
         r_est = r_batt if nan_r else r
         ef[k] = volt[k] + cur[k] * r_est
@@ -1307,14 +1396,15 @@ def _update_resistance(
 
 @kernel
 def _update_mode(
-    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, cur: F64,
-    pres: B1, docked: bool, t: float,
+    prm: SequencingParams, mode: I64, mode_evidence_since_s: F64, initialized: B1,
+    conduct_since_s: F64, ev: EventBuf, src: int, p: int, cur: F64, pres: B1, docked: bool,
+    t: float,
 ) -> None:  # fmt: skip
     """Docking switches to charge mode at once; charging current alone must persist t_mode.
     Charge mode ends t_mode after the dock is gone and the pack is no longer charged."""
     pack_i = _load(pres, cur)
     charging_seen = pack_i < -prm.i_det
-    if st.mode[p] == MODE_DISCHARGE:
+    if mode[p] == MODE_DISCHARGE:
         evidence = charging_seen
         switch = docked
         new_mode = MODE_CHARGE
@@ -1323,11 +1413,11 @@ def _update_mode(
         switch = False
         new_mode = MODE_DISCHARGE
     if not evidence:
-        st.mode_evidence_since_s[p] = np.nan
+        mode_evidence_since_s[p] = np.nan
     else:
-        if math.isnan(st.mode_evidence_since_s[p]):
-            st.mode_evidence_since_s[p] = t
-        persisted = t - st.mode_evidence_since_s[p]
+        if math.isnan(mode_evidence_since_s[p]):
+            mode_evidence_since_s[p] = t
+        persisted = t - mode_evidence_since_s[p]
         switch = switch or persisted + EPS_S >= prm.t_mode
     if not switch:
         return
@@ -1336,36 +1426,49 @@ def _update_mode(
         if pres[k]:
             any_present = True
     r = emit(ev, p, src, MODE if any_present else MODE_NO_BATTERY, -1, t)
-    ev.val[r, 0] = st.mode[p]
+    ev.val[r, 0] = mode[p]
     ev.val[r, 1] = new_mode
     ev.val[r, 2] = 1.0 if docked else 0.0
     ev.val[r, 3] = pack_i
-    st.mode[p] = new_mode
-    st.mode_evidence_since_s[p] = np.nan
-    st.initialized[p] = False
-    for k in range(st.state.shape[1]):
-        st.conduct_since_s[p, k] = np.nan
+    mode[p] = new_mode
+    mode_evidence_since_s[p] = np.nan
+    initialized[p] = False
+    for k in range(pres.shape[0]):
+        conduct_since_s[p, k] = np.nan
 
 
 @kernel
-def _output(st: SequencingState, p: int, cmd: CmdArrays, status: F64, s0: int) -> None:
+def _output(
+    st: SequencingState, p: int, cmd: CmdArrays, status: F64, s0: int
+) -> None:  # fmt: skip
     """The FET commands (an opinion on every path, every step) and the status channels."""
-    last = st.last_t_s[p]
-    v_ref = st.v_ref_v[p]
-    for k in range(st.state.shape[1]):
-        put_chg(cmd, p, k, bool(st.chg_on[p, k]))
-        put_dsg(cmd, p, k, bool(st.dsg_on[p, k]))
-        status[p, k, s0 + ST_STATE] = st.state[p, k]
-        status[p, k, s0 + ST_CHG] = 1.0 if st.chg_on[p, k] else 0.0
-        status[p, k, s0 + ST_DSG] = 1.0 if st.dsg_on[p, k] else 0.0
-        status[p, k, s0 + ST_MODE] = st.mode[p]
+    state = st.state
+    chg_on = st.chg_on
+    dsg_on = st.dsg_on
+    conduct_since_s = st.conduct_since_s
+    at_risk = st.at_risk
+    isolated_since_s = st.isolated_since_s
+    zero_load_into_a = st.zero_load_into_a
+    mode = st.mode
+    last_t_s = st.last_t_s
+    v_ref_v = st.v_ref_v
+    zero_load_valid = st.zero_load_valid
+    last = last_t_s[p]
+    v_ref = v_ref_v[p]
+    for k in range(state.shape[1]):
+        put_chg(cmd, p, k, bool(chg_on[p, k]))
+        put_dsg(cmd, p, k, bool(dsg_on[p, k]))
+        status[p, k, s0 + ST_STATE] = state[p, k]
+        status[p, k, s0 + ST_CHG] = 1.0 if chg_on[p, k] else 0.0
+        status[p, k, s0 + ST_DSG] = 1.0 if dsg_on[p, k] else 0.0
+        status[p, k, s0 + ST_MODE] = mode[p]
         status[p, k, s0 + ST_V_REF] = v_ref
-        zl = st.zero_load_into_a[p, k] if st.zero_load_valid[p] else 0.0
+        zl = zero_load_into_a[p, k] if zero_load_valid[p] else 0.0
         status[p, k, s0 + ST_ZERO_LOAD] = zl
-        status[p, k, s0 + ST_AT_RISK] = 1.0 if st.at_risk[p, k] else 0.0
-        iso = not math.isnan(st.isolated_since_s[p, k])
+        status[p, k, s0 + ST_AT_RISK] = 1.0 if at_risk[p, k] else 0.0
+        iso = not math.isnan(isolated_since_s[p, k])
         status[p, k, s0 + ST_ISOLATED] = 1.0 if iso else 0.0
-        since = st.conduct_since_s[p, k]
+        since = conduct_since_s[p, k]
         diode_s = 0.0 if math.isnan(since) or math.isnan(last) else last - since
         status[p, k, s0 + ST_DIODE] = diode_s
 
@@ -1376,54 +1479,72 @@ def step_pack(
     dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
 ) -> None:  # fmt: skip
     """One control period of pack ``p``: validate, track presence and mode, apply the rules."""
-    n = st.state.shape[1]
+    isolated_since_s = st.isolated_since_s
+    state = st.state
+    chg_on = st.chg_on
+    dsg_on = st.dsg_on
+    conduct_since_s = st.conduct_since_s
+    mode = st.mode
+    initialized = st.initialized
+    last_t_s = st.last_t_s
+    mode_evidence_since_s = st.mode_evidence_since_s
+    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    n = state.shape[1]
     t_meas = m.t_s[p]
-    if _validate(st, m, p, dt_s):
-        last = st.last_t_s[p]
+    bat = m.bat
+    volt = bat.voltage_v[p]
+    cur = bat.current_a[p]
+    pres = bat.present[p]
+    reported = bat.reported[p]
+    if _validate(mode, last_t_s, st.fault, p, t_meas, dt_s, reported, pres, volt, cur):
+        last = last_t_s[p]
         if math.isfinite(t_meas):
             t = t_meas
         elif math.isnan(last) or last == 0.0:
             t = 0.0  # the scalar ``last_t_s or 0.0``
         else:
             t = last
-        _fail_safe(st, m, p, ev, src, t)
+        _fail_safe(st, p, reported, pres, ev, src, t)
         _output(st, p, cmd, status, s0)
         return
 
     t = t_meas
-    volt = m.bat.voltage_v[p]
-    cur = m.bat.current_a[p]
-    pres = m.bat.present[p]
-    st.last_t_s[p] = t
-    if st.mode[p] == MODE_FAULT:
+    last_t_s[p] = t
+    if mode[p] == MODE_FAULT:
         r = emit(ev, p, src, FAULT_CLEARED, -1, t)
         ev.val[r, 0] = p
-        st.mode[p] = MODE_DISCHARGE
-        st.mode_evidence_since_s[p] = np.nan
-        st.initialized[p] = False
+        mode[p] = MODE_DISCHARGE
+        mode_evidence_since_s[p] = np.nan
+        initialized[p] = False
 
     # FETs in force over the period the measurements cover (our previous commands).
-    was_c = st.was_c[p]
-    was_d = st.was_d[p]
-    inserted = st.inserted[p]
+    was_c = st.was_c
+    was_d = st.was_d
+    inserted = st.inserted
     for k in range(n):
-        was_c[k] = st.chg_on[p, k]
-        was_d[k] = st.dsg_on[p, k]
+        was_c[k] = chg_on[p, k]
+        was_d[k] = dsg_on[p, k]
     # Presence: removal -> OFF; insertion -> STANDBY (R1/R2 decide when it joins).
     n_ins = 0
     for k in range(n):
         inserted[k] = False
-        if not pres[k] and st.state[p, k] != OFF:
-            _set(st, ev, src, p, k, OFF, False, t, SET, R_REMOVED)
-            st.conduct_since_s[p, k] = np.nan
-        elif pres[k] and st.state[p, k] == OFF and st.initialized[p]:
-            _set(st, ev, src, p, k, STANDBY, False, t, SET, R_INSERTED)
+        if not pres[k] and state[p, k] != OFF:
+            _set(sw, ev, src, p, k, OFF, False, t, SET, R_REMOVED)
+            conduct_since_s[p, k] = np.nan
+        elif pres[k] and state[p, k] == OFF and initialized[p]:
+            _set(sw, ev, src, p, k, STANDBY, False, t, SET, R_INSERTED)
             inserted[k] = True
             n_ins += 1
 
-    _update_resistance(prm, st, p, volt, cur, pres)
-    _update_mode(prm, st, ev, src, p, cur, pres, bool(m.docked[p]), t)
-    if st.mode[p] == MODE_CHARGE:
+    _update_resistance(
+        prm, st.r_ohm, st.last_v_v, st.last_i_a, st.ef, st.g, st.gp, p, volt, cur, pres
+    )
+    docked = bool(m.docked[p])
+    _update_mode(
+        prm, mode, mode_evidence_since_s, initialized, conduct_since_s, ev, src, p, cur, pres,
+        docked, t,
+    )  # fmt: skip
+    if mode[p] == MODE_CHARGE:
         _charge_tick(prm, st, ev, src, p, cur, pres, t, dt_s)
     else:
         _discharge_tick(prm, st, ev, src, p, volt, cur, pres, t, dt_s, n_ins)
