@@ -429,11 +429,11 @@ def _r1(
     pres: B1, t: float, reason: int,
 ) -> None:  # fmt: skip
     """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
+    state = st.state
     chg_on = st.chg_on
     dsg_on = st.dsg_on
-    isolated_since_s = st.isolated_since_s
-    state = st.state
     conduct_since_s = st.conduct_since_s
+    isolated_since_s = st.isolated_since_s
     sw = Switches(state, chg_on, dsg_on, isolated_since_s)
     n = state.shape[1]
     have = False
@@ -501,8 +501,8 @@ def _bus_held(
     dsg_on = st.dsg_on
     ef = st.ef
     gp = st.gp
-    rest = st.rest
     diodes = st.diodes
+    rest = st.rest
     n = state.shape[1]
     for j in range(n):
         rest[j] = False
@@ -579,7 +579,7 @@ def _isolate_source(
     v_rest = _bus_held(prm, st, p, pres, s, grp, m, load_a)
     if v_rest < prm.v_cut + prm.v_reserve + prm.v_iso_margin:
         return False
-    n = st.state.shape[1]
+    n = state.shape[1]
     reason = N_FIXED_REASONS + n + victim
     r = _set(sw, ev, src, p, s, STANDBY, False, t, ISOLATED, reason)
     if r >= 0:
@@ -587,8 +587,8 @@ def _isolate_source(
         ev.val[r, V_DATA + 1] = pred[victim]
         ev.val[r, V_DATA + 2] = ef[s]
         ev.val[r, V_DATA + 3] = v_rest
-    st.dsg_on[p, s] = False
-    st.isolated_since_s[p, s] = t
+    dsg_on[p, s] = False
+    isolated_since_s[p, s] = t
     st.conduct_since_s[p, s] = np.nan
     st.guard_opened[p, s] = False
     st.hold_load_a[p, s] = np.nan
@@ -617,14 +617,14 @@ def _guard(
     for any other reason (last engaged, cut-off reserve, a diode that would conduct only
     once opened) stays engaged and is flagged (``CrossCurrentRisk``, once per episode).
     """
-    dsg_on = st.dsg_on
-    isolated_since_s = st.isolated_since_s
     state = st.state
     chg_on = st.chg_on
+    dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
     hold_load_a = st.hold_load_a
     guard_opened = st.guard_opened
     at_risk = st.at_risk
+    isolated_since_s = st.isolated_since_s
     zero_load_into_a = st.zero_load_into_a
     zero_load_valid = st.zero_load_valid
     ef = st.ef
@@ -733,9 +733,9 @@ def _take_over(
     higher isolated battery would wait while the lower ones drain, and be left with its
     energy at the end.
     """
+    state = st.state
     chg_on = st.chg_on
     dsg_on = st.dsg_on
-    state = st.state
     conduct_since_s = st.conduct_since_s
     isolated_since_s = st.isolated_since_s
     released_at_s = st.released_at_s
@@ -917,9 +917,9 @@ def _discharge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     cur: F64, pres: B1, t: float, dt: float, n_inserted: int,
 ) -> None:  # fmt: skip
-    dsg_on = st.dsg_on
     state = st.state
     chg_on = st.chg_on
+    dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
     hold_load_a = st.hold_load_a
     guard_opened = st.guard_opened
@@ -933,8 +933,8 @@ def _discharge_tick(
     grp = st.grp
     order = st.order
     demoted = st.demoted
-    inserted = st.inserted
     keep = st.keep
+    inserted = st.inserted
     was_c = st.was_c
     was_d = st.was_d
     sw = Switches(state, chg_on, dsg_on, isolated_since_s)
@@ -1195,12 +1195,12 @@ def _charge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, cur: F64,
     pres: B1, t: float, dt: float,
 ) -> None:  # fmt: skip
-    chg_on = st.chg_on
-    isolated_since_s = st.isolated_since_s
     state = st.state
+    chg_on = st.chg_on
     dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
     at_risk = st.at_risk
+    isolated_since_s = st.isolated_since_s
     zero_load_into_a = st.zero_load_into_a
     initialized = st.initialized
     v_ref_v = st.v_ref_v
@@ -1318,12 +1318,12 @@ def _fail_safe(
 ) -> None:
     """Every charge FET off, every present battery's discharge FET on (STANDBY), one Fault
     event per episode."""
+    state = st.state
     chg_on = st.chg_on
     dsg_on = st.dsg_on
-    isolated_since_s = st.isolated_since_s
-    state = st.state
     conduct_since_s = st.conduct_since_s
     at_risk = st.at_risk
+    isolated_since_s = st.isolated_since_s
     zero_load_into_a = st.zero_load_into_a
     mode = st.mode
     initialized = st.initialized
@@ -1479,11 +1479,11 @@ def step_pack(
     dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
 ) -> None:  # fmt: skip
     """One control period of pack ``p``: validate, track presence and mode, apply the rules."""
-    isolated_since_s = st.isolated_since_s
     state = st.state
     chg_on = st.chg_on
     dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
+    isolated_since_s = st.isolated_since_s
     mode = st.mode
     initialized = st.initialized
     last_t_s = st.last_t_s
@@ -1518,9 +1518,9 @@ def step_pack(
         initialized[p] = False
 
     # FETs in force over the period the measurements cover (our previous commands).
+    inserted = st.inserted
     was_c = st.was_c
     was_d = st.was_d
-    inserted = st.inserted
     for k in range(n):
         was_c[k] = chg_on[p, k]
         was_d[k] = dsg_on[p, k]
