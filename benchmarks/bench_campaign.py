@@ -4,7 +4,7 @@ The issue's target is 1,000 one-hour missions at a 0.1 s step (36 M pack-steps) 
 the 2-core machine. A per-pack closed loop (sensors -> controller -> plant -> sample) costs a
 few hundred microseconds per step, almost all Python/NumPy call overhead, so the campaign runs
 each batch of missions in *lockstep* (``packpilot.sim.lockstep``): one plant of P packs, array
-sensors, the sequencing controller's numba batch twin, metrics accumulated per step. The rows
+sensors, the sequencing controller's compiled rules over P packs, metrics per step. The rows
 give the per-pack reference, the lockstep cost per pack-step against the batch size, the
 1 -> 2 worker speed-up, and the real 1,000-mission campaign (``--quick`` extrapolates it from
 100 missions instead). Wall-clock figures depend on what else the machine runs: the load

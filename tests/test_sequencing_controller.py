@@ -443,11 +443,11 @@ def test_resistance_estimate_from_a_current_step() -> None:
     ctrl = SequencingController(SequencingConfig(), pack_info(2))
     ctrl.step(meas(0.0, [24.0, 24.0], [0.0, 0.0]), 0.1)
     ctrl.step(meas(0.1, [23.7, 23.3], [20.0, 20.0]), 0.1)
-    assert ctrl.state.batteries[0].r_ohm == pytest.approx(0.015)
-    assert ctrl.state.batteries[1].r_ohm == pytest.approx(0.035)
+    assert ctrl.r_ohm[0] == pytest.approx(0.015)
+    assert ctrl.r_ohm[1] == pytest.approx(0.035)
     # A change below i_step (1 A) leaves the estimate alone (sensor noise).
     ctrl.step(meas(0.2, [23.69, 23.3], [20.5, 20.0]), 0.1)
-    assert ctrl.state.batteries[0].r_ohm == pytest.approx(0.015)
+    assert ctrl.r_ohm[0] == pytest.approx(0.015)
 
 
 def test_load_drop_after_co_discharge_is_stopped_within_one_period() -> None:

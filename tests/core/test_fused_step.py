@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from packpilot.config.limits import LimitsConfig
 from packpilot.config.protection import ProtectionConfig
+from packpilot.config.sequencing import SequencingConfig
 from packpilot.config.soc import SocConfig
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.bms import SwitchKind
@@ -16,6 +17,7 @@ from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core, Part
 from packpilot.control.limits import method_for
 from packpilot.control.protection import METHOD as PROTECTION
+from packpilot.control.sequencing import METHOD as SEQUENCING
 from packpilot.control.soc import METHOD as SOC
 from tests.equivalence.common import assert_same_output, sequence
 
@@ -28,6 +30,7 @@ def _core(info: PackInfo) -> Core:
     ]
     protection = ProtectionConfig.model_validate({"parameters": fast})
     parts = [
+        Part.build(SEQUENCING, SequencingConfig(t_mode=0.3, t_rest=0.5), [info]),
         Part.build(PROTECTION, protection, [info]),
         Part.build(method_for(LimitsConfig()), LimitsConfig(), [info]),
         Part.build(SOC, SocConfig(rest_time_s=1.0), [info]),
@@ -36,13 +39,13 @@ def _core(info: PackInfo) -> Core:
 
 
 @settings(max_examples=40, deadline=None)
-@given(data=st.data(), n=st.integers(1, 3))
-def test_fused_and_part_by_part_agree(data: Any, n: int) -> None:
+@given(data=st.data(), n=st.integers(1, 3), kind=st.sampled_from(list(SwitchKind)))
+def test_fused_and_part_by_part_agree(data: Any, n: int, kind: SwitchKind) -> None:
     info = PackInfo(
         n_batteries=n,
         groups_per_battery=(2,) * n,
         cells_per_group=(3,) * n,
-        switch_kind=(SwitchKind.RELAY,) * n,
+        switch_kind=(kind,) * n,
         capacity_ah=(5.0,) * n,
         ocv_soc=(0.0, 0.5, 1.0),
         ocv_v=(3.0, 3.7, 4.2),

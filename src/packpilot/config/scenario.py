@@ -185,7 +185,7 @@ class SimConfig(_Strict):
 
 METHOD_SECTIONS: dict[str, str] = {
     "protection": "packpilot.config.protection:ProtectionConfig",
-    "sequencing": "packpilot.control.sequencing:SequencingConfig",
+    "sequencing": "packpilot.config.sequencing:SequencingConfig",
     "charging": "packpilot.control.charging:ChargingConfig",
     "equalization": "packpilot.control.equalization:EqualizationConfig",
 }

@@ -21,6 +21,7 @@ from packpilot.arena import unpack
 from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.limits import rules as limits
 from packpilot.control.protection import rules as protection
+from packpilot.control.sequencing import rules as sequencing
 from packpilot.control.soc import rules as soc
 from packpilot.control.supervisor import rules as sup
 from packpilot.jit import kernel, kernel_inline
@@ -46,7 +47,7 @@ METHOD_IDS: dict[str, int] = {
         ("protection", "sequencing", "charging", "equalization", "limits", "plausibility", "soc")
     )
 }
-COMPILED = frozenset({"limits", "protection", "soc"})
+COMPILED = frozenset({"limits", "protection", "sequencing", "soc"})
 """Methods this step knows (a core with any other part steps part by part)."""
 
 
@@ -83,6 +84,12 @@ def core_step(f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, d: Any, dt_s: fl
             protection.step_packs(
                 unpack(protection.ProtectionParams, f, i, h, c, b, lay, pr),
                 unpack(protection.ProtectionState, f, i, h, c, b, lay, sr),
+                tp, m, dt_s, cmd, ev, j, status, s0,
+            )  # fmt: skip
+        elif mid == SEQUENCING:
+            sequencing.step_packs(
+                unpack(sequencing.SequencingParams, f, i, h, c, b, lay, pr),
+                unpack(sequencing.SequencingState, f, i, h, c, b, lay, sr),
                 tp, m, dt_s, cmd, ev, j, status, s0,
             )  # fmt: skip
         elif mid == LIMITS:

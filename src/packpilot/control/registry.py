@@ -58,7 +58,7 @@ REGISTRY: dict[str, Entry] = {
     e.name: e
     for e in (
         Entry("protection", "method", "packpilot.control.protection:METHOD"),
-        Entry("sequencing", "method", "packpilot.control.sequencing:SequencingController"),
+        Entry("sequencing", "method", "packpilot.control.sequencing:METHOD"),
         Entry("charging", "method", "packpilot.control.charging:ChargingController"),
         Entry("equalization", "method", "packpilot.control.equalization:EqualizationController"),
         Entry("limits", "safety", "packpilot.control.limits:METHOD"),

@@ -109,9 +109,9 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
             docked=bool(docked[r]),
         )
         out = ctrl.step(meas, float(dts[r]))
-        row: list[CellValue] = [float(t[r]), ctrl.state.mode.value]
-        for b in ctrl.state.batteries:
-            row += [b.state.value, int(b.chg_on), int(b.dsg_on)]
+        row: list[CellValue] = [float(t[r]), ctrl.mode.value]
+        for state, chg, dsg in zip(ctrl.states, ctrl.chg_on, ctrl.dsg_on, strict=True):
+            row += [state.value, int(chg), int(dsg)]
         rows.append(row)
         for ev in out.events:
             kinds[ev.kind] += 1
@@ -144,8 +144,8 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
         "cross_current_guard": guard,
         "cross_current_risk": risk,
         "max_diode_conduction_s": max_diode_s,
-        "final_states": [b.state.value for b in ctrl.state.batteries],
-        "final_mode": ctrl.state.mode.value,
+        "final_states": [s.value for s in ctrl.states],
+        "final_mode": ctrl.mode.value,
     }
     return ReplayResult(columns=columns, rows=rows, summary=summary)
 
