@@ -269,9 +269,7 @@ def hostile_sequence(draw: Any, n: int, groups: int) -> list[tuple[Measurements,
     groups=st.integers(0, 3),
     cfg=st.sampled_from(CONFIGS),
 )
-def _same_on_hostile_sequences(
-    data: Any, n: int, groups: int, cfg: PlausibilityConfig
-) -> None:
+def _same_on_hostile_sequences(data: Any, n: int, groups: int, cfg: PlausibilityConfig) -> None:
     info = _infos(n, data.draw)
     seq = data.draw(hostile_sequence(n, groups))
     notes = data.draw(st.lists(st.one_of(st.none(), COMMANDS), max_size=len(seq)))
@@ -358,7 +356,10 @@ def _fault_scenarios() -> list[tuple[str, Callable[[], dict[str, Any]]]]:
         ),
         ("dropout_at_rest", dropout_at_rest),
         ("shorted_chg_fet", shorted_chg),
-        ("welded_relay_docked", lambda: _dock({"kind": "welded_relay", "at_s": 5.0, "battery": "A"})),
+        (
+            "welded_relay_docked",
+            lambda: _dock({"kind": "welded_relay", "at_s": 5.0, "battery": "A"}),
+        ),
         (
             "charger_fault",
             lambda: _dock({"kind": "charger_fault", "at_s": 20.0, "flag": "hardware_failure"}),
@@ -446,7 +447,10 @@ def test_closed_loop_scripted_switch_and_sensor_faults() -> None:
         runner.controller = sup
         runner.run()
         info = runner.info
-        new, old = PlausibilityMonitor(PlausibilityConfig(), info), Oracle(PlausibilityConfig(), info)
+        new, old = (
+            PlausibilityMonitor(PlausibilityConfig(), info),
+            Oracle(PlausibilityConfig(), info),
+        )
         events = 0
         assert len(spy.notes) == len(spy.log)
         for (meas, dt), cmd in zip(spy.log, spy.notes, strict=True):

@@ -77,6 +77,7 @@ def _finite(x: object) -> bool:
 def capacity_ah(pack: PackInfo, i: int, bm: BatteryMeasurement | None) -> float:
     """Nominal capacity from the pack facts, else the battery's reported full capacity, else NaN.
     (Was ``packpilot.control.limits.capacity_ah``; copied so the oracle stands alone.)"""
+
     def fin(x: float) -> bool:  # limits' _finite (a bool counts as a number there)
         return isinstance(x, int | float) and math.isfinite(x)
 

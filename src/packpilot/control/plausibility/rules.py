@@ -266,7 +266,7 @@ def _none() -> Finding:
 def _groups_seen(st: PlausibilityState, m: MeasArrays, p: int, i: int) -> int:
     """Group voltages of battery ``i`` the arrays hold (all of them, unless a misbehaving
     monitor reported more than the arrays have room for)."""
-    return min(int(m.bat.n_groups[p, i]), m.bat.group_v.shape[2], st.last.shape[2] - T_GROUP0)
+    return int(min(m.bat.n_groups[p, i], m.bat.group_v.shape[2], st.last.shape[2] - T_GROUP0))
 
 
 # ------------------------------------------------------------------------------ detections
@@ -437,7 +437,9 @@ def _sum(prm: PlausibilityParams, tp: PackArrays, m: MeasArrays, p: int, i: int)
 
 
 @kernel
-def _switch(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int) -> Finding:
+def _switch(
+    st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int
+) -> Finding:
     """Switch detector ``k`` of battery ``i``: feedback against the last merged command."""
     chg, dsg = st.cmd_chg[p, i], st.cmd_dsg[p, i]
     fb_chg, fb_dsg = m.bat.sw_chg[p, i], m.bat.sw_dsg[p, i]
@@ -448,18 +450,16 @@ def _switch(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int
         closed = fb_chg and fb_dsg
         bad = (not want and closed) if k == K_RELAY_WELDED else (want and not closed)
         return (BAD if bad else OK, F_SWITCH, 1.0 if closed else 0.0, V_BOOL)
-    if k == K_CHG_SHORTED or k == K_CHG_STUCK_OPEN:
+    if k in (K_CHG_SHORTED, K_CHG_STUCK_OPEN):
         cmd, got, f = chg, fb_chg, F_SW_CHG
-    elif k == K_DSG_SHORTED or k == K_DSG_STUCK_OPEN:
+    elif k in (K_DSG_SHORTED, K_DSG_STUCK_OPEN):
         cmd, got, f = dsg, fb_dsg, F_SW_DSG
     else:
         return _none()
     if cmd == NO_OPINION:
         return _none()
-    if k == K_CHG_SHORTED or k == K_DSG_SHORTED:
-        bad = cmd == 0 and got
-    else:
-        bad = cmd == 1 and not got
+    shorted = k in (K_CHG_SHORTED, K_DSG_SHORTED)
+    bad = (cmd == 0 and got) if shorted else (cmd == 1 and not got)
     return (BAD if bad else OK, f, 1.0 if got else 0.0, V_BOOL)
 
 
@@ -479,7 +479,7 @@ def _pack_finding(m: MeasArrays, p: int) -> Finding:
 
 @kernel
 def _sensor_bad(st: PlausibilityState, p: int, i: int) -> bool:
-    for k in range(N_SENSOR_KINDS):
+    for k in range(N_SENSOR_KINDS):  # noqa: SIM110 - no generators in a kernel
         if st.latched[p, i, k]:
             return True
     return False
@@ -497,9 +497,7 @@ def _other_source(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, 
 
 
 @kernel
-def _reaction(
-    st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int
-) -> int:
+def _reaction(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int) -> int:
     """What the commands will do about a new fault (for the event; see ``_output``)."""
     if i < 0:
         return R_CHARGER_OFF
@@ -558,7 +556,7 @@ def _emit_fault(
     ev.val[e, SLOT_BATTERY] = float(i) if i >= 0 else math.nan
     ev.val[e, SLOT_KIND] = k
     ev.val[e, SLOT_FIELD] = f[1]
-    text = code == FAULT_TEXT or code == PACK_FAULT
+    text = code in (FAULT_TEXT, PACK_FAULT)
     ev.val[e, SLOT_VALUE] = _nonfinite_code(value) if text else value
     ev.val[e, SLOT_REACTION] = reaction
 
@@ -669,7 +667,9 @@ def _output(
                 isolated = True
             elif not tp.relay[i]:
                 chg_off = True  # discharge still flows through the charge FET's body diode
-        can_take_charge = m.bat.reported[p, i] and m.bat.present[p, i] and conducts(tp, m, p, i, True)
+        can_take_charge = (
+            m.bat.reported[p, i] and m.bat.present[p, i] and conducts(tp, m, p, i, True)
+        )
         if (sensor_bad or welded or lat[K_CHG_SHORTED]) and can_take_charge:
             charger_off = True  # never charge into a battery we cannot see or cannot block
         if chg_off:
@@ -767,7 +767,7 @@ def clear_faults_pack(
     cleared = 0
     lo, hi = (0, n) if every_battery else (battery, battery + 1)
     for i in range(lo, hi):
-        if not (0 <= i and i < n):
+        if not 0 <= i < n:
             continue
         for k in range(N_KINDS):
             if kinds >> k & 1 and st.latched[p, i, k]:
