@@ -262,42 +262,34 @@ def _none() -> Finding:
     return (NONE, F_NONE, math.nan, V_FLOAT)
 
 
-@kernel
-def _groups_seen(st: PlausibilityState, m: MeasArrays, p: int, i: int) -> int:
-    """Group voltages of battery ``i`` the arrays hold (all of them, unless a misbehaving
-    monitor reported more than the arrays have room for)."""
-    return int(min(m.bat.n_groups[p, i], m.bat.group_v.shape[2], st.last.shape[2] - T_GROUP0))
-
-
 # ------------------------------------------------------------------------------ detections
+#
+# The detections are functions of the battery's readings as numbers (and of its group-voltage
+# row ``gv[p, i, :ng]``), not of the named tuples: a helper with branches that holds a tuple of
+# arrays pays a reference-count pair for every array of it on every call (microseconds).
 
 
 @kernel
-def _nonfinite(st: PlausibilityState, m: MeasArrays, p: int, i: int) -> Finding:
-    b = m.bat
-    x = b.voltage_v[p, i]
-    if not math.isfinite(x):
-        return (BAD, F_VOLTAGE, x, V_SHOW)
-    x = b.current_a[p, i]
-    if not math.isfinite(x):
-        return (BAD, F_CURRENT, x, V_SHOW)
-    x = b.temp_c[p, i]
-    if not math.isfinite(x):
-        return (BAD, F_TEMP, x, V_SHOW)
-    x = b.min_cell_v[p, i]
-    if not math.isfinite(x):
-        return (BAD, F_MIN_CELL, x, V_SHOW)
-    x = b.max_cell_v[p, i]
-    if not math.isfinite(x):
-        return (BAD, F_MAX_CELL, x, V_SHOW)
-    x = b.soc[p, i]
-    if not math.isfinite(x):
-        return (BAD, F_SOC, x, V_SHOW)
-    x = b.min_temp_c[p, i]
-    if math.isinf(x):
-        return (BAD, F_MIN_TEMP, x, V_SHOW)  # NaN = not measured
-    for g in range(_groups_seen(st, m, p, i)):
-        x = b.group_v[p, i, g]
+def _nonfinite(
+    v: float, cur: float, temp: float, vmin: float, vmax: float, soc: float, tmin: float,
+    gv: F64, p: int, i: int, ng: int,
+) -> Finding:  # fmt: skip
+    if not math.isfinite(v):
+        return (BAD, F_VOLTAGE, v, V_SHOW)
+    if not math.isfinite(cur):
+        return (BAD, F_CURRENT, cur, V_SHOW)
+    if not math.isfinite(temp):
+        return (BAD, F_TEMP, temp, V_SHOW)
+    if not math.isfinite(vmin):
+        return (BAD, F_MIN_CELL, vmin, V_SHOW)
+    if not math.isfinite(vmax):
+        return (BAD, F_MAX_CELL, vmax, V_SHOW)
+    if not math.isfinite(soc):
+        return (BAD, F_SOC, soc, V_SHOW)
+    if math.isinf(tmin):
+        return (BAD, F_MIN_TEMP, tmin, V_SHOW)  # NaN = not measured
+    for g in range(ng):
+        x = gv[p, i, g]
         if not math.isfinite(x):
             return (BAD, F_GROUP0 + g, x, V_SHOW)
     return _ok()
@@ -305,101 +297,91 @@ def _nonfinite(st: PlausibilityState, m: MeasArrays, p: int, i: int) -> Finding:
 
 @kernel
 def _range(
-    prm: PlausibilityParams, st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int,
-    i: int, cap: float,
+    prm: PlausibilityParams, groups: int, per_group: int, v: float, cur: float, temp: float,
+    tmin: float, vmin: float, vmax: float, soc: float, gv: F64, p: int, i: int, ng: int,
+    cap: float,
 ) -> Finding:  # fmt: skip
-    b = m.bat
     lo_v, hi_v = prm.cell_lo, prm.cell_hi
-    x = b.min_cell_v[p, i]
-    if _out(x, lo_v, hi_v):
-        return (BAD, F_MIN_CELL, x, V_SHOW)
-    x = b.max_cell_v[p, i]
-    if _out(x, lo_v, hi_v):
-        return (BAD, F_MAX_CELL, x, V_SHOW)
-    x = b.temp_c[p, i]
-    if _out(x, prm.temp_lo, prm.temp_hi):
-        return (BAD, F_TEMP, x, V_SHOW)
-    x = b.min_temp_c[p, i]
-    if _out(x, prm.temp_lo, prm.temp_hi):
-        return (BAD, F_MIN_TEMP, x, V_SHOW)
-    x = b.soc[p, i]
-    if _out(x, prm.soc_lo, prm.soc_hi):
-        return (BAD, F_SOC, x, V_SHOW)
-    groups, per_group = tp.groups[i], tp.cells_per_group[i]
+    if _out(vmin, lo_v, hi_v):
+        return (BAD, F_MIN_CELL, vmin, V_SHOW)
+    if _out(vmax, lo_v, hi_v):
+        return (BAD, F_MAX_CELL, vmax, V_SHOW)
+    if _out(temp, prm.temp_lo, prm.temp_hi):
+        return (BAD, F_TEMP, temp, V_SHOW)
+    if _out(tmin, prm.temp_lo, prm.temp_hi):
+        return (BAD, F_MIN_TEMP, tmin, V_SHOW)
+    if _out(soc, prm.soc_lo, prm.soc_hi):
+        return (BAD, F_SOC, soc, V_SHOW)
     if groups != 0 and per_group != 0:
         s = groups * per_group
-        x = b.voltage_v[p, i]
-        if _out(x, lo_v * s, hi_v * s):
-            return (BAD, F_VOLTAGE, x, V_SHOW)
-        for g in range(_groups_seen(st, m, p, i)):
-            x = b.group_v[p, i, g]
+        if _out(v, lo_v * s, hi_v * s):
+            return (BAD, F_VOLTAGE, v, V_SHOW)
+        for g in range(ng):
+            x = gv[p, i, g]
             if _out(x, lo_v * per_group, hi_v * per_group):
                 return (BAD, F_GROUP0 + g, x, V_SHOW)
-    cur = b.current_a[p, i]
     if math.isfinite(cap) and math.isfinite(cur):
         x = cur / cap
         if _out(x, prm.cur_lo, prm.cur_hi):
             return (BAD, F_CURRENT, x, V_SHOW)
-    lo, hi = b.min_cell_v[p, i], b.max_cell_v[p, i]
-    if math.isfinite(lo) and math.isfinite(hi) and lo > hi:
-        return (BAD, F_MINMAX, lo - hi, V_SHOW)
+    if math.isfinite(vmin) and math.isfinite(vmax) and vmin > vmax:
+        return (BAD, F_MINMAX, vmin - vmax, V_SHOW)
     return _ok()
 
 
 @kernel
 def _track(
-    st: PlausibilityState, p: int, i: int, j: int, x: float, loaded: bool, dt: float
+    last: F64, unchanged: F64, p: int, i: int, j: int, x: float, loaded: bool, dt: float
 ) -> float:
     """Advance stuck-sensor track ``j``; returns how long its value has not changed."""
-    if x != st.last[p, i, j]:  # a change (or NaN) proves nothing is frozen
-        st.last[p, i, j] = x
-        st.unchanged_s[p, i, j] = 0.0
+    u = unchanged[p, i, j]
+    if x != last[p, i, j]:  # a change (or NaN) proves nothing is frozen
+        last[p, i, j] = x
+        u = 0.0
     elif loaded:
-        st.unchanged_s[p, i, j] += dt
-    return float(st.unchanged_s[p, i, j])
+        u += dt
+    unchanged[p, i, j] = u
+    return float(u)
 
 
 @kernel
 def _stuck(
-    prm: PlausibilityParams, st: PlausibilityState, m: MeasArrays, p: int, i: int, cap: float,
-    dt: float,
+    prm: PlausibilityParams, last: F64, unchanged: F64, p: int, i: int, v: float, vmin: float,
+    vmax: float, temp: float, gv: F64, ng: int, cur: float, cap: float, dt: float,
 ) -> Finding:  # fmt: skip
-    b = m.bat
     scale = cap if math.isfinite(cap) else 1.0
-    cur = b.current_a[p, i]
     loaded = math.isfinite(cur) and abs(cur) >= prm.stuck_current_c * scale
     hit = False
     field = F_NONE
     value = math.nan
-    if prm.stuck_on:
-        limit = prm.stuck_time_s
-        for j in range(3):
-            if j == T_VOLTAGE:
-                x, f = b.voltage_v[p, i], F_VOLTAGE
-            elif j == T_MIN_CELL:
-                x, f = b.min_cell_v[p, i], F_MIN_CELL
-            else:
-                x, f = b.max_cell_v[p, i], F_MAX_CELL
-            if _track(st, p, i, j, x, loaded, dt) >= limit - EPS and not hit:
-                hit, field, value = True, f, x
-    if prm.stuck_temp_on:
-        x = b.temp_c[p, i]
-        if _track(st, p, i, T_TEMP, x, loaded, dt) >= prm.stuck_temp_time_s - EPS and not hit:
-            hit, field, value = True, F_TEMP, x
-    if prm.stuck_on:
-        limit = prm.stuck_time_s
-        for g in range(_groups_seen(st, m, p, i)):
-            x = b.group_v[p, i, g]
-            if _track(st, p, i, T_GROUP0 + g, x, loaded, dt) >= limit - EPS and not hit:
-                hit, field, value = True, F_GROUP0 + g, x
+    for j in range(T_GROUP0 + ng):
+        if j == T_TEMP:
+            if not prm.stuck_temp_on:
+                continue
+            limit = prm.stuck_temp_time_s - EPS
+        else:
+            if not prm.stuck_on:
+                continue
+            limit = prm.stuck_time_s - EPS
+        if j == T_VOLTAGE:
+            x, f = v, F_VOLTAGE
+        elif j == T_MIN_CELL:
+            x, f = vmin, F_MIN_CELL
+        elif j == T_MAX_CELL:
+            x, f = vmax, F_MAX_CELL
+        elif j == T_TEMP:
+            x, f = temp, F_TEMP
+        else:
+            x, f = gv[p, i, j - T_GROUP0], F_GROUP0 + j - T_GROUP0
+        if _track(last, unchanged, p, i, j, x, loaded, dt) >= limit and not hit:
+            hit, field, value = True, f, x
     if hit:
         return (BAD, field, value, V_SHOW)
     return _ok()
 
 
 @kernel
-def _stale(prm: PlausibilityParams, m: MeasArrays, p: int, i: int) -> Finding:
-    age = m.bat.sample_age_s[p, i]
+def _stale(prm: PlausibilityParams, age: float) -> Finding:
     if math.isnan(age):
         return _none()  # not reported (NaN means "unknown", not "stale")
     if not math.isfinite(age) or age > prm.max_sample_age_s:
@@ -408,28 +390,26 @@ def _stale(prm: PlausibilityParams, m: MeasArrays, p: int, i: int) -> Finding:
 
 
 @kernel
-def _group_count(tp: PackArrays, m: MeasArrays, p: int, i: int) -> Finding:
-    groups = tp.groups[i]
-    k = m.bat.n_groups[p, i]
-    if groups != 0 and k != 0 and k != groups:
-        return (BAD, F_GROUPS, float(k), V_INT)
+def _group_count(groups: int, n_groups: int) -> Finding:
+    if groups != 0 and n_groups != 0 and n_groups != groups:
+        return (BAD, F_GROUPS, float(n_groups), V_INT)
     return _ok()
 
 
 @kernel
-def _sum(prm: PlausibilityParams, tp: PackArrays, m: MeasArrays, p: int, i: int) -> Finding:
-    groups = tp.groups[i]
-    if groups == 0 or m.bat.n_groups[p, i] != groups:
+def _sum(
+    prm: PlausibilityParams, groups: int, n_groups: int, v: float, gv: F64, p: int, i: int
+) -> Finding:
+    if groups == 0 or n_groups != groups:
         return _none()
-    v = m.bat.voltage_v[p, i]
     if not math.isfinite(v):
         return _none()
     for g in range(groups):
-        if not math.isfinite(m.bat.group_v[p, i, g]):
+        if not math.isfinite(gv[p, i, g]):
             return _none()
     total = 0.0
     for g in range(groups):
-        total += m.bat.group_v[p, i, g]
+        total += gv[p, i, g]
     diff = v - total
     if abs(diff) > prm.sum_tolerance_v_per_group * groups:
         return (BAD, F_SUM, diff, V_FLOAT)
@@ -437,13 +417,9 @@ def _sum(prm: PlausibilityParams, tp: PackArrays, m: MeasArrays, p: int, i: int)
 
 
 @kernel
-def _switch(
-    st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int
-) -> Finding:
-    """Switch detector ``k`` of battery ``i``: feedback against the last merged command."""
-    chg, dsg = st.cmd_chg[p, i], st.cmd_dsg[p, i]
-    fb_chg, fb_dsg = m.bat.sw_chg[p, i], m.bat.sw_dsg[p, i]
-    if tp.relay[i]:
+def _switch(relay: bool, chg: int, dsg: int, fb_chg: bool, fb_dsg: bool, k: int) -> Finding:
+    """Switch detector ``k``: feedback against the last merged command."""
+    if relay:
         if k > K_RELAY_STUCK_OPEN or chg == NO_OPINION or dsg == NO_OPINION:
             return _none()
         want = chg == 1 and dsg == 1
@@ -464,13 +440,11 @@ def _switch(
 
 
 @kernel
-def _pack_finding(m: MeasArrays, p: int) -> Finding:
-    x = m.bus_v[p]
-    if not math.isfinite(x):
-        return (BAD, F_BUS, x, V_SHOW)
-    x = m.load_current_a[p]
-    if not math.isfinite(x):
-        return (BAD, F_LOAD, x, V_SHOW)
+def _pack_finding(bus_v: float, load_a: float) -> Finding:
+    if not math.isfinite(bus_v):
+        return (BAD, F_BUS, bus_v, V_SHOW)
+    if not math.isfinite(load_a):
+        return (BAD, F_LOAD, load_a, V_SHOW)
     return _ok()
 
 
@@ -478,9 +452,9 @@ def _pack_finding(m: MeasArrays, p: int) -> Finding:
 
 
 @kernel
-def _sensor_bad(st: PlausibilityState, p: int, i: int) -> bool:
+def _sensor_bad(latched: B1, p: int, i: int) -> bool:
     for k in range(N_SENSOR_KINDS):  # noqa: SIM110 - no generators in a kernel
-        if st.latched[p, i, k]:
+        if latched[p, i, k]:
             return True
     return False
 
@@ -489,7 +463,9 @@ def _sensor_bad(st: PlausibilityState, p: int, i: int) -> bool:
 def _other_source(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int) -> bool:
     """Another battery with trusted sensors can carry the load now (switch feedback)."""
     for j in range(st.cmd_chg.shape[1]):
-        if j == i or not (m.bat.reported[p, j] and m.bat.present[p, j]) or _sensor_bad(st, p, j):
+        if j == i or not (m.bat.reported[p, j] and m.bat.present[p, j]):
+            continue
+        if _sensor_bad(st.latched, p, j):
             continue
         if conducts(tp, m, p, j, False):
             return True
@@ -525,6 +501,30 @@ def _reaction(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: i
 
 
 # ------------------------------------------------------------------------------ latching
+
+HOLD = 0
+LATCH = 1
+CLEAR = 2
+
+
+@kernel
+def _advance(
+    state: int, bad_s: float, ok_s: float, was_bad: bool, latched: bool, delay: float,
+    auto_clear: bool, dt: float, clear_after_s: float,
+) -> tuple[int, float, float, bool]:  # fmt: skip
+    """Persistence timer and latch of one detector given its finding's state: returns (what to
+    do: HOLD, LATCH or CLEAR; the new bad_s, ok_s and was_bad)."""
+    if state == NONE:
+        return (HOLD, bad_s, ok_s, was_bad)  # not judgeable now: hold every timer
+    if state == BAD:
+        bad_s = bad_s + dt if was_bad else 0.0
+        if not latched and bad_s >= delay - EPS:
+            return (LATCH, bad_s, 0.0, True)
+        return (HOLD, bad_s, 0.0, True)
+    ok_s = ok_s + dt if not was_bad else 0.0
+    if latched and auto_clear and ok_s >= clear_after_s - EPS:
+        return (CLEAR, 0.0, ok_s, False)
+    return (HOLD, 0.0, ok_s, False)
 
 
 @kernel
@@ -587,56 +587,29 @@ def _reset(st: PlausibilityState, p: int, row: int, k: int) -> None:
 
 
 @kernel
-def _advance(
-    prm: PlausibilityParams, st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int,
-    row: int, k: int, f: Finding, delay: float, auto_clear: bool, dt: float, ev: EventBuf,
-    src: int,
+def _act(
+    st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, row: int, k: int,
+    f: Finding, action: int, ev: EventBuf, src: int,
 ) -> None:  # fmt: skip
-    """Persistence timer and latch of detector ``k`` of battery ``row`` (B: the pack)."""
-    if f[0] == NONE:
-        return  # not judgeable now: hold every timer
+    """Latch detector ``k`` of battery ``row`` (B: the pack) with a ``Fault`` event, or clear it
+    with a ``FaultCleared`` event (the rare path, kept out of the per-detector loop)."""
     i = row if row < st.cmd_chg.shape[1] else -1
-    if f[0] == BAD:
-        st.bad_s[p, row, k] = st.bad_s[p, row, k] + dt if st.was_bad[p, row, k] else 0.0
-        st.was_bad[p, row, k] = True
-        st.ok_s[p, row, k] = 0.0
-        if not st.latched[p, row, k] and st.bad_s[p, row, k] >= delay - EPS:
-            st.latched[p, row, k] = True
-            st.field[p, row, k] = f[1]
-            _emit_fault(st, tp, m, p, i, k, f, ev, src)
-        return
-    st.ok_s[p, row, k] = st.ok_s[p, row, k] + dt if not st.was_bad[p, row, k] else 0.0
-    st.was_bad[p, row, k] = False
-    st.bad_s[p, row, k] = 0.0
-    if st.latched[p, row, k] and auto_clear and st.ok_s[p, row, k] >= prm.clear_after_s - EPS:
+    if action == LATCH:
+        st.latched[p, row, k] = True
+        st.field[p, row, k] = f[1]
+        _emit_fault(st, tp, m, p, i, k, f, ev, src)
+    else:
         _emit_cleared(ev, p, src, i, k, int(st.field[p, row, k]), False, m.t_s[p])
         _reset(st, p, row, k)
 
 
-# ------------------------------------------------------------------------------ the step
-
-
 @kernel
-def _battery(
-    prm: PlausibilityParams, st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int,
-    i: int, dt: float, ev: EventBuf, src: int,
-) -> None:  # fmt: skip
-    if not (m.bat.reported[p, i] and m.bat.present[p, i]):
-        return  # absent: nothing can be judged, every timer holds
-    cap = capacity_ah(tp, m, p, i)
-    _advance(prm, st, tp, m, p, i, K_NONFINITE, _nonfinite(st, m, p, i),
-             prm.nonfinite_delay_s, True, dt, ev, src)  # fmt: skip
-    _advance(prm, st, tp, m, p, i, K_RANGE, _range(prm, st, tp, m, p, i, cap),
-             prm.range_delay_s, True, dt, ev, src)  # fmt: skip
-    _advance(prm, st, tp, m, p, i, K_STUCK, _stuck(prm, st, m, p, i, cap, dt),
-             0.0, True, dt, ev, src)  # fmt: skip
-    _advance(prm, st, tp, m, p, i, K_STALE, _stale(prm, m, p, i), 0.0, True, dt, ev, src)
-    _advance(prm, st, tp, m, p, i, K_SUM, _sum(prm, tp, m, p, i),
-             prm.sum_delay_s, True, dt, ev, src)  # fmt: skip
-    _advance(prm, st, tp, m, p, i, K_COUNT, _group_count(tp, m, p, i), 0.0, True, dt, ev, src)
-    for k in range(N_SENSOR_KINDS, N_KINDS):
-        _advance(prm, st, tp, m, p, i, k, _switch(st, tp, m, p, i, k),
-                 prm.switch_delay_s, False, dt, ev, src)  # fmt: skip
+def _flush_resets(st: PlausibilityState, p: int, ev: EventBuf, src: int) -> None:
+    """The ``FaultCleared`` events of the service resets since the previous step."""
+    for q in range(st.pend_n[p]):
+        _emit_cleared(ev, p, src, int(st.pend_bat[p, q]), int(st.pend_kind[p, q]),
+                      int(st.pend_field[p, q]), True, st.pend_t[p, q])  # fmt: skip
+    st.pend_n[p] = 0
 
 
 @kernel
@@ -646,31 +619,30 @@ def _output(
 ) -> None:  # fmt: skip
     """The fail-safe commands of every latched fault, and the status channels."""
     n = st.cmd_chg.shape[1]
-    charger_off = bool(st.latched[p, n, K_NONFINITE])
+    lat = st.latched
+    charger_off = bool(lat[p, n, K_NONFINITE])
     docked = m.docked[p]
     for i in range(n):
-        lat = st.latched[p, i]
-        welded = lat[K_RELAY_WELDED]
+        welded = lat[p, i, K_RELAY_WELDED]
         chg_off = False
         dsg_off = False
         isolated = False
-        if lat[K_RELAY_STUCK_OPEN]:
+        if lat[p, i, K_RELAY_STUCK_OPEN]:
             chg_off = dsg_off = True
-        if lat[K_CHG_STUCK_OPEN]:
+        if lat[p, i, K_CHG_STUCK_OPEN]:
             chg_off = True
-        if lat[K_DSG_STUCK_OPEN]:
+        if lat[p, i, K_DSG_STUCK_OPEN]:
             dsg_off = True
-        sensor_bad = _sensor_bad(st, p, i)
+        sensor_bad = _sensor_bad(lat, p, i)
         if sensor_bad and not welded:
             if docked or _other_source(st, tp, m, p, i):
                 chg_off = dsg_off = True
                 isolated = True
             elif not tp.relay[i]:
                 chg_off = True  # discharge still flows through the charge FET's body diode
-        can_take_charge = (
-            m.bat.reported[p, i] and m.bat.present[p, i] and conducts(tp, m, p, i, True)
-        )
-        if (sensor_bad or welded or lat[K_CHG_SHORTED]) and can_take_charge:
+        unsafe = sensor_bad or welded or lat[p, i, K_CHG_SHORTED]
+        can_take_charge = m.bat.reported[p, i] and m.bat.present[p, i]
+        if unsafe and can_take_charge and conducts(tp, m, p, i, True):
             charger_off = True  # never charge into a battery we cannot see or cannot block
         if chg_off:
             put_chg(cmd, p, i, False)
@@ -679,7 +651,7 @@ def _output(
         st.isolated[p, i] = isolated
         mask = 0
         for k in range(N_KINDS):
-            if lat[k]:
+            if lat[p, i, k]:
                 mask |= 1 << k
         status[p, i, s0 + ST_FAULTS] = mask
         status[p, i, s0 + ST_ISOLATED] = 1.0 if isolated else 0.0
@@ -692,19 +664,80 @@ def step_pack(
     prm: PlausibilityParams, st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int,
     dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
 ) -> None:  # fmt: skip
-    """One step of pack ``p``: pending service resets, every detector, the pack's bus and load
-    readings, then the reactions as commands and the status channels."""
+    """One step of pack ``p``: pending service resets, every detector of every battery (in the
+    order of :data:`KINDS`), the pack's bus and load readings, then the reactions as commands
+    and the status channels.
+
+    One function on purpose: the named tuples are handed on only on the rare paths (a latch, a
+    clear), so their reference counts are paid once per pack-step, not once per detector.
+    """
     dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
     st.t_s[p] = m.t_s[p]
-    for q in range(st.pend_n[p]):
-        _emit_cleared(ev, p, src, int(st.pend_bat[p, q]), int(st.pend_kind[p, q]),
-                      int(st.pend_field[p, q]), True, st.pend_t[p, q])  # fmt: skip
-    st.pend_n[p] = 0
+    if st.pend_n[p] > 0:
+        _flush_resets(st, p, ev, src)
     n = st.cmd_chg.shape[1]
+    gv = m.bat.group_v
     for i in range(n):
-        _battery(prm, st, tp, m, p, i, dt, ev, src)
-    _advance(prm, st, tp, m, p, n, K_NONFINITE, _pack_finding(m, p),
-             prm.nonfinite_delay_s, True, dt, ev, src)  # fmt: skip
+        if not (m.bat.reported[p, i] and m.bat.present[p, i]):
+            continue  # absent: nothing can be judged, every timer holds
+        cap = capacity_ah(tp, m, p, i)
+        v = m.bat.voltage_v[p, i]
+        cur = m.bat.current_a[p, i]
+        temp = m.bat.temp_c[p, i]
+        tmin = m.bat.min_temp_c[p, i]
+        vmin = m.bat.min_cell_v[p, i]
+        vmax = m.bat.max_cell_v[p, i]
+        soc = m.bat.soc[p, i]
+        n_groups = int(m.bat.n_groups[p, i])
+        # the group voltages the arrays hold (all of them, unless a misbehaving monitor
+        # reported more than the arrays have room for)
+        ng = min(n_groups, gv.shape[2], st.last.shape[2] - T_GROUP0)
+        groups, per_group = int(tp.groups[i]), int(tp.cells_per_group[i])
+        for k in range(N_KINDS):
+            if k == K_NONFINITE:
+                f = _nonfinite(v, cur, temp, vmin, vmax, soc, tmin, gv, p, i, ng)
+                delay = prm.nonfinite_delay_s
+            elif k == K_RANGE:
+                f = _range(prm, groups, per_group, v, cur, temp, tmin, vmin, vmax, soc, gv, p,
+                           i, ng, cap)  # fmt: skip
+                delay = prm.range_delay_s
+            elif k == K_STUCK:
+                f = _stuck(prm, st.last, st.unchanged_s, p, i, v, vmin, vmax, temp, gv, ng,
+                           cur, cap, dt)  # fmt: skip
+                delay = 0.0
+            elif k == K_STALE:
+                f = _stale(prm, m.bat.sample_age_s[p, i])
+                delay = 0.0
+            elif k == K_SUM:
+                f = _sum(prm, groups, n_groups, v, gv, p, i)
+                delay = prm.sum_delay_s
+            elif k == K_COUNT:
+                f = _group_count(groups, n_groups)
+                delay = 0.0
+            else:
+                f = _switch(tp.relay[i], int(st.cmd_chg[p, i]), int(st.cmd_dsg[p, i]),
+                            m.bat.sw_chg[p, i], m.bat.sw_dsg[p, i], k)  # fmt: skip
+                delay = prm.switch_delay_s
+            action, bad_s, ok_s, was_bad = _advance(
+                f[0], st.bad_s[p, i, k], st.ok_s[p, i, k], st.was_bad[p, i, k],
+                st.latched[p, i, k], delay, k < N_SENSOR_KINDS, dt, prm.clear_after_s,
+            )  # fmt: skip
+            st.bad_s[p, i, k] = bad_s
+            st.ok_s[p, i, k] = ok_s
+            st.was_bad[p, i, k] = was_bad
+            if action != HOLD:
+                _act(st, tp, m, p, i, k, f, action, ev, src)
+    f = _pack_finding(m.bus_v[p], m.load_current_a[p])
+    action, bad_s, ok_s, was_bad = _advance(
+        f[0], st.bad_s[p, n, K_NONFINITE], st.ok_s[p, n, K_NONFINITE],
+        st.was_bad[p, n, K_NONFINITE], st.latched[p, n, K_NONFINITE], prm.nonfinite_delay_s,
+        True, dt, prm.clear_after_s,
+    )  # fmt: skip
+    st.bad_s[p, n, K_NONFINITE] = bad_s
+    st.ok_s[p, n, K_NONFINITE] = ok_s
+    st.was_bad[p, n, K_NONFINITE] = was_bad
+    if action != HOLD:
+        _act(st, tp, m, p, n, K_NONFINITE, f, action, ev, src)
     _output(st, tp, m, p, cmd, status, s0)
 
 
