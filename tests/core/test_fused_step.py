@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packpilot.config.limits import LimitsConfig
+from packpilot.config.plausibility import PlausibilityConfig
 from packpilot.config.protection import ProtectionConfig
 from packpilot.config.sequencing import SequencingConfig
 from packpilot.config.soc import SocConfig
@@ -16,6 +17,7 @@ from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core, Part
 from packpilot.control.limits import method_for
+from packpilot.control.plausibility import METHOD as PLAUSIBILITY
 from packpilot.control.protection import METHOD as PROTECTION
 from packpilot.control.sequencing import METHOD as SEQUENCING
 from packpilot.control.soc import METHOD as SOC
@@ -33,6 +35,7 @@ def _core(info: PackInfo) -> Core:
         Part.build(SEQUENCING, SequencingConfig(t_mode=0.3, t_rest=0.5), [info]),
         Part.build(PROTECTION, protection, [info]),
         Part.build(method_for(LimitsConfig()), LimitsConfig(), [info]),
+        Part.build(PLAUSIBILITY, PlausibilityConfig(), [info]),
         Part.build(SOC, SocConfig(rest_time_s=1.0), [info]),
     ]
     return Core([info], parts, SupervisorConfig())

@@ -193,7 +193,7 @@ METHOD_SECTIONS: dict[str, str] = {
 SAFETY_SECTIONS: dict[str, str] = {
     "supervisor": "packpilot.control.supervisor:SupervisorConfig",
     "limits": "packpilot.config.limits:LimitsConfig",
-    "plausibility": "packpilot.control.plausibility:PlausibilityConfig",
+    "plausibility": "packpilot.config.plausibility:PlausibilityConfig",
     "soc": "packpilot.control.soc:SocConfig",
 }
 

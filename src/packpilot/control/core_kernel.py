@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from packpilot.arena import unpack
 from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.limits import rules as limits
+from packpilot.control.plausibility import rules as plausibility
 from packpilot.control.protection import rules as protection
 from packpilot.control.sequencing import rules as sequencing
 from packpilot.control.soc import rules as soc
@@ -47,7 +48,7 @@ METHOD_IDS: dict[str, int] = {
         ("protection", "sequencing", "charging", "equalization", "limits", "plausibility", "soc")
     )
 }
-COMPILED = frozenset({"limits", "protection", "sequencing", "soc"})
+COMPILED = frozenset({"limits", "plausibility", "protection", "sequencing", "soc"})
 """Methods this step knows (a core with any other part steps part by part)."""
 
 
@@ -98,6 +99,12 @@ def core_step(f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, d: Any, dt_s: fl
                 unpack(limits.LimitsState, f, i, h, c, b, lay, sr),
                 tp, m, dt_s, cmd, ev, j, status, s0,
             )  # fmt: skip
+        elif mid == PLAUSIBILITY:
+            plausibility.step_packs(
+                unpack(plausibility.PlausibilityParams, f, i, h, c, b, lay, pr),
+                unpack(plausibility.PlausibilityState, f, i, h, c, b, lay, sr),
+                tp, m, dt_s, cmd, ev, j, status, s0,
+            )  # fmt: skip
         elif mid == SOC:
             soc.step_packs(
                 unpack(soc.SocParams, f, i, h, c, b, lay, pr),
@@ -110,6 +117,14 @@ def core_step(f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, d: Any, dt_s: fl
             unpack(sup.SupState, f, i, h, c, b, lay, d[DIR_SUP_ST]),
             tp, m, dt_s, cmd, ev, 0, n_parts, status, d[DIR_SUP_S0],
         )  # fmt: skip
+    for j in range(n_parts):
+        k = DIR_PARTS + DIR_STRIDE * j
+        if d[k] == PLAUSIBILITY:  # it compares switch feedback with the final commands
+            plausibility.note_commands_packs(
+                unpack(plausibility.PlausibilityParams, f, i, h, c, b, lay, d[k + 1]),
+                unpack(plausibility.PlausibilityState, f, i, h, c, b, lay, d[k + 2]),
+                tp, m, cmd,
+            )  # fmt: skip
     return int(ev.n[0])
 
 

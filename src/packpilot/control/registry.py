@@ -62,7 +62,7 @@ REGISTRY: dict[str, Entry] = {
         Entry("charging", "method", "packpilot.control.charging:ChargingController"),
         Entry("equalization", "method", "packpilot.control.equalization:EqualizationController"),
         Entry("limits", "safety", "packpilot.control.limits:METHOD"),
-        Entry("plausibility", "safety", "packpilot.control.plausibility:PlausibilityMonitor"),
+        Entry("plausibility", "safety", "packpilot.control.plausibility:METHOD"),
         Entry("soc", "safety", "packpilot.control.soc:METHOD"),
     )
 }

@@ -17,7 +17,6 @@ from packpilot.control.limits.controller import (
     LimitsController,
     method_for,
 )
-from packpilot.control.limits.legacy import capacity_ah, conducts, load_section_model
 
 __all__ = [
     "DEFAULT_ROWS",
@@ -30,8 +29,5 @@ __all__ = [
     "LimitRow",
     "LimitsConfig",
     "LimitsController",
-    "capacity_ah",
-    "conducts",
-    "load_section_model",
     "method_for",
 ]

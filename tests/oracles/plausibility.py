@@ -1,4 +1,7 @@
-"""Sensor and switch plausibility: detect lying measurements and failed switches, fail safe.
+"""ORACLE: the scalar plausibility monitor as it was before the compiled core (tests only;
+deleted once the golden and equivalence tests pass).
+
+Sensor and switch plausibility: detect lying measurements and failed switches, fail safe.
 
 Limits and method controllers trust the numbers they get; this monitor decides whether those
 numbers (and the switches) can be trusted. Per battery it detects
@@ -28,23 +31,21 @@ callback keeps the monitor a closed state machine that a log replay can feed as 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
-
-from packpilot.control.limits import capacity_ah, conducts, load_section_model
-from packpilot.control.types import (
-    CHARGER_OFF,
+from packpilot.config.plausibility import PlausibilityConfig
+from packpilot.contract.bms import (
     BatteryMeasurement,
     Commands,
     ControlOutput,
     Event,
     Measurements,
-    PackInfo,
     SwitchKind,
 )
+from packpilot.contract.charger import CHARGER_OFF
+from packpilot.contract.topology import PackInfo
 
 EPS = 1e-9
 
@@ -73,6 +74,32 @@ def _finite(x: object) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
 
 
+def capacity_ah(pack: PackInfo, i: int, bm: BatteryMeasurement | None) -> float:
+    """Nominal capacity from the pack facts, else the battery's reported full capacity, else NaN.
+    (Was ``packpilot.control.limits.capacity_ah``; copied so the oracle stands alone.)"""
+
+    def fin(x: float) -> bool:  # limits' _finite (a bool counts as a number there)
+        return isinstance(x, int | float) and math.isfinite(x)
+
+    if i < len(pack.capacity_ah) and fin(pack.capacity_ah[i]) and pack.capacity_ah[i] > 0:
+        return float(pack.capacity_ah[i])
+    if bm is not None and fin(bm.full_capacity_ah) and bm.full_capacity_ah > 0:
+        return float(bm.full_capacity_ah)
+    return math.nan
+
+
+def conducts(
+    pack: PackInfo, i: int, bm: BatteryMeasurement, path: Literal["charge", "discharge"]
+) -> bool:
+    """Switch feedback says the battery can carry current in ``path``'s direction.
+    (Was ``packpilot.control.limits.conducts``; copied so the oracle stands alone.)"""
+    sw = bm.switch
+    kind = pack.switch_kind[i] if i < len(pack.switch_kind) else SwitchKind.RELAY
+    if kind == SwitchKind.RELAY:
+        return sw.relay_closed
+    return sw.chg_on if path == "charge" else sw.dsg_on
+
+
 def _show(x: object) -> Value:
     """A JSON-safe event value: finite numbers as numbers, NaN / inf as text."""
     if isinstance(x, bool | str) or x is None:
@@ -80,99 +107,6 @@ def _show(x: object) -> Value:
     if isinstance(x, int | float):
         return float(x) if math.isfinite(x) else str(x)
     return str(x)
-
-
-class PlausibilityConfig(BaseModel):
-    """Thresholds and delays of the plausibility checks (defaults: Li-ion, see docs/safety.md)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    cell_v_range: tuple[float, float] = Field(
-        default=(0.5, 5.0),
-        description="Plausible cell voltage (V); groups and batteries scale it by their series "
-        "cells. Below: a broken sense wire; above: impossible for Li-ion.",
-    )
-    temp_range_c: tuple[float, float] = Field(
-        default=(-40.0, 125.0), description="Plausible temperature (degC): NTC open / short."
-    )
-    current_range_c: tuple[float, float] = Field(
-        default=(-60.0, 120.0),
-        description="Plausible battery current in C (positive = discharge): sensor saturation.",
-    )
-    soc_range: tuple[float, float] = Field(
-        default=(-0.1, 1.1), description="Plausible reported SOC (0..1 with a margin)."
-    )
-    nonfinite_delay_s: float = Field(
-        default=0.5, description="A NaN / inf must persist this long to be a fault (s)."
-    )
-    range_delay_s: float = Field(
-        default=0.5, description="An out-of-range value must persist this long (s)."
-    )
-    stuck_time_s: float | None = Field(
-        default=60.0,
-        description="A voltage unchanged this long under current is stuck (s; None = off).",
-    )
-    stuck_temp_time_s: float | None = Field(
-        default=900.0,
-        description="A temperature unchanged this long under current is stuck (s; None = off). "
-        "Long, because a quantised sensor at thermal equilibrium may legitimately not move.",
-    )
-    stuck_current_c: float = Field(
-        default=0.5,
-        description="Battery current (C, either sign) above which its voltages must move.",
-    )
-    max_sample_age_s: float = Field(
-        default=2.0,
-        description="Stale when a measurement's sample_age_s exceeds this (s), if reported.",
-    )
-    sum_tolerance_v_per_group: float = Field(
-        default=0.05,
-        description="Allowed |battery V - sum of group V| per series group (V): sense-wire and "
-        "interconnect drops.",
-    )
-    sum_delay_s: float = Field(default=1.0, description="A sum mismatch must persist (s).")
-    switch_delay_s: float = Field(
-        default=0.5,
-        description="Switch feedback may lag its command this long before it is a fault (s): "
-        "relay bounce and actuation time, one control period.",
-    )
-    clear_after_s: float = Field(
-        default=5.0,
-        description="A latched sensor fault clears after this long of plausible data (s).",
-    )
-
-    @model_validator(mode="after")
-    def _check(self) -> PlausibilityConfig:
-        for name in ("cell_v_range", "temp_range_c", "current_range_c", "soc_range"):
-            lo, hi = getattr(self, name)
-            if not (_finite(lo) and _finite(hi) and lo < hi):
-                raise ValueError(f"{name} must be (low, high) finite with low < high, got {lo, hi}")
-        for name in (
-            "nonfinite_delay_s",
-            "range_delay_s",
-            "stuck_time_s",
-            "stuck_temp_time_s",
-            "stuck_current_c",
-            "max_sample_age_s",
-            "sum_tolerance_v_per_group",
-            "sum_delay_s",
-            "switch_delay_s",
-            "clear_after_s",
-        ):
-            v = getattr(self, name)
-            if name in ("stuck_time_s", "stuck_temp_time_s"):
-                if v is not None and not (_finite(v) and v > 0.0):
-                    raise ValueError(f"{name} must be > 0 s, or omitted to switch it off; got {v}")
-                continue
-            if not (_finite(v) and v >= 0.0):
-                raise ValueError(f"{name} must be a finite value >= 0, got {v}")
-        return self
-
-    @classmethod
-    def load(
-        cls, data: Mapping[str, Any] | None, source: str = "<plausibility>"
-    ) -> PlausibilityConfig:
-        return load_section_model(cls, data, "plausibility", source)
 
 
 @dataclass(slots=True)

@@ -1,0 +1,111 @@
+"""``[plausibility]``: thresholds and delays of the sensor and switch plausibility monitor."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from packpilot.config.base import load_section_model
+
+
+def _finite(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+class PlausibilityConfig(BaseModel):
+    """Thresholds and delays of the plausibility checks (defaults: Li-ion, see docs/safety.md)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    cell_v_range: tuple[float, float] = Field(
+        default=(0.5, 5.0),
+        description="Plausible cell voltage (V); groups and batteries scale it by their series "
+        "cells. Below: a broken sense wire; above: impossible for Li-ion.",
+    )
+    temp_range_c: tuple[float, float] = Field(
+        default=(-40.0, 125.0), description="Plausible temperature (degC): NTC open / short."
+    )
+    current_range_c: tuple[float, float] = Field(
+        default=(-60.0, 120.0),
+        description="Plausible battery current in C (positive = discharge): sensor saturation.",
+    )
+    soc_range: tuple[float, float] = Field(
+        default=(-0.1, 1.1), description="Plausible reported SOC (0..1 with a margin)."
+    )
+    nonfinite_delay_s: float = Field(
+        default=0.5, description="A NaN / inf must persist this long to be a fault (s)."
+    )
+    range_delay_s: float = Field(
+        default=0.5, description="An out-of-range value must persist this long (s)."
+    )
+    stuck_time_s: float | None = Field(
+        default=60.0,
+        description="A voltage unchanged this long under current is stuck (s; None = off).",
+    )
+    stuck_temp_time_s: float | None = Field(
+        default=900.0,
+        description="A temperature unchanged this long under current is stuck (s; None = off). "
+        "Long, because a quantised sensor at thermal equilibrium may legitimately not move.",
+    )
+    stuck_current_c: float = Field(
+        default=0.5,
+        description="Battery current (C, either sign) above which its voltages must move.",
+    )
+    max_sample_age_s: float = Field(
+        default=2.0,
+        description="Stale when a measurement's sample_age_s exceeds this (s), if reported.",
+    )
+    sum_tolerance_v_per_group: float = Field(
+        default=0.05,
+        description="Allowed |battery V - sum of group V| per series group (V): sense-wire and "
+        "interconnect drops.",
+    )
+    sum_delay_s: float = Field(default=1.0, description="A sum mismatch must persist (s).")
+    switch_delay_s: float = Field(
+        default=0.5,
+        description="Switch feedback may lag its command this long before it is a fault (s): "
+        "relay bounce and actuation time, one control period.",
+    )
+    clear_after_s: float = Field(
+        default=5.0,
+        description="A latched sensor fault clears after this long of plausible data (s).",
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> PlausibilityConfig:
+        for name in ("cell_v_range", "temp_range_c", "current_range_c", "soc_range"):
+            lo, hi = getattr(self, name)
+            if not (_finite(lo) and _finite(hi) and lo < hi):
+                raise ValueError(f"{name} must be (low, high) finite with low < high, got {lo, hi}")
+        for name in (
+            "nonfinite_delay_s",
+            "range_delay_s",
+            "stuck_time_s",
+            "stuck_temp_time_s",
+            "stuck_current_c",
+            "max_sample_age_s",
+            "sum_tolerance_v_per_group",
+            "sum_delay_s",
+            "switch_delay_s",
+            "clear_after_s",
+        ):
+            v = getattr(self, name)
+            if name in ("stuck_time_s", "stuck_temp_time_s"):
+                if v is not None and not (_finite(v) and v > 0.0):
+                    raise ValueError(f"{name} must be > 0 s, or omitted to switch it off; got {v}")
+                continue
+            if not (_finite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be a finite value >= 0, got {v}")
+        return self
+
+    @classmethod
+    def load(
+        cls, data: Mapping[str, Any] | None, source: str = "<plausibility>"
+    ) -> PlausibilityConfig:
+        return load_section_model(cls, data, "plausibility", source)
+
+
+__all__ = ["PlausibilityConfig"]
