@@ -37,7 +37,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.contract.arrays import BatteryArrays, CmdArrays, EventBuf, MeasArrays, PackArrays
+from packpilot.contract.arrays import CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.commands import (
     emit,
     fmax,
@@ -285,24 +285,6 @@ def cluster(vals: F64, keys: I64, count: int, eps_v: float, order: I64, level: I
 
 
 @kernel
-def _finite_battery(a: BatteryArrays, p: int, i: int) -> bool:
-    """``BatteryMeasurement.is_finite``: the core readings and the group voltages."""
-    if not (
-        math.isfinite(a.voltage_v[p, i])
-        and math.isfinite(a.current_a[p, i])
-        and math.isfinite(a.temp_c[p, i])
-        and math.isfinite(a.min_cell_v[p, i])
-        and math.isfinite(a.max_cell_v[p, i])
-        and math.isfinite(a.soc[p, i])
-    ):
-        return False
-    ok = True
-    for g in range(min(a.n_groups[p, i], a.group_v.shape[2])):
-        ok = ok and math.isfinite(a.group_v[p, i, g])
-    return ok
-
-
-@kernel
 def _mask(row: B1) -> float:
     """A bool row as the bit mask of an ``m`` field."""
     bits = 0
@@ -326,199 +308,10 @@ def _target_v(stage: int, cmd_v: float, vr1_v: float, vt_v: float, vr2_v: float)
     return math.nan
 
 
-# ------------------------------------------------------------------------------ the rules
-
-
-@kernel
-def _validity(st: ChargingState, m: MeasArrays, p: int, ev: EventBuf, src: int) -> None:
-    """A present battery with a non-finite reading is left out (``Fault`` once)."""
-    for i in range(st.valid.shape[1]):
-        here = m.bat.reported[p, i] and m.bat.present[p, i]
-        ok = here and _finite_battery(m.bat, p, i)
-        st.valid[p, i] = ok
-        bad = here and not ok
-        if bad and not st.invalid[p, i]:
-            k = emit(ev, p, src, INVALID_MEASUREMENT, i, m.t_s[p])
-            ev.val[k, 0] = TXT_INVALID
-        st.invalid[p, i] = bad
-
-
-@kernel
-def _settle(prm: ChargingParams, st: ChargingState, p: int, i: int, v: float, cur: float) -> None:
-    """The settled R of a followed step (see :func:`_update_resistance`)."""
-    i0, i1 = st.ref_i0[p, i], st.ref_i1[p, i]
-    if abs(cur - i1) > fmax(0.1 * abs(i1 - i0), 0.5 * prm.r_est_min_step_a):
-        st.ref_on[p, i] = False  # the current moved on: no clean settled response
-        return
-    elapsed = st.clock_s[p] - st.ref_t1[p, i]
-    if math.isnan(st.ref_v_mid[p, i]):
-        if elapsed >= prm.r_settle_s:
-            st.ref_v_mid[p, i] = v
-        return
-    if elapsed < 2.0 * prm.r_settle_s:
-        return
-    st.ref_on[p, i] = False
-    v_mid, r_step = st.ref_v_mid[p, i], st.ref_r_step[p, i]
-    r_new = -((v_mid - st.ref_v0[p, i]) - (v - v_mid)) / (i1 - i0)
-    if r_step <= r_new <= fmin(prm.r_settle_max_ratio * r_step, prm.r_comp_max_ohm):
-        gain = prm.r_est_gain if st.r_kind[p, i] == 2 else 1.0
-        st.r_ohm[p, i] += gain * (r_new - st.r_ohm[p, i])
-        st.r_kind[p, i] = 2
-
-
-@kernel
-def _update_resistance(prm: ChargingParams, st: ChargingState, m: MeasArrays, p: int) -> None:
-    """Learn each battery's R from current steps (V = OCV − I·R, I positive = discharge).
-
-    Two estimates of ``R = −ΔV/ΔI``. Across the step itself (one period): mostly the
-    ohmic R0, available at once. Settled: if the current then holds steady for two windows
-    of ``r_settle_s``, ``R = −(V(T) − V(0) − (V(2T) − V(T))) / ΔI`` — the voltage change to
-    the end of the first window includes the RC polarization (what separates a charging
-    battery's terminal voltage from its rest voltage) plus the OCV drift of the charge
-    delivered meanwhile, and the second window, with the polarization nearly settled,
-    measures that drift. The settled value is accepted only within
-    ``[1, r_settle_max_ratio] ×`` the step value and, once known, is the one used.
-    """
-    for i in range(st.valid.shape[1]):
-        if not st.valid[p, i]:
-            st.prev_v[p, i] = math.nan
-            st.prev_i[p, i] = math.nan
-            st.ref_on[p, i] = False
-            continue
-        v, cur = m.bat.voltage_v[p, i], m.bat.current_a[p, i]
-        di = cur - st.prev_i[p, i]
-        if prm.r_comp_adapt and math.isfinite(di) and abs(di) >= prm.r_est_min_step_a:
-            r_step = -(v - st.prev_v[p, i]) / di
-            if 0.0 <= r_step <= prm.r_comp_max_ohm:
-                if st.r_kind[p, i] < 2:
-                    gain = prm.r_est_gain if st.r_kind[p, i] == 1 else 1.0  # first: take it
-                    st.r_ohm[p, i] += gain * (r_step - st.r_ohm[p, i])
-                    st.r_kind[p, i] = 1
-                st.ref_on[p, i] = True
-                st.ref_v0[p, i] = st.prev_v[p, i]
-                st.ref_i0[p, i] = st.prev_i[p, i]
-                st.ref_i1[p, i] = cur
-                st.ref_t1[p, i] = st.clock_s[p]
-                st.ref_r_step[p, i] = r_step
-                st.ref_v_mid[p, i] = math.nan
-            else:
-                st.ref_on[p, i] = False
-        if prm.r_comp_adapt and prm.r_settle_s > 0.0 and st.ref_on[p, i]:
-            _settle(prm, st, p, i, v, cur)
-        st.prev_v[p, i] = v
-        st.prev_i[p, i] = cur
-
-
-@kernel
-def _r_for_compensation(prm: ChargingParams, st: ChargingState, p: int) -> None:
-    """Own estimate once learned; before that the mean of the learned ones (batteries of
-    one pack are alike), else ``r_comp_initial_ohm``. A battery that joins a running group
-    may see too small a current step to learn from, yet already carries current."""
-    n = st.r_kind.shape[1]
-    best = st.r_kind[p, 0]
-    for i in range(1, n):
-        if st.r_kind[p, i] > best:
-            best = st.r_kind[p, i]
-    total = 0.0
-    count = 0
-    for i in range(n):
-        if st.r_kind[p, i] == best and best > 0:
-            total += st.r_ohm[p, i]
-            count += 1
-    fallback = total / count if count > 0 else prm.r_comp_initial_ohm
-    for i in range(n):
-        if st.r_kind[p, i] == best and best > 0:
-            st.r_use[p, i] = st.r_ohm[p, i]
-        else:
-            st.r_use[p, i] = fallback
-
-
-@kernel
-def _aux(
-    prm: ChargingParams, st: ChargingState, tp: PackArrays, m: MeasArrays, p: int,
-    ev: EventBuf, src: int,
-) -> tuple[int, float]:  # fmt: skip
-    """Independent aux channel: charge below the floor always, to the target when docked.
-    Returns the relay opinion (-1 none, 0 open, 1 closed) and the DC/DC current (NaN: none)."""
-    if not tp.has_aux or not m.has_aux[p]:
-        return -1, math.nan
-    if not _finite_battery(m.aux, p, 0):
-        if not st.aux_invalid[p]:
-            k = emit(ev, p, src, AUX_INVALID, -1, m.t_s[p])
-            ev.val[k, 0] = TXT_AUX_INVALID
-        st.aux_invalid[p] = True
-        st.aux_charging[p] = False
-        return 0, 0.0
-    st.aux_invalid[p] = False
-    docked = m.docked[p]
-    soc = m.aux.soc[p, 0]
-    if docked:
-        stop_at = prm.aux_soc_target
-        start_below = prm.aux_soc_target - prm.aux_soc_hysteresis
-    else:
-        stop_at = prm.aux_soc_floor + prm.aux_soc_hysteresis
-        start_below = prm.aux_soc_floor
-    if st.aux_charging[p]:
-        st.aux_charging[p] = soc < stop_at
-    else:
-        st.aux_charging[p] = soc < start_below or soc < prm.aux_soc_floor
-    if not st.aux_charging[p]:
-        return 0, 0.0
-    taper = fmin(1.0, fmax(0.0, (prm.aux_cv_v - m.aux.voltage_v[p, 0]) / prm.aux_cv_band_v))
-    return 1, prm.aux_charge_current_a * taper
-
-
-@kernel
-def _charger_health(
-    prm: ChargingParams, st: ChargingState, m: MeasArrays, p: int, dt: float
-) -> int:
-    """``WHY_NONE`` when the charger is usable, else why not."""
-    if not m.charger.reported[p]:
-        st.no_status_s[p] += dt
-        if st.no_status_s[p] >= prm.charger_status_timeout_s:
-            return WHY_LOST
-        return WHY_NONE
-    st.no_status_s[p] = 0.0
-    if not m.charger.online[p]:
-        return WHY_OFFLINE
-    bits = 0
-    for k in range(m.charger.flags.shape[1]):
-        if m.charger.flags[p, k]:
-            bits |= 1 << k
-    return WHY_FLAGS + bits if bits else WHY_NONE
-
-
-@kernel
-def _battery_limits(prm: ChargingParams, st: ChargingState, m: MeasArrays, p: int,
-                    ev: EventBuf, src: int) -> None:  # fmt: skip
-    """Latch out batteries that are full, hit the cell limit or are over-voltage."""
-    for i in range(st.valid.shape[1]):
-        if not st.valid[p, i] or st.done[p, i] != DONE_NONE:
-            continue
-        v, cur, cell = m.bat.voltage_v[p, i], m.bat.current_a[p, i], m.bat.max_cell_v[p, i]
-        reason = DONE_NONE
-        if cell >= prm.cell_v_limit_v:
-            reason = DONE_CELL_LIMIT
-        elif v >= prm.v_sat + prm.overvoltage_margin:
-            reason = DONE_OVERVOLTAGE
-        elif v >= prm.v_sat - prm.reach_tol and -cur <= prm.termination_current_a:
-            reason = DONE_FULL
-        if reason == DONE_NONE:
-            continue
-        st.done[p, i] = reason
-        code = BATTERY_OVERVOLTAGE if reason == DONE_OVERVOLTAGE else BATTERY_FULL
-        k = emit(ev, p, src, code, i, m.t_s[p])
-        ev.val[k, 0] = reason
-        ev.val[k, 1] = v
-        ev.val[k, 2] = cur
-        ev.val[k, 3] = cell
-
-
-@kernel
-def _clear_new(st: ChargingState, p: int) -> None:
-    st.new_members[p].fill(False)
-    st.new_first[p].fill(False)
-    st.new_second[p].fill(False)
+# ------------------------------------------------------------------------------ plans
+# A call that passes the state (or the measurements) costs about a microsecond of reference
+# counting, so the per-period rules are written inline in ``step_pack``; what only runs when
+# the plan changes (decide afresh, latch, report) is in functions.
 
 
 @kernel
@@ -563,56 +356,20 @@ def _set_simple(
     st: ChargingState, p: int, stage: int, why: int, ev: EventBuf, src: int, t_s: float
 ) -> None:
     """Latch a plan that connects nothing (idle, rest, hold, complete, fault)."""
-    _clear_new(st, p)
+    st.new_members[p].fill(False)
+    st.new_first[p].fill(False)
+    st.new_second[p].fill(False)
     _set_plan(st, p, stage, math.nan, math.nan, math.nan, math.nan, why, ev, src, t_s)
 
 
 @kernel
-def _keep(prm: ChargingParams, st: ChargingState, p: int) -> bool:
-    """The latched plan holds while its exit condition is unmet."""
-    stage = st.stage[p]
-    if stage != S20 and stage != S30 and stage != S40 and stage != TOP_OFF:
-        return False
-    n = st.elig.shape[1]
-    est = st.est[p]
-    if stage == TOP_OFF:
-        lo = math.nan
-        hi = math.nan
-        first = True
-        for i in range(n):
-            if st.elig[p, i]:
-                if first:
-                    lo = est[i]
-                    hi = est[i]
-                    first = False
-                else:
-                    hi = fmax(hi, est[i])
-                    lo = fmin(lo, est[i])
-        return bool(hi - lo <= prm.delta_v1)
-    lo = math.nan
-    hi = math.nan
-    first = True
-    for i in range(n):
-        if st.members[p, i]:
-            if not st.elig[p, i]:
-                return False  # a connected battery dropped out
-            if first:
-                lo = est[i]
-                hi = est[i]
-                first = False
-            else:
-                lo = fmin(lo, est[i])
-                hi = fmax(hi, est[i])
-    for i in range(n):
-        if st.elig[p, i] and not st.members[p, i] and est[i] <= hi + prm.eps_eq:
-            return False  # another battery is now at or below the connected level: regroup
-    if stage == S20:
-        return bool(lo < st.vr1_v[p])
-    if stage == S30:
-        merged = hi - lo <= prm.eps_eq
-        reached = lo >= st.vt_v[p] - prm.reach_tol
-        return not (merged or reached)
-    return bool(lo < st.vr2_v[p] - prm.reach_tol and hi - lo <= prm.delta_v1)  # S40
+def _set_top_off(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: int,
+                 t_s: float) -> None:  # fmt: skip
+    """Latch a kept top-off: every eligible battery, no first / second, at V_sat."""
+    st.new_members[p, :] = st.elig[p]
+    st.new_first[p].fill(False)
+    st.new_second[p].fill(False)
+    _set_plan(st, p, TOP_OFF, prm.v_sat, math.nan, math.nan, math.nan, WHY_NONE, ev, src, t_s)
 
 
 @kernel
@@ -629,7 +386,9 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
             count += 1
     order, level, idx = st.order[p], st.level[p], st.sort_i[p]
     n_levels = cluster(st.sort_v[p], idx, count, prm.eps_eq, order, level)
-    _clear_new(st, p)
+    st.new_members[p].fill(False)
+    st.new_first[p].fill(False)
+    st.new_second[p].fill(False)
     if n_levels == 1:
         vp = math.nan
         for k in range(count):
@@ -665,8 +424,7 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
             vt = est[i]  # the lowest of the third level (first in sorted order)
     vr1 = v2 - prm.d1
     if v1 < vr1:
-        for i in range(n):
-            st.new_members[p, i] = st.new_first[p, i]
+        st.new_members[p, :] = st.new_first[p]
         cmd_v = fmin(prm.v_sat, vr1 + prm.k1)
         _set_plan(st, p, S20, cmd_v, vr1, math.nan, math.nan, WHY_NONE, ev, src, t_s)
         return
@@ -678,46 +436,336 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
 
 
 @kernel
-def _decide(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: int,
-            t_s: float) -> None:  # fmt: skip
-    """Keep the latched plan while its exit condition is unmet, else decide afresh."""
-    n = st.elig.shape[1]
-    any_elig = False
-    any_done = False
-    for i in range(n):
-        any_elig = any_elig or st.elig[p, i]
-        any_done = any_done or st.done[p, i] != DONE_NONE
-    if not any_elig:
-        _set_simple(st, p, COMPLETE if any_done else HOLD, WHY_NONE, ev, src, t_s)
-        return
-    if _keep(prm, st, p):
-        if st.stage[p] == TOP_OFF:  # top-off follows the eligible set, no first / second
-            _clear_new(st, p)
-            for i in range(n):
-                st.new_members[p, i] = st.elig[p, i]
-            _set_plan(st, p, TOP_OFF, prm.v_sat, math.nan, math.nan, math.nan, WHY_NONE, ev,
-                      src, t_s)  # fmt: skip
-        return
-    _fresh(prm, st, p, ev, src, t_s)
+def _charger_event(m: MeasArrays, p: int, fault: int, ev: EventBuf, src: int) -> None:
+    """``Fault`` "charger: ...", with the charger's status (or none)."""
+    c = m.charger
+    if c.reported[p]:
+        k = emit(ev, p, src, CHARGER_FAULT, -1, m.t_s[p])
+        ev.val[k, 0] = fault
+        ev.val[k, 1] = 1.0 if c.online[p] else 0.0
+        ev.val[k, 2] = c.output_v[p]
+        ev.val[k, 3] = c.output_a[p]
+        for j in range(c.flags.shape[1]):
+            ev.val[k, 4 + j] = 1.0 if c.flags[p, j] else 0.0
+    else:
+        k = emit(ev, p, src, CHARGER_LOST, -1, m.t_s[p])
+        ev.val[k, 0] = fault
+        ev.val[k, 1] = TXT_NONE
+
+
+# ------------------------------------------------------------------------------ the period
 
 
 @kernel
-def _reset_session(st: ChargingState, p: int) -> None:
-    st.done[p].fill(DONE_NONE)
-    st.no_status_s[p] = 0.0
-    st.fault_clear_s[p] = 0.0
-    st.charger_fault[p] = WHY_NONE
-    st.session_s[p] = 0.0
-    st.rested[p] = False
-
-
-@kernel
-def _output(
-    prm: ChargingParams, st: ChargingState, p: int, relays: int, ch_v: float, ch_a: float,
-    ch_on: bool, aux_relay: int, aux_a: float, cmd: CmdArrays, status: F64, s0: int,
+def step_pack(
+    prm: ChargingParams, st: ChargingState, tp: PackArrays, m: MeasArrays, p: int, dt_s: float,
+    cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
 ) -> None:  # fmt: skip
-    """The step's opinions (relay paths, charger, aux) and the status channels."""
-    n = st.members.shape[1]
+    """One control period of pack ``p``. Never raises on bad measurements: a battery with a
+    non-finite reading is left out of the sort with its relay open (``Fault`` once); charger
+    faults stop the charger and open every relay until the charger has reported healthy for
+    ``charger_fault_clear_s``."""
+    dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
+    t = m.t_s[p]
+    n = st.valid.shape[1]
+    bat = m.bat
+    volt, amps = bat.voltage_v[p], bat.current_a[p]
+    valid, est, r_use = st.valid[p], st.est[p], st.r_use[p]
+
+    # -- validity: a present battery with a non-finite reading is left out (Fault once)
+    for i in range(n):
+        here = bat.reported[p, i] and bat.present[p, i]
+        ok = (
+            here
+            and math.isfinite(volt[i])
+            and math.isfinite(amps[i])
+            and math.isfinite(bat.temp_c[p, i])
+            and math.isfinite(bat.min_cell_v[p, i])
+            and math.isfinite(bat.max_cell_v[p, i])
+            and math.isfinite(bat.soc[p, i])
+        )
+        for g in range(min(bat.n_groups[p, i], bat.group_v.shape[2])):
+            ok = ok and math.isfinite(bat.group_v[p, i, g])
+        valid[i] = ok
+        bad = here and not ok
+        if bad and not st.invalid[p, i]:
+            k = emit(ev, p, src, INVALID_MEASUREMENT, i, t)
+            ev.val[k, 0] = TXT_INVALID
+        st.invalid[p, i] = bad
+    st.clock_s[p] += dt
+
+    # -- resistance from current steps (V = OCV − I·R, I positive = discharge). Two
+    # estimates of R = −ΔV/ΔI. Across the step itself (one period): mostly the ohmic R0,
+    # available at once. Settled: if the current then holds steady for two windows of
+    # r_settle_s, R = −(V(T) − V(0) − (V(2T) − V(T))) / ΔI — the voltage change to the end
+    # of the first window includes the RC polarization (what separates a charging battery's
+    # terminal voltage from its rest voltage) plus the OCV drift of the charge delivered
+    # meanwhile, and the second window, with the polarization nearly settled, measures that
+    # drift. The settled value is accepted only within [1, r_settle_max_ratio] × the step
+    # value and, once known, is the one used.
+    r_ohm, r_kind = st.r_ohm[p], st.r_kind[p]
+    for i in range(n):
+        if not valid[i]:
+            st.prev_v[p, i] = math.nan
+            st.prev_i[p, i] = math.nan
+            st.ref_on[p, i] = False
+            continue
+        v, cur = volt[i], amps[i]
+        di = cur - st.prev_i[p, i]
+        if prm.r_comp_adapt and math.isfinite(di) and abs(di) >= prm.r_est_min_step_a:
+            r_step = -(v - st.prev_v[p, i]) / di
+            if 0.0 <= r_step <= prm.r_comp_max_ohm:
+                if r_kind[i] < 2:
+                    gain = prm.r_est_gain if r_kind[i] == 1 else 1.0  # first: take it
+                    r_ohm[i] += gain * (r_step - r_ohm[i])
+                    r_kind[i] = 1
+                st.ref_on[p, i] = True
+                st.ref_v0[p, i] = st.prev_v[p, i]
+                st.ref_i0[p, i] = st.prev_i[p, i]
+                st.ref_i1[p, i] = cur
+                st.ref_t1[p, i] = st.clock_s[p]
+                st.ref_r_step[p, i] = r_step
+                st.ref_v_mid[p, i] = math.nan
+            else:
+                st.ref_on[p, i] = False
+        if prm.r_comp_adapt and prm.r_settle_s > 0.0 and st.ref_on[p, i]:
+            i0, i1 = st.ref_i0[p, i], st.ref_i1[p, i]
+            elapsed = st.clock_s[p] - st.ref_t1[p, i]
+            if abs(cur - i1) > fmax(0.1 * abs(i1 - i0), 0.5 * prm.r_est_min_step_a):
+                st.ref_on[p, i] = False  # the current moved on: no clean settled response
+            elif math.isnan(st.ref_v_mid[p, i]):
+                if elapsed >= prm.r_settle_s:
+                    st.ref_v_mid[p, i] = v
+            elif elapsed >= 2.0 * prm.r_settle_s:
+                st.ref_on[p, i] = False
+                v_mid, r_step = st.ref_v_mid[p, i], st.ref_r_step[p, i]
+                r_new = -((v_mid - st.ref_v0[p, i]) - (v - v_mid)) / (i1 - i0)
+                if r_step <= r_new <= fmin(prm.r_settle_max_ratio * r_step, prm.r_comp_max_ohm):
+                    gain = prm.r_est_gain if r_kind[i] == 2 else 1.0
+                    r_ohm[i] += gain * (r_new - r_ohm[i])
+                    r_kind[i] = 2
+        st.prev_v[p, i] = v
+        st.prev_i[p, i] = cur
+
+    # -- R for the compensation: own estimate once learned; before that the mean of the
+    # learned ones (batteries of one pack are alike), else r_comp_initial_ohm. A battery
+    # that joins a running group may see too small a current step to learn from, yet
+    # already carries current.
+    best = r_kind[0]
+    for i in range(1, n):
+        if r_kind[i] > best:
+            best = r_kind[i]
+    total = 0.0
+    count = 0
+    for i in range(n):
+        if r_kind[i] == best and best > 0:
+            total += r_ohm[i]
+            count += 1
+    fallback = total / count if count > 0 else prm.r_comp_initial_ohm
+    for i in range(n):
+        r_use[i] = r_ohm[i] if r_kind[i] == best and best > 0 else fallback
+        est[i] = volt[i] + amps[i] * r_use[i] if valid[i] else math.nan
+
+    # -- aux: an independent channel, charged below the floor always, to the target when
+    # docked (relay -1: no opinion)
+    aux_relay = -1
+    aux_a = math.nan
+    if tp.has_aux and m.has_aux[p]:
+        a = m.aux
+        aux_ok = (
+            math.isfinite(a.voltage_v[p, 0])
+            and math.isfinite(a.current_a[p, 0])
+            and math.isfinite(a.temp_c[p, 0])
+            and math.isfinite(a.min_cell_v[p, 0])
+            and math.isfinite(a.max_cell_v[p, 0])
+            and math.isfinite(a.soc[p, 0])
+        )
+        for g in range(min(a.n_groups[p, 0], a.group_v.shape[2])):
+            aux_ok = aux_ok and math.isfinite(a.group_v[p, 0, g])
+        if not aux_ok:
+            if not st.aux_invalid[p]:
+                k = emit(ev, p, src, AUX_INVALID, -1, t)
+                ev.val[k, 0] = TXT_AUX_INVALID
+            st.aux_invalid[p] = True
+            st.aux_charging[p] = False
+            aux_relay, aux_a = 0, 0.0
+        else:
+            st.aux_invalid[p] = False
+            soc = a.soc[p, 0]
+            if m.docked[p]:
+                stop_at = prm.aux_soc_target
+                start_below = prm.aux_soc_target - prm.aux_soc_hysteresis
+            else:
+                stop_at = prm.aux_soc_floor + prm.aux_soc_hysteresis
+                start_below = prm.aux_soc_floor
+            if st.aux_charging[p]:
+                st.aux_charging[p] = soc < stop_at
+            else:
+                st.aux_charging[p] = soc < start_below or soc < prm.aux_soc_floor
+            if st.aux_charging[p]:
+                taper = fmin(1.0, fmax(0.0, (prm.aux_cv_v - a.voltage_v[p, 0]) / prm.aux_cv_band_v))
+                aux_relay, aux_a = 1, prm.aux_charge_current_a * taper
+            else:
+                aux_relay, aux_a = 0, 0.0
+
+    # -- the traction decision: relays (-1: no opinion, 0: all open, 1: the plan's members)
+    # and the charger setpoint
+    relays = RELAYS_OPEN
+    ch_v, ch_a, ch_on = 0.0, 0.0, False
+    if not m.docked[p]:
+        if st.stage[p] != IDLE:
+            _set_simple(st, p, IDLE, WHY_UNDOCKED, ev, src, t)
+        st.done[p].fill(DONE_NONE)  # the session ends
+        st.no_status_s[p] = 0.0
+        st.fault_clear_s[p] = 0.0
+        st.charger_fault[p] = WHY_NONE
+        st.session_s[p] = 0.0
+        st.rested[p] = False
+        relays = RELAYS_NONE
+    else:
+        if st.stage[p] != IDLE:
+            st.session_s[p] += dt  # the first docked period starts the session clock at 0
+        # charger health: WHY_NONE when usable, else why not
+        fault = WHY_NONE
+        if not m.charger.reported[p]:
+            st.no_status_s[p] += dt
+            if st.no_status_s[p] >= prm.charger_status_timeout_s:
+                fault = WHY_LOST
+        else:
+            st.no_status_s[p] = 0.0
+            if not m.charger.online[p]:
+                fault = WHY_OFFLINE
+            else:
+                bits = 0
+                for j in range(m.charger.flags.shape[1]):
+                    if m.charger.flags[p, j]:
+                        bits |= 1 << j
+                if bits:
+                    fault = WHY_FLAGS + bits
+        go = True  # on to the traction decision
+        complete = False  # charging complete: the dock only feeds the aux DC/DC
+        if fault != WHY_NONE:
+            if st.stage[p] != FAULT or fault != st.charger_fault[p]:
+                _charger_event(m, p, fault, ev, src)
+            st.charger_fault[p] = fault
+            st.fault_clear_s[p] = 0.0
+            if st.stage[p] != FAULT:
+                _set_simple(st, p, FAULT, fault, ev, src, t)
+            go = False
+        elif st.stage[p] == FAULT:
+            st.fault_clear_s[p] += dt
+            if st.fault_clear_s[p] < prm.charger_fault_clear_s:
+                go = False
+            else:
+                st.charger_fault[p] = WHY_NONE  # the fresh decision is reported as a change
+        if go and st.stage[p] == COMPLETE:
+            go = False
+            complete = True
+        if go and not st.rested[p]:
+            if st.stage[p] != REST:
+                _set_simple(st, p, REST, WHY_DOCKED, ev, src, t)
+            st.rested[p] = st.session_s[p] >= prm.dock_rest_s
+            go = st.rested[p]
+        if go:
+            relays = RELAYS_PLAN
+            # battery limits: latch out batteries that are full, hit the cell limit or are
+            # over-voltage
+            for i in range(n):
+                if not valid[i] or st.done[p, i] != DONE_NONE:
+                    continue
+                v, cur, cell = volt[i], amps[i], bat.max_cell_v[p, i]
+                reason = DONE_NONE
+                if cell >= prm.cell_v_limit_v:
+                    reason = DONE_CELL_LIMIT
+                elif v >= prm.v_sat + prm.overvoltage_margin:
+                    reason = DONE_OVERVOLTAGE
+                elif v >= prm.v_sat - prm.reach_tol and -cur <= prm.termination_current_a:
+                    reason = DONE_FULL
+                if reason == DONE_NONE:
+                    continue
+                st.done[p, i] = reason
+                code = BATTERY_OVERVOLTAGE if reason == DONE_OVERVOLTAGE else BATTERY_FULL
+                k = emit(ev, p, src, code, i, t)
+                ev.val[k, 0] = reason
+                ev.val[k, 1] = v
+                ev.val[k, 2] = cur
+                ev.val[k, 3] = cell
+            elig = st.elig[p]
+            n_elig = 0
+            n_done = 0
+            for i in range(n):
+                elig[i] = valid[i] and st.done[p, i] == DONE_NONE
+                n_elig += 1 if elig[i] else 0
+                n_done += 1 if st.done[p, i] != DONE_NONE else 0
+            # keep the latched plan while its exit condition is unmet, else decide afresh
+            stage = st.stage[p]
+            keep = False
+            if n_elig == 0:
+                simple = COMPLETE if n_done > 0 else HOLD
+                if stage != simple:
+                    _set_simple(st, p, simple, WHY_NONE, ev, src, t)
+            elif stage == TOP_OFF:
+                lo = math.inf
+                hi = -math.inf
+                for i in range(n):
+                    if elig[i]:
+                        hi = est[i] if hi == -math.inf else fmax(hi, est[i])
+                        lo = est[i] if lo == math.inf else fmin(lo, est[i])
+                keep = hi - lo <= prm.delta_v1
+            elif stage in (S20, S30, S40):
+                keep = True
+                lo = math.inf
+                hi = -math.inf
+                for i in range(n):
+                    if st.members[p, i]:
+                        keep = keep and elig[i]  # a connected battery dropped out: regroup
+                        hi = est[i] if hi == -math.inf else fmax(hi, est[i])
+                        lo = est[i] if lo == math.inf else fmin(lo, est[i])
+                for i in range(n):
+                    if elig[i] and not st.members[p, i] and est[i] <= hi + prm.eps_eq:
+                        keep = False  # another battery is at or below the connected level
+                if keep and stage == S20:
+                    keep = lo < st.vr1_v[p]
+                elif keep and stage == S30:
+                    merged = hi - lo <= prm.eps_eq
+                    reached = lo >= st.vt_v[p] - prm.reach_tol
+                    keep = not (merged or reached)
+                elif keep:
+                    keep = lo < st.vr2_v[p] - prm.reach_tol and hi - lo <= prm.delta_v1
+            if n_elig == 0:
+                pass
+            elif keep and stage == TOP_OFF:
+                # a kept top-off follows the eligible set, with no first / second batteries
+                changed = False
+                for i in range(n):
+                    changed = changed or st.members[p, i] != elig[i] or st.first[p, i]
+                    changed = changed or st.second[p, i]
+                if changed:
+                    _set_top_off(prm, st, p, ev, src, t)
+            elif not keep:
+                _fresh(prm, st, p, ev, src, t)
+            if st.stage[p] == COMPLETE:
+                k = emit(ev, p, src, CHARGE_COMPLETE, -1, t)
+                ev.val[k, 0] = st.session_s[p]
+                ev.val[k, 1] = n_done
+                complete = True
+            n_members = 0
+            for i in range(n):
+                n_members += 1 if st.members[p, i] else 0
+            if n_members > 0:
+                ch_v = st.cmd_v[p]
+                ch_a = stage_current(
+                    prm.charger_current_limit_a, prm.current_sqrt, prm.full_current_a,
+                    prm.has_battery_limit, prm.battery_current_limit_a, n_members, n_elig,
+                )  # fmt: skip
+                ch_on = True
+        if complete and aux_relay == 1:
+            # traction charging done: the dock stays on (every traction relay open) only
+            # while the aux battery is still charging, since its DC/DC draws from the dock
+            ch_v, ch_a, ch_on = prm.v_sat, prm.charger_current_limit_a, True
+
+    # -- the opinions and the status channels
+    target_v = _target_v(st.stage[p], st.cmd_v[p], st.vr1_v[p], st.vt_v[p], st.vr2_v[p])
     for i in range(n):
         if relays == RELAYS_NONE:
             relay = -1
@@ -736,136 +784,19 @@ def _output(
             group = 2
         else:
             group = 0
-        status[p, i, s0 + ST_STAGE] = st.stage[p]
-        status[p, i, s0 + ST_GROUP] = group
-        status[p, i, s0 + ST_RELAY] = relay
-        status[p, i, s0 + ST_EST_V] = st.est[p, i]
-        status[p, i, s0 + ST_R_OHM] = st.r_use[p, i]
-        status[p, i, s0 + ST_DONE] = st.done[p, i]
-        status[p, i, s0 + ST_CMD_V] = ch_v if ch_on else 0.0
-        status[p, i, s0 + ST_TARGET_V] = _target_v(
-            st.stage[p], st.cmd_v[p], st.vr1_v[p], st.vt_v[p], st.vr2_v[p]
-        )
+        row = status[p, i]
+        row[s0 + ST_STAGE] = st.stage[p]
+        row[s0 + ST_GROUP] = group
+        row[s0 + ST_RELAY] = relay
+        row[s0 + ST_EST_V] = est[i]
+        row[s0 + ST_R_OHM] = r_use[i]
+        row[s0 + ST_DONE] = st.done[p, i]
+        row[s0 + ST_CMD_V] = ch_v if ch_on else 0.0
+        row[s0 + ST_TARGET_V] = target_v
     put_charger(cmd, p, ch_v, ch_a, ch_on)
     if aux_relay >= 0:
         put_aux_relay(cmd, p, aux_relay == 1)
         put_aux_charge(cmd, p, aux_a)
-
-
-@kernel
-def step_pack(
-    prm: ChargingParams, st: ChargingState, tp: PackArrays, m: MeasArrays, p: int, dt_s: float,
-    cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
-) -> None:  # fmt: skip
-    """One control period of pack ``p``. Never raises on bad measurements: a battery with a
-    non-finite reading is left out of the sort with its relay open (``Fault`` once); charger
-    faults stop the charger and open every relay until the charger has reported healthy for
-    ``charger_fault_clear_s``."""
-    dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
-    t = m.t_s[p]
-    n = st.valid.shape[1]
-    _validity(st, m, p, ev, src)
-    st.clock_s[p] += dt
-    _update_resistance(prm, st, m, p)
-    _r_for_compensation(prm, st, p)
-    for i in range(n):
-        if st.valid[p, i]:
-            st.est[p, i] = m.bat.voltage_v[p, i] + m.bat.current_a[p, i] * st.r_use[p, i]
-        else:
-            st.est[p, i] = math.nan
-    aux_relay, aux_a = _aux(prm, st, tp, m, p, ev, src)
-
-    if not m.docked[p]:
-        if st.stage[p] != IDLE:
-            _set_simple(st, p, IDLE, WHY_UNDOCKED, ev, src, t)
-        _reset_session(st, p)
-        _output(prm, st, p, RELAYS_NONE, 0.0, 0.0, False, aux_relay, aux_a, cmd, status, s0)
-        return
-
-    if st.stage[p] != IDLE:
-        st.session_s[p] += dt  # the first docked period starts the session clock at 0
-    fault = _charger_health(prm, st, m, p, dt)
-    if fault != WHY_NONE:
-        if st.stage[p] != FAULT or fault != st.charger_fault[p]:
-            if m.charger.reported[p]:
-                k = emit(ev, p, src, CHARGER_FAULT, -1, t)
-                ev.val[k, 0] = fault
-                ev.val[k, 1] = 1.0 if m.charger.online[p] else 0.0
-                ev.val[k, 2] = m.charger.output_v[p]
-                ev.val[k, 3] = m.charger.output_a[p]
-                for j in range(m.charger.flags.shape[1]):
-                    ev.val[k, 4 + j] = 1.0 if m.charger.flags[p, j] else 0.0
-            else:
-                k = emit(ev, p, src, CHARGER_LOST, -1, t)
-                ev.val[k, 0] = fault
-                ev.val[k, 1] = TXT_NONE
-        st.charger_fault[p] = fault
-        st.fault_clear_s[p] = 0.0
-        _set_simple(st, p, FAULT, fault, ev, src, t)
-        _output(prm, st, p, RELAYS_OPEN, 0.0, 0.0, False, aux_relay, aux_a, cmd, status, s0)
-        return
-    if st.stage[p] == FAULT:
-        st.fault_clear_s[p] += dt
-        if st.fault_clear_s[p] < prm.charger_fault_clear_s:
-            _output(prm, st, p, RELAYS_OPEN, 0.0, 0.0, False, aux_relay, aux_a, cmd, status, s0)
-            return
-        st.charger_fault[p] = WHY_NONE  # the fresh decision below is reported as a change
-
-    if st.stage[p] == COMPLETE:
-        _complete_output(prm, st, p, aux_relay, aux_a, cmd, status, s0)
-        return
-    if not st.rested[p]:
-        if st.stage[p] != REST:
-            _set_simple(st, p, REST, WHY_DOCKED, ev, src, t)
-        st.rested[p] = st.session_s[p] >= prm.dock_rest_s
-        if not st.rested[p]:
-            _output(prm, st, p, RELAYS_OPEN, 0.0, 0.0, False, aux_relay, aux_a, cmd, status, s0)
-            return
-
-    _battery_limits(prm, st, m, p, ev, src)
-    n_elig = 0
-    for i in range(n):
-        st.elig[p, i] = st.valid[p, i] and st.done[p, i] == DONE_NONE
-        if st.elig[p, i]:
-            n_elig += 1
-    _decide(prm, st, p, ev, src, t)
-    if st.stage[p] == COMPLETE:
-        n_full = 0
-        for i in range(n):
-            if st.done[p, i] != DONE_NONE:
-                n_full += 1
-        k = emit(ev, p, src, CHARGE_COMPLETE, -1, t)
-        ev.val[k, 0] = st.session_s[p]
-        ev.val[k, 1] = n_full
-    n_members = 0
-    for i in range(n):
-        if st.members[p, i]:
-            n_members += 1
-    if n_members > 0:
-        current = stage_current(
-            prm.charger_current_limit_a, prm.current_sqrt, prm.full_current_a,
-            prm.has_battery_limit, prm.battery_current_limit_a, n_members, n_elig,
-        )  # fmt: skip
-        _output(prm, st, p, RELAYS_PLAN, st.cmd_v[p], current, True, aux_relay, aux_a, cmd,
-                status, s0)  # fmt: skip
-    elif st.stage[p] == COMPLETE:
-        _complete_output(prm, st, p, aux_relay, aux_a, cmd, status, s0)
-    else:
-        _output(prm, st, p, RELAYS_PLAN, 0.0, 0.0, False, aux_relay, aux_a, cmd, status, s0)
-
-
-@kernel
-def _complete_output(
-    prm: ChargingParams, st: ChargingState, p: int, aux_relay: int, aux_a: float,
-    cmd: CmdArrays, status: F64, s0: int,
-) -> None:  # fmt: skip
-    """Traction charging done: the dock stays on (every traction relay open) only while the
-    aux battery is still charging, since its DC/DC draws from the dock (spec §2)."""
-    if aux_relay == 1:
-        _output(prm, st, p, RELAYS_OPEN, prm.v_sat, prm.charger_current_limit_a, True,
-                aux_relay, aux_a, cmd, status, s0)  # fmt: skip
-    else:
-        _output(prm, st, p, RELAYS_OPEN, 0.0, 0.0, False, aux_relay, aux_a, cmd, status, s0)
 
 
 @kernel
