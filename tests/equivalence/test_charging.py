@@ -134,6 +134,10 @@ CONFIGS: dict[str, dict[str, Any]] = {
         "r_est_min_step_a": 0.5,
         "r_comp_max_ohm": 0.2,
         "current_law": "sqrt",
+        # the floor above target - hysteresis: docked, below the floor still starts charging
+        "aux_soc_floor": 0.3,
+        "aux_soc_target": 0.4,
+        "aux_soc_hysteresis": 0.2,
     },
 }
 
@@ -236,7 +240,7 @@ def charging_sequence(
     charger_mode = "ok"
     flags = dict.fromkeys(CHARGER_FLAGS, False)
     floor, target, hyst = cfg.aux_soc_floor, cfg.aux_soc_target, cfg.aux_soc_hysteresis
-    aux_socs = [floor, floor + hyst, target - hyst, target, 0.2, 0.33, 0.86, 0.95]
+    aux_socs = [floor, floor + hyst, target - hyst, target, 0.2, 0.25, 0.33, 0.86, 0.95]
     aux_soc = draw(st.sampled_from([None, *aux_socs]))
     aux_v = cfg.aux_cv_v - cfg.aux_cv_band_v / 2.0
     t = 0.0
@@ -452,3 +456,103 @@ def test_same_over_the_uav_mission(twin: type[Twin]) -> None:
     Runner(cfg, progress=False).run()
     assert twin.steps == round(cfg.sim.duration_s / cfg.sim.dt_s)
     assert "StageChanged" in twin.kinds
+
+
+# --------------------------------------------------------------------------- exact thresholds
+
+BIN = ChargingConfig.model_validate(CONFIGS["binary"])
+"""Binary-exact volts: every threshold below is hit exactly, not approximately."""
+BASE = 12.0
+
+
+def _bm(v: float, cur: float = 0.0, cell_max: float | None = None) -> BatteryMeasurement:
+    return BatteryMeasurement(
+        voltage_v=v,
+        current_a=cur,
+        temp_c=25.0,
+        min_cell_v=v / 4.0,
+        max_cell_v=v / 4.0 if cell_max is None else cell_max,
+        soc=0.5,
+        full_capacity_ah=5.0,
+        remaining_capacity_ah=2.5,
+        group_voltages_v=(v / 4.0,) * 4,
+    )
+
+
+def _script(
+    rows: list[tuple[float, ...]],
+    *,
+    cur: float = 0.0,
+    cell_max: float | None = None,
+    charger: list[bool] | None = None,
+    aux_soc: list[float] | None = None,
+    docked: list[bool] | None = None,
+) -> list[tuple[Measurements, float]]:
+    """One measurement per row of battery voltages, 1 s apart."""
+    out = []
+    for k, row in enumerate(rows):
+        aux = None
+        if aux_soc is not None:
+            aux = BatteryMeasurement(
+                voltage_v=BIN.aux_cv_v - BIN.aux_cv_band_v,
+                current_a=0.0,
+                temp_c=25.0,
+                min_cell_v=3.25,
+                max_cell_v=3.25,
+                soc=aux_soc[k],
+                full_capacity_ah=20.0,
+                remaining_capacity_ah=10.0,
+            )
+        status = ChargerStatus(output_v=16.0, output_a=0.0)
+        meas = Measurements(
+            t_s=float(k),
+            batteries=tuple(_bm(v, cur, cell_max) for v in row),
+            bus_v=16.0,
+            charger=status if charger is None or charger[k] else None,
+            aux=aux,
+            docked=True if docked is None else docked[k],
+        )
+        out.append((meas, 1.0))
+    return out
+
+
+E, D1, DV1, DV2, RT = BIN.eps_eq_v, BIN.d1_v, BIN.delta_v1_v, BIN.delta_v2_v, BIN.reach_tol_v
+REST = [(BASE, BASE)] * 3
+SCRIPTS: dict[str, list[tuple[Measurements, float]]] = {
+    # S30 (levels d1 apart), then the two batteries exactly eps_eq apart: merged
+    "s30_merges_at_eps": _script([(BASE, BASE + D1)] * 4 + [(BASE + D1 - E, BASE + D1)] * 3),
+    # S20 until the first battery reaches exactly Vr1 = V2 - d1
+    "s20_exits_at_vr1": _script([(BASE, BASE + DV1)] * 4 + [(BASE + DV1 - D1, BASE + DV1)] * 3),
+    # S40 until exactly Vr2 - reach_tol
+    "s40_exits_at_vr2": _script([(BASE,)] * 4 + [(BASE + DV2 - RT,)] * 3),
+    # S40 or top-off: V_sat - V exactly dV2 + reach_tol
+    "s40_or_top_off": _script([(16.0 - DV2 - RT,)] * 4),
+    # S20 with a third battery falling to exactly eps_eq above the connected one: regroup
+    "regroup_at_eps": _script(
+        [(BASE, BASE + DV1, BASE + DV1)] * 4 + [(BASE, BASE + DV1, BASE + E)] * 3
+    ),
+    # top-off kept while the eligible batteries are at most dV1 apart (exactly)
+    "top_off_span": _script([(15.5, 15.5)] * 4 + [(15.5, 15.5 - DV1)] * 3),
+    # full exactly at V_sat - reach_tol with exactly the termination current
+    "full_exactly": _script([(16.0 - RT,)] * 4, cur=-BIN.termination_current_a),
+    "overvoltage_exactly": _script([(16.0 + BIN.overvoltage_margin_v,)] * 4),
+    "cell_limit_exactly": _script([(BASE,)] * 4, cell_max=BIN.cell_v_limit_v),
+    # no charger status for exactly the timeout (2 s), then back
+    "status_timeout": _script(
+        [(BASE, BASE + DV1)] * 8, charger=[True] * 3 + [False] * 3 + [True] * 2
+    ),
+    # aux exactly at its floor / target thresholds, docked and not
+    "aux_thresholds": _script(
+        [(BASE,)] * 8,
+        aux_soc=[0.25, 0.375, 0.75, 0.875, 0.75, 0.25, 0.375, 0.25],
+        docked=[True] * 4 + [False] * 4,
+    ),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SCRIPTS))
+def test_same_at_exact_thresholds(name: str) -> None:
+    seq = SCRIPTS[name]
+    n = len(seq[0][0].batteries)
+    new, old = _pair(BIN, _info(n, 4, name.startswith("aux")))
+    _run(new, old, seq)
