@@ -50,7 +50,7 @@ def drive(
             assert out.commands.charger.voltage_v <= ctrl.volts.v_sat
             assert out.commands.charger.current_a <= ctrl.config.charger_current_limit_a
         toy.step(dt_s)
-        if ctrl.state.plan.stage is Stage.COMPLETE and run.kinds("ChargeComplete"):
+        if ctrl.stage is Stage.COMPLETE and run.kinds("ChargeComplete"):
             break
     return run
 
@@ -81,7 +81,7 @@ def test_example1_one_first_one_second() -> None:
     assert s20 and all(o.commands.chg_on == (True, False) for o in s20)
     assert run.kinds("ChargeComplete")
     assert all(v >= 119.5 for v in toy.ocv)
-    assert ctrl.state.plan.stage is Stage.COMPLETE
+    assert ctrl.stage is Stage.COMPLETE
     final = ctrl.step(toy.measure(), 1.0).commands
     assert final.chg_on == (False, False) and final.charger == CHARGER_OFF
 
@@ -168,7 +168,7 @@ def test_resistance_is_learned_from_relay_steps() -> None:
     toy = ToyPack([80.0, 90.0], r_ohm=0.08)
     ctrl = controller(2)
     drive(toy, ctrl, 60)
-    assert ctrl.state.r_ohm[0] == pytest.approx(0.08, rel=0.05)
+    assert ctrl.r_ohm[0] == pytest.approx(0.08, rel=0.05)
 
 
 def test_noise_does_not_make_relays_chatter() -> None:

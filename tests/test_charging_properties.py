@@ -40,7 +40,7 @@ def test_charges_everything_within_limits(
         closed = [i for i, c in enumerate(out.commands.chg_on) if c]
         # connected batteries never differ (at rest-equivalent voltage) by more than the
         # staging allows: one level + the regulation gap + the R-estimate error margin
-        if len(closed) > 1 and ctrl.state.plan.stage in (Stage.S20, Stage.S30):
+        if len(closed) > 1 and ctrl.stage in (Stage.S20, Stage.S30):
             ocv = [toy.ocv[i] for i in closed]
             assert max(ocv) - min(ocv) <= cfg.delta_v1_v + eps + 0.5
         toy.apply(out)

@@ -120,7 +120,7 @@ def _charge(cfg: ChargingConfig, v0: list[float]) -> tuple[ToyPack, list[tuple[i
         out = ctrl.step(toy.measure(), 1.0)
         ch = out.commands.charger
         assert ch is not None
-        if ch.enable and ctrl.state.plan.stage not in (Stage.COMPLETE, Stage.IDLE):
+        if ch.enable and ctrl.stage not in (Stage.COMPLETE, Stage.IDLE):
             n = sum(1 for c in out.commands.chg_on if c)
             n_total = sum(1 for d in out.status["chg_done"] if not d)
             seen.append((n, n_total, ch.current_a))

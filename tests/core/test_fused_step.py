@@ -7,6 +7,7 @@ from typing import Any
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.config.charging import ChargingConfig
 from packpilot.config.limits import LimitsConfig
 from packpilot.config.plausibility import PlausibilityConfig
 from packpilot.config.protection import ProtectionConfig
@@ -16,6 +17,7 @@ from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core, Part
+from packpilot.control.charging import METHOD as CHARGING
 from packpilot.control.limits import method_for
 from packpilot.control.plausibility import METHOD as PLAUSIBILITY
 from packpilot.control.protection import METHOD as PROTECTION
@@ -34,6 +36,7 @@ def _core(info: PackInfo) -> Core:
     parts = [
         Part.build(SEQUENCING, SequencingConfig(t_mode=0.3, t_rest=0.5), [info]),
         Part.build(PROTECTION, protection, [info]),
+        Part.build(CHARGING, ChargingConfig(), [info]),
         Part.build(method_for(LimitsConfig()), LimitsConfig(), [info]),
         Part.build(PLAUSIBILITY, PlausibilityConfig(), [info]),
         Part.build(SOC, SocConfig(rest_time_s=1.0), [info]),

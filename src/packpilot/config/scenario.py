@@ -186,7 +186,7 @@ class SimConfig(_Strict):
 METHOD_SECTIONS: dict[str, str] = {
     "protection": "packpilot.config.protection:ProtectionConfig",
     "sequencing": "packpilot.config.sequencing:SequencingConfig",
-    "charging": "packpilot.control.charging:ChargingConfig",
+    "charging": "packpilot.config.charging:ChargingConfig",
     "equalization": "packpilot.control.equalization:EqualizationConfig",
 }
 

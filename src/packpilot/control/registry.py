@@ -59,7 +59,7 @@ REGISTRY: dict[str, Entry] = {
     for e in (
         Entry("protection", "method", "packpilot.control.protection:METHOD"),
         Entry("sequencing", "method", "packpilot.control.sequencing:METHOD"),
-        Entry("charging", "method", "packpilot.control.charging:ChargingController"),
+        Entry("charging", "method", "packpilot.control.charging:METHOD"),
         Entry("equalization", "method", "packpilot.control.equalization:EqualizationController"),
         Entry("limits", "safety", "packpilot.control.limits:METHOD"),
         Entry("plausibility", "safety", "packpilot.control.plausibility:METHOD"),

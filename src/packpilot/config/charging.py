@@ -1,0 +1,247 @@
+"""``[charging]``: staged charging of a multi-battery pack (``spec/staged_charging.md``).
+
+Voltages are per battery (``voltage_basis = "battery"``) or per series cell (``"cell"``); the
+pack-dependent resolution (series count, battery volts) is done when the method is built
+(:func:`packpilot.control.charging.controller.build`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from packpilot.config.base import load_section_model
+
+REFERENCE_SERIES = 30
+"""Series cells of the ~100 V battery the battery-level defaults were written for; with
+``voltage_basis = "cell"`` an unset voltage setting defaults to its battery value / 30."""
+
+VOLTAGE_FIELDS: tuple[str, ...] = (
+    "delta_v1_v",
+    "d1_v",
+    "vc1_margin_v",
+    "vc2_margin_v",
+    "vc3_margin_v",
+    "step_v",
+    "delta_v2_v",
+    "eps_eq_v",
+    "reach_tol_v",
+    "v_sat_v",
+    "overvoltage_margin_v",
+)
+"""Settings that scale with the series count when ``voltage_basis = "cell"``."""
+
+
+class ChargingConfig(BaseModel):
+    """Staged-charging settings. Voltages are per battery (``voltage_basis = "battery"``, the
+    spec's ~100 V example values) or per series cell (``"cell"``, multiplied by each battery's
+    series-group count)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    voltage_basis: Literal["battery", "cell"] = Field(
+        default="battery",
+        description="'battery': voltage settings are battery volts; 'cell': volts per series "
+        "cell, multiplied by the battery's series count (unset ones default to the battery "
+        "value / 30).",
+    )
+    delta_v1_v: float = Field(
+        default=3.0, gt=0.0, description="ΔV1, first voltage threshold: V2 − Vr1 stays below it."
+    )
+    d1_v: float = Field(
+        default=1.0, ge=0.0, description="Vr1 = V2 − d1 (first regulation voltage); d1 < ΔV1."
+    )
+    vc1_margin_v: float = Field(
+        default=3.0, ge=0.0, description="Vc1 = Vr1 + this (S20 charging voltage, ≥ Vr1)."
+    )
+    vc2_margin_v: float = Field(
+        default=0.0, ge=0.0, description="Vc2 = Vt + this (S30 charging voltage, ≥ Vt)."
+    )
+    vc3_margin_v: float = Field(
+        default=0.0, ge=0.0, description="Vc3 = Vr2 + this (S40 charging voltage, ≥ Vr2)."
+    )
+    target_mode: Literal["levels", "saturation"] = Field(
+        default="levels",
+        description="S30 target Vt when no third level exists: 'levels' = V2 + step_v, "
+        "'saturation' = V_sat. With a third level, Vt is that level in both modes.",
+    )
+    step_v: float = Field(default=10.0, gt=0.0, description="Vt = V2 + step_v in 'levels' mode.")
+    delta_v2_v: float = Field(
+        default=10.0,
+        gt=0.0,
+        description="ΔV2: all batteries equal and V_sat − V > ΔV2 → S40 step to V + ΔV2.",
+    )
+    eps_eq_v: float = Field(
+        default=0.5, gt=0.0, description="Equal-voltage tolerance: widest span of one level."
+    )
+    reach_tol_v: float = Field(
+        default=0.5,
+        gt=0.0,
+        description="A CV target counts as reached within this (CV approaches it only "
+        "asymptotically); also the S40/top-off hysteresis and the 'at V_sat' band.",
+    )
+    v_sat_v: float = Field(default=120.0, gt=0.0, description="V_sat, saturated battery voltage.")
+    overvoltage_margin_v: float = Field(
+        default=1.0, gt=0.0, description="Terminal voltage above V_sat + this opens the relay."
+    )
+    charger_current_limit_a: float = Field(
+        default=20.0, gt=0.0, description="Current limit commanded to the charger (A)."
+    )
+    battery_current_limit_a: float | None = Field(
+        default=None,
+        gt=0.0,
+        description="Optional charge-current limit per connected battery (A): the charger is "
+        "commanded min(charger_current_limit_a, n_connected x this), so a stage that charges "
+        "few batteries does not push the whole charger current through them.",
+    )
+    current_law: Literal["constant", "sqrt"] = Field(
+        default="constant",
+        description="Charger current per stage. 'constant': charger_current_limit_a whatever "
+        "the number of connected batteries. 'sqrt': min(charger_current_limit_a, "
+        "I_full x sqrt(n/N)) with n batteries connected out of the N still to charge, so "
+        "every stage heats the batteries at the same total I^2 R rate (the least I^2 R heat "
+        "for a given charge time, see docs/staged_charging.md).",
+    )
+    full_current_a: float | None = Field(
+        default=None,
+        gt=0.0,
+        description="I_full of current_law = 'sqrt': the current when all N batteries still "
+        "to charge are connected (A); default charger_current_limit_a. A value above the "
+        "charger limit raises the current of the small stages, the charger limit still caps it.",
+    )
+    termination_current_a: float = Field(
+        default=1.0,
+        gt=0.0,
+        description="A battery at V_sat whose charge current has fallen to this is full (A).",
+    )
+    cell_v_limit_v: float = Field(
+        default=4.2, gt=0.0, description="Max cell voltage (per cell, never scaled): opens relay."
+    )
+    r_comp_initial_ohm: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="Initial internal-resistance estimate for IR compensation (Ω per battery).",
+    )
+    r_comp_adapt: bool = Field(
+        default=True, description="Learn each battery's resistance from current steps."
+    )
+    r_est_min_step_a: float = Field(
+        default=2.0, gt=0.0, description="Smallest current step used to estimate resistance (A)."
+    )
+    r_est_gain: float = Field(
+        default=0.5, gt=0.0, le=1.0, description="Filter gain of the resistance estimate (0..1]."
+    )
+    r_settle_s: float = Field(
+        default=60.0,
+        ge=0.0,
+        description="Window of the settled R estimate (needs 2 windows of steady current after "
+        "a step; about 2 RC time constants; 0 = step estimate only).",
+    )
+    r_settle_max_ratio: float = Field(
+        default=4.0,
+        ge=1.0,
+        description="A settled R above this multiple of the step R is rejected as corrupted.",
+    )
+    r_comp_max_ohm: float = Field(
+        default=1.0, gt=0.0, description="Estimates above this are rejected as implausible (Ω)."
+    )
+    dock_rest_s: float = Field(
+        default=2.0,
+        ge=0.0,
+        description="After docking, all relays stay open and the charger off this long so the "
+        "first sort uses rest voltages (no I·R) and the relay opening teaches R.",
+    )
+    charger_status_timeout_s: float = Field(
+        default=5.0, gt=0.0, description="Docked with no charger status this long → Fault."
+    )
+    charger_fault_clear_s: float = Field(
+        default=5.0,
+        ge=0.0,
+        description="Charger must report healthy this long after a fault before charging resumes.",
+    )
+    aux_soc_floor: float = Field(
+        default=0.3, ge=0.0, lt=1.0, description="Aux battery is charged whenever below this."
+    )
+    aux_soc_target: float = Field(
+        default=0.9, gt=0.0, le=1.0, description="Aux battery is charged to this while docked."
+    )
+    aux_soc_hysteresis: float = Field(
+        default=0.05, ge=0.0, lt=0.5, description="SOC hysteresis of aux charging start/stop."
+    )
+    aux_charge_current_a: float = Field(
+        default=5.0, gt=0.0, description="DC/DC current into the aux battery (A)."
+    )
+    aux_cv_v: float = Field(
+        default=14.4, gt=0.0, description="CV limit of the aux battery's terminal voltage (V)."
+    )
+    aux_cv_band_v: float = Field(
+        default=0.2, gt=0.0, description="Aux current tapers linearly to 0 over this band (V)."
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _cell_defaults(cls, data: Any) -> Any:
+        """Per-cell basis: unset voltage settings default to the battery default / 30."""
+        if not isinstance(data, dict) or data.get("voltage_basis") != "cell":
+            return data
+        out = dict(data)
+        for name in VOLTAGE_FIELDS:
+            if name not in out:
+                default = cls.model_fields[name].default
+                out[name] = float(default) / REFERENCE_SERIES
+        return out
+
+    @model_validator(mode="after")
+    def _check(self) -> ChargingConfig:
+        for name in (*VOLTAGE_FIELDS, "charger_current_limit_a", "termination_current_a"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be a finite number")
+        if self.eps_eq_v >= self.delta_v1_v:
+            raise ValueError(
+                f"eps_eq_v ({self.eps_eq_v}) must be smaller than delta_v1_v ({self.delta_v1_v})"
+            )
+        if self.d1_v >= self.delta_v1_v:
+            raise ValueError(
+                f"d1_v ({self.d1_v}) must be smaller than delta_v1_v ({self.delta_v1_v}): "
+                "the spec requires V2 − Vr1 < ΔV1"
+            )
+        per_battery = self.battery_current_limit_a
+        if per_battery is not None and self.termination_current_a >= per_battery:
+            raise ValueError(
+                f"termination_current_a ({self.termination_current_a}) must be smaller than "
+                f"battery_current_limit_a ({per_battery})"
+            )
+        full = self.full_current_a
+        if full is not None and not math.isfinite(full):
+            raise ValueError("full_current_a must be a finite number")
+        if full is not None and self.termination_current_a >= full:
+            raise ValueError(
+                f"termination_current_a ({self.termination_current_a}) must be smaller than "
+                f"full_current_a ({full})"
+            )
+        if self.termination_current_a >= self.charger_current_limit_a:
+            raise ValueError(
+                f"termination_current_a ({self.termination_current_a}) must be smaller than "
+                f"charger_current_limit_a ({self.charger_current_limit_a})"
+            )
+        if self.aux_soc_floor >= self.aux_soc_target:
+            raise ValueError(
+                f"aux_soc_floor ({self.aux_soc_floor}) must be below aux_soc_target "
+                f"({self.aux_soc_target})"
+            )
+        if self.r_comp_initial_ohm > self.r_comp_max_ohm:
+            raise ValueError(
+                f"r_comp_initial_ohm ({self.r_comp_initial_ohm}) must not exceed "
+                f"r_comp_max_ohm ({self.r_comp_max_ohm})"
+            )
+        return self
+
+    @classmethod
+    def load(cls, data: Mapping[str, Any] | None, source: str = "<charging>") -> ChargingConfig:
+        return load_section_model(cls, data, "charging", source)
+
+
+__all__ = ["REFERENCE_SERIES", "VOLTAGE_FIELDS", "ChargingConfig"]
