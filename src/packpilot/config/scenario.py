@@ -187,7 +187,7 @@ METHOD_SECTIONS: dict[str, str] = {
     "protection": "packpilot.control.protection:ProtectionConfig",
     "sequencing": "packpilot.control.sequencing:SequencingConfig",
     "charging": "packpilot.control.charging:ChargingConfig",
-    "equalization": "packpilot.control.equalization:EqualizationConfig",
+    "equalization": "packpilot.config.equalization:EqualizationConfig",
 }
 
 SAFETY_SECTIONS: dict[str, str] = {
