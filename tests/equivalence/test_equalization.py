@@ -180,6 +180,31 @@ def test_dv_equal_to_dv_set(data: Any, n: int, groups: int, dv_set: float, t2: f
     _run(new, old, [(_on_lattice(m), dt) for m, dt in seq], n)
 
 
+@settings(max_examples=100, deadline=None)
+@given(
+    data=st.data(),
+    n=st.integers(1, 2),
+    groups=st.integers(1, 4),
+    tick=st.sampled_from([0.1, 0.2, 0.3, 0.7]),
+    period=st.sampled_from([0.1, 0.3, 1.0, 2.1]),
+    t2=st.sampled_from([0.5, 1.0, 2.0]),
+    t1_more=st.sampled_from([0.5, 1.0]),
+)
+def test_fixed_tick(
+    data: Any, n: int, groups: int, tick: float, period: float, t2: float, t1_more: float
+) -> None:
+    """A BMS with a fixed tick: sums of ticks that fall a rounding error short of the sample
+    period or of T1/T2 (ten 0.1 s ticks make 0.9999999999999999 s) still fire."""
+    cfg = EqualizationConfig(
+        dv_set_v=0.005, t1_s=t2 + t1_more, t2_s=t2, sample_period_s=period, min_current_a=0.1
+    )
+    info = _info((groups,) * n)
+    new, old = EqualizationController(cfg, info), Oracle(cfg, info)
+    seq = data.draw(sequence(n, groups, steps=120, current=(-8.0, 8.0)))
+    ticked = [(dataclasses.replace(m, t_s=k * tick), tick) for k, (m, _) in enumerate(seq)]
+    _run(new, old, ticked, n)
+
+
 # ------------------------------------------------------------------- the pure helpers
 
 

@@ -23,8 +23,6 @@ from packpilot.config.equalization import EqualizationConfig
 from packpilot.contract.arrays import (
     clear_commands,
     commands,
-    event_buf,
-    meas_arrays,
     put_measurements,
 )
 from packpilot.contract.bms import ControlOutput, Measurements, StatusValue
@@ -50,11 +48,11 @@ FORMULAS: tuple[Formula, ...] = ("formula1", "formula2", "subtract_min")
 MAX_GROUPS = 64
 """Most series groups per battery the method's declared status layout covers."""
 
-EVENTS_PER_GROUP = 64
-"""Most ``BalancingUpdated`` events one group can raise in one step. A formula moves AH by
-half its distance to N (or to 0) and AH stays within 0..1 Ah, so changes of at least
-``EVENT_MIN_CHANGE_AH`` number about 20 per sample however long; one more for the
-subtraction."""
+EVENTS_PER_GROUP = 24
+"""Room for ``BalancingUpdated`` events of one group in one step. A formula moves AH by half
+its distance to N (or to 0) and AH stays within 0..1 Ah, so changes of at least
+``EVENT_MIN_CHANGE_AH`` number at most 20 per sample however long it stands for; one more
+for the subtraction. (Events beyond the room would be counted in ``EventBuf.dropped``.)"""
 
 _SOURCE = "source:l:source"
 REASONS = (
@@ -123,8 +121,11 @@ def params(config: EqualizationConfig, status_groups: int = 0) -> EqParams:
     )
 
 
-def new_state(n_packs: int, n_batteries: int, n_groups: int, log: int = 0) -> EqState:
-    """Fresh state: AH 0, timers 0, no ΔV yet (NaN); ``log`` updates of a sample kept."""
+def new_state(
+    n_packs: int, n_batteries: int, n_groups: int, events: int = 0, log: int = 0
+) -> EqState:
+    """Fresh state: AH 0, timers 0, no ΔV yet (NaN); room for ``events`` recorded events per
+    pack and step, and for ``log`` updates of a sample."""
     g = max(n_groups, 1)
     shape = (n_packs, n_batteries, g)
 
@@ -143,15 +144,20 @@ def new_state(n_packs: int, n_batteries: int, n_groups: int, log: int = 0) -> Eq
         ledger_net_ah=zeros(),
         since_sample_s=np.zeros((n_packs, n_batteries)),
         faulted=np.zeros((n_packs, n_batteries), np.bool_),
-        n_formula1=np.zeros((n_packs, n_batteries), np.int64),
-        n_formula2=np.zeros((n_packs, n_batteries), np.int64),
-        n_subtract_min=np.zeros((n_packs, n_batteries), np.int64),
+        counts=np.zeros((n_packs, n_batteries, 3), np.int64),
         partials=np.zeros((n_packs, g)),
         sort_buf=np.zeros((n_packs, g)),
         updated=np.zeros((n_packs, g), np.bool_),
+        rec_n=np.zeros(n_packs, np.int64),
+        rec_code=np.zeros((n_packs, events, 2), np.int64),
+        rec_val=np.zeros((n_packs, events, 5)),
         log=np.zeros((n_packs, log, 4)),
         log_n=np.zeros(n_packs, np.int64),
     )
+
+
+def _max_events(info: PackInfo) -> int:
+    return sum(2 + EVENTS_PER_GROUP * g for g in info.groups_per_battery)
 
 
 def build(config: EqualizationConfig, infos: Sequence[PackInfo]) -> tuple[EqParams, EqState]:
@@ -167,15 +173,11 @@ def build(config: EqualizationConfig, infos: Sequence[PackInfo]) -> tuple[EqPara
         raise ConfigError(
             f"equalization: a battery has {g} series groups, at most {MAX_GROUPS} supported"
         )
-    return params(config, g), new_state(len(infos), info.n_batteries, g)
+    return params(config, g), new_state(len(infos), info.n_batteries, g, _max_events(info))
 
 
 def _labels(prm: EqParams) -> Labels:
     return LABELS
-
-
-def _max_events(info: PackInfo) -> int:
-    return sum(2 + EVENTS_PER_GROUP * g for g in info.groups_per_battery)
 
 
 METHOD = Method(
@@ -294,14 +296,12 @@ def sample_groups(
         raise ZeroDivisionError("sample_groups needs at least one group voltage")
     prm = params(config)
     log = _log_size(n, float(ts_s), [*hi_timer_s, *lo_timer_s], config)
-    st = new_state(1, 1, n, log=log)
+    st = new_state(1, 1, n, log=log)  # no room for events: only the log is read
     st.ah[0, 0, :n] = [float(x) for x in ah]
     st.hi_timer_s[0, 0, :n] = [float(x) for x in hi_timer_s]
     st.lo_timer_s[0, 0, :n] = [float(x) for x in lo_timer_s]
-    m = meas_arrays(1, 1, n)
-    m.bat.group_v[0, 0, :n] = [float(x) for x in voltages_v]
-    ev = event_buf(0)  # the events go to the scratch row: only the log is read
-    sub = rules.sample_string(prm, st, m, 0, 0, n, float(ts_s), math.nan, ev, 0)
+    gv = np.array([float(x) for x in voltages_v], np.float64).reshape(1, 1, n)
+    sub = rules.sample_string(prm, st, gv, 0, 0, n, float(ts_s), math.nan)
     k = int(st.log_n[0])
     assert k <= log, (k, log)
     updates = tuple(
@@ -380,11 +380,7 @@ class StringView:
     @property
     def counts(self) -> dict[str, int]:
         st, b = self.ctrl.st, self.battery
-        return {
-            "formula1": int(st.n_formula1[0, b]),
-            "formula2": int(st.n_formula2[0, b]),
-            "subtract_min": int(st.n_subtract_min[0, b]),
-        }
+        return {name: int(st.counts[0, b, k]) for k, name in enumerate(FORMULAS)}
 
 
 class EqualizationController(CompiledController):

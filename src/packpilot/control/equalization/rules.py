@@ -110,17 +110,21 @@ class EqState(NamedTuple):
     """(P, B) time accumulated towards the next sample."""
     faulted: B1
     """(P, B) the inputs were invalid at the last present step."""
-    n_formula1: I64
-    """(P, B) applications of formula 1 (including those that left AH unchanged)."""
-    n_formula2: I64
-    n_subtract_min: I64
-    """(P, B) samples that subtracted the minimum."""
+    counts: I64
+    """(P, B, 3) applications of formula 1, of formula 2 (including those that left AH
+    unchanged) and samples that subtracted the minimum."""
     partials: F64
     """(P, G) scratch: the partial sums of the exact mean."""
     sort_buf: F64
     """(P, G) scratch: the sorted currents of the bidirectional shift."""
     updated: B1
     """(P, G) scratch: groups whose AH a sample updated."""
+    rec_n: I64
+    """(P,) events the rules recorded this step (``step_pack`` emits them)."""
+    rec_code: I64
+    """(P, E, 2) reason code and battery of each recorded event."""
+    rec_val: F64
+    """(P, E, 5) its numbers (the reason's slots)."""
     log: F64
     """(P, L, 4) every AH update of the last sample: group, formula, old, new (L may be 0:
     the log is for :func:`~packpilot.control.equalization.sample_groups`)."""
@@ -189,7 +193,7 @@ def exact_sum(xs: F64, n: int, partials: F64) -> float:
         k = i
         if x != 0.0:
             if not math.isfinite(x):
-                return x
+                return float(x)
             partials[k] = x
             k += 1
     hi = 0.0
@@ -212,7 +216,7 @@ def exact_sum(xs: F64, n: int, partials: F64) -> float:
             yr = x - hi
             if y == yr:
                 hi = x
-    return hi
+    return float(hi)
 
 
 @kernel
@@ -229,185 +233,250 @@ def lower_median(xs: F64, n: int, buf: F64) -> float:
     return float(buf[(n - 1) // 2])
 
 
-# --------------------------------------------------------------------------- one string
+# --------------------------------------------------------------------------- the rules
+#
+# Speed: every call of a compiled function that receives the big named tuples (state,
+# measurements, commands, events) costs an atomic reference-count pair per array in them,
+# which numba's pruning removes only in the simplest bodies (about 20-30 ns each on a busy
+# machine: the first version of this file, a function per string and per AH update, took
+# 20 µs per pack-step). So the rules run in two calls per pack (``_pack``, and
+# ``sample_string`` per sample), record their events in the state, and ``step_pack`` emits
+# them, claims the balancers and hands out the currents.
 
 
 @kernel
-def _updated(
-    st: EqState, p: int, i: int, g: int, formula: int, old: float, new: float, t_s: float,
-    ev: EventBuf, src: int,
-) -> None:  # fmt: skip
-    """Book one application of a rule to group ``g``: counts, log, event."""
-    if formula == FORMULA1:
-        st.n_formula1[p, i] += 1
-    elif formula == FORMULA2:
-        st.n_formula2[p, i] += 1
-    # Every application counts, even one that leaves AH unchanged: formula 1 at AH = N must
-    # re-grant the balancing time of a group that still lags.
+def _book(
+    st: EqState, p: int, i: int, g: int, formula: int, old: float, new: float, dv: float
+) -> None:
+    """One application of a rule to group ``g`` of string ``i``: logged, and recorded as a
+    ``BalancingUpdated`` event when it moved AH by at least ``EVENT_MIN_CHANGE_AH``."""
     st.updated[p, g] = True
-    k = st.log_n[p]
-    if k < st.log.shape[1]:
-        st.log[p, k, 0] = g
-        st.log[p, k, 1] = formula
-        st.log[p, k, 2] = old
-        st.log[p, k, 3] = new
-    st.log_n[p] = k + 1
+    e = st.log_n[p]
+    if e < st.log.shape[1]:
+        st.log[p, e, 0] = g
+        st.log[p, e, 1] = formula
+        st.log[p, e, 2] = old
+        st.log[p, e, 3] = new
+    st.log_n[p] = e + 1
     if abs(new - old) >= EVENT_MIN_CHANGE_AH:
-        e = emit(ev, p, src, BALANCING_UPDATED, i, t_s)
-        ev.val[e, 0] = g
-        ev.val[e, 1] = formula
-        ev.val[e, 2] = old
-        ev.val[e, 3] = new
-        ev.val[e, 4] = st.dv_v[p, i, g]
+        e = st.rec_n[p]
+        if e < st.rec_code.shape[1]:
+            st.rec_code[p, e, 0] = BALANCING_UPDATED
+            st.rec_code[p, e, 1] = i
+            st.rec_val[p, e, 0] = g
+            st.rec_val[p, e, 1] = formula
+            st.rec_val[p, e, 2] = old
+            st.rec_val[p, e, 3] = new
+            st.rec_val[p, e, 4] = dv
+        st.rec_n[p] = e + 1
 
 
 @kernel
 def sample_string(
-    prm: EqParams, st: EqState, m: MeasArrays, p: int, i: int, n: int, ts_s: float,
-    current_a: float, ev: EventBuf, src: int,
+    prm: EqParams, st: EqState, group_v: F64, p: int, i: int, n: int, ts_s: float,
+    current_a: float,
 ) -> bool:  # fmt: skip
     """Steps S1-S43 for string ``i`` of pack ``p`` (its ``n`` group voltages are valid):
     ΔV, persistence timers, formula 1/2, subtract-the-minimum, then the balancing time of every
     updated group. ``ts_s`` is the time this sample stands for (zero-order hold): a timer that
     reaches its set time fires and is reduced by it, so a long sample applies the formula
-    repeatedly. Returns whether the minimum was subtracted."""
-    volts = m.bat.group_v[p, i]
-    v_avg = exact_sum(volts, n, st.partials[p]) / n
+    repeatedly. Every update is logged; those that change AH by at least
+    ``EVENT_MIN_CHANGE_AH`` are recorded as events. Returns whether the minimum was
+    subtracted."""
+    ah, hi, lo, dvs = st.ah, st.hi_timer_s, st.lo_timer_s, st.dv_v
+    counts, upd = st.counts, st.updated
+    v_avg = exact_sum(group_v[p, i], n, st.partials[p]) / n
     st.log_n[p] = 0
     for g in range(n):
-        st.updated[p, g] = False
-        st.dv_v[p, i, g] = v_avg - volts[g]
-    t_s = m.t_s[p]
+        upd[p, g] = False
+        dvs[p, i, g] = v_avg - group_v[p, i, g]
     for g in range(n):
-        dv = st.dv_v[p, i, g]
+        dv = dvs[p, i, g]
         if dv > prm.dv_set_v:
-            st.hi_timer_s[p, i, g] += ts_s
-            st.lo_timer_s[p, i, g] = 0.0
-            while st.hi_timer_s[p, i, g] >= prm.t1_s - SAMPLE_TOL:
-                old = st.ah[p, i, g]
-                st.ah[p, i, g] = formula1(old, prm.n_ah)
-                st.hi_timer_s[p, i, g] = fmax(0.0, st.hi_timer_s[p, i, g] - prm.t1_s)
-                _updated(st, p, i, g, FORMULA1, old, st.ah[p, i, g], t_s, ev, src)
+            hi[p, i, g] += ts_s
+            lo[p, i, g] = 0.0
+            formula = FORMULA1
         elif dv < prm.dv_set_v:
-            st.lo_timer_s[p, i, g] += ts_s
-            st.hi_timer_s[p, i, g] = 0.0
-            while st.lo_timer_s[p, i, g] >= prm.t2_s - SAMPLE_TOL:
-                old = st.ah[p, i, g]
-                st.ah[p, i, g] = formula2(old)
-                st.lo_timer_s[p, i, g] = fmax(0.0, st.lo_timer_s[p, i, g] - prm.t2_s)
-                _updated(st, p, i, g, FORMULA2, old, st.ah[p, i, g], t_s, ev, src)
+            lo[p, i, g] += ts_s
+            hi[p, i, g] = 0.0
+            formula = FORMULA2
         else:
-            st.hi_timer_s[p, i, g] = 0.0
-            st.lo_timer_s[p, i, g] = 0.0
+            hi[p, i, g] = 0.0
+            lo[p, i, g] = 0.0
+            continue
+        while True:
+            old = ah[p, i, g]
+            if formula == FORMULA1:
+                if not hi[p, i, g] >= prm.t1_s - SAMPLE_TOL:
+                    break
+                new = formula1(old, prm.n_ah)
+                hi[p, i, g] = fmax(0.0, hi[p, i, g] - prm.t1_s)
+            else:
+                if not lo[p, i, g] >= prm.t2_s - SAMPLE_TOL:
+                    break
+                new = formula2(old)
+                lo[p, i, g] = fmax(0.0, lo[p, i, g] - prm.t2_s)
+            ah[p, i, g] = new
+            # Every application counts, even one that leaves AH unchanged: formula 1 at
+            # AH = N must re-grant the balancing time of a group that still lags.
+            counts[p, i, formula] += 1
+            _book(st, p, i, g, formula, old, new, dv)
     subtracted = n > 0
     for g in range(n):
-        if not st.ah[p, i, g] > 0.0:
+        if not ah[p, i, g] > 0.0:
             subtracted = False
     if subtracted:
-        low = st.ah[p, i, 0]
+        low = ah[p, i, 0]
         for g in range(1, n):
-            low = fmin(low, st.ah[p, i, g])
+            low = fmin(low, ah[p, i, g])
         for g in range(n):
-            old = st.ah[p, i, g]
-            st.ah[p, i, g] = old - low
-            _updated(st, p, i, g, SUBTRACT_MIN, old, st.ah[p, i, g], t_s, ev, src)
-        st.n_subtract_min[p, i] += 1
+            old = ah[p, i, g]
+            new = old - low
+            ah[p, i, g] = new
+            _book(st, p, i, g, SUBTRACT_MIN, old, new, dvs[p, i, g])
+        counts[p, i, SUBTRACT_MIN] += 1
     for g in range(n):
-        if st.updated[p, g]:
-            st.remaining_s[p, i, g] = balancing_time(prm, st.ah[p, i, g], current_a)
+        if upd[p, g]:
+            st.remaining_s[p, i, g] = balancing_time(prm, ah[p, i, g], current_a)
     return subtracted
 
 
 @kernel
-def _drive(prm: EqParams, st: EqState, p: int, i: int, n: int, current_a: float, dt: float) -> None:
-    """Equalizer currents for the next ``dt`` into ``st.current_a``; counts the remaining
-    time down and books the ledger."""
-    i_eq = equalizer_current(prm, current_a)
-    cur = st.current_a[p, i]
-    for g in range(n):
-        cur[g] = 0.0
-    if i_eq > 0.0 and dt > 0.0:
-        for g in range(n):
-            used = fmin(st.remaining_s[p, i, g], dt)
-            if used <= 0.0:
-                continue
-            # Prorate the last partial step so that charge = time × current exactly.
-            cur[g] = i_eq * used / dt
-            st.remaining_s[p, i, g] -= used
-            st.ledger_time_s[p, i, g] += used
-            st.ledger_gross_ah[p, i, g] += i_eq * used / 3600.0
-    if prm.bidirectional and n > 1:
-        shift = lower_median(cur, n, st.sort_buf[p])
-        for g in range(n):
-            cur[g] = cur[g] - shift
-    for g in range(n):
-        st.ledger_net_ah[p, i, g] += cur[g] * dt / 3600.0
-
-
-@kernel
-def _hold(st: EqState, p: int, i: int) -> None:
-    """Forget persistence and pending balancing (invalid inputs or battery absent); AH and
-    the fault flag are kept; the equalizers idle."""
-    st.hi_timer_s[p, i].fill(0.0)
-    st.lo_timer_s[p, i].fill(0.0)
-    st.remaining_s[p, i].fill(0.0)
-    st.dv_v[p, i].fill(np.nan)
-    st.current_a[p, i].fill(0.0)
-    st.since_sample_s[p, i] = 0.0
-
-
-@kernel
-def _fault(
-    st: EqState, m: MeasArrays, p: int, i: int, code: int, slot1: float, slot2: float,
-    ev: EventBuf, src: int,
+def _pack(
+    prm: EqParams, st: EqState, groups: I64, group_v: F64, n_groups: I64, current: F64,
+    reported: B1, present: B1, p: int, dt: float, status: F64, s0: int,
 ) -> None:  # fmt: skip
-    """Invalid inputs: one event when the fault starts (the source label, then the reason's
-    numbers), then hold."""
-    if not st.faulted[p, i]:
-        e = emit(ev, p, src, code, i, m.t_s[p])
-        ev.val[e, 0] = 0.0
-        ev.val[e, 1] = slot1
-        ev.val[e, 2] = slot2
-    st.faulted[p, i] = True
-    _hold(st, p, i)
+    """Every string of pack ``p`` for one step of ``dt``: input checks (hold and a recorded
+    ``Fault`` / ``FaultCleared``), the sample when due, the equalizer currents (remaining
+    time counted down, ledger booked) and the status channels."""
+    ah, hi, lo, rem, dvs, cur = (
+        st.ah, st.hi_timer_s, st.lo_timer_s, st.remaining_s, st.dv_v, st.current_a
+    )  # fmt: skip
+    since, faulted = st.since_sample_s, st.faulted
+    rec_n, rec_code, rec_val = st.rec_n, st.rec_code, st.rec_val
+    l_time, l_gross, l_net, buf = (
+        st.ledger_time_s, st.ledger_gross_ah, st.ledger_net_ah, st.sort_buf
+    )  # fmt: skip
+    cap_rec = rec_code.shape[1]
+    for i in range(since.shape[1]):
+        n = int(groups[i])
+        # Only what the method uses is checked (group voltages and string current): a NaN
+        # temperature must not stop it.
+        code = -1
+        x1 = 0.0
+        x2 = np.nan
+        if reported[p, i] and present[p, i]:
+            got = int(n_groups[p, i])
+            if got != n:
+                code, x1, x2 = FAULT_GROUP_COUNT, float(n), float(got)
+            else:
+                for g in range(n):
+                    v = group_v[p, i, g]
+                    if not math.isfinite(v) or v <= 0.0:
+                        code, x1, x2 = FAULT_GROUP_VOLTAGE, float(g), v
+                        break
+            if code < 0 and not math.isfinite(current[p, i]):
+                code, x1 = FAULT_CURRENT, current[p, i]
+            ok = code < 0
+        else:
+            ok = False  # absent: idle silently
+        fault = code >= 0
+        if fault and not faulted[p, i]:
+            e = rec_n[p]
+            if e < cap_rec:
+                rec_code[p, e, 0] = code
+                rec_code[p, e, 1] = i
+                rec_val[p, e, 0] = 0.0  # the "source" label
+                rec_val[p, e, 1] = x1
+                rec_val[p, e, 2] = x2
+                rec_val[p, e, 3] = np.nan
+                rec_val[p, e, 4] = np.nan
+            rec_n[p] = e + 1
+        if fault:
+            faulted[p, i] = True
+        if not ok:
+            # Hold: forget persistence and pending balancing; AH (learned) and the fault flag
+            # are kept; the equalizers idle.
+            for g in range(hi.shape[2]):
+                hi[p, i, g] = 0.0
+                lo[p, i, g] = 0.0
+                rem[p, i, g] = 0.0
+                dvs[p, i, g] = np.nan
+                cur[p, i, g] = 0.0
+            since[p, i] = 0.0
+        else:
+            if faulted[p, i]:
+                faulted[p, i] = False
+                e = rec_n[p]
+                if e < cap_rec:
+                    rec_code[p, e, 0] = FAULT_CLEARED
+                    rec_code[p, e, 1] = i
+                    rec_val[p, e, 0] = 0.0
+                    for j in range(1, 5):
+                        rec_val[p, e, j] = np.nan
+                rec_n[p] = e + 1
+            cur_a = current[p, i]
+            since[p, i] += dt
+            if n > 0 and since[p, i] >= prm.sample_period_s * (1.0 - SAMPLE_TOL):
+                ts = since[p, i]
+                since[p, i] = 0.0
+                sample_string(prm, st, group_v, p, i, n, ts, cur_a)
+            # Equalizer currents for the next dt; the last partial step is prorated so that
+            # charge = time × current exactly.
+            i_eq = equalizer_current(prm, cur_a)
+            for g in range(n):
+                cur[p, i, g] = 0.0
+            if i_eq > 0.0 and dt > 0.0:
+                for g in range(n):
+                    used = fmin(rem[p, i, g], dt)
+                    if used <= 0.0:
+                        continue
+                    cur[p, i, g] = i_eq * used / dt
+                    rem[p, i, g] -= used
+                    l_time[p, i, g] += used
+                    l_gross[p, i, g] += i_eq * used / 3600.0
+            if prm.bidirectional and n > 1:
+                shift = lower_median(cur[p, i], n, buf[p])
+                for g in range(n):
+                    cur[p, i, g] = cur[p, i, g] - shift
+            for g in range(n):
+                l_net[p, i, g] += cur[p, i, g] * dt / 3600.0
+        status[p, i, s0 + ST_FAULT] = 1.0 if fault else 0.0
+        for k in range(prm.status_groups):
+            c = s0 + 1 + PER_GROUP * k
+            if k < n:
+                status[p, i, c + ST_DV_MV] = dvs[p, i, k] * 1000.0
+                status[p, i, c + ST_AH] = ah[p, i, k]
+                status[p, i, c + ST_TIME] = rem[p, i, k]
+                status[p, i, c + ST_I] = cur[p, i, k]
+            else:  # this battery has no group k (None to a reader)
+                status[p, i, c + ST_DV_MV] = np.nan
+                status[p, i, c + ST_AH] = np.nan
+                status[p, i, c + ST_TIME] = np.nan
+                status[p, i, c + ST_I] = np.nan
 
 
 @kernel
-def _string(
-    prm: EqParams, st: EqState, tp: PackArrays, m: MeasArrays, p: int, i: int, dt: float,
-    ev: EventBuf, src: int,
-) -> bool:  # fmt: skip
-    """One step of string ``i``; returns whether its inputs are faulted."""
-    n = int(tp.groups[i])
-    if not (m.bat.reported[p, i] and m.bat.present[p, i]):
-        _hold(st, p, i)
-        return False
-    # Only what the method uses is checked (group voltages and string current): a NaN
-    # temperature must not stop it.
-    got = int(m.bat.n_groups[p, i])
-    if got != n:
-        _fault(st, m, p, i, FAULT_GROUP_COUNT, float(n), float(got), ev, src)
-        return True
-    for g in range(n):
-        v = m.bat.group_v[p, i, g]
-        if not math.isfinite(v) or v <= 0.0:
-            _fault(st, m, p, i, FAULT_GROUP_VOLTAGE, float(g), v, ev, src)
-            return True
-    cur = m.bat.current_a[p, i]
-    if not math.isfinite(cur):
-        _fault(st, m, p, i, FAULT_CURRENT, cur, np.nan, ev, src)
-        return True
-    if st.faulted[p, i]:
-        st.faulted[p, i] = False
-        e = emit(ev, p, src, FAULT_CLEARED, i, m.t_s[p])
-        ev.val[e, 0] = 0.0
-    st.since_sample_s[p, i] += dt
-    if n > 0 and st.since_sample_s[p, i] >= prm.sample_period_s * (1.0 - SAMPLE_TOL):
-        ts = st.since_sample_s[p, i]
-        st.since_sample_s[p, i] = 0.0
-        sample_string(prm, st, m, p, i, n, ts, cur, ev, src)
-    _drive(prm, st, p, i, n, cur, dt)
-    return False
+def _emit_recorded(st: EqState, ev: EventBuf, p: int, src: int, t_s: float) -> None:
+    """The events the rules recorded, in order (those beyond the record's room are counted
+    as dropped, as a full event buffer does)."""
+    n = st.rec_n[p]
+    cap = st.rec_code.shape[1]
+    for e in range(min(n, cap)):
+        k = emit(ev, p, src, st.rec_code[p, e, 0], st.rec_code[p, e, 1], t_s)
+        for j in range(5):
+            ev.val[k, j] = st.rec_val[p, e, j]
+    if n > cap:
+        ev.dropped[0] += n - cap
+    st.rec_n[p] = 0
+
+
+@kernel
+def _put_balancers(cmd: CmdArrays, groups: I64, current: F64, p: int) -> None:
+    claim_balancer(cmd, p)
+    for i in range(groups.shape[0]):
+        for g in range(groups[i]):
+            put_balancer(cmd, p, i, g, current[p, i, g])
 
 
 @kernel
@@ -418,28 +487,16 @@ def step_pack(
     """One step of pack ``p``: every string's equalizer currents (an opinion only where the
     pack has balancers), events, and the status channels."""
     dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
-    nb = st.since_sample_s.shape[1]
+    bat = m.bat
+    st.rec_n[p] = 0
+    _pack(
+        prm, st, tp.groups, bat.group_v, bat.n_groups, bat.current_a, bat.reported,
+        bat.present, p, dt, status, s0,
+    )  # fmt: skip
+    if st.rec_n[p] > 0:
+        _emit_recorded(st, ev, p, src, m.t_s[p])
     if tp.has_balancers:
-        claim_balancer(cmd, p)
-    for i in range(nb):
-        faulted = _string(prm, st, tp, m, p, i, dt, ev, src)
-        n = int(tp.groups[i])
-        if tp.has_balancers:
-            for g in range(n):
-                put_balancer(cmd, p, i, g, st.current_a[p, i, g])
-        status[p, i, s0 + ST_FAULT] = 1.0 if faulted else 0.0
-        for k in range(prm.status_groups):
-            c = s0 + 1 + PER_GROUP * k
-            if k < n:
-                status[p, i, c + ST_DV_MV] = st.dv_v[p, i, k] * 1000.0
-                status[p, i, c + ST_AH] = st.ah[p, i, k]
-                status[p, i, c + ST_TIME] = st.remaining_s[p, i, k]
-                status[p, i, c + ST_I] = st.current_a[p, i, k]
-            else:  # this battery has no group k (None to a reader)
-                status[p, i, c + ST_DV_MV] = np.nan
-                status[p, i, c + ST_AH] = np.nan
-                status[p, i, c + ST_TIME] = np.nan
-                status[p, i, c + ST_I] = np.nan
+        _put_balancers(cmd, tp.groups, st.current_a, p)
 
 
 @kernel
