@@ -36,13 +36,10 @@ from typing import Any
 
 import numpy as np
 
+from baselines import PassiveTopBalancer, PassiveTopBalancerConfig
 from packpilot.config import ScenarioConfig, load_config, validate_section
-from packpilot.control.equalization import (
-    EqualizationConfig,
-    EqualizationController,
-    PassiveTopBalancer,
-    PassiveTopBalancerConfig,
-)
+from packpilot.config.equalization import EqualizationConfig
+from packpilot.control.equalization import EqualizationController
 from packpilot.control.types import (
     ChargerCommand,
     Commands,

@@ -252,7 +252,7 @@ def test_saturated_ah_still_regrants_time() -> None:
 
 
 def test_passive_top_balancer_bleeds_high_groups_while_charging() -> None:
-    from packpilot.control.equalization import PassiveTopBalancer, PassiveTopBalancerConfig
+    from benchmarks.baselines import PassiveTopBalancer, PassiveTopBalancerConfig
 
     cfg = PassiveTopBalancerConfig(threshold_cell_v=3.40, delta_cell_v=0.005, bleed_ohm=10.0)
     info = PackInfo(1, (4,), (4,), (SwitchKind.RELAY,), has_balancers=True)

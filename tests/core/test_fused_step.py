@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packpilot.config.charging import ChargingConfig
+from packpilot.config.equalization import EqualizationConfig
 from packpilot.config.limits import LimitsConfig
 from packpilot.config.plausibility import PlausibilityConfig
 from packpilot.config.protection import ProtectionConfig
@@ -16,8 +17,9 @@ from packpilot.config.soc import SocConfig
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo
-from packpilot.control.core import Core, Part
+from packpilot.control import equalization
 from packpilot.control.charging import METHOD as CHARGING
+from packpilot.control.core import Core, Part
 from packpilot.control.limits import method_for
 from packpilot.control.plausibility import METHOD as PLAUSIBILITY
 from packpilot.control.protection import METHOD as PROTECTION
@@ -37,6 +39,11 @@ def _core(info: PackInfo) -> Core:
         Part.build(SEQUENCING, SequencingConfig(t_mode=0.3, t_rest=0.5), [info]),
         Part.build(PROTECTION, protection, [info]),
         Part.build(CHARGING, ChargingConfig(), [info]),
+        Part.build(
+            equalization.method_for(EqualizationConfig(), [info]),
+            EqualizationConfig(sample_period_s=0.5),
+            [info],
+        ),
         Part.build(method_for(LimitsConfig()), LimitsConfig(), [info]),
         Part.build(PLAUSIBILITY, PlausibilityConfig(), [info]),
         Part.build(SOC, SocConfig(rest_time_s=1.0), [info]),

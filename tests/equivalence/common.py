@@ -45,12 +45,19 @@ def battery(
     v_cell: tuple[float, float] = (2.5, 4.3),
     current: tuple[float, float] = (-30.0, 60.0),
     cap_ah: float = 5.0,
+    bad_groups: int = 0,
 ) -> BatteryMeasurement:
+    """One battery's reading; ``bad_groups`` = N > 0: one time in N a group voltage is
+    NaN / inf / zero / negative (0: never, and no extra draw)."""
     cell = draw(st.floats(*v_cell))
     spread = draw(st.floats(0.0, 0.1))
     gv = tuple(draw(st.floats(cell - spread, cell + spread)) for _ in range(groups))
     if draw(st.integers(0, 20)) == 0:
         gv = gv[: draw(st.integers(0, groups))]
+    if bad_groups and gv and draw(st.integers(0, bad_groups - 1)) == 0:
+        k = draw(st.integers(0, len(gv) - 1))
+        bad = draw(st.sampled_from([*WEIRD, 0.0, -0.0, -1.0]))
+        gv = (*gv[:k], bad, *gv[k + 1 :])
     cur = draw(st.one_of(st.floats(*current), st.sampled_from([0.0, *WEIRD])))
     return BatteryMeasurement(
         # float(): a float 0.0 (not the int 0) when there are no group voltages
@@ -92,21 +99,22 @@ DTS = (0.1, 0.2, 0.5, 1.0, 5.0, 0.0, -0.1, math.nan, 0.3)
 def sequence(
     draw: Any,
     n: int,
-    groups: int,
+    groups: int | Sequence[int],
     steps: int = 60,
     dts: Sequence[float] = DTS,
     **kw: Any,
 ) -> list[tuple[Measurements, float]]:
     """A run of samples: mostly advancing time with sticky values, with jumps (``dts``: the
-    tick lengths to draw from)."""
+    tick lengths to draw from). ``groups``: the series groups of every battery, or of each."""
     out: list[tuple[Measurements, float]] = []
     t = 0.0
-    bats = [draw(battery(groups, **kw)) for _ in range(n)]
+    per = [groups] * n if isinstance(groups, int) else list(groups)
+    bats = [draw(battery(per[i], **kw)) for i in range(n)]
     for _ in range(draw(st.integers(1, steps))):
         dt = draw(st.sampled_from(list(dts)))
         k = draw(st.integers(0, n))  # change one battery (k == n: none)
         if k < n:
-            bats[k] = draw(battery(groups, **kw))
+            bats[k] = draw(battery(per[k], **kw))
         nb = n if draw(st.integers(0, 30)) else draw(st.integers(0, n))
         meas = Measurements(
             t_s=t,

@@ -622,9 +622,8 @@ def test_closed_loop_on_the_plant_matches(
     (packs 0-2) see its measurements and must do what it did; pack 3 gets perturbed voltages,
     a removal and an invalid sample, next to its own oracle."""
     from packpilot.config import load_config
-    from packpilot.sim import runner as runner_mod
-
     from packpilot.control.registry import REGISTRY, Entry
+    from packpilot.sim import runner as runner_mod
 
     monkeypatch.setitem(
         REGISTRY, "sequencing", Entry("sequencing", "method", f"{__name__}:RecordingOracle")

@@ -187,7 +187,7 @@ METHOD_SECTIONS: dict[str, str] = {
     "protection": "packpilot.config.protection:ProtectionConfig",
     "sequencing": "packpilot.config.sequencing:SequencingConfig",
     "charging": "packpilot.config.charging:ChargingConfig",
-    "equalization": "packpilot.control.equalization:EqualizationConfig",
+    "equalization": "packpilot.config.equalization:EqualizationConfig",
 }
 
 SAFETY_SECTIONS: dict[str, str] = {

@@ -145,7 +145,7 @@ def _know_every_branch(infos: Sequence[PackInfo]) -> None:
             base = entry.resolve()
             assert isinstance(base, Method), name
             config = base.config.model_validate({})
-            method = entry.method(config) or base
+            method = entry.method(config, infos) or base
             prm, st = method.build(config, list(infos))
         ar.add(prm)
         ar.add(st)

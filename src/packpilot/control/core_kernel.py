@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from packpilot.arena import unpack
 from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.charging import rules as charging
+from packpilot.control.equalization import rules as equalization
 from packpilot.control.limits import rules as limits
 from packpilot.control.plausibility import rules as plausibility
 from packpilot.control.protection import rules as protection
@@ -49,7 +50,9 @@ METHOD_IDS: dict[str, int] = {
         ("protection", "sequencing", "charging", "equalization", "limits", "plausibility", "soc")
     )
 }
-COMPILED = frozenset({"charging", "limits", "plausibility", "protection", "sequencing", "soc"})
+COMPILED = frozenset(
+    {"charging", "equalization", "limits", "plausibility", "protection", "sequencing", "soc"}
+)
 """Methods this step knows (a core with any other part steps part by part)."""
 
 
@@ -98,6 +101,12 @@ def core_step(f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, d: Any, dt_s: fl
             charging.step_packs(
                 unpack(charging.ChargingParams, f, i, h, c, b, lay, pr),
                 unpack(charging.ChargingState, f, i, h, c, b, lay, sr),
+                tp, m, dt_s, cmd, ev, j, status, s0,
+            )  # fmt: skip
+        elif mid == EQUALIZATION:
+            equalization.step_packs(
+                unpack(equalization.EqParams, f, i, h, c, b, lay, pr),
+                unpack(equalization.EqState, f, i, h, c, b, lay, sr),
                 tp, m, dt_s, cmd, ev, j, status, s0,
             )  # fmt: skip
         elif mid == LIMITS:

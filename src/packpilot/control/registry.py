@@ -29,13 +29,14 @@ class Entry:
         mod, attr = self.target.split(":")
         return getattr(importlib.import_module(mod), attr)
 
-    def method(self, config: BaseModel) -> Method | None:
-        """The compiled method for ``config`` (a method whose status channels depend on its
-        config, such as the limits table, provides ``method_for``)."""
+    def method(self, config: BaseModel, infos: Sequence[PackInfo] = ()) -> Method | None:
+        """The compiled method for ``config`` on the topology of ``infos`` (a method whose
+        status channels depend on them, such as the limits table or the equalizer's group
+        count, provides ``method_for(config, infos)``)."""
         mod = importlib.import_module(self.target.split(":")[0])
         method_for = getattr(mod, "method_for", None)
         if callable(method_for):
-            m: Method = method_for(config)
+            m: Method = method_for(config, infos)
             return m
         obj = self.resolve()
         return obj if isinstance(obj, Method) else None
@@ -44,7 +45,7 @@ class Entry:
         """This method for ``len(infos)`` packs (a scalar controller: one pack only)."""
         from packpilot.control.core import Part  # the core also reads the registry
 
-        method = self.method(config)
+        method = self.method(config, infos)
         if method is not None:
             return Part.build(method, config, infos)
         obj = self.resolve()
@@ -60,7 +61,7 @@ REGISTRY: dict[str, Entry] = {
         Entry("protection", "method", "packpilot.control.protection:METHOD"),
         Entry("sequencing", "method", "packpilot.control.sequencing:METHOD"),
         Entry("charging", "method", "packpilot.control.charging:METHOD"),
-        Entry("equalization", "method", "packpilot.control.equalization:EqualizationController"),
+        Entry("equalization", "method", "packpilot.control.equalization:METHOD"),
         Entry("limits", "safety", "packpilot.control.limits:METHOD"),
         Entry("plausibility", "safety", "packpilot.control.plausibility:METHOD"),
         Entry("soc", "safety", "packpilot.control.soc:METHOD"),

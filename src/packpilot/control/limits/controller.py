@@ -163,8 +163,9 @@ def build(config: LimitsConfig, infos: Sequence[PackInfo]) -> tuple[LimitsParams
     return prm, st
 
 
-def method_for(config: LimitsConfig) -> Method:
-    """The method for this table: its status channels, labels and event bound."""
+def method_for(config: LimitsConfig, infos: Sequence[PackInfo] = ()) -> Method:
+    """The method for this table (any topology): its status channels, labels and event
+    bound."""
     names = tuple(ladders(config))
     n_rows = len(config.rows)
     labels: Labels = {

@@ -1,4 +1,8 @@
-"""Equalization of series battery groups by the Newton-iterated unit balancing Ah.
+"""ORACLE: the scalar equalization controller as it was before the compiled core (tests only;
+deleted once the golden and equivalence tests pass). The passive top balancer it also held is a
+benchmark baseline now (``benchmarks/baselines.py``).
+
+Equalization of series battery groups by the Newton-iterated unit balancing Ah.
 
 Method of CN102255114A (spec: ``/work/shared/spec/equalization.md``). Per string (one
 :class:`~packpilot.control.types.BatteryMeasurement` = one string of series groups), every
@@ -29,25 +33,17 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Self
+from typing import Literal
 
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    ValidationInfo,
-    field_validator,
-    model_validator,
-)
-
-from packpilot.control.types import (
+from packpilot.config.equalization import EqualizationConfig
+from packpilot.contract.bms import (
     BatteryMeasurement,
     Commands,
     ControlOutput,
     Event,
     Measurements,
-    PackInfo,
 )
+from packpilot.contract.topology import PackInfo
 
 Formula = Literal["formula1", "formula2", "subtract_min"]
 
@@ -56,143 +52,6 @@ EVENT_MIN_CHANGE_AH = 1e-6
 already negligible AH every ``t2_s`` would otherwise flood telemetry for hours."""
 
 _SAMPLE_TOL = 1e-9
-
-
-class EqualizationConfig(BaseModel):
-    """Settings of the Newton-iterated unit-balancing-Ah equalizer (TOML section
-    ``[equalization]``). The patent gives no values except N ∈ [0, 1] Ah and T1 > T2; the
-    defaults are the spec's placeholders."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    dv_set_v: float = Field(
-        0.005,
-        description="Preset group voltage difference ΔV_set (V). A group lags when "
-        "V_avg − V_g exceeds it; must be > 0 so that at least one group always decays.",
-    )
-    t1_s: float = Field(
-        120.0,
-        description="First set time T1 (s): how long ΔV_g > ΔV_set must persist before formula "
-        "1 raises AH_g; repeats every T1 while it persists. Must be longer than t2_s.",
-    )
-    t2_s: float = Field(
-        60.0,
-        description="Second set time T2 (s): how long ΔV_g < ΔV_set must persist before "
-        "formula 2 halves AH_g; repeats every T2 while it persists.",
-    )
-    n_ah: float = Field(
-        0.5,
-        description="Newton iteration value N (Ah), 0..1: the ceiling and fixed point of AH_g "
-        "under formula 1, i.e. the most extra charge one update can grant a group.",
-    )
-    sample_period_s: float = Field(
-        1.0,
-        description="Sampling period Ts (s) of the group voltages; steps shorter than this "
-        "accumulate until a sample is due.",
-    )
-    time_mode: Literal["string_current", "fixed_current"] = Field(
-        "string_current",
-        description="Balancing-time formula: 'string_current' t = 3600·AH/|I_string| "
-        "(equalizer current follows the string current, clamped to equalizer_max_a); "
-        "'fixed_current' t = 3600·AH/fixed_current_a.",
-    )
-    min_current_a: float = Field(
-        0.5,
-        description="Minimum |string current| (A) for balancing (charging or discharging); "
-        "below it the equalizers idle and their remaining time is held.",
-    )
-    equalizer_max_a: float = Field(
-        2.0,
-        description="Rated output current of one group equalizer (A); the string current is "
-        "clamped to it in string_current mode.",
-    )
-    fixed_current_a: float = Field(
-        1.0,
-        description="Fixed equalizer output current I_eq (A) used in fixed_current mode.",
-    )
-    balance_at_rest: bool = Field(
-        False,
-        description="fixed_current mode only: balance even when |I_string| < min_current_a "
-        "(equalizer powered independently of the string current).",
-    )
-    max_balance_time_s: float | None = Field(
-        None,
-        description="Clamp of one balancing time (s); None = t1_s, the longest a persisting "
-        "condition waits for its next AH update.",
-    )
-    equalizer: Literal["unidirectional", "bidirectional"] = Field(
-        "unidirectional",
-        description="Equalizer hardware. 'bidirectional' shifts a string's currents by their "
-        "median so that, when most groups would be charged, the few leading groups are "
-        "discharged instead: same relative charge per group, less converter throughput.",
-    )
-
-    @field_validator("dv_set_v")
-    @classmethod
-    def _dv_positive(cls, v: float) -> float:
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"dv_set_v must be a positive voltage in V (got {v})")
-        return v
-
-    @field_validator("t1_s", "t2_s", "sample_period_s")
-    @classmethod
-    def _time_positive(cls, v: float, info: ValidationInfo) -> float:
-        name = info.field_name
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"{name} must be a positive time in s (got {v})")
-        return v
-
-    @field_validator("n_ah")
-    @classmethod
-    def _n_range(cls, v: float) -> float:
-        if not (math.isfinite(v) and 0.0 <= v <= 1.0):
-            raise ValueError(f"n_ah (Newton iteration value) must be within 0..1 Ah (got {v})")
-        return v
-
-    @field_validator("min_current_a")
-    @classmethod
-    def _min_current(cls, v: float) -> float:
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"min_current_a must be >= 0 A (got {v})")
-        return v
-
-    @field_validator("equalizer_max_a", "fixed_current_a")
-    @classmethod
-    def _current_positive(cls, v: float, info: ValidationInfo) -> float:
-        name = info.field_name
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"{name} must be a positive current in A (got {v})")
-        return v
-
-    @field_validator("max_balance_time_s")
-    @classmethod
-    def _clamp_positive(cls, v: float | None) -> float | None:
-        if v is not None and not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"max_balance_time_s must be a positive time in s or unset (got {v})")
-        return v
-
-    @model_validator(mode="after")
-    def _cross_checks(self) -> Self:
-        if self.t1_s <= self.t2_s:
-            raise ValueError(
-                f"t1_s ({self.t1_s}) must be longer than t2_s ({self.t2_s}): the method "
-                "requires T1 > T2 so that AH grows slowly and decays fast"
-            )
-        if self.fixed_current_a > self.equalizer_max_a:
-            raise ValueError(
-                f"fixed_current_a ({self.fixed_current_a}) must not exceed equalizer_max_a "
-                f"({self.equalizer_max_a})"
-            )
-        if self.balance_at_rest and self.time_mode != "fixed_current":
-            raise ValueError(
-                "balance_at_rest requires time_mode = 'fixed_current' (in string_current mode "
-                "the equalizer current is the string current, zero at rest)"
-            )
-        return self
-
-    @property
-    def balance_time_clamp_s(self) -> float:
-        return self.t1_s if self.max_balance_time_s is None else self.max_balance_time_s
 
 
 # --------------------------------------------------------------------------- pure functions
@@ -543,120 +402,11 @@ class EqualizationController:
         return out
 
 
-# --------------------------------------------------------------------------- baseline
-
-
-class PassiveTopBalancerConfig(BaseModel):
-    """A classic passive top balancer, the baseline the method is compared with: a bleed
-    resistor across each group, switched on while the group is above a voltage threshold and
-    above the lowest group of its string, only while the string charges or rests."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    threshold_cell_v: float = Field(
-        3.40,
-        description="Per-cell voltage above which a group may bleed (group threshold = "
-        "cells_per_group × this). 3.40 V suits LFP; use ~4.15 V for NMC/LCO.",
-    )
-    delta_cell_v: float = Field(
-        0.005,
-        description="Per-cell margin: a group bleeds only if it is more than cells_per_group "
-        "× this above the lowest group of its string.",
-    )
-    bleed_ohm: float = Field(10.0, description="Bleed resistance across one group (Ω).")
-    max_discharge_a: float = Field(
-        0.5,
-        description="Bleeding is allowed only while the string current is below this (A, "
-        "positive = discharge): charging or at rest, i.e. top balancing.",
-    )
-
-    @field_validator("threshold_cell_v", "bleed_ohm")
-    @classmethod
-    def _positive(cls, v: float, info: ValidationInfo) -> float:
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"{info.field_name} must be a positive number (got {v})")
-        return v
-
-    @field_validator("delta_cell_v", "max_discharge_a")
-    @classmethod
-    def _non_negative(cls, v: float, info: ValidationInfo) -> float:
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{info.field_name} must be >= 0 (got {v})")
-        return v
-
-
-class PassiveTopBalancer:
-    """Bleed-resistor baseline: commands ``balancer_a = −V_g/R`` for the groups it bleeds.
-
-    A negative balancer current is "out of the group". On the plant this is a bidirectional
-    balancer whose returned energy is wasted (``[balancer] bidirectional = true`` with a
-    negligible ``efficiency``), which is what a resistor does. Invalid inputs stop bleeding
-    and raise one ``Fault`` event, as in :class:`EqualizationController`.
-    """
-
-    def __init__(self, config: PassiveTopBalancerConfig, pack: PackInfo) -> None:
-        self.config = config
-        self.pack = pack
-        self.faulted = [False] * pack.n_batteries
-        self.bled_ah = [[0.0] * m for m in pack.groups_per_battery]
-        """Charge bled from each group (Ah), for tests and benchmarks."""
-
-    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
-        cfg = self.config
-        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
-        events: list[Event] = []
-        currents: list[tuple[float, ...]] = []
-        for b, m in enumerate(self.pack.groups_per_battery):
-            bm = meas.batteries[b] if b < len(meas.batteries) else None
-            zero = (0.0,) * m
-            if bm is None or not bm.present:
-                currents.append(zero)
-                continue
-            problem = _input_problem(bm, m)
-            if problem is not None:
-                if not self.faulted[b]:
-                    events.append(
-                        Event(
-                            t_s=meas.t_s,
-                            kind="Fault",
-                            battery=b,
-                            message=f"passive balancing stopped: {problem}",
-                            data={"source": "passive_balancer"},
-                        )
-                    )
-                self.faulted[b] = True
-                currents.append(zero)
-                continue
-            self.faulted[b] = False
-            if bm.current_a >= cfg.max_discharge_a or m < 2:
-                currents.append(zero)
-                continue
-            cells = self.pack.cells_per_group[b] if b < len(self.pack.cells_per_group) else 1
-            gv = bm.group_voltages_v
-            floor = min(gv) + cells * cfg.delta_cell_v
-            out = []
-            for g, v in enumerate(gv):
-                bleed = v > cells * cfg.threshold_cell_v and v > floor
-                i = -v / cfg.bleed_ohm if bleed else 0.0
-                self.bled_ah[b][g] += -i * dt / 3600.0
-                out.append(i)
-            currents.append(tuple(out))
-        balancer = tuple(currents) if self.pack.has_balancers else None
-        status: dict[str, list[float | int | str | bool | None]] = {
-            "passive_bleeding": [sum(1 for x in c if x < 0.0) for c in currents]
-        }
-        return ControlOutput(
-            commands=Commands(balancer_a=balancer), events=tuple(events), status=status
-        )
-
-
 __all__ = [
     "EVENT_MIN_CHANGE_AH",
     "AhUpdate",
     "EqualizationConfig",
     "EqualizationController",
-    "PassiveTopBalancer",
-    "PassiveTopBalancerConfig",
     "SampleResult",
     "StringEqualizerState",
     "balancing_time_s",

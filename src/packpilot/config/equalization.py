@@ -1,0 +1,158 @@
+"""``[equalization]``: the Newton-iterated unit-balancing-Ah equalizer of series groups."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal, Self
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+TimeMode = Literal["string_current", "fixed_current"]
+Equalizer = Literal["unidirectional", "bidirectional"]
+
+
+class EqualizationConfig(BaseModel):
+    """Settings of the Newton-iterated unit-balancing-Ah equalizer (TOML section
+    ``[equalization]``). The patent gives no values except N ∈ [0, 1] Ah and T1 > T2; the
+    defaults are the spec's placeholders."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    dv_set_v: float = Field(
+        0.005,
+        description="Preset group voltage difference ΔV_set (V). A group lags when "
+        "V_avg − V_g exceeds it; must be > 0 so that at least one group always decays.",
+    )
+    t1_s: float = Field(
+        120.0,
+        description="First set time T1 (s): how long ΔV_g > ΔV_set must persist before formula "
+        "1 raises AH_g; repeats every T1 while it persists. Must be longer than t2_s.",
+    )
+    t2_s: float = Field(
+        60.0,
+        description="Second set time T2 (s): how long ΔV_g < ΔV_set must persist before "
+        "formula 2 halves AH_g; repeats every T2 while it persists.",
+    )
+    n_ah: float = Field(
+        0.5,
+        description="Newton iteration value N (Ah), 0..1: the ceiling and fixed point of AH_g "
+        "under formula 1, i.e. the most extra charge one update can grant a group.",
+    )
+    sample_period_s: float = Field(
+        1.0,
+        description="Sampling period Ts (s) of the group voltages; steps shorter than this "
+        "accumulate until a sample is due.",
+    )
+    time_mode: TimeMode = Field(
+        "string_current",
+        description="Balancing-time formula: 'string_current' t = 3600·AH/|I_string| "
+        "(equalizer current follows the string current, clamped to equalizer_max_a); "
+        "'fixed_current' t = 3600·AH/fixed_current_a.",
+    )
+    min_current_a: float = Field(
+        0.5,
+        description="Minimum |string current| (A) for balancing (charging or discharging); "
+        "below it the equalizers idle and their remaining time is held.",
+    )
+    equalizer_max_a: float = Field(
+        2.0,
+        description="Rated output current of one group equalizer (A); the string current is "
+        "clamped to it in string_current mode.",
+    )
+    fixed_current_a: float = Field(
+        1.0,
+        description="Fixed equalizer output current I_eq (A) used in fixed_current mode.",
+    )
+    balance_at_rest: bool = Field(
+        False,
+        description="fixed_current mode only: balance even when |I_string| < min_current_a "
+        "(equalizer powered independently of the string current).",
+    )
+    max_balance_time_s: float | None = Field(
+        None,
+        description="Clamp of one balancing time (s); None = t1_s, the longest a persisting "
+        "condition waits for its next AH update.",
+    )
+    equalizer: Equalizer = Field(
+        "unidirectional",
+        description="Equalizer hardware. 'bidirectional' shifts a string's currents by their "
+        "median so that, when most groups would be charged, the few leading groups are "
+        "discharged instead: same relative charge per group, less converter throughput.",
+    )
+
+    @field_validator("dv_set_v")
+    @classmethod
+    def _dv_positive(cls, v: float) -> float:
+        if not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"dv_set_v must be a positive voltage in V (got {v})")
+        return v
+
+    @field_validator("t1_s", "t2_s", "sample_period_s")
+    @classmethod
+    def _time_positive(cls, v: float, info: ValidationInfo) -> float:
+        name = info.field_name
+        if not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"{name} must be a positive time in s (got {v})")
+        return v
+
+    @field_validator("n_ah")
+    @classmethod
+    def _n_range(cls, v: float) -> float:
+        if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+            raise ValueError(f"n_ah (Newton iteration value) must be within 0..1 Ah (got {v})")
+        return v
+
+    @field_validator("min_current_a")
+    @classmethod
+    def _min_current(cls, v: float) -> float:
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f"min_current_a must be >= 0 A (got {v})")
+        return v
+
+    @field_validator("equalizer_max_a", "fixed_current_a")
+    @classmethod
+    def _current_positive(cls, v: float, info: ValidationInfo) -> float:
+        name = info.field_name
+        if not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"{name} must be a positive current in A (got {v})")
+        return v
+
+    @field_validator("max_balance_time_s")
+    @classmethod
+    def _clamp_positive(cls, v: float | None) -> float | None:
+        if v is not None and not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"max_balance_time_s must be a positive time in s or unset (got {v})")
+        return v
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> Self:
+        if self.t1_s <= self.t2_s:
+            raise ValueError(
+                f"t1_s ({self.t1_s}) must be longer than t2_s ({self.t2_s}): the method "
+                "requires T1 > T2 so that AH grows slowly and decays fast"
+            )
+        if self.fixed_current_a > self.equalizer_max_a:
+            raise ValueError(
+                f"fixed_current_a ({self.fixed_current_a}) must not exceed equalizer_max_a "
+                f"({self.equalizer_max_a})"
+            )
+        if self.balance_at_rest and self.time_mode != "fixed_current":
+            raise ValueError(
+                "balance_at_rest requires time_mode = 'fixed_current' (in string_current mode "
+                "the equalizer current is the string current, zero at rest)"
+            )
+        return self
+
+    @property
+    def balance_time_clamp_s(self) -> float:
+        return self.t1_s if self.max_balance_time_s is None else self.max_balance_time_s
+
+
+__all__ = ["EqualizationConfig", "Equalizer", "TimeMode"]
