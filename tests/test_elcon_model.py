@@ -18,7 +18,6 @@ hostile values.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -237,9 +236,17 @@ CASES: dict[str, tuple[str, float, dict[str, Any]]] = {
     "uav_fault_flag": (
         "uav_mission",
         1700.0,
-        {"faults": [{"kind": "charger_fault", "at_s": 1600.0, "until_s": 1640.0,
-                     "flag": "over_temperature"}]},
-    ),  # fmt: skip
+        {
+            "faults": [
+                {
+                    "kind": "charger_fault",
+                    "at_s": 1600.0,
+                    "until_s": 1640.0,
+                    "flag": "over_temperature",
+                }
+            ]
+        },
+    ),
     "uav_undock": ("uav_mission", 1760.0, {"charger": {"disconnect_s": 1700.0}}),
     "evtol_silence_from_start": ("evtol_charging", 600.0, {"faults": [silence(0.0, 13.0)]}),
     "evtol_silence_odd_dt": (
@@ -260,12 +267,19 @@ CASES: dict[str, tuple[str, float, dict[str, Any]]] = {
     "evtol_flag_and_silence": (
         "evtol_charging",
         600.0,
-        {"faults": [
-            {"kind": "charger_fault", "at_s": 50.0, "until_s": 90.0, "flag": "hardware_failure"},
-            silence(70.0, 80.0),
-            {"kind": "charger_fault", "at_s": 200.0, "flag": "input_voltage_fault"},
-        ]},
-    ),  # fmt: skip
+        {
+            "faults": [
+                {
+                    "kind": "charger_fault",
+                    "at_s": 50.0,
+                    "until_s": 90.0,
+                    "flag": "hardware_failure",
+                },
+                silence(70.0, 80.0),
+                {"kind": "charger_fault", "at_s": 200.0, "flag": "input_voltage_fault"},
+            ]
+        },
+    ),
     "evtol_no_controller": ("evtol_charging", 1200.0, NO_CONTROLLER),
     "evtol_no_controller_silenced": (
         "evtol_charging",

@@ -298,11 +298,11 @@ def elcon_send(
             rv = decode_count(rq_v)
             ra = decode_count(rq_a)
             # ChargerModel.request: min(max(x, 0.0), rated)
-            if 0.0 > rv:
+            if rv < 0.0:
                 rv = 0.0
             if prm[P_RATED_V] < rv:
                 rv = prm[P_RATED_V]
-            if 0.0 > ra:
+            if ra < 0.0:
                 ra = 0.0
             if prm[P_RATED_A] < ra:
                 ra = prm[P_RATED_A]
