@@ -4,15 +4,17 @@ Two closed loops of the same scenario step side by side: one on :class:`ElconLin
 run without a frame log uses), one on a ``CanChargerLink`` per pack (client, virtual bus,
 emulated charger node). After every step the charger status the BMS saw (``m.charger``), what
 reached each dock (``request(v, a, enable, t)``: the dock's request arrays), the dock's output
-and flags, the plant's interval and the events must be identical, and at the end the metrics
-and both nodes' frame counters. Scenarios: the UAV mission through docking and charging, the
-eVTOL charging bus (its dock put on a virtual CAN bus; the example's is direct),
-``can_silence`` before docking / during charging / shorter and longer
-than the timeouts / for good, a charger fault flag, undocking, a dock no controller commands,
-odd periods and timeouts, and batches of packs that differ.
+and flags, the plant's interval, the events, both nodes' frame counters and whether the dock's
+node has lost the heartbeat must be identical, and at the end the metrics. Whole runs compare
+traces, status, events and metrics. Scenarios: the UAV mission through docking and charging,
+the eVTOL charging bus (its dock put on a virtual CAN bus; the example's is direct),
+``can_silence`` before docking / across it / during charging, shorter than, between and longer
+than the timeouts, for good, two at once; charger fault flags; undocking; a dock no controller
+commands (the default setpoint); odd periods and timeouts (one under the heartbeat period);
+a batch of four packs that differ.
 
 The quantization is checked against the codec itself (``io/can/codec.py`` encode/decode) on
-hostile values.
+hostile values (negative, NaN, inf, huge, exact halves, the whole 0.005 grid).
 """
 
 from __future__ import annotations
@@ -135,6 +137,12 @@ def lockstep(
             _same(_plant_charger(model), _plant_charger(ref), "dock", k)
             _same(vars(a.iv), vars(b.iv), "interval", k)
             assert repr(a.events) == repr(b.events), k
+            t = a.iv.t_s
+            lost = model.links.heartbeat_lost(t)
+            for p, link in enumerate(ref.links.links):  # type: ignore[attr-defined]
+                assert model.links.counters(p) == _counters(link), (k, p)
+                emulator = getattr(link, "inner", link).emulator
+                assert bool(lost[p]) == emulator.heartbeat_lost(t), (k, p)
             m = model.m.charger
             seen["steps"] += 1
             seen["offline"] += int(np.sum(m.reported & ~m.online))
