@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from packpilot.config import FaultConfig, ScenarioConfig
 from packpilot.contract.arrays import MeasArrays
@@ -29,6 +29,13 @@ SENSOR_KINDS = frozenset({"sensor_nan", "sensor_stuck", "sensor_dropout"})
 
 def _active(f: FaultConfig, t_s: float) -> bool:
     return t_s >= f.at_s - 1e-9 and (f.until_s is None or t_s < f.until_s - 1e-9)
+
+
+class Silenceable(Protocol):
+    """A charger link (or all of them, :class:`~packpilot.sim.elcon.ElconLinks`) that a
+    ``can_silence`` fault can silence."""
+
+    silenced: bool
 
 
 @dataclass
@@ -56,7 +63,7 @@ class FaultInjector:
 
     cfg: ScenarioConfig
     pack: Pack
-    links: list[SilenceableLink] = field(default_factory=list)
+    links: list[Silenceable] = field(default_factory=list)
     stuck: dict[tuple[int, str], Any] = field(default_factory=dict)
     frozen: dict[int, dict[str, Any]] = field(default_factory=dict)
     applied: set[int] = field(default_factory=set)
@@ -128,4 +135,4 @@ class FaultInjector:
                 bat.sample_age_s[:, k] = max(t - f.at_s, 0.0)
 
 
-__all__ = ["FaultInjector", "SilenceableLink"]
+__all__ = ["FaultInjector", "Silenceable", "SilenceableLink"]

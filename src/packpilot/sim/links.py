@@ -5,6 +5,11 @@ A link is direct (setpoints written into the plant's dock every period) or a pyt
 :class:`ChargerLinks` keeps, per pack, the last status and marks the charger offline once
 nothing arrived for the heartbeat timeout, and turns the merged commands into setpoints
 (the scenario's ``[charger]`` setpoint where no controller commanded the charger).
+
+An emulated dock on a private virtual bus with no frame log (``[can] interface = "virtual"``,
+no ``log``, no ``channel``) is the compiled model of that whole path,
+:class:`~packpilot.sim.elcon.ElconLinks`, for every pack (P = 1 and P = N alike): same
+setpoints at the dock, same status in the measurements, step for step, without python-can.
 """
 
 from __future__ import annotations
@@ -13,12 +18,14 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 from packpilot.config import ScenarioConfig
 from packpilot.contract.arrays import CmdArrays, MeasArrays
 from packpilot.contract.charger import CHARGER_FLAGS, ChargerCommand, ChargerLink, ChargerStatus
 from packpilot.model.charger import ChargerView
 from packpilot.model.pack import Pack
+from packpilot.sim.elcon import ElconLinks
 
 
 @dataclass
@@ -54,13 +61,45 @@ def can_link(cfg: ScenarioConfig, pack: Pack, p: int = 0) -> ChargerLink:
     )
 
 
+def modelled(cfg: ScenarioConfig) -> bool:
+    """The scenario's charger talks TC/Elcon to an emulated dock over a virtual bus nobody
+    else sees (no frame log, no named channel): :class:`ElconLinks` runs it instead."""
+    can = cfg.can
+    return (
+        cfg.charger.present
+        and can is not None
+        and can.interface == "virtual"
+        and can.log is None
+        and can.channel is None
+    )
+
+
 def default_links(cfg: ScenarioConfig, pack: Pack) -> list[ChargerLink]:
-    """The scenario's links: none without a charger, CAN with ``[can]``, else direct."""
+    """The scenario's links as one Python object per pack: none without a charger, CAN with
+    ``[can]``, else direct. (:func:`pack_links` runs a modelled CAN link compiled instead.)"""
     if not cfg.charger.present:
         return []
     if cfg.can is not None:
         return [can_link(cfg, pack, p) for p in range(pack.n_packs)]
     return [DirectChargerLink(pack.charger.view(p)) for p in range(pack.n_packs)]
+
+
+class PackLinks(Protocol):
+    """The charger links of every pack as the closed loop drives them."""
+
+    def __bool__(self) -> bool: ...
+
+    def poll(self, t_s: float, m: MeasArrays) -> None: ...
+
+    def send(self, t_s: float, cmd: CmdArrays) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def pack_links(cfg: ScenarioConfig, pack: Pack) -> ElconLinks | None:
+    """The compiled link of every pack when the scenario's link is modelled, else ``None``
+    (then :func:`default_links` under :class:`ChargerLinks`)."""
+    return ElconLinks(cfg, pack) if modelled(cfg) else None
 
 
 class ChargerLinks:
@@ -124,4 +163,13 @@ class ChargerLinks:
                 close()
 
 
-__all__ = ["ChargerLinks", "DirectChargerLink", "can_link", "default_links"]
+__all__ = [
+    "ChargerLinks",
+    "DirectChargerLink",
+    "ElconLinks",
+    "PackLinks",
+    "can_link",
+    "default_links",
+    "modelled",
+    "pack_links",
+]

@@ -37,8 +37,8 @@ from packpilot.control.core_kernel import DIR_CMD, DIR_M
 from packpilot.control.registry import REGISTRY, SAFETY
 from packpilot.model import loads
 from packpilot.model.pack import Interval
-from packpilot.sim.faults import FaultInjector, SilenceableLink
-from packpilot.sim.links import ChargerLinks, default_links
+from packpilot.sim.faults import FaultInjector, Silenceable, SilenceableLink
+from packpilot.sim.links import ChargerLinks, PackLinks, default_links, pack_links
 from packpilot.sim.metrics import Metrics
 from packpilot.sim.plant_io import SimulatedPlant
 
@@ -100,7 +100,7 @@ class ClosedLoop:
     cfg: ScenarioConfig
     plant: SimulatedPlant
     core: Core
-    links: ChargerLinks
+    links: PackLinks
     faults: FaultInjector | None = None
     hooks: Sequence[Hook] = ()
     m: MeasArrays = field(init=False)
@@ -127,16 +127,26 @@ class ClosedLoop:
         hooks: Sequence[Hook] = (),
         plant: SimulatedPlant | None = None,
     ) -> ClosedLoop:
+        """The loop of ``cfg`` over ``n_packs`` packs. ``links``: one charger link per pack
+        (driven by :class:`ChargerLinks`); ``None``: the scenario's, i.e. the compiled
+        TC/Elcon model (:class:`~packpilot.sim.elcon.ElconLinks`) when its link is modelled
+        (:func:`~packpilot.sim.links.modelled`), else :func:`default_links`."""
         if plant is None:
             plant = SimulatedPlant(cfg, n_packs, overrides)
         if core is None:
             core = build_core(cfg, plant.infos)
-        raw = default_links(cfg, plant.pack) if links is None else list(links)
-        faults = None
-        if cfg.faults:
-            raw = [SilenceableLink(x) for x in raw]
-            faults = FaultInjector(cfg, plant.pack, raw)  # type: ignore[arg-type]
-        return cls(cfg, plant, core, ChargerLinks(cfg, raw), faults, hooks)
+        chargers: PackLinks
+        silenceable: list[Silenceable]
+        model = pack_links(cfg, plant.pack) if links is None else None
+        if model is not None:  # the compiled TC/Elcon link of every pack
+            chargers, silenceable = model, [model]
+        else:
+            raw = default_links(cfg, plant.pack) if links is None else list(links)
+            if cfg.faults:
+                raw = [SilenceableLink(x) for x in raw]
+            chargers, silenceable = ChargerLinks(cfg, raw), list(raw)  # type: ignore[arg-type]
+        faults = FaultInjector(cfg, plant.pack, silenceable) if cfg.faults else None
+        return cls(cfg, plant, core, chargers, faults, hooks)
 
     def demand(self, t_s: float) -> float:
         start = self.cfg.load.start_s

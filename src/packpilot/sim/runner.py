@@ -21,7 +21,7 @@ from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
 from packpilot.model import loads
 from packpilot.model.pack import Pack
-from packpilot.sim.links import default_links
+from packpilot.sim.links import default_links, modelled
 from packpilot.sim.loop import ClosedLoop, build_core, load_profile, n_steps
 from packpilot.sim.plant_io import SimulatedPlant
 from packpilot.sim.record import TraceBuffer
@@ -45,6 +45,10 @@ class Runner:
     controller: Controller | Core | None = None
     recorder: Recorder | None = None
     charger_link: ChargerLink | None = None
+    """The pack's charger link. By default the scenario's: a Python link (direct, or a
+    python-can bus with a frame log, a named channel or a real interface) built here, or
+    ``None`` when the link is modelled (:func:`~packpilot.sim.links.modelled`): the loop then
+    runs the compiled model (``self.loop.links``). Set it to run any link of your own."""
     progress: bool | None = None
     hooks: Sequence[Callable[[Runner, float], None]] = ()
     """Called before each control step with (runner, t_s): fault injection, hot plugs."""
@@ -59,7 +63,7 @@ class Runner:
         self.traction = list(self.plant.topology.traction)
         if self.controller is None:
             self.controller = build_core(self.cfg, self.plant.infos)
-        if self.charger_link is None and self.cfg.charger.present:
+        if self.charger_link is None and self.cfg.charger.present and not modelled(self.cfg):
             self.charger_link = default_links(self.cfg, self.pack)[0]
         self._profile = load_profile(self.cfg)
         self.loop: ClosedLoop | None = None
@@ -87,7 +91,11 @@ class Runner:
         total = n_steps(cfg)
         assert self.controller is not None
         core = as_core(self.controller, self.info)
-        links = [self.charger_link] if self.charger_link is not None else []
+        links: list[ChargerLink] | None = None  # None: the compiled model, when modelled
+        if self.charger_link is not None:
+            links = [self.charger_link]
+        elif not modelled(cfg):
+            links = []
         hooks = [lambda t, h=h: h(self, t) for h in self.hooks]
         loop = ClosedLoop.of(cfg, core=core, links=links, hooks=hooks, plant=self.plant)
         loop.profile = self._profile
