@@ -53,7 +53,7 @@ def _cfg(duration_s: float) -> Any:
 
 def _timed_campaign(cfg: Any, runs: int, repeat: int = 2, **kw: Any) -> float:
     """Best wall time of ``repeat`` campaigns (the machine is shared: take the quiet one)."""
-    from packpilot.sim.campaign import run_campaign
+    from packpilot.campaign import run_campaign
 
     best = math.inf
     for _ in range(repeat):
@@ -69,7 +69,8 @@ def _cluster(n: int) -> tuple[Any, Any, float]:
     """A warmed LocalCluster: imports and numba caches loaded in every worker."""
     import importlib
 
-    from packpilot.sim.campaign import QUIET_WORKER_CONFIG, draw_run, run_batch
+    from packpilot.campaign import draw_run, run_batch
+    from packpilot.campaign.schedule import QUIET_WORKER_CONFIG
 
     dist: Any = importlib.import_module("distributed")  # untyped for mypy --strict
     dask: Any = importlib.import_module("dask")
@@ -126,8 +127,9 @@ def _others_busy_cores(window_s: float = 2.0) -> float:
 
 def _lockstep_cpu_us(n_packs: int, duration_s: float = 60.0) -> float:
     """CPU time per pack-step of one lockstep batch of ``n_packs`` missions (controller in)."""
-    from packpilot.sim.campaign import draw_run, parse_spreads
     from packpilot.sim.lockstep import run_lockstep, stack_overrides
+
+    from packpilot.campaign import draw_run, parse_spreads
 
     cfg = _cfg(duration_s)
     sp = parse_spreads(SPREAD)
@@ -141,7 +143,7 @@ def _lockstep_cpu_us(n_packs: int, duration_s: float = 60.0) -> float:
 
 
 def run(quick: bool = False) -> list[dict[str, Any]]:
-    from packpilot.sim.campaign import Draw, run_one
+    from packpilot.campaign import Draw, run_one
 
     load0 = os.getloadavg()[0]
     short_s = 60.0

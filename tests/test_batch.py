@@ -9,11 +9,8 @@ from typing import Any
 
 import pytest
 
-from packpilot.config import ScenarioConfig, load_config, parse_config
-from packpilot.errors import InputError
-from packpilot.sim.campaign import (
+from packpilot.campaign import (
     Draw,
-    _row,
     default_batch,
     draw_run,
     parse_spreads,
@@ -21,6 +18,9 @@ from packpilot.sim.campaign import (
     run_campaign,
     unsupported_reason,
 )
+from packpilot.campaign.execute import _row
+from packpilot.config import ScenarioConfig, load_config, parse_config
+from packpilot.errors import InputError
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -160,7 +160,7 @@ def test_only_a_real_can_interface_cannot_batch(tmp_path: Path) -> None:
 
 
 def test_default_batch_sizes() -> None:
-    from packpilot.sim.campaign import MAX_BATCH
+    from packpilot.campaign.schedule import MAX_BATCH
 
     assert default_batch(1000, 2) == 125
     assert default_batch(100_000, 2) == MAX_BATCH

@@ -11,9 +11,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from packpilot import campaign as cp
+from packpilot.campaign import schedule
 from packpilot.config import ScenarioConfig, parse_config
 from packpilot.errors import InputError
-from packpilot.sim import campaign as cp
 from tests.conftest import dual_pack
 
 SPREAD = "capacity=5%,r0=10%,soc0=0.05,ambient_c=-10:35"
@@ -169,6 +170,6 @@ def test_default_local_cluster_path(cfg: ScenarioConfig, tmp_path: Path) -> None
 def test_unreachable_scheduler_is_an_input_error(
     cfg: ScenarioConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(cp, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(schedule, "CONNECT_TIMEOUT_S", 1.0)
     with pytest.raises(InputError, match="cannot connect"):
         cp.run_campaign(cfg, 2, tmp_path / "u.parquet", scheduler="tcp://127.0.0.1:1")

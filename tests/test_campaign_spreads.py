@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot import campaign as cp
 from packpilot.config import parse_config
 from packpilot.errors import InputError
-from packpilot.sim import campaign as cp
 from tests.conftest import dual_pack
 
 

@@ -308,7 +308,7 @@ def test_nan_input_stays_nan_and_in_bounds() -> None:
 
 @pytest.mark.parametrize("name", ["ecm_example", "uav_5ah", "lfp_storage"])
 def test_ocv_kernel_matches_numpy(name: str) -> None:
-    from packpilot.model.cell import _ocv_numpy
+    from packpilot.model.cell.reference import _ocv_numpy
 
     p = load_parameter_set(name)
     soc = np.linspace(-0.2, 1.2, 301).reshape(7, 43)

@@ -78,7 +78,7 @@ def test_uav_5ah_scaling() -> None:
     np.testing.assert_allclose(ocv_v(p, [0.0, 1.0], 25.0), [3.0, 4.2], atol=1e-12)
     s = initial_state(p, 1, 0.5, 25.0)
     _, r0 = thevenin(p, s, 30.0, 5.0, 1.0)
-    from packpilot.model.cell import _np_interp3
+    from packpilot.model.cell.reference import _np_interp3
 
     r1 = _np_interp3(p, "r1_ohm", np.array([25.0]), np.array([30.0]), np.array([0.5]))
     assert r0[0] + r1[0] == pytest.approx(3.0e-3, rel=1e-9)
@@ -103,7 +103,7 @@ def test_uav_5ah_resistance_is_arrhenius_20_kj_per_mol() -> None:
     for tab in (p.r0_ohm, p.r1_ohm):
         ea = np.diff(np.log(tab), axis=0) / np.diff(inv_t)[:, None, None] * 8.314462618
         np.testing.assert_allclose(ea, 20e3, rtol=1e-4)
-    from packpilot.model.cell import _np_interp3
+    from packpilot.model.cell.reference import _np_interp3
 
     def dcir(temp_c: float) -> float:
         args = (np.array([temp_c]), np.array([30.0]), np.array([0.5]))

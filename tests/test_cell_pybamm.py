@@ -184,7 +184,7 @@ def test_table_lookup_matches_pybamm_interpolant(ecm: CellParams) -> None:
     where PyBaMM extrapolates linearly (and our 'linear' option then agrees with it)."""
     from dataclasses import replace
 
-    from packpilot.model.cell import _np_interp3
+    from packpilot.model.cell.reference import _np_interp3
 
     rng = np.random.default_rng(3)
     inside = np.column_stack(

@@ -267,8 +267,8 @@ def campaign(
     """Monte-Carlo campaign: N closed-loop runs over parameter spreads (Dask), to Parquet."""
 
     def go() -> None:
+        from packpilot import campaign as cp
         from packpilot.config import load_config
-        from packpilot.sim import campaign as cp
 
         cfg = load_config(config)
         if duration is not None:

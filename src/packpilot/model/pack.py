@@ -31,6 +31,7 @@ from packpilot.model import cell as cellmod
 from packpilot.model import pack_kernel
 from packpilot.model.bus import ChargerSource, LoadSink
 from packpilot.model.bus_kernel import solve_bus_fast
+from packpilot.model.cell.kernels import _tables, _thermal_coeffs
 from packpilot.model.charger import ChargerModel, ChargerParams
 from packpilot.model.switches import KIND_MOSFET, KIND_RELAY, diode_currents, switch_branches
 
@@ -450,7 +451,7 @@ class Pack:
             pack_kernel.bank_cells(
                 bank.idx, cell_a, self.cell_ambient, self.capacity_ah, self.cell_r_scale,
                 st.soc, st.eta_v, st.temp_c, st.jig_temp_c,
-                h, cellmod._thermal_coeffs(bank.params, h), *cellmod._tables(bank.params),
+                h, _thermal_coeffs(bank.params, h), *_tables(bank.params),
                 new.soc, new.eta_v, new.temp_c, new.jig_temp_c, heat, e_cell, r_cell,
             )  # fmt: skip
             bank.state = new

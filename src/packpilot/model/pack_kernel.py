@@ -26,7 +26,7 @@ import numpy as np
 
 from packpilot.jit import kernel
 from packpilot.model.bus_kernel import _V_FLOOR, _solve_one
-from packpilot.model.cell import _advance_kernel, _thevenin_kernel
+from packpilot.model.cell.kernels import _advance_kernel, _thevenin_kernel
 from packpilot.model.charger import FLAG_NAMES
 from packpilot.model.numerics import pairwise_sum, segment_sum
 from packpilot.model.switches import KIND_MOSFET, KIND_RELAY
