@@ -39,17 +39,11 @@ import numpy as np
 from baselines import PassiveTopBalancer, PassiveTopBalancerConfig
 from packpilot.config import ScenarioConfig, load_config, validate_section
 from packpilot.config.equalization import EqualizationConfig
+from packpilot.contract.bms import Commands, Controller, ControlOutput, Measurements, NullController
+from packpilot.contract.charger import ChargerCommand
+from packpilot.contract.topology import PackInfo
+from packpilot.control.core import Core
 from packpilot.control.equalization import EqualizationController
-from packpilot.control.types import (
-    ChargerCommand,
-    Commands,
-    ComposedController,
-    Controller,
-    ControlOutput,
-    Measurements,
-    NullController,
-    PackInfo,
-)
 from packpilot.model import cell as cellmod
 from packpilot.model import loads
 from packpilot.model.pack import Pack
@@ -301,7 +295,7 @@ def _drive(
         runner.controller = driver
     else:
         # Built after the runner so that the method gets the runner's PackInfo.
-        runner.controller = ComposedController([driver, make_method(runner.info)])
+        runner.controller = Core([runner.info], [driver, make_method(runner.info)])
     with contextlib.suppress(_Done):
         runner.run()
     return runner

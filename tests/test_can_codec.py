@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from packpilot.control.types import ChargerCommand
+from packpilot.contract.charger import ChargerCommand
 from packpilot.io.can import (
     FLAG_NAMES,
     REQUEST_ID,

@@ -11,7 +11,7 @@ from pathlib import Path
 import can
 import pytest
 
-from packpilot.control.types import ChargerCommand, ChargerStatus
+from packpilot.contract.charger import ChargerCommand, ChargerStatus
 from packpilot.errors import ConfigError
 from packpilot.io.can import (
     REQUEST_ID,

@@ -8,16 +8,9 @@ from dataclasses import dataclass, field
 
 import pytest
 
+from packpilot.contract.bms import BatteryMeasurement, ControlOutput, Event, Measurements
+from packpilot.contract.charger import CHARGER_OFF, ChargerCommand, ChargerStatus
 from packpilot.control.charging import ChargingConfig, ChargingController, Stage, cluster_levels
-from packpilot.control.types import (
-    CHARGER_OFF,
-    BatteryMeasurement,
-    ChargerCommand,
-    ChargerStatus,
-    ControlOutput,
-    Event,
-    Measurements,
-)
 from tests.test_charging_helpers import ToyPack, pack_info
 
 

@@ -13,17 +13,16 @@ import random
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from packpilot.control.types import (
+from packpilot.contract.bms import (
     BatteryMeasurement,
-    ChargerCommand,
-    ChargerStatus,
     Commands,
     ControlOutput,
     Measurements,
-    PackInfo,
     SwitchKind,
     SwitchState,
 )
+from packpilot.contract.charger import ChargerCommand, ChargerStatus
+from packpilot.contract.topology import PackInfo
 
 
 def pack_info(n: int, series: int = 30, has_aux: bool = False) -> PackInfo:

@@ -8,8 +8,8 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.bms import BatteryMeasurement, Measurements
 from packpilot.control.charging import ChargingConfig, ChargingController, Stage
-from packpilot.control.types import BatteryMeasurement, Measurements
 from tests.test_charging_helpers import ToyPack, pack_info
 
 volts = st.floats(min_value=80.0, max_value=119.0, allow_nan=False)

@@ -11,18 +11,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from packpilot.config import parse_config
+from packpilot.contract.bms import Commands, Controller, ControlOutput, Measurements, NullController
+from packpilot.contract.charger import ChargerCommand
 from packpilot.control.equalization import EqualizationConfig, EqualizationController
-from packpilot.control.types import (
-    ChargerCommand,
-    Commands,
-    ComposedController,
-    Controller,
-    ControlOutput,
-    Measurements,
-    NullController,
-)
 from packpilot.model import loads
 from packpilot.sim.runner import Runner
+from tests.compose import ComposedController
 
 CUTOFF_V = 3.0
 LOAD_A = 20.0

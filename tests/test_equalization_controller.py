@@ -7,8 +7,9 @@ import math
 
 import pytest
 
+from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.equalization import EqualizationConfig, EqualizationController
-from packpilot.control.types import BatteryMeasurement, Measurements, PackInfo, SwitchKind
 
 
 def pack(groups: tuple[int, ...] = (4,), balancers: bool = True) -> PackInfo:

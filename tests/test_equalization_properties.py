@@ -7,12 +7,13 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.equalization import (
     EqualizationConfig,
     EqualizationController,
     balancing_time_s,
 )
-from packpilot.control.types import BatteryMeasurement, Measurements, PackInfo, SwitchKind
 
 
 def _meas(t: float, gv: tuple[float, ...], cur: float) -> Measurements:

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from packpilot.config import parse_config
+from packpilot.contract.bms import Commands, ControlOutput, Measurements
 from packpilot.contract.record import Result
-from packpilot.control.types import Commands, ControlOutput, Measurements
 from packpilot.io.telemetry import SQLiteRecorder, load_run
 from packpilot.sim.runner import Runner
 from tests.conftest import dual_pack

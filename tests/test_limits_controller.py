@@ -8,8 +8,9 @@ from dataclasses import replace
 
 import pytest
 
+from packpilot.contract.bms import ControlOutput, SwitchKind
+from packpilot.contract.charger import CHARGER_OFF
 from packpilot.control.limits import DEFAULT_ROWS, TIER_EVENT, LimitRow, LimitsConfig
-from packpilot.control.types import CHARGER_OFF, ControlOutput, SwitchKind
 from tests.test_limits_helpers import CAP, DELTA, DT, Driver, healthy, with_value
 
 

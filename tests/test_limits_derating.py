@@ -7,6 +7,8 @@ from dataclasses import replace
 
 import pytest
 
+from packpilot.contract.bms import OPEN, Measurements, SwitchKind, SwitchState
+from packpilot.contract.topology import PackInfo
 from packpilot.control.limits import (
     DEFAULT_ROWS,
     CurveTable,
@@ -14,7 +16,6 @@ from packpilot.control.limits import (
     LimitsConfig,
     LimitsController,
 )
-from packpilot.control.types import OPEN, Measurements, PackInfo, SwitchKind, SwitchState
 from tests.test_limits_helpers import CAP, Driver, healthy, pack
 
 DER = DeratingConfig()

@@ -7,15 +7,15 @@ from typing import Any
 
 from hypothesis import strategies as st
 
-from packpilot.control.limits import LimitRow, LimitsConfig, LimitsController
-from packpilot.control.types import (
+from packpilot.contract.bms import (
     BatteryMeasurement,
     ControlOutput,
     Measurements,
-    PackInfo,
     SwitchKind,
     SwitchState,
 )
+from packpilot.contract.topology import PackInfo
+from packpilot.control.limits import LimitRow, LimitsConfig, LimitsController
 
 CAP = 5.0
 DT = 0.1

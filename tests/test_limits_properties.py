@@ -8,8 +8,10 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.bms import ControlOutput, Measurements
+from packpilot.contract.charger import CHARGER_OFF
+from packpilot.contract.topology import PackInfo
 from packpilot.control.limits import TIER_EVENT, LimitsConfig, LimitsController
-from packpilot.control.types import CHARGER_OFF, ControlOutput, Measurements, PackInfo
 from tests.test_limits_helpers import ANY_FLOAT, Driver, healthy, measurements, pack_infos
 
 LIMIT_EVENTS = {*TIER_EVENT.values(), "LimitReset"}

@@ -79,7 +79,7 @@ class _Hold:
     """Expresses no opinion: the gates stay as set on the plant."""
 
     def step(self, meas, dt_s):  # type: ignore[no-untyped-def]
-        from packpilot.control.types import Commands, ControlOutput
+        from packpilot.contract.bms import Commands, ControlOutput
 
         return ControlOutput(commands=Commands())
 

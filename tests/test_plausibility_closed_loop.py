@@ -10,11 +10,13 @@ from functools import reduce
 from typing import Any
 
 from packpilot.config import parse_config
+from packpilot.contract.bms import Commands, ControlOutput, Measurements
 from packpilot.contract.record import Result
+from packpilot.contract.topology import PackInfo
 from packpilot.control.limits import LimitsConfig, LimitsController
 from packpilot.control.plausibility import PlausibilityConfig, PlausibilityMonitor
-from packpilot.control.types import Commands, ControlOutput, Measurements, PackInfo, merge_commands
 from packpilot.sim.runner import Runner
+from tests.compose import merge_commands
 from tests.conftest import dual_pack
 
 

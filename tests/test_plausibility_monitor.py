@@ -9,9 +9,7 @@ from typing import Any
 
 import pytest
 
-from packpilot.control.plausibility import PlausibilityConfig, PlausibilityMonitor
-from packpilot.control.types import (
-    CHARGER_OFF,
+from packpilot.contract.bms import (
     CLOSED,
     OPEN,
     BatteryMeasurement,
@@ -21,6 +19,8 @@ from packpilot.control.types import (
     SwitchKind,
     SwitchState,
 )
+from packpilot.contract.charger import CHARGER_OFF
+from packpilot.control.plausibility import PlausibilityConfig, PlausibilityMonitor
 from packpilot.errors import ConfigError
 from tests.test_limits_helpers import CAP, pack
 

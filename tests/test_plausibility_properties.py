@@ -6,8 +6,10 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.bms import Commands, ControlOutput, Measurements
+from packpilot.contract.charger import CHARGER_OFF
+from packpilot.contract.topology import PackInfo
 from packpilot.control.plausibility import KINDS, PlausibilityConfig, PlausibilityMonitor
-from packpilot.control.types import CHARGER_OFF, Commands, ControlOutput, Measurements, PackInfo
 from tests.test_limits_helpers import ANY_FLOAT, measurements, pack_infos
 
 FLAGS = st.lists(st.sampled_from([True, False, None]), max_size=5).map(tuple)

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Result, StepSample, Trace
-from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.report.plots import figure_png_base64, plot_run, run_figure
 

@@ -7,18 +7,13 @@ from collections.abc import Sequence
 
 import pytest
 
+from packpilot.contract.bms import BatteryMeasurement, ControlOutput, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.protection import (
     ProtectionConfig,
     ProtectionController,
     ProtectionParameter,
     TableRow,
-)
-from packpilot.control.types import (
-    BatteryMeasurement,
-    ControlOutput,
-    Measurements,
-    PackInfo,
-    SwitchKind,
 )
 
 PACK1 = PackInfo(

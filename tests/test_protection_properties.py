@@ -8,8 +8,9 @@ from fractions import Fraction
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.protection import CompiledTable, ProtectionConfig, ProtectionController
-from packpilot.control.types import BatteryMeasurement, Measurements, PackInfo, SwitchKind
 
 PACK = PackInfo(
     n_batteries=1,

@@ -18,8 +18,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packpilot.config import load_config
+from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Result, StepSample, Trace
-from packpilot.control.types import Event
 from packpilot.io.telemetry import SQLiteRecorder, load_run
 from packpilot.report import figures as F
 from packpilot.report.downsample import MAX_POINTS

@@ -14,12 +14,13 @@ from dataclasses import dataclass, field
 import pytest
 from pydantic import ValidationError
 
+from packpilot.contract.bms import ControlOutput, Event, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.sequencing import (
     SequencingConfig,
     SequencingController,
     battery_measurement,
 )
-from packpilot.control.types import ControlOutput, Event, Measurements, PackInfo, SwitchKind
 
 V_F = 0.6
 R_FET = 0.002

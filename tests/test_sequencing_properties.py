@@ -12,12 +12,13 @@ from dataclasses import dataclass
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.sequencing import (
     SequencingConfig,
     SequencingController,
     battery_measurement,
 )
-from packpilot.control.types import ControlOutput, Measurements, PackInfo, SwitchKind
 
 CFG = SequencingConfig()
 STATES = {"DISCHARGING", "STANDBY", "CHARGING", "OFF"}

@@ -11,14 +11,9 @@ import numpy as np
 import pytest
 
 from packpilot.config import parse_config
+from packpilot.contract.bms import BatteryMeasurement, ControlOutput, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.soc import SocConfig, SocEstimator
-from packpilot.control.types import (
-    BatteryMeasurement,
-    ControlOutput,
-    Measurements,
-    PackInfo,
-    SwitchKind,
-)
 from packpilot.errors import ConfigError
 from packpilot.model.cell import load_parameter_set
 from packpilot.sim.runner import Runner

@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 from packpilot.config import parse_config
-from packpilot.control.supervisor import Mode, Supervisor, SupervisorConfig
-from packpilot.control.types import (
+from packpilot.contract.bms import (
     CLOSED,
     OPEN,
     BatteryMeasurement,
     Commands,
     ControlOutput,
     Measurements,
-    PackInfo,
     SwitchKind,
 )
+from packpilot.contract.topology import PackInfo
+from packpilot.control.supervisor import Mode, Supervisor, SupervisorConfig
 from packpilot.sim.runner import Runner
 from tests.conftest import dual_pack
 
@@ -115,7 +115,7 @@ def test_modes_follow_the_pack_in_closed_loop() -> None:
 
 
 def test_every_trip_undocked_means_shutdown_with_all_paths_open() -> None:
-    from packpilot.control.types import Event
+    from packpilot.contract.bms import Event
 
     class _TripAll:
         def step(self, meas: Measurements, dt_s: float) -> ControlOutput:

@@ -18,8 +18,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Result, StatusValue, StepSample, Trace
-from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.io.telemetry import (
     SQLiteRecorder,

@@ -22,8 +22,8 @@ with warnings.catch_warnings():  # starlette >= 1.x nags to use httpx2; httpx st
     from fastapi.testclient import TestClient
 
 from packpilot.config import parse_config
+from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, StepSample
-from packpilot.control.types import Event
 from packpilot.sim.runner import Runner
 from packpilot.web.app import create_app
 from packpilot.web.live import CHART_CHANNELS, LiveRun, SimThread, jsonable

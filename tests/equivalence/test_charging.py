@@ -175,9 +175,7 @@ def _run(new: ChargingController, old: Oracle, seq: list[tuple[Measurements, flo
     name=st.sampled_from(sorted(k for k in CONFIGS if k.startswith("cell"))),
     has_aux=st.booleans(),
 )
-def test_same_on_random_sequences(
-    data: Any, n: int, groups: int, name: str, has_aux: bool
-) -> None:
+def test_same_on_random_sequences(data: Any, n: int, groups: int, name: str, has_aux: bool) -> None:
     new, old = _pair(ChargingConfig.model_validate(CONFIGS[name]), _info(n, groups, has_aux))
     _run(new, old, data.draw(sequence(n, groups, steps=80, current=(-30.0, 10.0))))
 

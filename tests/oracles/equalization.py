@@ -5,7 +5,7 @@ benchmark baseline now (``benchmarks/baselines.py``).
 Equalization of series battery groups by the Newton-iterated unit balancing Ah.
 
 Method of CN102255114A (spec: ``/work/shared/spec/equalization.md``). Per string (one
-:class:`~packpilot.control.types.BatteryMeasurement` = one string of series groups), every
+:class:`~packpilot.contract.bms.BatteryMeasurement` = one string of series groups), every
 sample period:
 
 * ΔV_g = V_avg − V_g (positive = group g lags the string average);

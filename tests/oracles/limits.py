@@ -38,16 +38,16 @@ from packpilot.config.limits import (
     LimitsConfig,
     Path,
 )
-from packpilot.control.types import (
-    CHARGER_OFF,
+from packpilot.contract.bms import (
     BatteryMeasurement,
     Commands,
     ControlOutput,
     Event,
     Measurements,
-    PackInfo,
     SwitchKind,
 )
+from packpilot.contract.charger import CHARGER_OFF
+from packpilot.contract.topology import PackInfo
 
 TIER_EVENT: Mapping[str, str] = {
     "warn": "LimitWarning",

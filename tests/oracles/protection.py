@@ -27,14 +27,8 @@ from dataclasses import dataclass, field
 from fractions import Fraction
 
 from packpilot.config.protection import AxisRange, ProtectionConfig, ProtectionParameter
-from packpilot.control.types import (
-    BatteryMeasurement,
-    Commands,
-    ControlOutput,
-    Event,
-    Measurements,
-    PackInfo,
-)
+from packpilot.contract.bms import BatteryMeasurement, Commands, ControlOutput, Event, Measurements
+from packpilot.contract.topology import PackInfo
 
 AxisExtractor = Callable[[BatteryMeasurement, PackInfo, int], float]
 

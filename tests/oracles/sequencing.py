@@ -69,14 +69,8 @@ import math
 from dataclasses import dataclass
 
 from packpilot.config.sequencing import SequencingConfig
-from packpilot.control.types import (
-    BatteryMeasurement,
-    Commands,
-    ControlOutput,
-    Event,
-    Measurements,
-    PackInfo,
-)
+from packpilot.contract.bms import BatteryMeasurement, Commands, ControlOutput, Event, Measurements
+from packpilot.contract.topology import PackInfo
 
 _EPS_S = 1e-9
 """Tolerance for comparing accumulated times, so 0.1 + 0.1 + 0.1 counts as 0.3 s."""

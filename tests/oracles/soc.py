@@ -31,14 +31,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from packpilot.config.base import load_section_model
-from packpilot.control.types import (
-    BatteryMeasurement,
-    Commands,
-    ControlOutput,
-    Event,
-    Measurements,
-    PackInfo,
-)
+from packpilot.contract.bms import BatteryMeasurement, Commands, ControlOutput, Event, Measurements
+from packpilot.contract.topology import PackInfo
 from packpilot.errors import ConfigError
 
 EPS = 1e-9

@@ -23,17 +23,17 @@ from dataclasses import dataclass, field
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from packpilot.control.types import (
-    CHARGER_OFF,
+from packpilot.contract.bms import (
     Commands,
     Controller,
     ControlOutput,
     Event,
     Measurements,
-    PackInfo,
     SwitchKind,
-    merge_commands,
 )
+from packpilot.contract.charger import CHARGER_OFF
+from packpilot.contract.topology import PackInfo
+from tests.compose import merge_commands
 
 
 class Mode(enum.StrEnum):

@@ -88,8 +88,7 @@ def _run_threads(
 
     keys = {f"campaign-batch-{j}": b for j, b in enumerate(batches)}
     tasks = [
-        dask.delayed(run_batch, pure=False)(cfg, b, fail, dask_key_name=k)
-        for k, b in keys.items()
+        dask.delayed(run_batch, pure=False)(cfg, b, fail, dask_key_name=k) for k, b in keys.items()
     ]
 
     def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:

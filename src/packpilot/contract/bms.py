@@ -162,6 +162,14 @@ class Controller(Protocol):
     def step(self, meas: Measurements, dt_s: float) -> ControlOutput: ...
 
 
+@dataclass(slots=True)
+class NullController:
+    """Has no opinion on anything: every switch stays as configured (a plant on its own)."""
+
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        return ControlOutput(commands=Commands())
+
+
 __all__ = [
     "CLOSED",
     "OPEN",
@@ -172,6 +180,7 @@ __all__ = [
     "Event",
     "EventValue",
     "Measurements",
+    "NullController",
     "StatusValue",
     "SwitchKind",
     "SwitchState",

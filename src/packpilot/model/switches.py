@@ -68,7 +68,7 @@ def switch_branches(
     """Translate gate states into the two conduction branches of each string.
 
     ``batt_ohm`` is the string's own series resistance (cells), added to both branches.
-    A relay is closed iff both gates are on (see ``control.types.SwitchState``).
+    A relay is closed iff both gates are on (see ``contract.bms.SwitchState``).
     """
     is_relay = kind == KIND_RELAY
     relay_closed = chg_on & dsg_on

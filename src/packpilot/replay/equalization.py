@@ -11,13 +11,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.equalization import EqualizationConfig, EqualizationController
-from packpilot.control.types import (
-    BatteryMeasurement,
-    Measurements,
-    PackInfo,
-    SwitchKind,
-)
 from packpilot.replay.common import CellValue, ReplayResult, read_log, row_durations
 
 

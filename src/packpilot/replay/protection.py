@@ -12,8 +12,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.protection import ProtectionConfig, ProtectionController
-from packpilot.control.types import BatteryMeasurement, Measurements, PackInfo, SwitchKind
 from packpilot.replay.common import CellValue, ReplayResult, read_log, row_durations
 
 REQUIRED_COLUMNS = ("t_s", "current_a", "temp_c", "min_cell_v")

@@ -15,12 +15,13 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.contract.bms import Measurements, SwitchKind
+from packpilot.contract.topology import PackInfo
 from packpilot.control.sequencing import (
     SequencingConfig,
     SequencingController,
     battery_measurement,
 )
-from packpilot.control.types import Measurements, PackInfo, SwitchKind
 from packpilot.errors import InputError
 from packpilot.replay.common import CellValue, LogTable, ReplayResult, read_log, row_durations
 

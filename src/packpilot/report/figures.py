@@ -22,7 +22,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 
-from packpilot.contract.record import Result, StatusValue
+from packpilot.contract.bms import StatusValue
+from packpilot.contract.record import Result
 from packpilot.report.downsample import MAX_POINTS, downsample, step_indices
 
 WIDTH_IN = 10.0

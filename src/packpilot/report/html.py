@@ -25,8 +25,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
-from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.report import figures as F
 from packpilot.report.plots import figure_png_base64

@@ -19,8 +19,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 
+from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
-from packpilot.control.types import Event
 from packpilot.errors import InputError
 
 _FORMATS = ("png", "svg", "pdf")

@@ -55,10 +55,10 @@ def build_core(cfg: ScenarioConfig, infos: Sequence[PackInfo]) -> Core:
         parts.append(REGISTRY[name].part(section, infos))
     supervisor: SupervisorConfig | None = None
     if cfg.supervised:
-        for name in SAFETY:
-            if getattr(cfg, name) is not None:
-                section = validate_section(name, getattr(cfg, name), "<config>")
-                parts.append(REGISTRY[name].part(section, infos))
+        for layer in SAFETY:
+            if getattr(cfg, layer) is not None:
+                section = validate_section(layer, getattr(cfg, layer), "<config>")
+                parts.append(REGISTRY[layer].part(section, infos))
         sup = validate_section("supervisor", cfg.supervisor, "<config>")
         assert isinstance(sup, SupervisorConfig)
         supervisor = sup

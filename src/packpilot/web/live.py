@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Recorder, StepSample
-from packpilot.control.types import Event
 from packpilot.errors import PackPilotError
 
 CHART_CHANNELS: tuple[str, ...] = ("voltage_v", "current_a", "soc", "temp_c")

@@ -335,9 +335,7 @@ class Plan:
     def target_v(self) -> float:
         """The voltage this stage charges towards (for telemetry)."""
         return float(
-            rules._target_v(
-                STAGES.index(self.stage), self.cmd_v, self.vr1_v, self.vt_v, self.vr2_v
-            )
+            rules._target_v(STAGES.index(self.stage), self.cmd_v, self.vr1_v, self.vt_v, self.vr2_v)
         )
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import can
 
-from packpilot.control.types import CHARGER_OFF, ChargerCommand, ChargerStatus
+from packpilot.contract.charger import CHARGER_OFF, ChargerCommand, ChargerStatus
 from packpilot.io.can.bus import FrameLog
 from packpilot.io.can.codec import (
     PERIOD_S,

@@ -27,7 +27,7 @@ import can
 import cantools
 from cantools.database.can import Database, Message
 
-from packpilot.control.types import ChargerCommand, ChargerStatus
+from packpilot.contract.charger import ChargerCommand, ChargerStatus
 from packpilot.errors import InputError
 
 REQUEST_ID = 0x1806E5F4

@@ -28,7 +28,7 @@ from typing import Any
 
 import can
 
-from packpilot.control.types import ChargerCommand, ChargerStatus
+from packpilot.contract.charger import ChargerCommand, ChargerStatus
 from packpilot.io.can.bus import FrameLog, open_bus
 from packpilot.io.can.client import ChargerClient
 from packpilot.io.can.emulator import ChargerEmulator, ChargerPlant

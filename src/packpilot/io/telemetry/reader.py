@@ -15,9 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.contract.bms import StatusValue
+from packpilot.contract.bms import Event, StatusValue
 from packpilot.contract.record import BATTERY_CHANNELS, Result, Trace
-from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.io.telemetry.schema import PACK_COLUMNS, _check_schema
 

@@ -20,9 +20,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.contract.bms import StatusValue
+from packpilot.contract.bms import Event, StatusValue
 from packpilot.contract.record import BATTERY_CHANNELS, StepSample
-from packpilot.control.types import Event
 from packpilot.errors import InputError
 from packpilot.io.telemetry.schema import (
     _AUX_INSERT,

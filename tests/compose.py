@@ -1,25 +1,13 @@
-"""Scalar helpers over the contract (:mod:`packpilot.contract`), kept while the controllers
-move to the compiled core; the contract types are re-exported for old imports."""
+"""Scalar composition of Python controllers for tests and benchmarks that drive a plant with a
+harness beside a method (the core composes its own parts by the same "off wins" rule)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
-from packpilot.contract.bms import (
-    CLOSED,
-    OPEN,
-    BatteryMeasurement,
-    Commands,
-    Controller,
-    ControlOutput,
-    Event,
-    Measurements,
-    SwitchKind,
-    SwitchState,
-)
-from packpilot.contract.charger import CHARGER_OFF, ChargerCommand, ChargerStatus
-from packpilot.contract.topology import PackInfo
+from packpilot.contract.bms import Commands, Controller, ControlOutput, Event, Measurements
+from packpilot.contract.charger import CHARGER_OFF
 
 
 def _merge_flags(a: tuple[bool | None, ...], b: tuple[bool | None, ...]) -> tuple[bool | None, ...]:
@@ -61,14 +49,6 @@ def merge_commands(first: Commands, second: Commands) -> Commands:
 
 
 @dataclass(slots=True)
-class NullController:
-    """Leaves every switch as configured; the runner works before any method exists."""
-
-    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
-        return ControlOutput(commands=Commands())
-
-
-@dataclass(slots=True)
 class ComposedController:
     """Runs several controllers on the same measurements and merges their commands."""
 
@@ -86,23 +66,4 @@ class ComposedController:
         return ControlOutput(commands=commands, events=tuple(events), status=status)
 
 
-__all__ = [
-    "CHARGER_OFF",
-    "CLOSED",
-    "OPEN",
-    "BatteryMeasurement",
-    "ChargerCommand",
-    "ChargerStatus",
-    "Commands",
-    "ComposedController",
-    "ControlOutput",
-    "Controller",
-    "Event",
-    "Measurements",
-    "NullController",
-    "PackInfo",
-    "SwitchKind",
-    "SwitchState",
-    "merge_commands",
-    "replace",
-]
+__all__ = ["ComposedController", "merge_commands"]
