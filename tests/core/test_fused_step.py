@@ -25,7 +25,7 @@ from packpilot.control.plausibility import METHOD as PLAUSIBILITY
 from packpilot.control.protection import METHOD as PROTECTION
 from packpilot.control.sequencing import METHOD as SEQUENCING
 from packpilot.control.soc import METHOD as SOC
-from tests.equivalence.common import assert_same_output, sequence
+from tests.core.drawn import assert_same_output, sequence
 
 
 def _core(info: PackInfo) -> Core:

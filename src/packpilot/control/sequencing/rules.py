@@ -61,11 +61,11 @@ controller re-initialises with R1.
 
 Deterministic: the only clock is the sample time ``m.t_s[p]`` (for timers) and ``dt_s`` (the
 control period, used to predict whether waiting one more period would miss the ``t_on``
-deadline). The kernels are the line-by-line form of the scalar controller they replaced
-(``tests/oracles/sequencing.py``): ``None`` is NaN (floats) or -1 (indices), ``sorted(...,
-key=-x)`` a stable insertion sort, ``max(seq, key=...)`` the first maximum, sums from 0 left to
-right. Arrays are bound to local names once per function (a tuple attribute read in a loop
-costs a reference-count round trip in numba).
+deadline). The kernels keep the decisions of the scalar controller they replaced (checked
+step by step until that controller was deleted): "none" is NaN (floats) or -1 (indices), a
+ranking is a stable insertion sort, a maximum the first maximum, sums from 0 left to right.
+Arrays are bound to local names once per function (a tuple attribute read in a loop costs a
+reference-count round trip in numba).
 """
 
 from __future__ import annotations

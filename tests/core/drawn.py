@@ -1,10 +1,7 @@
-"""Shared pieces of the equivalence tests: compiled controller vs the scalar oracle it replaced.
-
-Random measurement sequences (NaN, inf, absent batteries, time going backwards, odd dt) are
-fed to both; commands, events (kind, battery, message, data) and status must match exactly
-at every step. These tests and the oracles go once the golden tests have held through the
-port; the behavioural tests stay.
-"""
+"""Drawn measurement sequences and exact output comparison, for tests that drive two cores
+(fused vs part by part) with the same hostile input: NaN, inf, absent batteries, time going
+backwards, odd dt; commands, events (kind, battery, message, data) and status must match
+exactly at every step."""
 
 from __future__ import annotations
 
