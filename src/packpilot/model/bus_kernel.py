@@ -1,4 +1,5 @@
-"""Compiled twin of :func:`packpilot.model.bus.solve_bus` (same algorithm, scalar loops).
+"""The bus solve as compiled scalar loops (its readable NumPy reference,
+:func:`packpilot.model.bus.solve_bus`, checks it in the tests).
 
 The NumPy solver is the readable reference; this numba kernel is what the closed loop calls,
 because a pack has only a handful of strings and NumPy's per-call overhead would dominate.

@@ -1,4 +1,5 @@
-"""Compiled twin of :meth:`packpilot.model.pack.Pack.step_reference` (scalar loops).
+"""The plant step as compiled scalar loops (its readable NumPy reference,
+:meth:`packpilot.model.pack.Pack.step_reference`, checks it in the tests).
 
 A pack has a handful of strings and a few dozen cells, so the NumPy step is dominated by
 per-call overhead (~50 array operations of ~1 µs each). These kernels do the same arithmetic in
