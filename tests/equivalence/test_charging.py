@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -36,7 +37,7 @@ from packpilot.contract.bms import (
 from packpilot.contract.charger import CHARGER_FLAGS, ChargerStatus
 from packpilot.contract.topology import PackInfo
 from packpilot.control.charging import ChargingController, Volts
-from packpilot.control.registry import REGISTRY, Entry
+from packpilot.control.registry import REGISTRY
 from packpilot.sim.runner import Runner
 from tests.equivalence.common import WEIRD, assert_same_output, sequence
 from tests.oracles.charging import ChargingController as Oracle
@@ -420,7 +421,8 @@ class Twin:
 
 @pytest.fixture
 def twin(monkeypatch: pytest.MonkeyPatch) -> type[Twin]:
-    monkeypatch.setitem(REGISTRY, "charging", Entry("charging", "method", f"{__name__}:Twin"))
+    twin = replace(REGISTRY["charging"], target=f"{__name__}:Twin")
+    monkeypatch.setitem(REGISTRY, "charging", twin)
     Twin.steps = 0
     Twin.kinds = set()
     return Twin

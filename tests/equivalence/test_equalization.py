@@ -22,7 +22,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from packpilot.config import load_config, validate_section
+from packpilot.config import load_config
 from packpilot.config.equalization import EqualizationConfig
 from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
@@ -293,8 +293,7 @@ def _twin(runner: Runner) -> list[Twin]:
     """Put a :class:`Twin` where the runner's core runs the method."""
     core = runner.controller
     assert isinstance(core, Core)
-    config = validate_section("equalization", runner.cfg.equalization, "<test>")
-    assert isinstance(config, EqualizationConfig)
+    config = runner.cfg.equalization or EqualizationConfig()
     twins: list[Twin] = []
     parts: list[Any] = []
     for x in core.parts:

@@ -20,7 +20,7 @@ from typing import Any
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from packpilot.config import load_config, parse_config, validate_section
+from packpilot.config import load_config, parse_config
 from packpilot.config.limits import (
     QUANTITY_DIRECTION,
     TIERS,
@@ -29,6 +29,7 @@ from packpilot.config.limits import (
     LimitRow,
     LimitsConfig,
 )
+from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core, Part
@@ -359,9 +360,8 @@ def _supervised(
     (k,) = [
         j for j, x in enumerate(core.parts) if isinstance(x, Part) and x.method.name == "limits"
     ]
-    config = validate_section("limits", runner.cfg.limits, "<test>")
-    assert isinstance(config, LimitsConfig)
-    chk = Checked(table or config, runner.info, side, reset_every)
+    assert runner.cfg.limits is not None
+    chk = Checked(table or runner.cfg.limits, runner.info, side, reset_every)
     parts = [*core.parts[:k], chk, *core.parts[k + 1 :]]
     runner.controller = Core(core.infos, parts, core.supervisor_config)
     return chk
@@ -418,8 +418,8 @@ def test_closed_loop_docked_charging() -> None:
     cfg = cfg.model_copy(
         update={
             "sim": cfg.sim.model_copy(update={"duration_s": 3000.0, "progress": False}),
-            "supervisor": {},
-            "limits": {},
+            "supervisor": SupervisorConfig(),
+            "limits": LimitsConfig(),
         }
     )
     runner = Runner(cfg, progress=False)

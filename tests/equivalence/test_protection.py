@@ -11,6 +11,7 @@ same measurements every step. Commands, events and status must be equal at every
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from fractions import Fraction
 from pathlib import Path
 from typing import Any, ClassVar
@@ -24,7 +25,7 @@ from packpilot.config.protection import ProtectionConfig, TableRow
 from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.protection import ProtectionController, rules
-from packpilot.control.registry import REGISTRY, Entry
+from packpilot.control.registry import REGISTRY
 from packpilot.sim.runner import Runner
 from tests.conftest import dual_pack
 from tests.equivalence.common import DTS, assert_same_output, sequence
@@ -353,7 +354,7 @@ class Twin:
 def _run_twin(cfg: Any, monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
     """Run ``cfg`` with the protection part replaced by a :class:`Twin` (a Python part of the
     core, at P = 1), everything else as the scenario has it."""
-    twin = Entry("protection", "method", "tests.equivalence.test_protection:Twin")
+    twin = replace(REGISTRY["protection"], target="tests.equivalence.test_protection:Twin")
     monkeypatch.setitem(REGISTRY, "protection", twin)
     Twin.seen.clear()
     Runner(cfg, progress=False).run()
@@ -465,6 +466,7 @@ def test_closed_loop_composed(
     cfg = load_config(EXAMPLES / example)
     upd = dict(update)
     upd["sim"] = cfg.sim.model_copy(update={"duration_s": upd.pop("duration_s")})
+    upd["protection"] = ProtectionConfig.model_validate(upd["protection"])
     stats = _run_twin(cfg.model_copy(update=upd), monkeypatch)
     assert stats["steps"] > 5000
     for key, n in expect.items():

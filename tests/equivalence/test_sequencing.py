@@ -622,12 +622,11 @@ def test_closed_loop_on_the_plant_matches(
     (packs 0-2) see its measurements and must do what it did; pack 3 gets perturbed voltages,
     a removal and an invalid sample, next to its own oracle."""
     from packpilot.config import load_config
-    from packpilot.control.registry import REGISTRY, Entry
+    from packpilot.control.registry import REGISTRY
     from packpilot.sim import runner as runner_mod
 
-    monkeypatch.setitem(
-        REGISTRY, "sequencing", Entry("sequencing", "method", f"{__name__}:RecordingOracle")
-    )
+    oracle = replace(REGISTRY["sequencing"], target=f"{__name__}:RecordingOracle")
+    monkeypatch.setitem(REGISTRY, "sequencing", oracle)
     RecordingOracle.made.clear()
     cfg = load_config(EXAMPLES / f"{name}.toml")
     sim: dict[str, Any] = {"progress": False, "duration_s": duration_s}
