@@ -386,7 +386,7 @@ def test_closed_loop_examples(
     cfg = load_config(EXAMPLES / f"protection_{scenario}.toml")
     update: dict[str, Any] = {"sim": cfg.sim.model_copy(update={"stop_when_unsupplied_s": 20.0})}
     if protection is not None:
-        update["protection"] = protection
+        update["protection"] = ProtectionConfig.model_validate(protection)
     stats = _run_twin(cfg.model_copy(update=update), monkeypatch)
     assert stats["trips"] == 1 and stats["steps"] > 1000
 
