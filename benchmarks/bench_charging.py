@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from packpilot.config import ScenarioConfig, load_config
+from packpilot.config.charging import ChargingConfig
 from packpilot.contract.record import Result
 from packpilot.io.can import CanChargerLink
 from packpilot.sim.runner import Runner
@@ -140,13 +141,17 @@ TIME_BUDGET = 1.2
 def scenario(strategy: str, dt_s: float = DT_S, duration_s: float = DURATION_S) -> ScenarioConfig:
     cfg = load_config(SCENARIO)
     spec = STRATEGIES[strategy] if strategy in STRATEGIES else FRONTIER[strategy]
-    charging = dict(cfg.charging or {})
+    charging = cfg.charging.model_dump(exclude_unset=True) if cfg.charging else {}
     for key in CHARGING_KEYS:
         if key in spec:
             charging[key] = spec[key]
     sim = cfg.sim.model_copy(update={"dt_s": dt_s, "duration_s": duration_s, "progress": False})
     return cfg.model_copy(
-        update={"controller": spec["controller"], "charging": charging, "sim": sim}
+        update={
+            "controller": spec["controller"],
+            "charging": ChargingConfig.model_validate(charging),
+            "sim": sim,
+        }
     )
 
 
@@ -245,7 +250,7 @@ def run_case(
     finally:
         if link is not None:
             link.close()
-    chg = cfg.charging or {}
+    chg = cfg.charging.model_dump(exclude_unset=True) if cfg.charging else {}
     v_sat = float(chg.get("v_sat_v", 117.0))
     term = float(chg.get("termination_current_a", 2.0))
     traction = list(runner.traction)

@@ -37,7 +37,8 @@ from typing import Any
 import numpy as np
 
 from baselines import PassiveTopBalancer, PassiveTopBalancerConfig
-from packpilot.config import ScenarioConfig, load_config, validate_section
+from packpilot.config import ScenarioConfig, load_config
+from packpilot.config.base import load_section_model
 from packpilot.config.equalization import EqualizationConfig
 from packpilot.contract.bms import Commands, Controller, ControlOutput, Measurements, NullController
 from packpilot.contract.charger import ChargerCommand
@@ -314,11 +315,11 @@ def run_strategy(
     cfg = scenario(name, strategy=strategy)
     bat = cfg.pack.batteries[0]
     driver = CycleDriver(proto, bat.cells_per_group, bat.n_cells)
-    section = {**(cfg.equalization or {}), **(eq_overrides or {})}
+    given = cfg.equalization.model_dump(exclude_unset=True) if cfg.equalization else {}
+    section = {**given, **(eq_overrides or {})}
     if strategy == "newton_bidir":
         section["equalizer"] = "bidirectional"
-    eq = validate_section("equalization", section, proto.file)
-    assert isinstance(eq, EqualizationConfig)
+    eq = load_section_model(EqualizationConfig, section, "equalization", proto.file)
 
     def make_method(info: PackInfo) -> Controller:
         if strategy in ("newton", "newton_bidir"):

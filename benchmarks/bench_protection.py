@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.config import ScenarioConfig, load_config
+from packpilot.config.protection import ProtectionConfig
 from packpilot.model.cell import CellParams, load_parameter_set, write_parameter_file
 from packpilot.sim.runner import Runner
 
@@ -68,7 +69,7 @@ def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[s
     """One closed-loop run; ``rest=False`` stops right after the trip (energy only)."""
     update: dict[str, Any] = {}
     if STRATEGIES[strategy] is not None:
-        update["protection"] = STRATEGIES[strategy]
+        update["protection"] = ProtectionConfig.model_validate(STRATEGIES[strategy])
     update["controller"] = ["protection"]
     sim: dict[str, Any] = {"progress": False}
     if not rest:

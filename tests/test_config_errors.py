@@ -131,3 +131,43 @@ def test_non_monotonic_soc_axis_is_named(tmp_path: Path, axis: str) -> None:
 
     with pytest.raises(ConfigError, match=axis):
         Runner(load_config(toml))
+
+
+@pytest.mark.parametrize(
+    ("section", "match"),
+    [
+        (
+            {"protection": {"parameters": [{"name": "P1", "cutoff_v": "x", "t_max_s": 1}]}},
+            r"c\.toml: protection\.parameters\.0\.cutoff_v: .*valid number.* \(got 'x'\)",
+        ),
+        ({"sequencing": {"v_th": -1.0}}, r"c\.toml: sequencing\.v_th: .*greater than 0"),
+        ({"charging": {"eps_eq_v": 5.0}}, r"c\.toml: charging: eps_eq_v \(5\.0\) must be smaller"),
+        ({"equalization": {"bogus": 1}}, r"c\.toml: equalization\.bogus: unknown key"),
+        ({"supervisor": {"join_limit_v": 0}}, r"c\.toml: supervisor\.join_limit_v: .*greater"),
+        ({"limits": {"rows": [{"bogus": 1}]}}, r"c\.toml: limits\.rows\.0\.limit: Field required"),
+        ({"plausibility": {"stuck_time_s": 0.0}}, r"c\.toml: plausibility: stuck_time_s must"),
+        ({"soc": {"blend": 2}}, r"c\.toml: soc: blend must be within 0\.\.1"),
+        (
+            {"controller": ["protection", "bogus"]},
+            r"c\.toml: controller\.1: Input should be 'protection', .* \(got 'bogus'\)",
+        ),
+    ],
+)
+def test_a_section_error_names_the_field_path(section: dict[str, object], match: str) -> None:
+    """Every method / safety section is typed in ScenarioConfig: one formatter, one line, the
+    whole path from the top of the file."""
+    cfg = dual_pack()
+    cfg.update(section)
+    with pytest.raises(ConfigError, match=match):
+        parse_config(cfg, "c.toml")
+
+
+def test_sections_are_typed_and_a_listed_method_defaults() -> None:
+    from packpilot.config.protection import ProtectionConfig
+    from packpilot.config.sequencing import SequencingConfig
+
+    cfg = parse_config({**dual_pack(), "controller": ["sequencing"], "protection": {}})
+    assert isinstance(cfg.protection, ProtectionConfig)
+    assert cfg.sequencing is None and cfg.section("sequencing") == SequencingConfig()
+    assert not cfg.supervised
+    assert parse_config({**dual_pack(), "soc": {}}).supervised

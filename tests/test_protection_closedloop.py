@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from packpilot.config import load_config
+from packpilot.config.protection import ProtectionConfig
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -36,7 +37,7 @@ def _run(scenario: str, strategy: str, rest: bool) -> dict[str, Any]:
     cfg = load_config(EXAMPLES / f"protection_{scenario}.toml")
     update: dict[str, Any] = {"controller": ["protection"]}
     if BASELINES[strategy] is not None:
-        update["protection"] = BASELINES[strategy]
+        update["protection"] = ProtectionConfig.model_validate(BASELINES[strategy])
     if not rest:
         update["sim"] = cfg.sim.model_copy(update={"stop_when_unsupplied_s": 1.0})
     runner = Runner(cfg.model_copy(update=update), progress=False)

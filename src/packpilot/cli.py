@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 
+from packpilot.control.registry import REGISTRY
 from packpilot.errors import PackPilotError
 
 if TYPE_CHECKING:
@@ -187,13 +188,11 @@ def report(
 
 def _replay(method: str, log: Path, config: Path | None, out: Path | None, as_json: bool) -> None:
     def go() -> None:
-        import importlib
-
         from packpilot.config import load_section
 
-        cfg = load_section(config, method)
-        mod = importlib.import_module(f"packpilot.replay.{method}")
-        result = mod.replay(log, cfg)
+        replay = REGISTRY[method].replay
+        assert replay is not None
+        result = replay.function()(log, load_section(config, method))
         if out is not None:
             result.write_csv(out)
         if as_json:
@@ -214,28 +213,20 @@ OutOpt = Annotated[Path | None, typer.Option(help="write the output table as CSV
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the summary as JSON")]
 
 
-@replay_app.command("protection")
-def replay_protection(
-    log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
-) -> None:
-    """Replay t_s,current_a,temp_c,min_cell_v through discharge protection."""
-    _replay("protection", log, config, out, as_json)
+def _replay_command(method: str, help_text: str) -> None:
+    """``packpilot replay METHOD``: one command per registered replay adapter."""
+
+    def command(
+        log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
+    ) -> None:
+        _replay(method, log, config, out, as_json)
+
+    replay_app.command(method, help=help_text)(command)
 
 
-@replay_app.command("sequencing")
-def replay_sequencing(
-    log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
-) -> None:
-    """Replay t_s,v_0..v_{N-1},i_0..i_{N-1} through parallel discharge sequencing."""
-    _replay("sequencing", log, config, out, as_json)
-
-
-@replay_app.command("equalization")
-def replay_equalization(
-    log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
-) -> None:
-    """Replay t_s,current_a,v_0..v_{M-1} through Newton-iterated equalization."""
-    _replay("equalization", log, config, out, as_json)
+for _entry in REGISTRY.values():
+    if _entry.replay is not None:
+        _replay_command(_entry.name, _entry.replay.help)
 
 
 @app.command()

@@ -20,6 +20,7 @@ from pydantic import (
     Field,
     ValidationInfo,
     field_validator,
+    model_serializer,
     model_validator,
 )
 
@@ -86,6 +87,13 @@ class AxisRange(BaseModel):
         if self.lo > self.hi or (self.lo == self.hi and not (self.lo_closed and self.hi_closed)):
             raise ValueError(f"range {self} is empty")
         return self
+
+    @model_serializer(mode="plain")
+    def _as_interval(self) -> str:
+        """Dumped in the interval notation a TOML file uses, exactly (``repr`` of each edge):
+        it reads back as the same range, and JSON, which has no infinity, can hold it."""
+        lo, hi = (repr(x) if math.isfinite(x) else _fmt(x) for x in (self.lo, self.hi))
+        return f"{'[' if self.lo_closed else '('}{lo}, {hi}{']' if self.hi_closed else ')'}"
 
     def contains(self, x: float, band: float = 0.0) -> bool:
         """True when ``x`` lies in the range widened by ``band`` on both sides."""

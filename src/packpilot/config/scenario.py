@@ -1,20 +1,31 @@
 """Scenario configuration: TOML files validated by pydantic.
 
 One file describes a pack (batteries, switches, cells), what loads and charges it, how long to
-simulate, and which control methods run. Each method owns its own config model (in its
-``control`` module); this file only places them as TOML sections. Errors become one line that
-names the file, the field and what is allowed (:class:`packpilot.errors.ConfigError`).
+simulate, and which control methods run. Each method and safety layer owns its config model
+(``config/<name>.py``); this file places them as typed TOML sections of :class:`ScenarioConfig`
+(marked :class:`Section`, which says the role), so a whole file is validated in one pass and
+every error, in any section, becomes one line naming the file, the field path and what is
+allowed (:func:`~packpilot.config.base.fmt_error`, :class:`packpilot.errors.ConfigError`).
 """
 
 from __future__ import annotations
 
-import importlib
 import math
 import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType, NoneType
 from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from packpilot.config.base import (
     Finite,
@@ -23,7 +34,16 @@ from packpilot.config.base import (
     PosFloat,
     Strict,
     fmt_error,
+    load_section_model,
 )
+from packpilot.config.charging import ChargingConfig
+from packpilot.config.equalization import EqualizationConfig
+from packpilot.config.limits import LimitsConfig
+from packpilot.config.plausibility import PlausibilityConfig
+from packpilot.config.protection import ProtectionConfig
+from packpilot.config.sequencing import SequencingConfig
+from packpilot.config.soc import SocConfig
+from packpilot.config.supervisor import SupervisorConfig
 from packpilot.errors import ConfigError
 
 _Strict = Strict
@@ -183,20 +203,6 @@ class SimConfig(_Strict):
     progress: bool = True
 
 
-METHOD_SECTIONS: dict[str, str] = {
-    "protection": "packpilot.config.protection:ProtectionConfig",
-    "sequencing": "packpilot.config.sequencing:SequencingConfig",
-    "charging": "packpilot.config.charging:ChargingConfig",
-    "equalization": "packpilot.config.equalization:EqualizationConfig",
-}
-
-SAFETY_SECTIONS: dict[str, str] = {
-    "supervisor": "packpilot.control.supervisor:SupervisorConfig",
-    "limits": "packpilot.config.limits:LimitsConfig",
-    "plausibility": "packpilot.config.plausibility:PlausibilityConfig",
-    "soc": "packpilot.control.soc:SocConfig",
-}
-
 FaultKind = Literal[
     "sensor_nan",
     "sensor_stuck",
@@ -241,6 +247,31 @@ class FaultConfig(_Strict):
         return self
 
 
+@dataclass(frozen=True)
+class Section:
+    """Marks a field of :class:`ScenarioConfig` as the section of a control method
+    (``role="method"``: runs when ``controller`` lists it, in that order) or of a safety layer
+    (``role="safety"``: runs, under the supervisor, when its section is present).
+
+    The marked fields are the config layer's declaration of which sections exist: ``config``
+    sits below ``control`` and cannot read the registry, so :data:`METHODS` / :data:`SAFETY`
+    are derived from these fields, and :mod:`packpilot.control.registry` checks on import that
+    it registers exactly these names, roles and config models, in this order."""
+
+    role: Literal["method", "safety"]
+
+
+_METHOD = Section("method")
+_SAFETY = Section("safety")
+
+
+def _known_method(name: str) -> str:
+    if name not in METHODS:
+        allowed = ", ".join(repr(m) for m in METHODS[:-1]) + f" or {METHODS[-1]!r}"
+        raise ValueError(f"Input should be {allowed}")
+    return name
+
+
 class ScenarioConfig(_Strict):
     """A whole scenario file."""
 
@@ -250,21 +281,23 @@ class ScenarioConfig(_Strict):
     balancer: BalancerConfig = BalancerConfig()
     aux: AuxConfig = AuxConfig()
     sim: SimConfig = SimConfig()
-    controller: list[Literal["protection", "sequencing", "charging", "equalization"]] = Field(
+    controller: list[Annotated[str, AfterValidator(_known_method)]] = Field(
         default_factory=list, description="control methods to run, in order"
     )
-    protection: dict[str, Any] | None = None
-    sequencing: dict[str, Any] | None = None
-    charging: dict[str, Any] | None = None
-    equalization: dict[str, Any] | None = None
-    supervisor: dict[str, Any] | None = Field(
+    protection: Annotated[ProtectionConfig | None, _METHOD] = None
+    sequencing: Annotated[SequencingConfig | None, _METHOD] = None
+    charging: Annotated[ChargingConfig | None, _METHOD] = None
+    equalization: Annotated[EqualizationConfig | None, _METHOD] = None
+    supervisor: SupervisorConfig | None = Field(
         None, description="present: run the methods under the supervisor's mode machine"
     )
-    limits: dict[str, Any] | None = Field(None, description="present: enable safety limits")
-    plausibility: dict[str, Any] | None = Field(
+    limits: Annotated[LimitsConfig | None, _SAFETY] = Field(
+        None, description="present: enable safety limits"
+    )
+    plausibility: Annotated[PlausibilityConfig | None, _SAFETY] = Field(
         None, description="present: enable sensor/switch plausibility checks"
     )
-    soc: dict[str, Any] | None = Field(
+    soc: Annotated[SocConfig | None, _SAFETY] = Field(
         None, description="present: BMS SOC estimation (coulomb counting + OCV after rest)"
     )
     can: CanConfig | None = Field(None, description="charger over CAN (python-can)")
@@ -283,27 +316,42 @@ class ScenarioConfig(_Strict):
 
     @property
     def supervised(self) -> bool:
-        return any(
-            x is not None for x in (self.supervisor, self.limits, self.plausibility, self.soc)
-        )
+        """Any of ``[supervisor]`` and the safety sections is present (:data:`SUPERVISED`)."""
+        return any(getattr(self, name) is not None for name in SUPERVISED)
+
+    def section(self, name: str) -> BaseModel:
+        """The typed ``[name]`` section, or its defaults when the file has none (a method
+        listed in ``controller`` without its table runs with its defaults)."""
+        value = getattr(self, name)
+        if value is None:
+            return SECTIONS[name]()
+        assert isinstance(value, SECTIONS[name])
+        return value
 
 
-def method_config_class(section: str) -> type[BaseModel]:
-    """The pydantic model that validates a method's section (imported lazily)."""
-    path = METHOD_SECTIONS.get(section) or SAFETY_SECTIONS[section]
-    mod_name, cls_name = path.split(":")
-    cls = getattr(importlib.import_module(mod_name), cls_name)
-    assert isinstance(cls, type) and issubclass(cls, BaseModel)
-    return cls
+def _sections(role: str) -> dict[str, type[BaseModel]]:
+    """The fields of :class:`ScenarioConfig` marked with ``role``, in declaration order, and
+    the model each one holds."""
+    out: dict[str, type[BaseModel]] = {}
+    for name, info in ScenarioConfig.model_fields.items():
+        if any(isinstance(m, Section) and m.role == role for m in info.metadata):
+            (model,) = (a for a in get_args(info.annotation) if a is not NoneType)
+            out[name] = model
+    return out
 
 
-def validate_section(section: str, data: dict[str, Any] | None, source: str) -> BaseModel:
-    """Validate one method section, naming ``[section].field`` on error."""
-    cls = method_config_class(section)
-    try:
-        return cls.model_validate(data or {})
-    except ValidationError as err:
-        raise ConfigError(fmt_error(source, err, prefix=f"{section}.")) from None
+_METHOD_MODELS = _sections("method")
+_SAFETY_MODELS = _sections("safety")
+METHODS: tuple[str, ...] = tuple(_METHOD_MODELS)
+"""The control methods; a scenario's ``controller`` lists the ones it runs, in its order."""
+SAFETY: tuple[str, ...] = tuple(_SAFETY_MODELS)
+"""The safety layers, in the order they run (after the methods)."""
+SUPERVISED: tuple[str, ...] = ("supervisor", *SAFETY)
+"""Sections whose presence puts the run under the supervisor."""
+SECTIONS: Mapping[str, type[BaseModel]] = MappingProxyType(
+    {**_METHOD_MODELS, "supervisor": SupervisorConfig, **_SAFETY_MODELS}
+)
+"""Every section a method, the supervisor or a safety layer reads -> its config model."""
 
 
 def read_toml(path: Path) -> dict[str, Any]:
@@ -321,17 +369,12 @@ def read_toml(path: Path) -> dict[str, Any]:
 
 
 def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConfig:
+    """Validate a whole scenario, every section typed; the first error becomes one line
+    naming ``source`` and the field path (``protection.parameters.0.cutoff_v``)."""
     try:
-        cfg = ScenarioConfig.model_validate(data)
+        return ScenarioConfig.model_validate(data)
     except ValidationError as err:
         raise ConfigError(fmt_error(source, err)) from None
-    for name in METHOD_SECTIONS:
-        if name in cfg.controller or getattr(cfg, name) is not None:
-            validate_section(name, getattr(cfg, name), source)
-    for name in SAFETY_SECTIONS:
-        if getattr(cfg, name) is not None:
-            validate_section(name, getattr(cfg, name), source)
-    return cfg
 
 
 def load_config(path: str | Path) -> ScenarioConfig:
@@ -347,15 +390,16 @@ def load_config(path: str | Path) -> ScenarioConfig:
 
 
 def load_section(path: str | Path | None, section: str) -> BaseModel:
-    """A single method section from a file (or its defaults) — used by ``replay``."""
+    """A single section from a file (or its defaults) — used by ``replay``."""
+    model = SECTIONS[section]
     if path is None:
-        return validate_section(section, None, "<defaults>")
+        return model()
     p = Path(path)
     data = read_toml(p)
     raw = data.get(section)
     if raw is not None and not isinstance(raw, dict):
         raise ConfigError(f"{p}: [{section}] must be a table")
-    return validate_section(section, raw, str(p))
+    return load_section_model(model, raw, section, str(p))
 
 
 def is_finite(x: float) -> bool:

@@ -144,7 +144,7 @@ def _know_every_branch(infos: Sequence[PackInfo]) -> None:
             entry = REGISTRY[name]
             base = entry.resolve()
             assert isinstance(base, Method), name
-            config = base.config.model_validate({})
+            config = entry.config()
             method = entry.method(config, infos) or base
             prm, st = method.build(config, list(infos))
         ar.add(prm)

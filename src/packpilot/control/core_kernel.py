@@ -50,10 +50,8 @@ METHOD_IDS: dict[str, int] = {
         ("protection", "sequencing", "charging", "equalization", "limits", "plausibility", "soc")
     )
 }
-COMPILED = frozenset(
-    {"charging", "equalization", "limits", "plausibility", "protection", "sequencing", "soc"}
-)
-"""Methods this step knows (a core with any other part steps part by part)."""
+COMPILED = frozenset(METHOD_IDS)
+"""Methods this step has a branch for (a core with any other part steps part by part)."""
 
 
 @kernel_inline

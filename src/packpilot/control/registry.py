@@ -1,33 +1,73 @@
-"""The control methods and safety layers, each registered once: name -> config model, the
-compiled method (or, while it is being moved to the core, its scalar controller)."""
+"""The control methods and safety layers, each registered once: name -> role, config model,
+compiled method (or, while it is being moved to the core, its scalar controller), replay
+adapter.
+
+Everything that needs the list of methods derives it from here: the core (its order, the
+branches it knows), ``sim/loop.py:build_core``, the ``packpilot replay`` commands. The typed
+sections of :class:`~packpilot.config.ScenarioConfig` are the config layer's own declaration of
+the same names (``config`` sits below ``control`` and cannot import this module); the check at
+the bottom makes an import fail unless both agree on names, roles, models and order.
+"""
 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel
 
+from packpilot.config import scenario
+from packpilot.config.charging import ChargingConfig
+from packpilot.config.equalization import EqualizationConfig
+from packpilot.config.limits import LimitsConfig
+from packpilot.config.plausibility import PlausibilityConfig
+from packpilot.config.protection import ProtectionConfig
+from packpilot.config.sequencing import SequencingConfig
+from packpilot.config.soc import SocConfig
 from packpilot.contract.bms import Controller
 from packpilot.contract.topology import PackInfo
 from packpilot.control.method import Method
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from packpilot.control.core import Part
+
+
+def _resolve(target: str) -> Any:
+    mod, attr = target.split(":")
+    return getattr(importlib.import_module(mod), attr)
+
+
+@dataclass(frozen=True)
+class Replay:
+    """How ``packpilot replay NAME LOG`` runs a CSV log through a method."""
+
+    target: str
+    """``module:function``, ``function(log_path, config) -> ReplayResult``; a string, because
+    ``control`` does not import ``replay`` (it sits above)."""
+    help: str
+    """The command's help: the log's columns and what they run through."""
+
+    def function(self) -> Callable[[Path, Any], Any]:
+        fn: Callable[[Path, Any], Any] = _resolve(self.target)
+        return fn
 
 
 @dataclass(frozen=True)
 class Entry:
     name: str
     role: Literal["method", "safety"]
+    config: type[BaseModel]
+    """The model of its ``[name]`` section (``config/<name>.py``)."""
     target: str
     """``module:METHOD`` of the compiled method, or ``module:Class`` of a scalar controller."""
+    replay: Replay | None = None
 
     def resolve(self) -> Any:
-        mod, attr = self.target.split(":")
-        return getattr(importlib.import_module(mod), attr)
+        return _resolve(self.target)
 
     def method(self, config: BaseModel, infos: Sequence[PackInfo] = ()) -> Method | None:
         """The compiled method for ``config`` on the topology of ``infos`` (a method whose
@@ -58,18 +98,54 @@ class Entry:
 REGISTRY: dict[str, Entry] = {
     e.name: e
     for e in (
-        Entry("protection", "method", "packpilot.control.protection:METHOD"),
-        Entry("sequencing", "method", "packpilot.control.sequencing:METHOD"),
-        Entry("charging", "method", "packpilot.control.charging:METHOD"),
-        Entry("equalization", "method", "packpilot.control.equalization:METHOD"),
-        Entry("limits", "safety", "packpilot.control.limits:METHOD"),
-        Entry("plausibility", "safety", "packpilot.control.plausibility:METHOD"),
-        Entry("soc", "safety", "packpilot.control.soc:METHOD"),
+        Entry(
+            "protection", "method", ProtectionConfig, "packpilot.control.protection:METHOD",
+            Replay(
+                "packpilot.replay.protection:replay",
+                "Replay t_s,current_a,temp_c,min_cell_v through discharge protection.",
+            ),
+        ),
+        Entry(
+            "sequencing", "method", SequencingConfig, "packpilot.control.sequencing:METHOD",
+            Replay(
+                "packpilot.replay.sequencing:replay",
+                "Replay t_s,v_0..v_{N-1},i_0..i_{N-1} through parallel discharge sequencing.",
+            ),
+        ),
+        Entry("charging", "method", ChargingConfig, "packpilot.control.charging:METHOD"),
+        Entry(
+            "equalization", "method", EqualizationConfig, "packpilot.control.equalization:METHOD",
+            Replay(
+                "packpilot.replay.equalization:replay",
+                "Replay t_s,current_a,v_0..v_{M-1} through Newton-iterated equalization.",
+            ),
+        ),
+        Entry("limits", "safety", LimitsConfig, "packpilot.control.limits:METHOD"),
+        Entry(
+            "plausibility", "safety", PlausibilityConfig, "packpilot.control.plausibility:METHOD"
+        ),
+        Entry("soc", "safety", SocConfig, "packpilot.control.soc:METHOD"),
     )
-}
+}  # fmt: skip
 """Methods run in the order a scenario lists them; safety layers after them, in this order."""
 
 METHODS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.role == "method")
 SAFETY: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.role == "safety")
 
-__all__ = ["METHODS", "REGISTRY", "SAFETY", "Entry"]
+
+def _check_matches_config() -> None:
+    """The registry and the typed sections of ``ScenarioConfig`` name the same methods and
+    safety layers, in the same order, with the same config models."""
+    ours = {n: e.config for n, e in REGISTRY.items()}
+    theirs = {n: scenario.SECTIONS[n] for n in (*scenario.METHODS, *scenario.SAFETY)}
+    if (METHODS, SAFETY) != (scenario.METHODS, scenario.SAFETY) or ours != theirs:
+        raise ImportError(
+            "control.registry and the sections of config.ScenarioConfig disagree: "
+            f"registered {METHODS} + {SAFETY} with {ours}; "
+            f"the config declares {scenario.METHODS} + {scenario.SAFETY} with {theirs}"
+        )
+
+
+_check_matches_config()
+
+__all__ = ["METHODS", "REGISTRY", "SAFETY", "Entry", "Replay"]

@@ -25,6 +25,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from packpilot.config import SUPERVISED
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
 from packpilot.errors import InputError
@@ -109,9 +110,7 @@ class RunInfo:
     def controllers(self) -> list[str]:
         cfg = self.config or {}
         out = [str(c) for c in cfg.get("controller") or []]
-        out += [
-            s for s in ("supervisor", "limits", "plausibility", "soc") if cfg.get(s) is not None
-        ]
+        out += [s for s in SUPERVISED if cfg.get(s) is not None]
         return out
 
 

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.config import ScenarioConfig, validate_section
+from packpilot.config import ScenarioConfig
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.arrays import MeasArrays
 from packpilot.contract.bms import Controller, Event
@@ -49,19 +49,14 @@ def build_core(cfg: ScenarioConfig, infos: Sequence[PackInfo]) -> Core:
     """The BMS a scenario enables: its methods in the listed order, then the safety layers,
     under the supervisor when any of ``[supervisor]``, ``[limits]``, ``[plausibility]``,
     ``[soc]`` is present."""
-    parts: list[Part | Controller] = []
-    for name in cfg.controller:
-        section = validate_section(name, getattr(cfg, name), "<config>")
-        parts.append(REGISTRY[name].part(section, infos))
+    parts: list[Part | Controller] = [
+        REGISTRY[name].part(cfg.section(name), infos) for name in cfg.controller
+    ]
     supervisor: SupervisorConfig | None = None
     if cfg.supervised:
-        for layer in SAFETY:
-            if getattr(cfg, layer) is not None:
-                section = validate_section(layer, getattr(cfg, layer), "<config>")
-                parts.append(REGISTRY[layer].part(section, infos))
-        sup = validate_section("supervisor", cfg.supervisor, "<config>")
-        assert isinstance(sup, SupervisorConfig)
-        supervisor = sup
+        present = [name for name in SAFETY if getattr(cfg, name) is not None]
+        parts += [REGISTRY[name].part(cfg.section(name), infos) for name in present]
+        supervisor = cfg.supervisor or SupervisorConfig()
     return Core(infos, parts, supervisor)
 
 
