@@ -22,7 +22,7 @@ from packpilot.model.cell import (
     thevenin,
     thevenin_numpy,
 )
-from packpilot.model.thermal import ThermalParams, steady_state, step_coefficients, thermal_step
+from packpilot.model.thermal import ThermalParams, step_coefficients
 
 F64 = NDArray[np.float64]
 
@@ -126,6 +126,32 @@ def test_r_scale_scales_resistance_keeps_time_constant() -> None:
     new, _ = advance(flat, state, cur, 7.0, 25.0, 10.0, np.array([1.0, 1.5]))
     assert new.eta_v[0, 0] == pytest.approx(40.0 * 3e-3 * (1 - np.exp(-7.0 / 30.0)), rel=1e-12)
     assert new.eta_v[1, 0] == pytest.approx(1.5 * new.eta_v[0, 0], rel=1e-12)
+
+
+def thermal_step(
+    thermal: ThermalParams,
+    dt_s: float,
+    cell_c: float,
+    jig_c: float,
+    ambient_c: float,
+    heat_w: float,
+) -> tuple[float, float]:
+    """Cell and jig temperatures after ``dt_s`` at constant heat and ambient, from the six
+    coefficients the kernels use (the exact step the tests below check)."""
+    e11, e12, e21, e22, kc, kj = step_coefficients(thermal, float(dt_s))
+    yc, yj = cell_c - ambient_c, jig_c - ambient_c
+    return (
+        ambient_c + e11 * yc + e12 * yj + kc * heat_w,
+        ambient_c + e21 * yc + e22 * yj + kj * heat_w,
+    )
+
+
+def steady_state(thermal: ThermalParams, heat_w: float, ambient_c: float) -> tuple[float, float]:
+    """Cell and jig temperatures after a long time at constant heat: ambient + P/G."""
+    return (
+        ambient_c + heat_w / thermal.cell_air_w_per_k,
+        ambient_c + heat_w / thermal.jig_air_w_per_k,
+    )
 
 
 @pytest.mark.parametrize("nodes", [1, 2])

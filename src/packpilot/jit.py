@@ -145,9 +145,4 @@ def kernel_inline(fn: _F) -> _F:
     return cast(_F, numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(fn))
 
 
-def jit_disabled() -> bool:
-    """True when kernels run as plain Python (``NUMBA_DISABLE_JIT=1``)."""
-    return bool(getattr(numba.config, "DISABLE_JIT", False))
-
-
-__all__ = ["add_root", "dependency_files", "dependency_stamp", "jit_disabled", "kernel"]
+__all__ = ["add_root", "dependency_files", "dependency_stamp", "kernel"]

@@ -43,24 +43,6 @@ class Topology:
         """String index of the auxiliary battery, if any."""
         return next((i for i, r in enumerate(self.roles) if r == "aux"), None)
 
-    def string_of(self, battery: int) -> int:
-        """String index of traction battery ``battery``."""
-        return self.traction[battery]
-
-    def traction_of(self, string: int) -> int | None:
-        """Traction index of string ``string`` (``None`` for the auxiliary battery)."""
-        t = self.traction
-        return t.index(string) if string in t else None
-
-    def name_of(self, battery: int | None) -> str:
-        """Display name of traction battery ``battery`` (an event's ``battery``); the pack
-        for ``None``."""
-        if battery is None:
-            return "pack"
-        if 0 <= battery < len(self.traction):
-            return self.names[self.traction[battery]]
-        return f"battery {battery}"
-
     def spread(self, per_traction: Sequence[object], fill: object = None) -> list[object]:
         """A per-traction-battery list laid out over all strings (``fill`` elsewhere)."""
         out = [fill] * self.n_strings

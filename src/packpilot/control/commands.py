@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf
+from packpilot.contract.arrays import CmdArrays, EventBuf
 from packpilot.jit import kernel
 
 # ------------------------------------------------------------------------------ commands
@@ -81,12 +81,6 @@ def put_aux_charge(cmd: CmdArrays, p: int, current_a: float) -> None:
     cmd.aux_charge_a[p] = current_a
 
 
-@kernel
-def will_be_on(opinion: int, now_on: bool) -> bool:
-    """What a path will be after the step: its merged opinion, or as it is."""
-    return now_on if opinion == NO_OPINION else opinion == 1
-
-
 # ------------------------------------------------------------------------------ events
 
 
@@ -146,5 +140,4 @@ __all__ = [
     "put_charger_off",
     "put_chg",
     "put_dsg",
-    "will_be_on",
 ]

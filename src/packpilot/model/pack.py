@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.config import BatteryConfig, ScenarioConfig, SwitchConfig
+from packpilot.config import BatteryConfig, ScenarioConfig
 from packpilot.model import cell as cellmod
 from packpilot.model import pack_kernel
 from packpilot.model.bus import ChargerSource, LoadSink
@@ -134,7 +134,6 @@ class Pack:
         self.cell_string = np.repeat(np.arange(n_s), n_cells)
         groups = [b.series_groups for b in bats]
         self.groups_per_string = tuple(groups)
-        self.group_string = np.repeat(np.arange(n_s), groups)
         cell_group: list[int] = []
         g0 = 0
         for b in bats:
@@ -673,6 +672,3 @@ class Pack:
         """Cell terminal voltage at the present instant, under the last period's currents."""
         return self.e_cell - self.r_cell * self.cell_a
 
-
-def switch_config_summary(sw: SwitchConfig) -> str:
-    return f"{sw.kind} on={sw.on_ohm} ohm drop={sw.diode_drop_v} V"

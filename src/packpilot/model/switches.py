@@ -28,18 +28,6 @@ KIND_MOSFET = 1
 
 
 @dataclass(frozen=True)
-class SwitchParams:
-    """Electrical parameters of one battery's switch."""
-
-    kind: int = KIND_MOSFET
-    on_ohm: float = 0.0005
-    """Relay contact resistance, or the channel resistance of *one* FET."""
-    diode_drop_v: float = 0.6
-    diode_ohm: float = 0.002
-    """Slope resistance of a conducting body diode."""
-
-
-@dataclass(frozen=True)
 class BranchArrays:
     """Per-string branch description for the bus solve (arrays of shape (..., n_strings)).
 

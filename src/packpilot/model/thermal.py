@@ -24,9 +24,6 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
-import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
 from packpilot.errors import ConfigError
 
 KELVIN = 273.15
@@ -115,29 +112,3 @@ def step_coefficients(thermal: ThermalParams, dt_s: float) -> tuple[float, ...]:
     kj = yj - (e21 * yc + e22 * yj)
     return (e11, e12, e21, e22, kc, kj)
 
-
-def thermal_step(
-    thermal: ThermalParams,
-    dt_s: float,
-    cell_c: ArrayLike,
-    jig_c: ArrayLike,
-    ambient_c: ArrayLike,
-    heat_w: ArrayLike,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Advance cell and jig temperatures over ``dt_s`` with constant heat and ambient (NumPy)."""
-    e11, e12, e21, e22, kc, kj = step_coefficients(thermal, float(dt_s))
-    ta = np.asarray(ambient_c, dtype=np.float64)
-    yc = np.asarray(cell_c, dtype=np.float64) - ta
-    yj = np.asarray(jig_c, dtype=np.float64) - ta
-    q = np.asarray(heat_w, dtype=np.float64)
-    return ta + e11 * yc + e12 * yj + kc * q, ta + e21 * yc + e22 * yj + kj * q
-
-
-def steady_state(
-    thermal: ThermalParams, heat_w: ArrayLike, ambient_c: ArrayLike
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Cell and jig temperatures after a long time at constant heat: ambient + P/G."""
-    q = np.asarray(heat_w, dtype=np.float64)
-    ta = np.asarray(ambient_c, dtype=np.float64)
-    cell = ta + q / thermal.cell_air_w_per_k
-    return cell, ta + q / thermal.jig_air_w_per_k

@@ -62,7 +62,6 @@ DUE_EPS_S = 1e-9
 CLIENT_STATUS_TIMEOUT_S = 5.0
 """``CanChargerLink(status_timeout_s=5.0)``: the client reports NaN / offline after this."""
 CONTROL_ON = 0
-N_FLAGS = len(CHARGER_FLAGS)
 COMM_TIMEOUT_BIT = 1 << CHARGER_FLAGS.index("communication_timeout")
 
 # ------------------------------------------------------------------ state columns

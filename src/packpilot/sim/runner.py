@@ -107,7 +107,6 @@ class Runner:
             core.status.shape[2],
             capacity=min(total, 1 << 16),
         )
-        self.trace_buffer = buf
         self.run_id: int | None = None
         if self.recorder is not None:
             self.run_id = self.recorder.start(cfg.model_dump(mode="json"), self.pack.names)

@@ -9,7 +9,7 @@ from itertools import pairwise
 import numpy as np
 
 from packpilot.config.soc import SocConfig, VoltageSource
-from packpilot.contract.bms import BatteryMeasurement, Event, Measurements, SwitchKind
+from packpilot.contract.bms import Event, Measurements, SwitchKind
 from packpilot.contract.events import Labels, Reason, fields
 from packpilot.contract.topology import PackInfo
 from packpilot.control.method import CompiledController, Method, StatusChannel
@@ -192,11 +192,6 @@ class SocEstimator(CompiledController):
     def soc_from_ocv(self, cell_v: float) -> float:
         """Inverse of the OCV table, clamped to its ends and to 0..1 (NaN for a NaN input)."""
         return float(rules.soc_from_ocv(self.prm, float(cell_v) if _finite(cell_v) else math.nan))
-
-    def cell_voltage(self, i: int, bm: BatteryMeasurement) -> float:
-        if self.prm.use_min_cell:
-            return bm.min_cell_v
-        return bm.voltage_v / int(self.prm.series_cells[i])
 
     def update(self, meas: Measurements, dt_s: float) -> tuple[tuple[float, ...], list[Event]]:
         """Advance every battery by one tick; returns the estimates and any correction events."""

@@ -4,7 +4,7 @@ One job per module:
 
 - :mod:`~packpilot.io.telemetry.schema` — the tables, ``SCHEMA_VERSION``, the version check;
 - :mod:`~packpilot.io.telemetry.writer` — :class:`SQLiteRecorder`, recording a run as it runs;
-- :mod:`~packpilot.io.telemetry.reader` — :func:`load_run`, :func:`list_runs`, :func:`iter_runs`;
+- :mod:`~packpilot.io.telemetry.reader` — :func:`load_run`, :func:`list_runs`;
 - :mod:`~packpilot.io.telemetry.export` — a run as a wide CSV or Parquet table.
 
 The schema is documented in ``docs/telemetry.md``.
@@ -13,7 +13,7 @@ The schema is documented in ``docs/telemetry.md``.
 from __future__ import annotations
 
 from packpilot.io.telemetry.export import export_csv, export_parquet, trace_to_csv, wide_columns
-from packpilot.io.telemetry.reader import iter_runs, list_runs, load_run
+from packpilot.io.telemetry.reader import list_runs, load_run
 from packpilot.io.telemetry.schema import PACK_COLUMNS, SCHEMA_VERSION
 from packpilot.io.telemetry.writer import SQLiteRecorder
 
@@ -23,7 +23,6 @@ __all__ = [
     "SQLiteRecorder",
     "export_csv",
     "export_parquet",
-    "iter_runs",
     "list_runs",
     "load_run",
     "trace_to_csv",

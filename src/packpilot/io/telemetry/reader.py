@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 import math
 import sqlite3
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -249,9 +249,3 @@ def list_runs(path: Path | str) -> list[dict[str, Any]]:
         }
         for r in rows
     ]
-
-
-def iter_runs(path: Path | str) -> Iterator[Result]:
-    """Every run of a file as a ``Result``, oldest first (campaign post-processing)."""
-    for run in list_runs(path):
-        yield load_run(path, int(run["id"]))
