@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
 import pytest
 
 from packpilot.contract.bms import BatteryMeasurement, ControlOutput, Event, Measurements
 from packpilot.contract.charger import CHARGER_OFF, ChargerCommand, ChargerStatus
-from packpilot.control.charging import ChargingConfig, ChargingController, Stage, cluster_levels
+from packpilot.control.charging import ChargingConfig, ChargingController, Stage, rules
 from tests.test_charging_helpers import ToyPack, pack_info
 
 
@@ -148,6 +149,25 @@ def test_staging_cuts_peak_current_versus_all_closed() -> None:
 
 
 # --- grouping, latching, IR compensation ----------------------------------------------------
+
+
+def cluster_levels(values: Sequence[tuple[int, float]], eps_v: float) -> list[list[int]]:
+    """Group ``(index, voltage)`` pairs into levels of span ≤ ``eps_v``, lowest level first.
+
+    Sorting is by voltage then index, so ties are deterministic. A level is anchored at its
+    lowest voltage (not single-linkage), so a chain of small gaps cannot grow one level wider
+    than ``eps_v`` (:func:`rules.cluster`, which this calls).
+    """
+    n = len(values)
+    vals = np.array([float(v) for _, v in values], np.float64)
+    keys = np.array([int(i) for i, _ in values], np.int64)
+    order = np.zeros(n, np.int64)
+    level = np.zeros(n, np.int64)
+    n_levels = rules.cluster(vals, keys, n, float(eps_v), order, level)
+    out: list[list[int]] = [[] for _ in range(n_levels)]
+    for k in range(n):
+        out[int(level[k])].append(int(keys[order[k]]))
+    return out
 
 
 def test_cluster_levels_anchor_and_ties() -> None:

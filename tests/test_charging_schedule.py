@@ -10,13 +10,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from packpilot.control.charging import (
-    ChargingConfig,
-    ChargingController,
-    Stage,
-    stage_current_a,
-)
+from packpilot.control.charging import ChargingConfig, ChargingController, Stage, rules
 from tests.test_charging_helpers import ToyPack, pack_info
+
+
+def stage_current_a(cfg: ChargingConfig, n_connected: int, n_to_charge: int) -> float:
+    """Charger current limit for a stage with ``n_connected`` of ``n_to_charge`` batteries
+    (:func:`rules.stage_current` on the settings of ``cfg``)."""
+    limit = float(cfg.charger_current_limit_a)
+    full = cfg.full_current_a if cfg.full_current_a is not None else limit
+    per = cfg.battery_current_limit_a
+    current = rules.stage_current(
+        limit, cfg.current_law == "sqrt", float(full), per is not None,
+        math.nan if per is None else float(per), int(n_connected), int(n_to_charge),
+    )  # fmt: skip
+    return float(current)
 
 
 @pytest.mark.parametrize("n_total", [1, 2, 3, 6, 12])

@@ -152,12 +152,6 @@ class LimitRow(BaseModel):
             )
         return self
 
-    def violated(self, value: float) -> bool:
-        return value > self.threshold if self.direction == "above" else value < self.threshold
-
-    def cleared(self, value: float) -> bool:
-        return value <= self.reset if self.direction == "above" else value >= self.reset
-
 
 def _r(
     limit: str,

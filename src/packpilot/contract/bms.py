@@ -78,20 +78,6 @@ class BatteryMeasurement:
     """Age of the sample when the monitor reports it (a repeated frame grows old); NaN = not
     reported, which is not the same as stale."""
 
-    def is_finite(self) -> bool:
-        """True when every numeric field a controller relies on is a finite number."""
-        core = (
-            self.voltage_v,
-            self.current_a,
-            self.temp_c,
-            self.min_cell_v,
-            self.max_cell_v,
-            self.soc,
-        )
-        return all(math.isfinite(x) for x in core) and all(
-            math.isfinite(v) for v in self.group_voltages_v
-        )
-
 
 @dataclass(frozen=True, slots=True)
 class Measurements:

@@ -111,4 +111,3 @@ def step_coefficients(thermal: ThermalParams, dt_s: float) -> tuple[float, ...]:
     kc = yc - (e11 * yc + e12 * yj)
     kj = yj - (e21 * yc + e22 * yj)
     return (e11, e12, e21, e22, kc, kj)
-

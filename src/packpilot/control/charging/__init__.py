@@ -4,12 +4,9 @@ from packpilot.config.charging import REFERENCE_SERIES, ChargingConfig
 from packpilot.control.charging.controller import (
     METHOD,
     ChargingController,
-    Plan,
     Stage,
     Volts,
-    cluster_levels,
     series_cells,
-    stage_current_a,
 )
 
 __all__ = [
@@ -17,10 +14,7 @@ __all__ = [
     "REFERENCE_SERIES",
     "ChargingConfig",
     "ChargingController",
-    "Plan",
     "Stage",
     "Volts",
-    "cluster_levels",
     "series_cells",
-    "stage_current_a",
 ]

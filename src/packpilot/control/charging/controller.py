@@ -170,38 +170,6 @@ def series_cells(pack: PackInfo) -> list[int]:
     return [g * c for g, c in zip(pack.groups_per_battery, cells, strict=True)]
 
 
-def cluster_levels(values: Sequence[tuple[int, float]], eps_v: float) -> list[list[int]]:
-    """Group ``(index, voltage)`` pairs into levels of span ≤ ``eps_v``, lowest level first.
-
-    Sorting is by voltage then index, so ties are deterministic. A level is anchored at its
-    lowest voltage (not single-linkage), so a chain of small gaps cannot grow one level wider
-    than ``eps_v`` (the compiled :func:`rules.cluster`).
-    """
-    n = len(values)
-    vals = np.array([float(v) for _, v in values], np.float64)
-    keys = np.array([int(i) for i, _ in values], np.int64)
-    order = np.zeros(n, np.int64)
-    level = np.zeros(n, np.int64)
-    n_levels = rules.cluster(vals, keys, n, float(eps_v), order, level)
-    out: list[list[int]] = [[] for _ in range(n_levels)]
-    for k in range(n):
-        out[int(level[k])].append(int(keys[order[k]]))
-    return out
-
-
-def stage_current_a(cfg: ChargingConfig, n_connected: int, n_to_charge: int) -> float:
-    """Charger current limit for a stage with ``n_connected`` of ``n_to_charge`` batteries
-    (the compiled :func:`rules.stage_current` on the settings of ``cfg``)."""
-    limit = float(cfg.charger_current_limit_a)
-    full = cfg.full_current_a if cfg.full_current_a is not None else limit
-    per = cfg.battery_current_limit_a
-    current = rules.stage_current(
-        limit, cfg.current_law == "sqrt", float(full), per is not None,
-        math.nan if per is None else float(per), int(n_connected), int(n_to_charge),
-    )  # fmt: skip
-    return float(current)
-
-
 def build(
     config: ChargingConfig, infos: Sequence[PackInfo]
 ) -> tuple[ChargingParams, ChargingState]:
@@ -318,27 +286,6 @@ METHOD = Method(
 )
 
 
-@dataclass(frozen=True, slots=True)
-class Plan:
-    """A latched stage: who is connected, the setpoints and why (a snapshot of the state)."""
-
-    stage: Stage
-    members: frozenset[int] = frozenset()
-    first: tuple[int, ...] = ()
-    second: tuple[int, ...] = ()
-    cmd_v: float = math.nan
-    vr1_v: float = math.nan
-    vt_v: float = math.nan
-    vr2_v: float = math.nan
-
-    @property
-    def target_v(self) -> float:
-        """The voltage this stage charges towards (for telemetry)."""
-        return float(
-            rules._target_v(STAGES.index(self.stage), self.cmd_v, self.vr1_v, self.vt_v, self.vr2_v)
-        )
-
-
 class ChargingController(CompiledController):
     """Staged charging: S20 → S30 per level pair, S40 steps, CV top-off, relays per battery
     (one pack).
@@ -363,25 +310,6 @@ class ChargingController(CompiledController):
     def stage(self) -> Stage:
         """The latched stage."""
         return STAGES[int(self.st.stage[0])]
-
-    @property
-    def plan(self) -> Plan:
-        """The latched plan."""
-        st = self.st
-
-        def idx(row: np.ndarray) -> tuple[int, ...]:
-            return tuple(int(i) for i in np.flatnonzero(row))
-
-        return Plan(
-            self.stage,
-            frozenset(idx(st.members[0])),
-            idx(st.first[0]),
-            idx(st.second[0]),
-            float(st.cmd_v[0]),
-            float(st.vr1_v[0]),
-            float(st.vt_v[0]),
-            float(st.vr2_v[0]),
-        )
 
     @property
     def r_ohm(self) -> tuple[float, ...]:
@@ -411,11 +339,8 @@ __all__ = [
     "REFERENCE_SERIES",
     "STATUS",
     "ChargingController",
-    "Plan",
     "Stage",
     "Volts",
     "build",
-    "cluster_levels",
     "series_cells",
-    "stage_current_a",
 ]

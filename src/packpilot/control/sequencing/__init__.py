@@ -2,7 +2,6 @@
 
 from packpilot.config.sequencing import SequencingConfig
 from packpilot.control.sequencing.controller import (
-    _EPS_S,
     METHOD,
     SeqMode,
     SeqState,
@@ -13,7 +12,6 @@ from packpilot.control.sequencing.rules import SequencingParams, SequencingState
 
 __all__ = [
     "METHOD",
-    "_EPS_S",
     "SeqMode",
     "SeqState",
     "SequencingConfig",

@@ -18,9 +18,6 @@ from packpilot.control.method import CompiledController, Method, StatusChannel
 from packpilot.control.sequencing import rules
 from packpilot.control.sequencing.rules import F64, SequencingParams, SequencingState
 
-_EPS_S = rules.EPS_S
-"""Tolerance for comparing accumulated times, so 0.1 + 0.1 + 0.1 counts as 0.3 s."""
-
 
 class SeqState(enum.StrEnum):
     """Per-battery sequencing state (spec section 3, plus OFF for an absent battery)."""
