@@ -13,6 +13,7 @@ import platform
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -66,171 +67,219 @@ def _pick(rows: list[dict[str, Any]], **match: Any) -> dict[str, Any]:
     raise KeyError(str(match))
 
 
-def _headlines(name: str, rows: list[dict[str, Any]]) -> list[tuple[str, str, str]]:
-    """(figure, value, target) rows for the closing table; each module's key results."""
-    out: list[tuple[str, str, str]] = []
-    if name == "bench_cell":
-        r = rows[0]
-        out += [
+Headline = tuple[str, str, str]
+"""(figure, value, target): one row of the closing table."""
+
+
+def _cell_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """The cell model against PyBaMM, and the fleet throughput."""
+    r = rows[0]
+    return [
+        (
+            "cell vs PyBaMM, 25 degC: max / RMS dV (mV)",
+            f"{r['max_dV_mV_25C']:.4f} / {r['rms_dV_mV_25C']:.5f}",
+            "<= 0.5 / 0.05",
+        ),
+        (
+            "cell vs PyBaMM, 0 degC: max / RMS dV (mV)",
+            f"{r['max_dV_mV_0C']:.4f} / {r['rms_dV_mV_0C']:.5f}",
+            "<= 0.5 / 0.1",
+        ),
+        (
+            "cell vs PyBaMM: max dT (K) / max dSOC",
+            f"{max(r['max_dT_K_25C'], r['max_dT_K_0C']):.2g} / "
+            f"{max(r['max_dSOC_25C'], r['max_dSOC_0C']):.2g}",
+            "<= 0.01 / 1e-6",
+        ),
+        ("1 h profile vs PyBaMM build+solve", f"{r['profile_speedup_x']:.0f}x faster", ""),
+        (
+            "fleet 10k cells, advance (M cell-steps/s)",
+            f"{r['fleet10k_advance_Mcell_steps_per_s']:.1f}",
+            ">= 20",
+        ),
+        (
+            "fleet 10k cells, thevenin+advance (M cell-steps/s)",
+            f"{r['fleet10k_thevenin_advance_Mcell_steps_per_s']:.1f}",
+            ">= 20",
+        ),
+        (
+            "fleet 10k cells, fused step (M cell-steps/s; per CPU-s)",
+            f"{r['fleet10k_step_fused_Mcell_steps_per_s']:.1f}; "
+            f"{r['fleet10k_step_fused_Mcell_steps_per_cpu_s']:.1f}",
+            ">= 20",
+        ),
+    ]
+
+
+def _loop_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """The closed-loop step against a PyBaMM step."""
+    out: list[Headline] = []
+    for r in rows[1:]:
+        out.append(
             (
-                "cell vs PyBaMM, 25 degC: max / RMS dV (mV)",
-                f"{r['max_dV_mV_25C']:.4f} / {r['rms_dV_mV_25C']:.5f}",
-                "<= 0.5 / 0.05",
-            ),
+                f"{r['case']}: step",
+                f"{r['step_us']:.0f} us = {r['ratio_vs_pybamm']:.1f}x PyBaMM step",
+                ">= 200x",
+            )
+        )
+    return out
+
+
+def _protection_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """Energy and rest OCV of the protection method against the fixed cut-off."""
+    out: list[Headline] = []
+    for sc in ("cold_heavy", "warm_light", "warming_flight"):
+        m = _pick(rows, scenario=sc, strategy="method")
+        out.append(
             (
-                "cell vs PyBaMM, 0 degC: max / RMS dV (mV)",
-                f"{r['max_dV_mV_0C']:.4f} / {r['rms_dV_mV_0C']:.5f}",
-                "<= 0.5 / 0.1",
-            ),
+                f"protection {sc}: energy vs fixed 3.2 V/5 s",
+                f"{m['energy_vs_conservative_pct']:+.1f} %",
+                ">= +15 %" if sc == "cold_heavy" else "",
+            )
+        )
+        out.append(
             (
-                "cell vs PyBaMM: max dT (K) / max dSOC",
-                f"{max(r['max_dT_K_25C'], r['max_dT_K_0C']):.2g} / "
-                f"{max(r['max_dSOC_25C'], r['max_dSOC_0C']):.2g}",
-                "<= 0.01 / 1e-6",
-            ),
-            ("1 h profile vs PyBaMM build+solve", f"{r['profile_speedup_x']:.0f}x faster", ""),
-            (
-                "fleet 10k cells, advance (M cell-steps/s)",
-                f"{r['fleet10k_advance_Mcell_steps_per_s']:.1f}",
-                ">= 20",
-            ),
-            (
-                "fleet 10k cells, thevenin+advance (M cell-steps/s)",
-                f"{r['fleet10k_thevenin_advance_Mcell_steps_per_s']:.1f}",
-                ">= 20",
-            ),
-            (
-                "fleet 10k cells, fused step (M cell-steps/s; per CPU-s)",
-                f"{r['fleet10k_step_fused_Mcell_steps_per_s']:.1f}; "
-                f"{r['fleet10k_step_fused_Mcell_steps_per_cpu_s']:.1f}",
-                ">= 20",
-            ),
+                f"protection {sc}: rest OCV vs conservative",
+                f"{m['rest_ocv_vs_conservative_mv']:+.0f} mV",
+                ">= -10 mV" if sc == "warm_light" else "",
+            )
+        )
+        bound = [
+            r["to_empty_vs_conservative_pct"]
+            for r in rows
+            if r["scenario"] == sc and r.get("to_empty_vs_conservative_pct") is not None
         ]
-    elif name == "bench_loop":
-        for r in rows[1:]:
+        if bound:
             out.append(
                 (
-                    f"{r['case']}: step",
-                    f"{r['step_us']:.0f} us = {r['ratio_vs_pybamm']:.1f}x PyBaMM step",
-                    ">= 200x",
-                )
-            )
-    elif name == "bench_protection":
-        for sc in ("cold_heavy", "warm_light", "warming_flight"):
-            m = _pick(rows, scenario=sc, strategy="method")
-            out.append(
-                (
-                    f"protection {sc}: energy vs fixed 3.2 V/5 s",
-                    f"{m['energy_vs_conservative_pct']:+.1f} %",
-                    ">= +15 %" if sc == "cold_heavy" else "",
-                )
-            )
-            out.append(
-                (
-                    f"protection {sc}: rest OCV vs conservative",
-                    f"{m['rest_ocv_vs_conservative_mv']:+.0f} mV",
-                    ">= -10 mV" if sc == "warm_light" else "",
-                )
-            )
-            bound = [
-                r["to_empty_vs_conservative_pct"]
-                for r in rows
-                if r["scenario"] == sc and r.get("to_empty_vs_conservative_pct") is not None
-            ]
-            if bound:
-                out.append(
-                    (
-                        f"protection {sc}: bound, energy until a cell is empty vs 3.2 V/5 s",
-                        f"{max(bound):+.1f} %",
-                        "",
-                    )
-                )
-    elif name == "bench_sequencing":
-        for sc in ("dual_hover_2V", "four_spread", "hot_insert"):
-            d = _pick(rows, scenario=sc, strategy="direct")
-            q = _pick(rows, scenario=sc, strategy="sequencing")
-            out.append(
-                (
-                    f"sequencing {sc}: peak into a battery, direct -> method",
-                    f"{d['peak_cross_a']:.1f} -> {q['peak_cross_a']:.2f} A",
-                    "<= 1 A",
-                )
-            )
-            out.append(
-                (
-                    f"sequencing {sc}: energy vs direct (whole run / to brown-out / "
-                    "equal 5 s brown-out budget)",
-                    f"{q['energy_ratio'] * 100:.1f} % / "
-                    f"{q['energy_to_brownout_ratio'] * 100:.1f} % / "
-                    f"{q['energy_budget_ratio'] * 100:.1f} %",
-                    ">= 99 %",
-                )
-            )
-    elif name == "bench_charging":
-        base = _pick(rows, strategy="baseline")
-        for r in rows:
-            if r is base:
-                continue
-            peak = r["peak_charge_max_a"] / base["peak_charge_max_a"] - 1
-            out.append(
-                (
-                    f"charging {r['strategy']}: peak battery current vs baseline",
-                    f"{peak * 100:+.0f} %",
-                    "<= -50 %",
-                )
-            )
-            heat_key = next(k for k in r if "heat" in k and "j" in k.lower())
-            heat = r[heat_key] / base[heat_key] - 1
-            out.append(
-                (
-                    f"charging {r['strategy']}: I2R heat vs baseline",
-                    f"{heat * 100:+.1f} %",
-                    "<= -50 %",
-                )
-            )
-            t = r["time_to_full_s"] / base["time_to_full_s"] - 1
-            out.append(
-                (
-                    f"charging {r['strategy']}: time to full vs baseline",
-                    f"{t * 100:+.1f} %",
-                    "<= +20 %",
-                )
-            )
-    elif name == "bench_equalization":
-        for sc in sorted({r["scenario"] for r in rows}):
-            m = [r for r in rows if r["scenario"] == sc and r["strategy"] == "newton"]
-            last = m[-1]
-            ok = [
-                r["cycle"]
-                for r in m
-                if r["rest_spread_top_mv"] <= 10.0
-                and r.get("usable_ratio", r.get("usable_vs_limit", 0)) >= 0.98
-            ]
-            ratio = last.get("usable_ratio", last.get("usable_vs_limit"))
-            out.append(
-                (
-                    f"equalization {sc}: rest spread / usable vs limit (last cycle)",
-                    f"{last['rest_spread_top_mv']:.1f} mV / {ratio}",
-                    "<= 10 mV / >= 0.98",
-                )
-            )
-            out.append(
-                (
-                    f"equalization {sc}: first cycle meeting both",
-                    str(ok[0]) if ok else "none",
-                    "stated",
-                )
-            )
-    elif name == "bench_campaign":
-        for r in rows:
-            out.append(
-                (
-                    f"campaign: {r['case']}",
-                    f"{r['figure']:.4g} {r['unit']}",
-                    "<= 300 s" if r["case"].startswith("1,000 one-hour missions, 0.1 s") else "",
+                    f"protection {sc}: bound, energy until a cell is empty vs 3.2 V/5 s",
+                    f"{max(bound):+.1f} %",
+                    "",
                 )
             )
     return out
+
+
+def _sequencing_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """Peak cross current and energy of sequencing against direct paralleling."""
+    out: list[Headline] = []
+    for sc in ("dual_hover_2V", "four_spread", "hot_insert"):
+        d = _pick(rows, scenario=sc, strategy="direct")
+        q = _pick(rows, scenario=sc, strategy="sequencing")
+        out.append(
+            (
+                f"sequencing {sc}: peak into a battery, direct -> method",
+                f"{d['peak_cross_a']:.1f} -> {q['peak_cross_a']:.2f} A",
+                "<= 1 A",
+            )
+        )
+        out.append(
+            (
+                f"sequencing {sc}: energy vs direct (whole run / to brown-out / "
+                "equal 5 s brown-out budget)",
+                f"{q['energy_ratio'] * 100:.1f} % / "
+                f"{q['energy_to_brownout_ratio'] * 100:.1f} % / "
+                f"{q['energy_budget_ratio'] * 100:.1f} %",
+                ">= 99 %",
+            )
+        )
+    return out
+
+
+def _charging_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """Peak current, heat and time to full of each strategy against the baseline."""
+    out: list[Headline] = []
+    base = _pick(rows, strategy="baseline")
+    for r in rows:
+        if r is base:
+            continue
+        peak = r["peak_charge_max_a"] / base["peak_charge_max_a"] - 1
+        out.append(
+            (
+                f"charging {r['strategy']}: peak battery current vs baseline",
+                f"{peak * 100:+.0f} %",
+                "<= -50 %",
+            )
+        )
+        heat_key = next(k for k in r if "heat" in k and "j" in k.lower())
+        heat = r[heat_key] / base[heat_key] - 1
+        out.append(
+            (
+                f"charging {r['strategy']}: I2R heat vs baseline",
+                f"{heat * 100:+.1f} %",
+                "<= -50 %",
+            )
+        )
+        t = r["time_to_full_s"] / base["time_to_full_s"] - 1
+        out.append(
+            (
+                f"charging {r['strategy']}: time to full vs baseline",
+                f"{t * 100:+.1f} %",
+                "<= +20 %",
+            )
+        )
+    return out
+
+
+def _equalization_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """Rest spread and usable capacity of the method per scenario."""
+    out: list[Headline] = []
+    for sc in sorted({r["scenario"] for r in rows}):
+        m = [r for r in rows if r["scenario"] == sc and r["strategy"] == "newton"]
+        last = m[-1]
+        ok = [
+            r["cycle"]
+            for r in m
+            if r["rest_spread_top_mv"] <= 10.0
+            and r.get("usable_ratio", r.get("usable_vs_limit", 0)) >= 0.98
+        ]
+        ratio = last.get("usable_ratio", last.get("usable_vs_limit"))
+        out.append(
+            (
+                f"equalization {sc}: rest spread / usable vs limit (last cycle)",
+                f"{last['rest_spread_top_mv']:.1f} mV / {ratio}",
+                "<= 10 mV / >= 0.98",
+            )
+        )
+        out.append(
+            (
+                f"equalization {sc}: first cycle meeting both",
+                str(ok[0]) if ok else "none",
+                "stated",
+            )
+        )
+    return out
+
+
+def _campaign_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """Campaign throughput."""
+    out: list[Headline] = []
+    for r in rows:
+        out.append(
+            (
+                f"campaign: {r['case']}",
+                f"{r['figure']:.4g} {r['unit']}",
+                "<= 300 s" if r["case"].startswith("1,000 one-hour missions, 0.1 s") else "",
+            )
+        )
+    return out
+
+
+_HEADLINES: dict[str, Callable[[list[dict[str, Any]]], list[Headline]]] = {
+    "bench_cell": _cell_headlines,
+    "bench_loop": _loop_headlines,
+    "bench_protection": _protection_headlines,
+    "bench_sequencing": _sequencing_headlines,
+    "bench_charging": _charging_headlines,
+    "bench_equalization": _equalization_headlines,
+    "bench_campaign": _campaign_headlines,
+}
+
+
+def _headlines(name: str, rows: list[dict[str, Any]]) -> list[Headline]:
+    """(figure, value, target) rows for the closing table; each module's key results."""
+    per_module = _HEADLINES.get(name)
+    return per_module(rows) if per_module is not None else []
 
 
 def main() -> int:

@@ -90,6 +90,53 @@ class CampaignReport:
         return self.computed / self.wall_s if self.wall_s > 0 and self.computed else 0.0
 
 
+def _check_counts(runs: int, seed: int, workers: int | None, batch: int | None) -> None:
+    if runs < 1:
+        raise InputError(f"--runs must be >= 1 (got {runs})")
+    if seed < 0:
+        raise InputError(f"--seed must be >= 0 (got {seed})")
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers must be >= 1 (got {workers})")
+    if batch is not None and batch < 1:
+        raise InputError(f"--batch must be >= 1 (got {batch})")
+
+
+def _missing_runs(
+    store: ResultStore, runs: int, resume: bool, limit: int | None
+) -> tuple[list[int], int]:
+    """The run indices still to compute (at most ``limit``) and how many are already done;
+    without ``resume`` the store starts empty."""
+    if resume:
+        done_before = store.done_runs()
+    else:
+        store.clear()
+        done_before = set()
+    missing = [i for i in range(runs) if i not in done_before]
+    skipped = runs - len(missing)
+    if limit is not None:
+        missing = missing[: max(0, limit)]
+    return missing, skipped
+
+
+def _dispatch(
+    cfg: ScenarioConfig,
+    sched: str,
+    batches: list[list[Draw]],
+    fail: frozenset[int],
+    n_workers: int,
+    client: Any,
+    done: Callable[[list[dict[str, Any]]], None],
+) -> None:
+    """Run ``batches`` on the scheduler ``sched`` names (``client`` when it is ``"client"``)."""
+    if sched in ("threads", "sync"):
+        _run_threads(cfg, batches, fail, n_workers, done, sched == "sync")
+    elif sched == "client":
+        _run_distributed(cfg, batches, fail, client, done)
+    else:
+        with _client_for(sched, n_workers) as cl:
+            _run_distributed(cfg, batches, fail, cl, done)
+
+
 def run_campaign(
     cfg: ScenarioConfig,
     runs: int,
@@ -116,29 +163,14 @@ def run_campaign(
     together through the one closed loop (the whole supervised BMS, charger links and fault
     schedules included).
     """
-    if runs < 1:
-        raise InputError(f"--runs must be >= 1 (got {runs})")
-    if seed < 0:
-        raise InputError(f"--seed must be >= 0 (got {seed})")
-    if workers is not None and workers < 1:
-        raise InputError(f"--workers must be >= 1 (got {workers})")
-    if batch is not None and batch < 1:
-        raise InputError(f"--batch must be >= 1 (got {batch})")
+    _check_counts(runs, seed, workers, batch)
     sp = parse_spreads(spreads) if spreads is None or isinstance(spreads, str) else dict(spreads)
     fail = frozenset(fail_runs) if fail_runs is not None else fail_runs_from_env()
     n_workers = workers or os.cpu_count() or 1
     sched = "client" if client is not None else _check_scheduler(scheduler or "auto")
 
     store = ResultStore(Path(out), campaign_meta(cfg, sp, seed))
-    if resume:
-        done_before = store.done_runs()
-    else:
-        store.clear()
-        done_before = set()
-    missing = [i for i in range(runs) if i not in done_before]
-    skipped = runs - len(missing)
-    if limit is not None:
-        missing = missing[: max(0, limit)]
+    missing, skipped = _missing_runs(store, runs, resume, limit)
     draws = make_draws(sp, seed, missing, cfg.pack.ambient_c)
     why_not = unsupported_reason(cfg)
     if why_not is not None:
@@ -162,13 +194,7 @@ def run_campaign(
         on_progress(0, len(draws))
     t0 = time.perf_counter()
     if batches:
-        if sched in ("threads", "sync"):
-            _run_threads(cfg, batches, fail, n_workers, done, sched == "sync")
-        elif sched == "client":
-            _run_distributed(cfg, batches, fail, client, done)
-        else:
-            with _client_for(sched, n_workers) as cl:
-                _run_distributed(cfg, batches, fail, cl, done)
+        _dispatch(cfg, sched, batches, fail, n_workers, client, done)
     wall = time.perf_counter() - t0
     table = store.consolidate()
     status = table.column("status").to_pylist() if table.num_rows else []

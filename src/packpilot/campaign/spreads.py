@@ -81,6 +81,32 @@ def _number(text: str, token: str) -> float:
     return value
 
 
+def _spread_value(name: str, value: str, token: str) -> Spread:
+    """The spread of one ``name=value`` token (``value`` non-empty)."""
+    if name == "ambient_c" and "%" in value:
+        raise InputError(
+            f"spread {token!r}: ambient_c takes degC (sigma, +-X or lo:hi), not a percentage"
+        )
+    if ":" in value:
+        lo_t, hi_t = value.split(":", 1)
+        lo, hi = _number(lo_t, token), _number(hi_t, token)
+        if lo > hi:
+            raise InputError(f"spread {token!r}: range lo must be <= hi")
+        floor, ceil = _LIMITS[name]
+        if lo < floor or hi > ceil:
+            raise InputError(f"spread {token!r}: range must lie within [{floor:g}, {ceil:g}]")
+        return Spread(name, "uniform", lo, hi)
+    if value.startswith(("+-", "±")):
+        half = _number(value.removeprefix("+-").removeprefix("±"), token)
+        if half < 0:
+            raise InputError(f"spread {token!r}: +- half-width must be >= 0")
+        return Spread(name, "uniform", -half, half, relative=True)
+    sigma = _number(value, token)
+    if sigma < 0:
+        raise InputError(f"spread {token!r}: sigma must be >= 0")
+    return Spread(name, "normal", sigma)
+
+
 def parse_spreads(text: str | None) -> dict[str, Spread]:
     """Parse ``capacity=5%,r0=10%,soc0=0.05,ambient_c=-10:35`` into spreads by name.
 
@@ -108,29 +134,7 @@ def parse_spreads(text: str | None) -> dict[str, Spread]:
             raise InputError(f"spread {token!r}: {name} is given twice")
         if not value:
             raise InputError(f"spread {token!r}: missing value")
-        if name == "ambient_c" and "%" in value:
-            raise InputError(
-                f"spread {token!r}: ambient_c takes degC (sigma, +-X or lo:hi), not a percentage"
-            )
-        if ":" in value:
-            lo_t, hi_t = value.split(":", 1)
-            lo, hi = _number(lo_t, token), _number(hi_t, token)
-            if lo > hi:
-                raise InputError(f"spread {token!r}: range lo must be <= hi")
-            floor, ceil = _LIMITS[name]
-            if lo < floor or hi > ceil:
-                raise InputError(f"spread {token!r}: range must lie within [{floor:g}, {ceil:g}]")
-            out[name] = Spread(name, "uniform", lo, hi)
-        elif value.startswith(("+-", "±")):
-            half = _number(value.removeprefix("+-").removeprefix("±"), token)
-            if half < 0:
-                raise InputError(f"spread {token!r}: +- half-width must be >= 0")
-            out[name] = Spread(name, "uniform", -half, half, relative=True)
-        else:
-            sigma = _number(value, token)
-            if sigma < 0:
-                raise InputError(f"spread {token!r}: sigma must be >= 0")
-            out[name] = Spread(name, "normal", sigma)
+        out[name] = _spread_value(name, value, token)
     return out
 
 

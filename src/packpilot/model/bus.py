@@ -78,7 +78,8 @@ def _source_current(v: Array, e: Array, br: BranchArrays, ch: ChargerSource) -> 
     return dsg + chg, charger
 
 
-def _solve(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> tuple[Array, BoolArray]:
+def _breakpoints(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> Array:
+    """(P, K) sorted bus voltages between which every residual is one smooth piece."""
     n_packs = e.shape[0]
     # Breakpoints: string kinks, charger kinks, the load's minimum voltage, and the ends.
     kinks = [
@@ -110,6 +111,12 @@ def _solve(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> tuple
             vstar = np.where(den < 0.0, (ld.a[:, None] - s0) / den, lo_s)
         vstar = np.clip(np.nan_to_num(vstar, nan=_V_FLOOR), lo_s, up_s)
         bp = np.sort(np.concatenate([bp, vstar], axis=1), axis=1)
+    return bp
+
+
+def _solve(e: Array, br: BranchArrays, ch: ChargerSource, ld: LoadSink) -> tuple[Array, BoolArray]:
+    n_packs = e.shape[0]
+    bp = _breakpoints(e, br, ch, ld)
 
     def residual(v: Array) -> Array:
         s, c = _source_current(v, e, br, ch)

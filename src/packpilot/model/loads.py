@@ -89,6 +89,18 @@ def builtin(name: str, base: float, kind: str) -> LoadProfile:
 _COLUMN_KIND = {"current_a": "current", "power_w": "power", "resistance_ohm": "resistance"}
 
 
+def _check_cell(path: Path, lineno: int, col: str, cell: str) -> None:
+    """A load-profile cell must be a finite number (the error names its row and column)."""
+    if cell == "":
+        raise InputError(f"{path}: row {lineno}, column {col}: empty cell (gap)")
+    try:
+        x = float(cell)
+    except ValueError:
+        raise InputError(f"{path}: row {lineno}, column {col}: {cell!r} is not a number") from None
+    if not math.isfinite(x):
+        raise InputError(f"{path}: row {lineno}, column {col}: {cell!r} is not finite")
+
+
 def from_csv(path: Path, scale: float = 1.0, repeat: bool = False) -> LoadProfile:
     """Read ``t_s`` plus one of ``current_a``, ``power_w``, ``resistance_ohm``.
 
@@ -119,17 +131,7 @@ def from_csv(path: Path, scale: float = 1.0, repeat: bool = False) -> LoadProfil
                     f"{path}: row {lineno} has {len(row)} cells, header has {len(header)}"
                 )
             for col, j in (("t_s", it), (value_cols[0], iv)):
-                cell = row[j].strip() if j < len(row) else ""
-                if cell == "":
-                    raise InputError(f"{path}: row {lineno}, column {col}: empty cell (gap)")
-                try:
-                    x = float(cell)
-                except ValueError:
-                    raise InputError(
-                        f"{path}: row {lineno}, column {col}: {cell!r} is not a number"
-                    ) from None
-                if not math.isfinite(x):
-                    raise InputError(f"{path}: row {lineno}, column {col}: {cell!r} is not finite")
+                _check_cell(path, lineno, col, row[j].strip() if j < len(row) else "")
             t, v = float(row[it]), float(row[iv])
             if ts and t <= ts[-1]:
                 raise InputError(

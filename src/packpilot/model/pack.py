@@ -129,46 +129,9 @@ class Pack:
         self.n_strings = n_s
         self.is_aux = np.array([b.role == "aux" for b in bats])
         self.aux_index: int | None = int(np.argmax(self.is_aux)) if self.is_aux.any() else None
-        # Flat cell axis: battery-major, then group, then cell.
-        n_cells = [b.n_cells for b in bats]
-        self.cell_string = np.repeat(np.arange(n_s), n_cells)
-        groups = [b.series_groups for b in bats]
-        self.groups_per_string = tuple(groups)
-        cell_group: list[int] = []
-        g0 = 0
-        for b in bats:
-            for g in range(b.series_groups):
-                cell_group += [g0 + g] * b.cells_per_group
-            g0 += b.series_groups
-        self.cell_group = np.array(cell_group, dtype=np.int64)
-        self.n_cells = int(sum(n_cells))
-        self.n_groups = int(sum(groups))
-        self.group_starts = np.concatenate(
-            [[0], np.cumsum([b.cells_per_group for b in bats for _ in range(b.series_groups)])[:-1]]
-        )
-        self.string_group_starts = np.concatenate([[0], np.cumsum(groups)[:-1]])
-        self.max_groups = max(groups)
-        self.string_cell_starts = np.concatenate([[0], np.cumsum(n_cells)[:-1]]).astype(np.int64)
-        # (strings, max_groups) -> flat group index, -1 where a string has fewer groups.
-        self.group_table = np.full((n_s, self.max_groups), -1, dtype=np.int64)
-        for i, ng in enumerate(groups):
-            self.group_table[i, :ng] = self.string_group_starts[i] + np.arange(ng)
-
-        # Switches.
-        sw = [b.switch or pc.switch for b in bats]
-        self.sw_kind = np.array(
-            [KIND_RELAY if s.kind == "relay" else KIND_MOSFET for s in sw], dtype=np.int64
-        )
-        self.sw_on_ohm = np.array([s.on_ohm for s in sw])
-        self.sw_drop_v = np.array([s.diode_drop_v for s in sw])
-        self.sw_diode_ohm = np.array([s.diode_ohm for s in sw])
-        self.welded = np.array([s.welded and s.kind == "relay" for s in sw])
+        self._build_layout(bats)
+        self._build_switches(bats)
         P = self.n_packs
-        self.chg_on = np.tile(np.array([s.chg_on for s in sw]), (P, 1))
-        self.dsg_on = np.tile(np.array([s.dsg_on for s in sw]), (P, 1))
-        self.fet_shorted = np.zeros((P, n_s, 2), dtype=bool)
-        self.present_from_s = np.array([b.present_from_s for b in bats])
-
         self.ambient = (
             np.full(P, pc.ambient_c)
             if self.ambient_c is None
@@ -206,6 +169,50 @@ class Pack:
         self.group_v_prev = self._group_sum(self.e_cell)
 
     # ------------------------------------------------------------------ construction
+    def _build_layout(self, bats: list[BatteryConfig]) -> None:
+        """Index arrays of the flat cell axis: battery-major, then group, then cell."""
+        n_s = len(bats)
+        n_cells = [b.n_cells for b in bats]
+        self.cell_string = np.repeat(np.arange(n_s), n_cells)
+        groups = [b.series_groups for b in bats]
+        self.groups_per_string = tuple(groups)
+        cell_group: list[int] = []
+        g0 = 0
+        for b in bats:
+            for g in range(b.series_groups):
+                cell_group += [g0 + g] * b.cells_per_group
+            g0 += b.series_groups
+        self.cell_group = np.array(cell_group, dtype=np.int64)
+        self.n_cells = int(sum(n_cells))
+        self.n_groups = int(sum(groups))
+        self.group_starts = np.concatenate(
+            [[0], np.cumsum([b.cells_per_group for b in bats for _ in range(b.series_groups)])[:-1]]
+        )
+        self.string_group_starts = np.concatenate([[0], np.cumsum(groups)[:-1]])
+        self.max_groups = max(groups)
+        self.string_cell_starts = np.concatenate([[0], np.cumsum(n_cells)[:-1]]).astype(np.int64)
+        # (strings, max_groups) -> flat group index, -1 where a string has fewer groups.
+        self.group_table = np.full((n_s, self.max_groups), -1, dtype=np.int64)
+        for i, ng in enumerate(groups):
+            self.group_table[i, :ng] = self.string_group_starts[i] + np.arange(ng)
+
+    def _build_switches(self, bats: list[BatteryConfig]) -> None:
+        """Each string's switch (its own, else the pack's) and its initial gates."""
+        n_s = len(bats)
+        sw = [b.switch or self.cfg.pack.switch for b in bats]
+        self.sw_kind = np.array(
+            [KIND_RELAY if s.kind == "relay" else KIND_MOSFET for s in sw], dtype=np.int64
+        )
+        self.sw_on_ohm = np.array([s.on_ohm for s in sw])
+        self.sw_drop_v = np.array([s.diode_drop_v for s in sw])
+        self.sw_diode_ohm = np.array([s.diode_ohm for s in sw])
+        self.welded = np.array([s.welded and s.kind == "relay" for s in sw])
+        P = self.n_packs
+        self.chg_on = np.tile(np.array([s.chg_on for s in sw]), (P, 1))
+        self.dsg_on = np.tile(np.array([s.dsg_on for s in sw]), (P, 1))
+        self.fet_shorted = np.zeros((P, n_s, 2), dtype=bool)
+        self.present_from_s = np.array([b.present_from_s for b in bats])
+
     def _build_cells(self, bats: list[BatteryConfig], rng: np.random.Generator) -> None:
         P, C = self.n_packs, self.n_cells
         pc = self.cfg.pack
@@ -247,18 +254,7 @@ class Pack:
                 _, r0 = cellmod.thevenin(prm, ref, np.zeros(1), np.array([nominal]), np.ones(1))
                 rs[sl] = b.resistance_ohm / (b.n_cells * float(r0[0]))
             start += b.n_cells
-        cap2 = np.tile(cap, (P, 1))
-        if self.capacity_scale is not None:
-            cap2 = cap2 * np.asarray(self.capacity_scale, float).reshape(P, -1)
-        rs2 = np.tile(rs, (P, 1))
-        if self.r_scale is not None:
-            rs2 = rs2 * np.asarray(self.r_scale, float).reshape(P, -1)
-        soc2 = np.tile(soc, (P, 1))
-        if self.soc_offset is not None:
-            soc2 = soc2 + np.asarray(self.soc_offset, float).reshape(P, 1)
-        soc2 = np.clip(soc2, 0.0, 1.0)
-        self.capacity_ah = cap2
-        self.cell_r_scale = rs2
+        soc2 = self._per_pack(cap, rs, soc)
         self.banks = []
         string_of_cell = self.cell_string
         for name, prm in params_of_string.items():
@@ -275,6 +271,23 @@ class Pack:
             cells = bank.idx[: bank.idx.size // P] if P else bank.idx
             self.v_min_cell[cells] = bank.params.v_min_v
             self.v_max_cell[cells] = bank.params.v_max_v
+
+    def _per_pack(self, cap: Array, rs: Array, soc: Array) -> Array:
+        """Capacity and resistance scale of every pack's cells (the campaign's draws applied);
+        returns the packs' initial cell SOC."""
+        P = self.n_packs
+        cap2 = np.tile(cap, (P, 1))
+        if self.capacity_scale is not None:
+            cap2 = cap2 * np.asarray(self.capacity_scale, float).reshape(P, -1)
+        rs2 = np.tile(rs, (P, 1))
+        if self.r_scale is not None:
+            rs2 = rs2 * np.asarray(self.r_scale, float).reshape(P, -1)
+        soc2 = np.tile(soc, (P, 1))
+        if self.soc_offset is not None:
+            soc2 = soc2 + np.asarray(self.soc_offset, float).reshape(P, 1)
+        self.capacity_ah = cap2
+        self.cell_r_scale = rs2
+        return np.clip(soc2, 0.0, 1.0)
 
     # ------------------------------------------------------------------ helpers
     def _group_sum(self, x: Array) -> Array:
@@ -522,23 +535,7 @@ class Pack:
         i_draw = p_in_string / v_string_prev
         x_cell = i_draw[:, self.cell_string] - ib[:, self.cell_group]
 
-        # Aux battery: fed by its DC/DC from the bus; powers the BMS.
-        aux_p_bus = np.zeros(P)
-        aux_cfg = self.cfg.aux
-        if self.aux_index is not None:
-            a = self.aux_index
-            v_aux = np.maximum(
-                gv[
-                    :,
-                    self.string_group_starts[a] : self.string_group_starts[a]
-                    + self.groups_per_string[a],
-                ].sum(axis=1),
-                1e-3,
-            )
-            bus_ok = self.bus_v >= aux_cfg.dcdc_min_input_v
-            i_aux_chg = np.where(bus_ok, self.aux_charge_a, 0.0)
-            aux_p_bus = i_aux_chg * v_aux / aux_cfg.dcdc_efficiency
-            x_cell[:, self.cell_string == a] += (aux_cfg.bms_load_w / v_aux - i_aux_chg)[:, None]
+        aux_p_bus = self._aux_reference(gv, x_cell)
 
         e_string = np.add.reduceat(
             self.e_cell - self.r_cell * x_cell, self._string_starts(), axis=1
@@ -564,19 +561,7 @@ class Pack:
             r_out=np.full(P, self.charger.params.r_out_ohm),
         )
         demand = np.asarray(load_value, float).reshape(P)
-        zero = np.zeros(P)
-        if load_kind == "current":
-            ld = LoadSink(a=demand, g=zero, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
-        elif load_kind == "power":
-            ld = LoadSink(
-                a=zero, g=zero, p=demand + aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v)
-            )
-        elif load_kind == "resistance":
-            g = np.where(demand > 0, 1.0 / np.maximum(demand, 1e-12), 0.0)
-            ld = LoadSink(a=zero, g=g, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
-        else:
-            ld = LoadSink(a=zero, g=zero, p=aux_p_bus, v_min=zero)
-        sol = solve_bus_fast(e_string, br, chs, ld)
+        sol = solve_bus_fast(e_string, br, chs, self._load_sink(load_kind, demand, aux_p_bus))
         string_a = sol.string_a.copy()
         # The aux string's terminal current is its BMS load minus its DC/DC charge.
         cell_a = string_a[:, self.cell_string] + x_cell
@@ -592,25 +577,7 @@ class Pack:
         self.chg_diode_j += dt_s * chg_d * (drop + chg_d * self.sw_diode_ohm)
         self.dsg_diode_j += dt_s * dsg_d * (drop + dsg_d * self.sw_diode_ohm)
         self.charge_in_ah += np.maximum(-string_a, 0.0) * dt_s / 3600.0
-
-        # Advance every cell with its constant current.
-        cap = self.capacity_ah.ravel()
-        rs = self.cell_r_scale.ravel()
-        amb = self.cell_ambient.ravel()
-        ia = cell_a.ravel()
-        heat = np.empty(P * self.n_cells)
-        for bank in self.banks:
-            bank.state, hb = cellmod.advance(
-                bank.params,
-                bank.state,
-                ia[bank.idx],
-                dt_s,
-                amb[bank.idx],
-                cap[bank.idx],
-                rs[bank.idx],
-            )
-            heat[bank.idx] = hb
-        heat_string = np.add.reduceat(heat.reshape(P, -1), self._string_starts(), axis=1)
+        heat_string = self._advance_cells_reference(cell_a, dt_s)
         # Ohmic (I^2 R) heat of the period: cell R0 plus switch path, and the RC branches'
         # share through the cell model's irreversible heat is not separable here, so count R0.
         self.joule_j += dt_s * np.add.reduceat(
@@ -645,6 +612,64 @@ class Pack:
             heat_w=heat_string,
         )
 
+    def _aux_reference(self, gv: Array, x_cell: Array) -> Array:
+        """Aux battery (step_reference): fed by its DC/DC from the bus, it powers the BMS. Adds
+        its internal draw to ``x_cell``; returns the DC/DC's power from the bus (P,)."""
+        aux_p_bus = np.zeros(self.n_packs)
+        aux_cfg = self.cfg.aux
+        if self.aux_index is not None:
+            a = self.aux_index
+            v_aux = np.maximum(
+                gv[
+                    :,
+                    self.string_group_starts[a] : self.string_group_starts[a]
+                    + self.groups_per_string[a],
+                ].sum(axis=1),
+                1e-3,
+            )
+            bus_ok = self.bus_v >= aux_cfg.dcdc_min_input_v
+            i_aux_chg = np.where(bus_ok, self.aux_charge_a, 0.0)
+            aux_p_bus = i_aux_chg * v_aux / aux_cfg.dcdc_efficiency
+            x_cell[:, self.cell_string == a] += (aux_cfg.bms_load_w / v_aux - i_aux_chg)[:, None]
+        return aux_p_bus
+
+    def _load_sink(self, load_kind: str, demand: Array, aux_p_bus: Array) -> LoadSink:
+        """The bus load (step_reference): the demand of ``load_kind`` plus the aux DC/DC."""
+        P = self.n_packs
+        zero = np.zeros(P)
+        if load_kind == "current":
+            return LoadSink(a=demand, g=zero, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
+        if load_kind == "power":
+            return LoadSink(
+                a=zero, g=zero, p=demand + aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v)
+            )
+        if load_kind == "resistance":
+            g = np.where(demand > 0, 1.0 / np.maximum(demand, 1e-12), 0.0)
+            return LoadSink(a=zero, g=g, p=aux_p_bus, v_min=np.full(P, self.cfg.load.v_min_v))
+        return LoadSink(a=zero, g=zero, p=aux_p_bus, v_min=zero)
+
+    def _advance_cells_reference(self, cell_a: Array, dt_s: float) -> Array:
+        """Advance every cell with its constant current (step_reference); returns the heat
+        per string (P, S)."""
+        P = self.n_packs
+        cap = self.capacity_ah.ravel()
+        rs = self.cell_r_scale.ravel()
+        amb = self.cell_ambient.ravel()
+        ia = cell_a.ravel()
+        heat = np.empty(P * self.n_cells)
+        for bank in self.banks:
+            bank.state, hb = cellmod.advance(
+                bank.params,
+                bank.state,
+                ia[bank.idx],
+                dt_s,
+                amb[bank.idx],
+                cap[bank.idx],
+                rs[bank.idx],
+            )
+            heat[bank.idx] = hb
+        return np.add.reduceat(heat.reshape(P, -1), self._string_starts(), axis=1)
+
     def _demand_current(self, kind: str, demand: Array, v: Array) -> Array:
         if kind == "current":
             return demand
@@ -671,4 +696,3 @@ class Pack:
     def cell_voltage_now(self) -> Array:
         """Cell terminal voltage at the present instant, under the last period's currents."""
         return self.e_cell - self.r_cell * self.cell_a
-

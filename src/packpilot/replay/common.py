@@ -64,6 +64,31 @@ class LogTable:
         return names
 
 
+def _check_header(
+    path: Path, header: list[str], required: Sequence[str], indexed: Sequence[str]
+) -> None:
+    missing = [c for c in required if c not in header]
+    for prefix in indexed:
+        if not any(re.fullmatch(rf"{re.escape(prefix)}_\d+", h) for h in header):
+            missing.append(f"{prefix}_0")
+    if missing:
+        raise InputError(
+            f"{path}: missing column(s) {', '.join(missing)}; header is {','.join(header)}"
+        )
+    if len(set(header)) != len(header):
+        raise InputError(f"{path}: duplicate column names in header")
+
+
+def _number(path: Path, lineno: int, name: str, cell: str, allow_nan: bool) -> float:
+    try:
+        value = float(cell)
+    except ValueError:
+        raise InputError(f"{path}: row {lineno}, column {name}: {cell!r} is not a number") from None
+    if not allow_nan and not math.isfinite(value):
+        raise InputError(f"{path}: row {lineno}, column {name}: {cell!r} is not a finite number")
+    return value
+
+
 def read_log(
     path: Path,
     required: Sequence[str],
@@ -83,16 +108,7 @@ def read_log(
             header = [h.strip() for h in next(reader)]
         except StopIteration:
             raise InputError(f"{path}: empty file, expected a header row") from None
-        missing = [c for c in required if c not in header]
-        for prefix in indexed:
-            if not any(re.fullmatch(rf"{re.escape(prefix)}_\d+", h) for h in header):
-                missing.append(f"{prefix}_0")
-        if missing:
-            raise InputError(
-                f"{path}: missing column(s) {', '.join(missing)}; header is {','.join(header)}"
-            )
-        if len(set(header)) != len(header):
-            raise InputError(f"{path}: duplicate column names in header")
+        _check_header(path, header, required, indexed)
         data: list[list[float]] = []
         for lineno, row in enumerate(reader, start=2):
             if not row or all(not c.strip() for c in row):
@@ -101,20 +117,12 @@ def read_log(
                 raise InputError(
                     f"{path}: row {lineno} has {len(row)} cells, header has {len(header)}"
                 )
-            values: list[float] = []
-            for name, cell in zip(header, row, strict=True):
-                try:
-                    value = float(cell)
-                except ValueError:
-                    raise InputError(
-                        f"{path}: row {lineno}, column {name}: {cell!r} is not a number"
-                    ) from None
-                if not allow_nan and not math.isfinite(value):
-                    raise InputError(
-                        f"{path}: row {lineno}, column {name}: {cell!r} is not a finite number"
-                    )
-                values.append(value)
-            data.append(values)
+            data.append(
+                [
+                    _number(path, lineno, name, cell, allow_nan)
+                    for name, cell in zip(header, row, strict=True)
+                ]
+            )
     if not data:
         raise InputError(f"{path}: no data rows")
     arr = np.asarray(data, dtype=np.float64)

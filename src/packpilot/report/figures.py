@@ -441,6 +441,29 @@ def hold_runs(
     return [(float(a), float(b - a)) for a, b in zip(s_x, e_x, strict=True)]
 
 
+def _pack_currents(result: Result, ax_i: Axes, line: Callable[..., None]) -> None:
+    """The load, its demand where it differs, and the charger, on the current panel."""
+    tr = result.trace
+    if np.isfinite(tr.load_a).any() and np.nanmax(np.abs(tr.load_a)) > 0:
+        line(ax_i, tr.load_a, color="0.15", lw=0.9, ls="-.", label="load")
+    if not np.allclose(tr.load_demand_a, tr.load_a, rtol=1e-6, atol=1e-6, equal_nan=True):
+        line(ax_i, tr.load_demand_a, color="0.5", lw=0.8, ls=":", label="load demand")
+    if np.isfinite(tr.charger_a).any() and np.nanmax(np.abs(tr.charger_a)) > 0:
+        line(ax_i, tr.charger_a, color="tab:olive", lw=0.9, ls=(0, (5, 2)), label="charger")
+
+
+def _unique_handles(axes: Sequence[Axes]) -> list[Any]:
+    """The legend handles of ``axes``, the first of each label, in order."""
+    handles: list[Any] = []
+    seen: set[str] = set()
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in seen:
+                seen.add(lab)
+                handles.append(h)
+    return handles
+
+
 def batteries_figure(result: Result, axis: TimeAxis, apart: Sequence[int] = ()) -> Figure:
     """Voltage, current, SOC, temperature and cell-voltage range of every battery.
 
@@ -476,12 +499,7 @@ def batteries_figure(result: Result, axis: TimeAxis, apart: Sequence[int] = ()) 
         line(ax_c, tr.channel("max_cell_v")[:, b], color=c, lw=1.0, label=f"{name} max")
         line(ax_c, tr.channel("min_cell_v")[:, b], color=c, lw=1.0, ls="--", label=f"{name} min")
     line(ax_v, tr.bus_v, color="k", lw=0.8, ls="--", label="bus")
-    if np.isfinite(tr.load_a).any() and np.nanmax(np.abs(tr.load_a)) > 0:
-        line(ax_i, tr.load_a, color="0.15", lw=0.9, ls="-.", label="load")
-    if not np.allclose(tr.load_demand_a, tr.load_a, rtol=1e-6, atol=1e-6, equal_nan=True):
-        line(ax_i, tr.load_demand_a, color="0.5", lw=0.8, ls=":", label="load demand")
-    if np.isfinite(tr.charger_a).any() and np.nanmax(np.abs(tr.charger_a)) > 0:
-        line(ax_i, tr.charger_a, color="tab:olive", lw=0.9, ls=(0, (5, 2)), label="charger")
+    _pack_currents(result, ax_i, line)
     ax_i.axhline(0.0, color="0.6", lw=0.6, zorder=0)
     ax_v.set_ylabel(
         "voltage (V)"
@@ -497,13 +515,7 @@ def batteries_figure(result: Result, axis: TimeAxis, apart: Sequence[int] = ()) 
     for ax in axes:
         axis.apply(ax, label=ax is ax_c)
     # One legend for the figure: per-panel "best" placement is slow on long runs and repeats.
-    handles: list[Any] = []
-    seen: set[str] = set()
-    for ax in [a for a in (ax_v, ax_va, ax_i) if a is not None]:
-        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            if lab not in seen:
-                seen.add(lab)
-                handles.append(h)
+    handles = _unique_handles([a for a in (ax_v, ax_va, ax_i) if a is not None])
     ax_v.legend(
         handles=handles,
         loc="lower center",

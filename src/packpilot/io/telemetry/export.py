@@ -26,6 +26,25 @@ def _status_column(seqs: list[Sequence[StatusValue]], b: int) -> list[StatusValu
 WideColumn = NDArray[np.float64] | NDArray[np.int64] | list[StatusValue]
 
 
+def _aligned_status(
+    status: Mapping[str, list[Sequence[StatusValue]]], n_s: int, runs_to_end: bool
+) -> dict[str, list[Sequence[StatusValue]]]:
+    """The status channels with one sample per step (see :func:`wide_columns`)."""
+    aligned: dict[str, list[Sequence[StatusValue]]] = {}
+    for channel, seqs in status.items():
+        if len(seqs) == n_s:
+            aligned[channel] = seqs
+        elif runs_to_end and len(seqs) < n_s:
+            aligned[channel] = [*([()] * (n_s - len(seqs))), *seqs]
+        else:
+            warnings.warn(
+                f"status channel {channel!r} has {len(seqs)} samples for {n_s} steps;"
+                " left out of the wide export",
+                stacklevel=4,  # the caller of wide_columns' caller, as before this helper
+            )
+    return aligned
+
+
 def wide_columns(
     result: Result, steps: NDArray[np.int64] | None = None, *, status_runs_to_end: bool = False
 ) -> dict[str, WideColumn]:
@@ -56,18 +75,7 @@ def wide_columns(
             raise InputError(f"wide export: column name {name!r} occurs twice (battery names?)")
         cols[name] = col
 
-    aligned: dict[str, list[Sequence[StatusValue]]] = {}
-    for channel, seqs in tr.status.items():
-        if len(seqs) == n_s:
-            aligned[channel] = seqs
-        elif status_runs_to_end and len(seqs) < n_s:
-            aligned[channel] = [*([()] * (n_s - len(seqs))), *seqs]
-        else:
-            warnings.warn(
-                f"status channel {channel!r} has {len(seqs)} samples for {n_s} steps;"
-                " left out of the wide export",
-                stacklevel=3,
-            )
+    aligned = _aligned_status(tr.status, n_s, status_runs_to_end)
     for b, name in enumerate(result.battery_names):
         for c, channel in enumerate(BATTERY_CHANNELS):
             put(f"{name}_{channel}", tr.battery[:, b, c])

@@ -143,6 +143,12 @@ def _scalar(p: CellParams, key: str, positive: bool = False) -> float:
 
 
 def _validate_and_freeze(p: CellParams) -> None:
+    """Check every field and freeze the arrays, scalars first, then the tables."""
+    _validate_scalars(p)
+    _validate_tables(p)
+
+
+def _validate_scalars(p: CellParams) -> None:
     if not isinstance(p.name, str) or not p.name:
         raise ConfigError("cell parameter set: field 'name': must be a non-empty string")
     _scalar(p, "capacity_ah", positive=True)
@@ -162,6 +168,8 @@ def _validate_and_freeze(p: CellParams) -> None:
     if not isinstance(p.provenance, str) or not p.provenance.strip():
         raise _fail(p.name, "provenance", "must be a non-empty string")
 
+
+def _validate_tables(p: CellParams) -> None:
     soc = _axis(p, "ocv_soc")
     ocv = _float_array(p, "ocv_table_v", 1)
     if ocv.shape != soc.shape:
