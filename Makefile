@@ -35,7 +35,23 @@ browser:
 		|| echo "browser: could not install chromium; the browser test will skip"; \
 	else echo "browser: apt-get unavailable (or not root); the browser test will skip"; fi
 
+# Compiled kernels are cached on disk next to their modules (__pycache__/*.nbi, *.nbc; the key
+# covers everything a kernel imports, see packpilot/jit.py), so a second run starts in seconds
+# instead of compiling again. A plain `make test` keeps that cache: the developer loop stays
+# fast. CI must prove the kernels compile from source, so .ci/run calls `make test
+# COLD_KERNELS=1`: NUMBA_CACHE_DIR then names a fresh empty directory for the whole run (every
+# test process and subprocess compiles from scratch and shares what it compiled; the in-tree
+# cache is neither read nor touched), removed afterwards.
+COLD_KERNELS ?=
 test: $(STAMP) browser
+	@set -e; \
+	if [ -n "$(COLD_KERNELS)" ]; then \
+		cache=$$(mktemp -d "$${TMPDIR:-/tmp}/packpilot-kernels.XXXXXX"); \
+		trap 'rm -rf "$$cache"' EXIT; \
+		export NUMBA_CACHE_DIR="$$cache"; \
+		echo "test: no cached kernels (NUMBA_CACHE_DIR=$$cache)"; \
+	fi; \
+	echo "PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider"; \
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider
 
 bench: $(STAMP)
