@@ -10,7 +10,6 @@ allowed (:func:`~packpilot.config.base.fmt_error`, :class:`packpilot.errors.Conf
 
 from __future__ import annotations
 
-import math
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -401,6 +400,3 @@ def load_section(path: str | Path | None, section: str) -> BaseModel:
         raise ConfigError(f"{p}: [{section}] must be a table")
     return load_section_model(model, raw, section, str(p))
 
-
-def is_finite(x: float) -> bool:
-    return math.isfinite(x)
