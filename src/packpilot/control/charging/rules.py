@@ -48,7 +48,7 @@ from packpilot.control.commands import (
     put_chg,
     put_dsg,
 )
-from packpilot.jit import kernel
+from packpilot.jit import kernel, kernel_inline
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -231,7 +231,7 @@ class ChargingState(NamedTuple):
 # ------------------------------------------------------------------------------ helpers
 
 
-@kernel
+@kernel_inline
 def stage_current(
     limit_a: float, sqrt_law: bool, full_a: float, has_battery_limit: bool,
     battery_limit_a: float, n_connected: int, n_to_charge: int,
@@ -254,7 +254,7 @@ def stage_current(
     return current
 
 
-@kernel
+@kernel_inline
 def cluster(vals: F64, keys: I64, count: int, eps_v: float, order: I64, level: I64) -> int:
     """Group the first ``count`` entries of ``vals`` into levels of span ≤ ``eps_v``.
 
@@ -284,7 +284,7 @@ def cluster(vals: F64, keys: I64, count: int, eps_v: float, order: I64, level: I
     return n_levels
 
 
-@kernel
+@kernel_inline
 def _mask(row: B1) -> float:
     """A bool row as the bit mask of an ``m`` field."""
     bits = 0
@@ -294,7 +294,7 @@ def _mask(row: B1) -> float:
     return float(bits)
 
 
-@kernel
+@kernel_inline
 def _target_v(stage: int, cmd_v: float, vr1_v: float, vt_v: float, vr2_v: float) -> float:
     """The voltage a stage charges towards (telemetry)."""
     if stage == S20:
@@ -314,7 +314,7 @@ def _target_v(stage: int, cmd_v: float, vr1_v: float, vt_v: float, vr2_v: float)
 # the plan changes (decide afresh, latch, report) is in functions.
 
 
-@kernel
+@kernel_inline
 def _set_plan(
     st: ChargingState, p: int, stage: int, cmd_v: float, vr1_v: float, vt_v: float,
     vr2_v: float, why: int, ev: EventBuf, src: int, t_s: float,
@@ -351,7 +351,7 @@ def _set_plan(
     st.vr2_v[p] = vr2_v
 
 
-@kernel
+@kernel_inline
 def _set_simple(
     st: ChargingState, p: int, stage: int, why: int, ev: EventBuf, src: int, t_s: float
 ) -> None:
@@ -362,7 +362,7 @@ def _set_simple(
     _set_plan(st, p, stage, math.nan, math.nan, math.nan, math.nan, why, ev, src, t_s)
 
 
-@kernel
+@kernel_inline
 def _set_top_off(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: int,
                  t_s: float) -> None:  # fmt: skip
     """Latch a kept top-off: every eligible battery, no first / second, at V_sat."""
@@ -372,7 +372,7 @@ def _set_top_off(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, s
     _set_plan(st, p, TOP_OFF, prm.v_sat, math.nan, math.nan, math.nan, WHY_NONE, ev, src, t_s)
 
 
-@kernel
+@kernel_inline
 def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: int,
            t_s: float) -> None:  # fmt: skip
     """Decide afresh from the levels of the eligible batteries (non-empty), and latch it."""
@@ -435,7 +435,7 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
     _set_plan(st, p, S30, cmd_v, vr1, vt, math.nan, WHY_NONE, ev, src, t_s)
 
 
-@kernel
+@kernel_inline
 def _charger_event(m: MeasArrays, p: int, fault: int, ev: EventBuf, src: int) -> None:
     """``Fault`` "charger: ...", with the charger's status (or none)."""
     c = m.charger
@@ -456,7 +456,7 @@ def _charger_event(m: MeasArrays, p: int, fault: int, ev: EventBuf, src: int) ->
 # ------------------------------------------------------------------------------ the period
 
 
-@kernel
+@kernel_inline
 def step_pack(
     prm: ChargingParams, st: ChargingState, tp: PackArrays, m: MeasArrays, p: int, dt_s: float,
     cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,

@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.battery import capacity_ah, conducts
 from packpilot.control.commands import emit, put_charger_off, put_chg, put_dsg
-from packpilot.jit import kernel
+from packpilot.jit import kernel, kernel_inline
 
 F64 = NDArray[np.float64]
 I8 = NDArray[np.int8]
@@ -247,17 +247,17 @@ class PlausibilityState(NamedTuple):
 Finding = tuple[int, int, float, int]
 
 
-@kernel
+@kernel_inline
 def _out(x: float, lo: float, hi: float) -> bool:
     return math.isfinite(x) and not (lo <= x and x <= hi)
 
 
-@kernel
+@kernel_inline
 def _ok() -> Finding:
     return (OK, F_NONE, math.nan, V_FLOAT)
 
 
-@kernel
+@kernel_inline
 def _none() -> Finding:
     return (NONE, F_NONE, math.nan, V_FLOAT)
 
@@ -269,7 +269,7 @@ def _none() -> Finding:
 # arrays pays a reference-count pair for every array of it on every call (microseconds).
 
 
-@kernel
+@kernel_inline
 def _nonfinite(
     v: float, cur: float, temp: float, vmin: float, vmax: float, soc: float, tmin: float,
     gv: F64, p: int, i: int, ng: int,
@@ -295,7 +295,7 @@ def _nonfinite(
     return _ok()
 
 
-@kernel
+@kernel_inline
 def _range(
     prm: PlausibilityParams, groups: int, per_group: int, v: float, cur: float, temp: float,
     tmin: float, vmin: float, vmax: float, soc: float, gv: F64, p: int, i: int, ng: int,
@@ -329,7 +329,7 @@ def _range(
     return _ok()
 
 
-@kernel
+@kernel_inline
 def _track(
     last: F64, unchanged: F64, p: int, i: int, j: int, x: float, loaded: bool, dt: float
 ) -> float:
@@ -344,7 +344,7 @@ def _track(
     return float(u)
 
 
-@kernel
+@kernel_inline
 def _stuck(
     prm: PlausibilityParams, last: F64, unchanged: F64, p: int, i: int, v: float, vmin: float,
     vmax: float, temp: float, gv: F64, ng: int, cur: float, cap: float, dt: float,
@@ -380,7 +380,7 @@ def _stuck(
     return _ok()
 
 
-@kernel
+@kernel_inline
 def _stale(prm: PlausibilityParams, age: float) -> Finding:
     if math.isnan(age):
         return _none()  # not reported (NaN means "unknown", not "stale")
@@ -389,14 +389,14 @@ def _stale(prm: PlausibilityParams, age: float) -> Finding:
     return _ok()
 
 
-@kernel
+@kernel_inline
 def _group_count(groups: int, n_groups: int) -> Finding:
     if groups != 0 and n_groups != 0 and n_groups != groups:
         return (BAD, F_GROUPS, float(n_groups), V_INT)
     return _ok()
 
 
-@kernel
+@kernel_inline
 def _sum(
     prm: PlausibilityParams, groups: int, n_groups: int, v: float, gv: F64, p: int, i: int
 ) -> Finding:
@@ -416,7 +416,7 @@ def _sum(
     return _ok()
 
 
-@kernel
+@kernel_inline
 def _switch(relay: bool, chg: int, dsg: int, fb_chg: bool, fb_dsg: bool, k: int) -> Finding:
     """Switch detector ``k``: feedback against the last merged command."""
     if relay:
@@ -439,7 +439,7 @@ def _switch(relay: bool, chg: int, dsg: int, fb_chg: bool, fb_dsg: bool, k: int)
     return (BAD if bad else OK, f, 1.0 if got else 0.0, V_BOOL)
 
 
-@kernel
+@kernel_inline
 def _pack_finding(bus_v: float, load_a: float) -> Finding:
     if not math.isfinite(bus_v):
         return (BAD, F_BUS, bus_v, V_SHOW)
@@ -451,7 +451,7 @@ def _pack_finding(bus_v: float, load_a: float) -> Finding:
 # ------------------------------------------------------------------------------ reactions
 
 
-@kernel
+@kernel_inline
 def _sensor_bad(latched: B1, p: int, i: int) -> bool:
     for k in range(N_SENSOR_KINDS):  # noqa: SIM110 - no generators in a kernel
         if latched[p, i, k]:
@@ -459,7 +459,7 @@ def _sensor_bad(latched: B1, p: int, i: int) -> bool:
     return False
 
 
-@kernel
+@kernel_inline
 def _other_source(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int) -> bool:
     """Another battery with trusted sensors can carry the load now (switch feedback)."""
     for j in range(st.cmd_chg.shape[1]):
@@ -472,7 +472,7 @@ def _other_source(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, 
     return False
 
 
-@kernel
+@kernel_inline
 def _reaction(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int) -> int:
     """What the commands will do about a new fault (for the event; see ``_output``)."""
     if i < 0:
@@ -507,7 +507,7 @@ LATCH = 1
 CLEAR = 2
 
 
-@kernel
+@kernel_inline
 def _advance(
     state: int, bad_s: float, ok_s: float, was_bad: bool, latched: bool, delay: float,
     auto_clear: bool, dt: float, clear_after_s: float,
@@ -527,7 +527,7 @@ def _advance(
     return (HOLD, 0.0, ok_s, False)
 
 
-@kernel
+@kernel_inline
 def _nonfinite_code(x: float) -> float:
     """Label index of the text of a non-finite value (:data:`NONFINITE_TEXT`)."""
     if math.isnan(x):
@@ -535,7 +535,7 @@ def _nonfinite_code(x: float) -> float:
     return 1.0 if x > 0.0 else 2.0
 
 
-@kernel
+@kernel_inline
 def _emit_fault(
     st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int,
     f: Finding, ev: EventBuf, src: int,
@@ -561,7 +561,7 @@ def _emit_fault(
     ev.val[e, SLOT_REACTION] = reaction
 
 
-@kernel
+@kernel_inline
 def _emit_cleared(
     ev: EventBuf, p: int, src: int, battery: int, kind: int, field: int, manual: bool,
     t_s: float,
@@ -577,7 +577,7 @@ def _emit_cleared(
     ev.val[e, SLOT_MANUAL] = 1.0 if manual else 0.0
 
 
-@kernel
+@kernel_inline
 def _reset(st: PlausibilityState, p: int, row: int, k: int) -> None:
     st.latched[p, row, k] = False
     st.bad_s[p, row, k] = 0.0
@@ -586,7 +586,7 @@ def _reset(st: PlausibilityState, p: int, row: int, k: int) -> None:
     st.field[p, row, k] = F_NONE
 
 
-@kernel
+@kernel_inline
 def _act(
     st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, row: int, k: int,
     f: Finding, action: int, ev: EventBuf, src: int,
@@ -603,7 +603,7 @@ def _act(
         _reset(st, p, row, k)
 
 
-@kernel
+@kernel_inline
 def _flush_resets(st: PlausibilityState, p: int, ev: EventBuf, src: int) -> None:
     """The ``FaultCleared`` events of the service resets since the previous step."""
     for q in range(st.pend_n[p]):
@@ -612,7 +612,7 @@ def _flush_resets(st: PlausibilityState, p: int, ev: EventBuf, src: int) -> None
     st.pend_n[p] = 0
 
 
-@kernel
+@kernel_inline
 def _output(
     st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, cmd: CmdArrays, status: F64,
     s0: int,
@@ -659,7 +659,7 @@ def _output(
         put_charger_off(cmd, p)
 
 
-@kernel
+@kernel_inline
 def step_pack(
     prm: PlausibilityParams, st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int,
     dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
@@ -753,7 +753,7 @@ def step_packs(
 # ------------------------------------------------------------------------------ outside the step
 
 
-@kernel
+@kernel_inline
 def note_commands_pack(
     prm: PlausibilityParams, st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int,
     cmd: CmdArrays,
@@ -769,7 +769,7 @@ def note_commands_pack(
             st.cmd_dsg[p, i] = 1 if d != 0 else 0
 
 
-@kernel
+@kernel_inline
 def note_commands_packs(
     prm: PlausibilityParams, st: PlausibilityState, tp: PackArrays, m: MeasArrays, cmd: CmdArrays
 ) -> None:
@@ -777,7 +777,7 @@ def note_commands_packs(
         note_commands_pack(prm, st, tp, m, p, cmd)
 
 
-@kernel
+@kernel_inline
 def _push_cleared(st: PlausibilityState, p: int, row: int, k: int) -> None:
     q = st.pend_n[p]
     st.pend_bat[p, q] = row if row < st.cmd_chg.shape[1] else -1
@@ -788,7 +788,7 @@ def _push_cleared(st: PlausibilityState, p: int, row: int, k: int) -> None:
     _reset(st, p, row, k)
 
 
-@kernel
+@kernel_inline
 def clear_faults_pack(
     st: PlausibilityState, p: int, every_battery: bool, battery: int, kinds: int
 ) -> int:

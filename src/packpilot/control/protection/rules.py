@@ -168,7 +168,7 @@ def _gcd(a: int, b: int) -> int:
     return a
 
 
-@kernel
+@kernel_inline
 def dt_ms(dt: float) -> tuple[int, int]:
     """``Fraction(dt * 1000.0).limit_denominator(1000)`` as (numerator, denominator) for a
     finite ``dt >= 0``; (-1, 1) when the numerator would not fit (2**62 ms or more).
@@ -217,7 +217,7 @@ def dt_ms(dt: float) -> tuple[int, int]:
     return p0 + k * p1, qk
 
 
-@kernel
+@kernel_inline
 def acc_add(num: I64, den: I64, p: int, i: int, w: int, a: int, b: int, m: int) -> None:
     """``acc += w * a / b`` exactly for the sum ``num[p, i] / den[p, i]`` (``a >= 0`` or -1 =
     huge, ``1 <= b <= 1000``), within the bounds of the module docstring (saturate / round up
@@ -288,7 +288,7 @@ def contains(
     return not (x > hi_b or (x == hi_b and not hi_closed))
 
 
-@kernel
+@kernel_inline
 def lookup(
     row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, values: F64, p: int, i: int
 ) -> int:  # fmt: skip
@@ -307,7 +307,7 @@ def lookup(
     return -1
 
 
-@kernel
+@kernel_inline
 def most_conservative(
     row_lo: F64, row_hi: F64, row_lo_closed: B1, row_hi_closed: B1, row_param: I64,
     cutoff_v: F64, t_max_s: F64, values: F64, p: int, i: int,
@@ -373,14 +373,14 @@ def _fault_edge(faults: B1, p: int, i: int, field: int, ok: bool) -> bool:
     return True
 
 
-@kernel
+@kernel_inline
 def _emit_fault(ev: EventBuf, p: int, src: int, code: int, i: int, t_s: float, field: int) -> None:
     k = emit(ev, p, src, code, i, t_s)
     ev.val[k, 0] = 0.0  # source: "protection"
     ev.val[k, 1] = field
 
 
-@kernel
+@kernel_inline
 def _new_cycle(
     st: ProtectionState, p: int, i: int, reason: int, t_s: float, ev: EventBuf, src: int
 ) -> None:  # fmt: skip
@@ -394,7 +394,7 @@ def _new_cycle(
     st.tripped[p, i] = False
 
 
-@kernel
+@kernel_inline
 def fallback_voltage(
     group_v: F64, n_groups: I64, voltage_v: F64, cells_per_group: I64, groups: I64, p: int,
     i: int,
@@ -423,7 +423,7 @@ def fallback_voltage(
     return math.nan, VS_NONE
 
 
-@kernel
+@kernel_inline
 def _trip_event(
     prm: ProtectionParams, st: ProtectionState, m: MeasArrays, p: int, i: int, q: int,
     v_chk: float, source: int, ev: EventBuf, src: int,

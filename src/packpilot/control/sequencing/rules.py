@@ -78,7 +78,7 @@ from numpy.typing import NDArray
 
 from packpilot.contract.arrays import CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.commands import emit, put_chg, put_dsg
-from packpilot.jit import kernel
+from packpilot.jit import kernel, kernel_inline
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -295,7 +295,7 @@ class Switches(NamedTuple):
 # ------------------------------------------------------------------------------ helpers
 
 
-@kernel
+@kernel_inline
 def _set(
     sw: Switches, ev: EventBuf, src: int, p: int, k: int, new: int, engaged: bool, t: float,
     code: int, reason: int,
@@ -331,7 +331,7 @@ def _set(
     return r
 
 
-@kernel
+@kernel_inline
 def _sort_desc(idx: I64, m: int, key: F64) -> None:
     """Stable sort of ``idx[:m]`` by ``-key`` (``sorted(idx, key=lambda j: -key[j])``)."""
     for i in range(1, m):
@@ -344,7 +344,7 @@ def _sort_desc(idx: I64, m: int, key: F64) -> None:
         idx[j + 1] = x
 
 
-@kernel
+@kernel_inline
 def _engaged(state: I64, chg_on: B1, p: int, grp: I64, extra: int) -> int:
     """Indices (ascending) of the engaged batteries (DISCHARGING, charge FET on) into
     ``grp``, plus ``extra`` (>= 0) if given; returns how many."""
@@ -356,7 +356,7 @@ def _engaged(state: I64, chg_on: B1, p: int, grp: I64, extra: int) -> int:
     return m
 
 
-@kernel
+@kernel_inline
 def _zero_load(grp: I64, m: int, ef: F64, g: F64, out: F64) -> None:
     """Current (A, > 0 = charging) into each battery of ``grp[:m]`` if the load vanished now.
 
@@ -382,7 +382,7 @@ def _zero_load(grp: I64, m: int, ef: F64, g: F64, out: F64) -> None:
         out[k] = (v0 - ef[k]) * g[k]
 
 
-@kernel
+@kernel_inline
 def _max_over(grp: I64, m: int, x: F64) -> float:
     best: float = x[grp[0]]
     for i in range(1, m):
@@ -391,7 +391,7 @@ def _max_over(grp: I64, m: int, x: F64) -> float:
     return best
 
 
-@kernel
+@kernel_inline
 def _v_ref(state: I64, p: int, volt: F64) -> float:
     """Bus reference for R2: highest terminal voltage of the DISCHARGING batteries (NaN: none).
 
@@ -407,7 +407,7 @@ def _v_ref(state: I64, p: int, volt: F64) -> float:
     return v
 
 
-@kernel
+@kernel_inline
 def _load(pres: B1, cur: F64) -> float:
     """Pack current: the sum of the present batteries' currents."""
     tot = 0.0
@@ -417,13 +417,13 @@ def _load(pres: B1, cur: F64) -> float:
     return tot
 
 
-@kernel
+@kernel_inline
 def _r_est(prm: SequencingParams, st: SequencingState, p: int, k: int) -> float:
     r = st.r_ohm[p, k]
     return prm.r_batt_ohm if math.isnan(r) else r
 
 
-@kernel
+@kernel_inline
 def _r1(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     pres: B1, t: float, reason: int,
@@ -455,7 +455,7 @@ def _r1(
         conduct_since_s[p, k] = np.nan
 
 
-@kernel
+@kernel_inline
 def _diode_rule(
     prm: SequencingParams, state: I64, conduct_since_s: F64, ev: EventBuf, src: int, p: int,
     k: int, conducting: bool, t: float, dt: float,
@@ -484,7 +484,7 @@ def _diode_rule(
 # ------------------------------------------------------------------------------ source isolation
 
 
-@kernel
+@kernel_inline
 def _bus_held(
     prm: SequencingParams, st: SequencingState, p: int, pres: B1, iso: int, grp: I64, m: int,
     load_a: float,
@@ -540,7 +540,7 @@ def _bus_held(
     return v_rest
 
 
-@kernel
+@kernel_inline
 def _isolate_source(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, pres: B1,
     victim: int, grp: I64, m: int, pred: F64, load_a: float, t: float,
@@ -595,7 +595,7 @@ def _isolate_source(
     return True
 
 
-@kernel
+@kernel_inline
 def _guard(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, pres: B1,
     cur: F64, t: float,
@@ -714,7 +714,7 @@ def _guard(
     zero_load_valid[p] = True
 
 
-@kernel
+@kernel_inline
 def _take_over(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, pres: B1,
     iso: I64, ni: int, load_a: float, t: float,
@@ -803,7 +803,7 @@ def _take_over(
     return False
 
 
-@kernel
+@kernel_inline
 def _release_isolated(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     cur: F64, pres: B1, t: float,
@@ -912,7 +912,7 @@ def _release_isolated(
 # ------------------------------------------------------------------------------ the modes
 
 
-@kernel
+@kernel_inline
 def _discharge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     cur: F64, pres: B1, t: float, dt: float, n_inserted: int,
@@ -1190,7 +1190,7 @@ def _discharge_tick(
     v_ref_v[p] = _v_ref(state, p, volt)
 
 
-@kernel
+@kernel_inline
 def _charge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, cur: F64,
     pres: B1, t: float, dt: float,
@@ -1256,7 +1256,7 @@ def _charge_tick(
 # ------------------------------------------------------------------------------ the step
 
 
-@kernel
+@kernel_inline
 def _validate(
     mode: I64, last_t_s: F64, fault: F64, p: int, t: float, dt_s: float, reported: B1,
     pres: B1, volt: F64, cur: F64,
@@ -1312,7 +1312,7 @@ def _validate(
     return True
 
 
-@kernel
+@kernel_inline
 def _fail_safe(
     st: SequencingState, p: int, reported: B1, pres: B1, ev: EventBuf, src: int, t: float
 ) -> None:
@@ -1355,7 +1355,7 @@ def _fail_safe(
         at_risk[p, k] = False
 
 
-@kernel
+@kernel_inline
 def _update_resistance(
     prm: SequencingParams, r_ohm: F64, last_v_v: F64, last_i_a: F64, ef: F64, g: F64, gp: F64,
     p: int, volt: F64, cur: F64, pres: B1,
@@ -1394,7 +1394,7 @@ def _update_resistance(
         gp[k] = 1.0 / ((2.0 if nan_r else 1.25) * r_est)
 
 
-@kernel
+@kernel_inline
 def _update_mode(
     prm: SequencingParams, mode: I64, mode_evidence_since_s: F64, initialized: B1,
     conduct_since_s: F64, ev: EventBuf, src: int, p: int, cur: F64, pres: B1, docked: bool,
@@ -1437,7 +1437,7 @@ def _update_mode(
         conduct_since_s[p, k] = np.nan
 
 
-@kernel
+@kernel_inline
 def _output(
     st: SequencingState, p: int, cmd: CmdArrays, status: F64, s0: int
 ) -> None:  # fmt: skip
@@ -1473,7 +1473,7 @@ def _output(
         status[p, k, s0 + ST_DIODE] = diode_s
 
 
-@kernel
+@kernel_inline
 def step_pack(
     prm: SequencingParams, st: SequencingState, tp: PackArrays, m: MeasArrays, p: int,
     dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,

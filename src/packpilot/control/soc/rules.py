@@ -59,7 +59,7 @@ class SocState(NamedTuple):
     corrections: I64
 
 
-@kernel
+@kernel_inline
 def soc_from_ocv(prm: SocParams, cell_v: float) -> float:
     """Inverse of the OCV table, clamped to its ends and to 0..1 (NaN for a NaN input)."""
     if not math.isfinite(cell_v):
@@ -141,7 +141,7 @@ def step_pack(
         status[p, i, s0 + ST_REST] = st.rest_s[p, i]
 
 
-@kernel_inline
+@kernel
 def step_packs(
     prm: SocParams, st: SocState, tp: PackArrays, m: MeasArrays, dt_s: float,
     cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf, MeasArrays, PackArrays
 from packpilot.control.commands import emit, put_charger_off, put_chg, put_dsg
-from packpilot.jit import kernel
+from packpilot.jit import kernel, kernel_inline
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -85,7 +85,7 @@ def event_class(kind: str) -> int:
     )
 
 
-@kernel
+@kernel_inline
 def _class_of(prm: SupParams, ev: EventBuf, k: int) -> int:
     src = ev.src[k]
     if src == FOREIGN_SRC:
@@ -95,7 +95,7 @@ def _class_of(prm: SupParams, ev: EventBuf, k: int) -> int:
     return 0
 
 
-@kernel
+@kernel_inline
 def _note_events(prm: SupParams, st: SupState, ev: EventBuf, p: int, k0: int) -> None:
     """React to the events this step's parts emitted for pack ``p`` (from row ``k0``)."""
     n_b = st.tripped.shape[1]
@@ -112,7 +112,7 @@ def _note_events(prm: SupParams, st: SupState, ev: EventBuf, p: int, k0: int) ->
             st.tripped[p, b] = False
 
 
-@kernel
+@kernel_inline
 def _reported(m: MeasArrays, p: int) -> int:
     n = 0
     while n < m.bat.reported.shape[1] and m.bat.reported[p, n]:
@@ -120,7 +120,7 @@ def _reported(m: MeasArrays, p: int) -> int:
     return n
 
 
-@kernel
+@kernel_inline
 def _next_mode(prm: SupParams, st: SupState, m: MeasArrays, p: int, dt_s: float) -> int:
     st.since_fault_s[p] += dt_s
     pack_a = 0.0
@@ -152,19 +152,19 @@ def _next_mode(prm: SupParams, st: SupState, m: MeasArrays, p: int, dt_s: float)
     return IDLE
 
 
-@kernel
+@kernel_inline
 def _will_close(tp: PackArrays, m: MeasArrays, cmd: CmdArrays, p: int, i: int) -> bool:
     c = m.bat.sw_chg[p, i] if cmd.chg_on[p, i] == NO_OPINION else cmd.chg_on[p, i] == 1
     d = m.bat.sw_dsg[p, i] if cmd.dsg_on[p, i] == NO_OPINION else cmd.dsg_on[p, i] == 1
     return bool(tp.relay[i] and c and d and m.bat.present[p, i])
 
 
-@kernel
+@kernel_inline
 def _closed_now(tp: PackArrays, m: MeasArrays, p: int, i: int) -> bool:
     return bool(tp.relay[i] and m.bat.sw_chg[p, i] and m.bat.sw_dsg[p, i])
 
 
-@kernel
+@kernel_inline
 def _is_accepted(st: SupState, p: int, na: int, i: int) -> bool:
     for k in range(na):  # noqa: SIM110 - compiled: a plain loop
         if st.accepted[p, k] == i:
@@ -172,7 +172,7 @@ def _is_accepted(st: SupState, p: int, na: int, i: int) -> bool:
     return False
 
 
-@kernel
+@kernel_inline
 def _seed_group(prm: SupParams, st: SupState, m: MeasArrays, p: int, nc: int) -> int:
     """Nothing on the bus yet: the largest set of candidates within the limit (ties: the
     lowest voltages, where staged charging starts). Returns its size (into ``accepted``)."""
@@ -196,7 +196,7 @@ def _seed_group(prm: SupParams, st: SupState, m: MeasArrays, p: int, nc: int) ->
     return na
 
 
-@kernel
+@kernel_inline
 def _join_limit(
     prm: SupParams, st: SupState, tp: PackArrays, m: MeasArrays, p: int, cmd: CmdArrays,
     ev: EventBuf, src: int,
@@ -270,7 +270,7 @@ def _join_limit(
         st.refused[p, i] = True
 
 
-@kernel
+@kernel_inline
 def supervise_pack(
     prm: SupParams, st: SupState, tp: PackArrays, m: MeasArrays, p: int, dt_s: float,
     cmd: CmdArrays, ev: EventBuf, k0: int, src: int, status: F64, s0: int,
