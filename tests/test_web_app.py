@@ -290,3 +290,30 @@ def test_ws_sends_an_event_backlog_in_full() -> None:
     reader.start()
     reader.join(10.0)
     assert [e["message"] for e in got] == [f"#{k}" for k in range(1234)]
+
+
+def test_dashboard_and_report_name_an_event_battery_alike_with_the_aux_listed_first() -> None:
+    """Events count traction batteries only; with the auxiliary battery listed first, event
+    battery 0 is the first traction battery on the dashboard as in the report (not "AUX")."""
+    import tomllib
+
+    from packpilot.report.html import RunInfo
+    from packpilot.web.live import DashboardRecorder
+    from tests.conftest import EXAMPLES
+
+    d = tomllib.loads((EXAMPLES / "evtol_charging.toml").read_text())
+    bats = d["pack"]["batteries"]
+    d["pack"]["batteries"] = [b for b in bats if b.get("role") == "aux"] + [
+        b for b in bats if b.get("role") != "aux"
+    ]
+    d["sim"].update(duration_s=120.0, progress=False)
+    d["plausibility"] = {}
+    d["faults"] = [{"kind": "sensor_nan", "battery": "B1", "quantity": "voltage_v", "at_s": 20.0}]
+    cfg = parse_config(d)
+    live = LiveRun(scenario="aux first", battery_names=[])
+    res = Runner(cfg, recorder=DashboardRecorder(live)).run()
+    assert res.battery_names[0] == "AUX"
+    shown = [(x["kind"], x["battery_name"]) for x in live.events() if x["battery"] is not None]
+    report = RunInfo(config=cfg.model_dump(mode="json")).event_names(res.battery_names)
+    expected = [(e.kind, report[e.battery]) for e in res.events if e.battery is not None]
+    assert shown == expected and ("Fault", "B1") in shown

@@ -9,7 +9,8 @@ string index, the traction index and the name shown to a user.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 from dataclasses import dataclass
 
 from packpilot.contract.bms import SwitchKind
@@ -42,6 +43,27 @@ class Topology:
     def aux(self) -> int | None:
         """String index of the auxiliary battery, if any."""
         return next((i for i, r in enumerate(self.roles) if r == "aux"), None)
+
+    @classmethod
+    def of_config(cls, config: Mapping[str, Any] | None, names: Sequence[str]) -> Topology:
+        """The topology of a recorded run: ``names`` (the trace's batteries) with the roles its
+        saved config gives them (a battery the config does not name is traction)."""
+        pack = (config or {}).get("pack")
+        bats = pack.get("batteries") if isinstance(pack, Mapping) else None
+        roles = {
+            b.get("name"): b.get("role") or "traction"
+            for b in (bats if isinstance(bats, Sequence) else ())
+            if isinstance(b, Mapping)
+        }
+        return cls(tuple(names), tuple(str(roles.get(n, "traction")) for n in names))
+
+    def battery_name(self, battery: int | None) -> str | None:
+        """The name of a controller's ``battery`` index (commands, status, events: traction
+        batteries only); None for a pack-wide value or an index out of range."""
+        traction = self.traction
+        if battery is None or not 0 <= battery < len(traction):
+            return None
+        return self.names[traction[battery]]
 
     def spread(self, per_traction: Sequence[object], fill: object = None) -> list[object]:
         """A per-traction-battery list laid out over all strings (``fill`` elsewhere)."""

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from packpilot.config import SUPERVISED
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
+from packpilot.contract.topology import Topology
 from packpilot.errors import InputError
 from packpilot.report import figures as F
 from packpilot.report.plots import figure_png_base64
@@ -100,8 +101,7 @@ class RunInfo:
 
     def event_batteries(self, names: Sequence[str]) -> list[int]:
         """Trace index of each ``Event.battery`` value: events count traction batteries only."""
-        roles = self.roles(names)
-        return [i for i, r in enumerate(roles) if r != "aux"]
+        return list(Topology.of_config(self.config, names).traction)
 
     def event_names(self, names: Sequence[str]) -> list[str]:
         """Names for ``Event.battery`` values (the aux battery has no index of its own)."""

@@ -24,6 +24,7 @@ import numpy as np
 
 from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Recorder, StepSample
+from packpilot.contract.topology import Topology
 from packpilot.errors import PackPilotError
 
 CHART_CHANNELS: tuple[str, ...] = ("voltage_v", "current_a", "soc", "temp_c")
@@ -62,8 +63,9 @@ def jsonable_dict(obj: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def event_dict(index: int, e: Event, names: Sequence[str]) -> dict[str, Any]:
-    """One event as sent to browsers; ``battery_name`` spares the page an index lookup."""
+def event_dict(index: int, e: Event, topology: Topology) -> dict[str, Any]:
+    """One event as sent to browsers; ``battery_name`` spares the page an index lookup (an
+    event's battery counts traction batteries only, as in the report)."""
     b = e.battery
     return jsonable_dict(
         {
@@ -71,7 +73,7 @@ def event_dict(index: int, e: Event, names: Sequence[str]) -> dict[str, Any]:
             "t_s": e.t_s,
             "kind": e.kind,
             "battery": b,
-            "battery_name": names[b] if b is not None and 0 <= b < len(names) else None,
+            "battery_name": topology.battery_name(b),
             "message": e.message,
             "data": dict(e.data),
         }
@@ -163,13 +165,17 @@ class LiveRun:
         self._steps: list[int] = []
         self._stride = 1
         self._events: list[Event] = []
+        self.topology = Topology.of_config(None, self.battery_names)
         self._started_wall: float | None = None
         self._finished_wall: float | None = None
 
     # ------------------------------------------------------------------ writer side
-    def on_start(self, battery_names: Sequence[str]) -> None:
+    def on_start(
+        self, battery_names: Sequence[str], config: Mapping[str, Any] | None = None
+    ) -> None:
         with self._lock:
             self.battery_names = list(battery_names)
+            self.topology = Topology.of_config(config, battery_names)
             self.state = "running"
             self._started_wall = time.time()
             self._version += 1
@@ -261,8 +267,8 @@ class LiveRun:
         with self._lock:
             end = len(self._events) if limit is None else min(len(self._events), since + limit)
             chunk = self._events[max(0, since) : end]
-            names = list(self.battery_names)
-        return [event_dict(since + k, e, names) for k, e in enumerate(chunk)]
+            topology = self.topology
+        return [event_dict(since + k, e, topology) for k, e in enumerate(chunk)]
 
     def points(self, after_step: int = -1) -> list[dict[str, Any]]:
         """Chart history points with a step greater than ``after_step``."""
@@ -293,7 +299,7 @@ class DashboardRecorder:
     def start(self, config: Mapping[str, Any], battery_names: Sequence[str]) -> int:
         run_id = self.tee.start(config, battery_names) if self.tee is not None else 0
         self.live.run_id = run_id if self.tee is not None else None
-        self.live.on_start(battery_names)
+        self.live.on_start(battery_names, config)
         return run_id
 
     def record(self, sample: StepSample) -> None:
