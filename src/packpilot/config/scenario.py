@@ -399,4 +399,3 @@ def load_section(path: str | Path | None, section: str) -> BaseModel:
     if raw is not None and not isinstance(raw, dict):
         raise ConfigError(f"{p}: [{section}] must be a table")
     return load_section_model(model, raw, section, str(p))
-

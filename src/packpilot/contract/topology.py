@@ -10,8 +10,8 @@ string index, the traction index and the name shown to a user.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
 from dataclasses import dataclass
+from typing import Any
 
 from packpilot.contract.bms import SwitchKind
 
