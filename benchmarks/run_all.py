@@ -20,6 +20,7 @@ HERE = Path(__file__).resolve().parent
 ORDER = [
     "bench_cell",
     "bench_loop",
+    "bench_core",
     "bench_protection",
     "bench_sequencing",
     "bench_charging",
@@ -221,15 +222,16 @@ def _headlines(name: str, rows: list[dict[str, Any]]) -> list[tuple[str, str, st
                     "stated",
                 )
             )
-    elif name == "bench_campaign":
-        for r in rows:
-            out.append(
-                (
-                    f"campaign: {r['case']}",
-                    f"{r['figure']:.4g} {r['unit']}",
-                    "<= 300 s" if r["case"].startswith("1,000 one-hour missions, 0.1 s") else "",
-                )
-            )
+    elif name in ("bench_core", "bench_campaign"):
+        for r in rows:  # the rows that carry a goal are the figures
+            if r.get("goal"):
+                figure = f"{r['figure']:.4g} {r['unit']}"
+                out.append((f"{name[6:]}: {r['case'].strip()}", figure, r["goal"]))
+        if name == "bench_core":
+            for key in ("PyBaMM", "vs one PyBaMM", "Runner.run", "plant alone", "core-less"):
+                r = next((r for r in rows if key in r["case"]), None)
+                if r is not None:
+                    out.append((f"core: {r['case']}", f"{r['figure']:.4g} {r['unit']}", ""))
     return out
 
 
