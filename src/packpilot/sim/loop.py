@@ -112,6 +112,8 @@ class ClosedLoop:
         self.m = self.core.m
         self.was_supplied = np.ones(P, np.bool_)
         self.unsupplied_s = np.zeros(P)
+        self._all_supplied = True
+        """Every pack was supplied at the last step (so ``unsupplied_s`` is all zero)."""
         self.profile = load_profile(self.cfg)
         self.metrics = Metrics(P, self.plant.pack.n_strings, self.cfg.sim.dt_s)
         self._traction = np.array(self.plant.topology.traction, np.int64)
@@ -185,6 +187,8 @@ class ClosedLoop:
 
     def _supply_events(self, t: float, iv: Interval, events: list[list[Event]], dt: float) -> None:
         supplied = iv.supplied
+        if self._all_supplied and supplied.all():
+            return  # nothing changed: no event, was_supplied all True, unsupplied_s all zero
         for p in np.nonzero(supplied != self.was_supplied)[0].tolist():
             if not supplied[p]:
                 events[p].append(
@@ -200,6 +204,7 @@ class ClosedLoop:
                 events[p].append(Event(t, "LoadResupplied", None, "load supplied again"))
         self.was_supplied = supplied.copy()
         self.unsupplied_s = np.where(supplied, 0.0, self.unsupplied_s + dt)
+        self._all_supplied = bool(supplied.all())
 
     def close(self) -> None:
         self.links.close()

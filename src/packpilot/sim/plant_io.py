@@ -51,6 +51,7 @@ class SimulatedPlant:
         self._string_group_starts = np.asarray(pack.string_group_starts, np.int64)
         self._groups = np.array(pack.groups_per_string, np.int64)
         self._scratch = np.zeros(pack.n_strings)
+        self._aux = -1 if self.aux is None else self.aux
 
     @property
     def t_s(self) -> float:
@@ -91,14 +92,14 @@ class SimulatedPlant:
         pack read now (the charger status is the link's business)."""
         pack = self.pack
         soc, temp = pack.cell_states()
-        chg, dsg = pack.effective_gates()
         t = pack.t_s
         sense(
             *arenas, m_row, t, pack.cell_voltage_now(), soc, temp, pack.capacity_ah,
             pack.string_cell_starts,
-            self._group_starts, self._string_group_starts, self._groups, pack.string_a, chg, dsg,
-            pack.present_from_s <= t + 1e-12, self.traction, -1 if self.aux is None else self.aux,
-            pack.is_aux, pack.bus_v, bool(pack.charger_connected(t)[0]), self._scratch,
+            self._group_starts, self._string_group_starts, self._groups, pack.string_a,
+            pack.chg_on, pack.dsg_on, pack.welded, pack.fet_shorted, pack.present_from_s,
+            self.traction, self._aux, pack.is_aux, pack.bus_v, bool(pack.charger_connected(t)[0]),
+            self._scratch,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ actuation
@@ -137,12 +138,15 @@ def _npmax(a: float, b: float) -> float:
 
 @kernel_inline
 def _read_string(
-    bat: BatteryArrays, p: int, k: int, s: int, cell_v: Array, soc: Array, temp: Array,
-    cap: Array, starts: Any, group_starts: Any, string_group_starts: Any, groups: Any,
-    string_a: Array, chg: Any, dsg: Any, present: Any,
+    bat: BatteryArrays, p: int, k: int, s: int, t_s: float, cell_v: Array, soc: Array,
+    temp: Array, cap: Array, starts: Any, group_starts: Any, string_group_starts: Any,
+    groups: Any, string_a: Array, chg_on: Any, dsg_on: Any, welded: Any, fet_shorted: Any,
+    present_from_s: Array,
 ) -> None:  # fmt: skip
     """String ``s`` of pack ``p`` into battery column ``k`` of ``bat``: the reductions NumPy's
-    ``reduceat`` does, in its order (sums first item + pairwise rest; NaN propagates)."""
+    ``reduceat`` does, in its order (sums first item + pairwise rest; NaN propagates). Switch
+    feedback is the gate as the hardware really is (``Pack.effective_gates``: welded relays
+    closed, shorted FETs on); presence is ``Pack.present`` at ``t_s``."""
     C = cell_v.shape[1]
     lo = starts[s]
     hi = starts[s + 1] if s + 1 < starts.shape[0] else C
@@ -173,9 +177,9 @@ def _read_string(
     for g in range(bat.group_v.shape[2]):
         bat.group_v[p, k, g] = segment_sum(row, group_starts, g0 + g) if g < ng else np.nan
     bat.n_groups[p, k] = ng
-    bat.sw_chg[p, k] = chg[p, s]
-    bat.sw_dsg[p, k] = dsg[p, s]
-    bat.present[p, k] = present[s]
+    bat.sw_chg[p, k] = chg_on[p, s] | welded[s] | fet_shorted[p, s, 0]
+    bat.sw_dsg[p, k] = dsg_on[p, s] | welded[s] | fet_shorted[p, s, 1]
+    bat.present[p, k] = present_from_s[s] <= t_s + 1e-12
     bat.reported[p, k] = True
 
 
@@ -184,8 +188,8 @@ def sense(
     f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, m_row: int,
     t_s: float, cell_v: Array, soc: Array, temp: Array, cap: Array,
     starts: Any, group_starts: Any, string_group_starts: Any, groups: Any, string_a: Array,
-    chg: Any, dsg: Any, present: Any, traction: Any, aux: int, is_aux: Any, bus_v: Array,
-    docked: bool, scratch: Array,
+    chg_on: Any, dsg_on: Any, welded: Any, fet_shorted: Any, present_from_s: Array,
+    traction: Any, aux: int, is_aux: Any, bus_v: Array, docked: bool, scratch: Array,
 ) -> None:  # fmt: skip
     """What the sensors of every pack read now (all but the charger status), into the
     measurements at layout row ``m_row`` of the core's arena."""
@@ -193,12 +197,13 @@ def sense(
     for p in range(cell_v.shape[0]):
         m.t_s[p] = t_s
         for k in range(traction.shape[0]):
-            _read_string(m.bat, p, k, traction[k], cell_v, soc, temp, cap, starts,
-                         group_starts, string_group_starts, groups, string_a, chg, dsg,
-                         present)  # fmt: skip
+            _read_string(m.bat, p, k, traction[k], t_s, cell_v, soc, temp, cap, starts,
+                         group_starts, string_group_starts, groups, string_a, chg_on, dsg_on,
+                         welded, fet_shorted, present_from_s)  # fmt: skip
         if aux >= 0:
-            _read_string(m.aux, p, 0, aux, cell_v, soc, temp, cap, starts, group_starts,
-                         string_group_starts, groups, string_a, chg, dsg, present)  # fmt: skip
+            _read_string(m.aux, p, 0, aux, t_s, cell_v, soc, temp, cap, starts, group_starts,
+                         string_group_starts, groups, string_a, chg_on, dsg_on, welded,
+                         fet_shorted, present_from_s)  # fmt: skip
         m.has_aux[p] = aux >= 0
         m.bus_v[p] = bus_v[p]
         n = 0
