@@ -31,10 +31,12 @@ N_CH = len(BATTERY_CHANNELS)
 @kernel
 def _row(
     k: int, p: int, starts: Any, group_table: Any, cell_v: F64, soc: F64, temp: F64, cap: F64,
-    chg: Any, dsg: Any, battery_v: F64, string_a: F64, chg_d: F64, dsg_d: F64, bal_w: F64,
-    group_v: F64, status: F64, out_bat: F64, out_group: F64, out_status: F64,
+    chg_on: Any, dsg_on: Any, welded: Any, fet_shorted: Any, battery_v: F64, string_a: F64,
+    chg_d: F64, dsg_d: F64, bal_w: F64, group_v: F64, status: F64, out_bat: F64,
+    out_group: F64, out_status: F64,
 ) -> None:  # fmt: skip
-    """Row ``k`` of the trace: pack ``p``'s truth after the step (``Runner._sample`` order)."""
+    """Row ``k`` of the trace: pack ``p``'s truth after the step (``Runner._sample`` order);
+    the gates as the hardware really is (``Pack.effective_gates``)."""
     S = starts.shape[0]
     C = cell_v.shape[1]
     for s in range(S):
@@ -58,8 +60,8 @@ def _row(
         row[5] = vmax
         row[6] = rem
         row[7] = full
-        row[8] = 1.0 if chg[p, s] else 0.0
-        row[9] = 1.0 if dsg[p, s] else 0.0
+        row[8] = 1.0 if chg_on[p, s] | welded[s] | fet_shorted[p, s, 0] else 0.0
+        row[9] = 1.0 if dsg_on[p, s] | welded[s] | fet_shorted[p, s, 1] else 0.0
         row[10] = chg_d[p, s]
         row[11] = dsg_d[p, s]
         row[12] = bal_w[p, s]
@@ -152,7 +154,6 @@ class TraceBuffer:
             self._grow()
         pack, p, n = self.pack, self.p, self.n
         soc, temp = pack.cell_states()
-        chg, dsg = pack.effective_gates()
         self.step[n] = k
         sc = self.scalars[n]
         sc[0] = iv.t_s
@@ -160,7 +161,8 @@ class TraceBuffer:
         sc[4], sc[5] = iv.charger_v[p], iv.charger_a[p]
         _row(
             n, p, pack.string_cell_starts, pack.group_table, iv.cell_v, soc, temp,
-            pack.capacity_ah, chg, dsg, iv.battery_v, iv.string_a, iv.chg_diode_a,
+            pack.capacity_ah, pack.chg_on, pack.dsg_on, pack.welded, pack.fet_shorted,
+            iv.battery_v, iv.string_a, iv.chg_diode_a,
             iv.dsg_diode_a, iv.balancer_in_w, iv.group_v, status, self.battery, self.group_v,
             self.status,
         )  # fmt: skip
