@@ -200,8 +200,14 @@ def run(runs: int | None = None, tcp: bool = True) -> list[dict[str, Any]]:
     n = runs or int(os.environ.get("BENCH_CAMPAIGN_RUNS", RUNS))
     rows: list[dict[str, Any]] = []
 
-    def row(case: str, figure: float, unit: str, goal: str = "", note: str = "") -> None:
-        rows.append({"case": case, "figure": figure, "unit": unit, "goal": goal, "note": note})
+    def row(
+        case: str, figure: float, unit: str, goal: str = "", note: str = "", ref: str = "",
+        verdict: str = "",
+    ) -> None:  # fmt: skip
+        rows.append(
+            {"case": case, "figure": figure, "unit": unit, "goal": goal, "verdict": verdict,
+             "reference": ref, "note": note}
+        )  # fmt: skip
 
     steps = round(DURATION_S / DT_S)
     with tempfile.TemporaryDirectory(prefix="bench-campaign-") as tmpdir:
@@ -221,8 +227,10 @@ def run(runs: int | None = None, tcp: bool = True) -> list[dict[str, Any]]:
             f"<= {TARGET_S:g} s for 1,000" if full else "",
             ("" if full else f"x{scale:g} = {wall * scale:.0f} s for 1,000 if linear; ")
             + f"end to end (spawn to exit); campaign compute {rep['wall_s']:.1f} s; "
-            f"{verdict}; batches of {rep['batch']}; others kept "
-            f"{rep['others_busy_cores']:.2f} of 2 cores busy meanwhile",
+            f"batches of {rep['batch']}",
+            f"CPU {rep['cpu_s']:.0f} s / 2 cores = {rep['cpu_s'] / 2:.0f} s; others kept "
+            f"{rep['others_busy_cores']:.2f} of 2 cores busy",
+            verdict,
         )
         row(
             "  the same campaign, CPU time (driver + workers)",
@@ -240,6 +248,8 @@ def run(runs: int | None = None, tcp: bool = True) -> list[dict[str, Any]]:
             "every run",
             f"{table.num_columns} columns; checked: run indices, spreads, finite metrics, "
             f"{steps:,} steps each, campaign metadata",
+            "",
+            "met",  # check_parquet raised otherwise
         )
         rate = n * steps / rep["wall_s"] / 1e6
         row(
@@ -257,8 +267,9 @@ def run(runs: int | None = None, tcp: bool = True) -> list[dict[str, Any]]:
                 t["end_to_end_s"],
                 "s",
                 "runs",
-                f"rows equal to the local run's: {t['same_rows_as_local']}; "
                 f"{t['rows']} rows, {t['failures']} failures, scheduler {t['scheduler']}",
+                f"rows equal to the local run's: {t['same_rows_as_local']}",
+                "met" if t["same_rows_as_local"] and t["failures"] == 0 else "FAILED",
             )
             assert t["same_rows_as_local"] and t["failures"] == 0
     return rows
@@ -272,7 +283,10 @@ def main() -> None:
     elif "--quick" in args:
         runs = 100
     for r in run(runs, tcp="--no-tcp" not in args):
-        print(f"{r['case']:<84} {r['figure']:10.4g} {r['unit']:<7} {r['goal']:<20} {r['note']}")
+        print(
+            f"{r['case']:<84} {r['figure']:10.4g} {r['unit']:<7} {r['goal']:<20} "
+            f"{r['verdict']:<8} {r['reference']}  {r['note']}"
+        )
 
 
 if __name__ == "__main__":

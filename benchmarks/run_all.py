@@ -235,6 +235,27 @@ def _headlines(name: str, rows: list[dict[str, Any]]) -> list[tuple[str, str, st
     return out
 
 
+ACCEPTANCE = ("bench_core", "bench_campaign")
+"""Modules whose rows with a ``goal`` are issue #14's acceptance figures."""
+
+
+def _acceptance(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The acceptance rows: measured value, the reference measured in the same run, goal."""
+    out = []
+    for r in rows:
+        if r.get("goal"):
+            out.append(
+                {
+                    "figure": r["case"].strip(),
+                    "measured": f"{r['figure']:.4g} {r['unit']}",
+                    "same-run reference": r.get("reference", ""),
+                    "goal": r["goal"],
+                    "verdict": r.get("verdict", ""),
+                }
+            )
+    return out
+
+
 def main() -> int:
     os.environ.setdefault("PYBAMM_DISABLE_TELEMETRY", "true")
     sys.path.insert(0, str(HERE.parent))
@@ -248,6 +269,7 @@ def main() -> int:
     )
     sections: list[str] = []
     headlines: list[tuple[str, str, str]] = []
+    accepted: list[dict[str, Any]] = []
     failed = 0
     for name in names:
         spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
@@ -257,9 +279,14 @@ def main() -> int:
         t0 = time.perf_counter()
         try:
             spec.loader.exec_module(mod)
+            if not callable(getattr(mod, "run", None)):  # a standalone script, not a module
+                print(f"## {name}: no run(); standalone: python benchmarks/{name}.py\n")
+                continue
             out = mod.run()
             rows = out if isinstance(out, list) else [out]
             text = _table(rows)
+            if name in ACCEPTANCE:
+                accepted += _acceptance(rows)
             try:
                 headlines += _headlines(name, rows)
             except (KeyError, IndexError, StopIteration, TypeError):
@@ -285,6 +312,16 @@ def main() -> int:
         f" Python {platform.python_version()}, {platform.platform()}\n"
         f"- command: `make bench` (`python benchmarks/run_all.py {' '.join(sys.argv[1:])}`)\n\n"
     )
+    if accepted:
+        section = (
+            "## Issue #14 acceptance figures\n\n"
+            "CPU figures are this process's CPU time (`time.process_time`); each stands next to "
+            "a reference measured in the same run (the machine is shared: ratios travel, "
+            "absolute figures drift with the host and its load). Details and the profiles: "
+            "`bench_core` and `bench_campaign` below.\n\n" + _table(accepted) + "\n"
+        )
+        print(section, flush=True)
+        sections.insert(0, section)
     if not only:
         (HERE / "RESULTS.md").write_text(header + "\n".join(sections))
     return 1 if failed else 0
