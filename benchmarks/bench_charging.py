@@ -48,8 +48,8 @@ from typing import Any
 import numpy as np
 
 from packpilot.config import ScenarioConfig, load_config
-from packpilot.io.can import CanChargerLink
 from packpilot.contract.record import Result
+from packpilot.io.can import CanChargerLink
 from packpilot.sim.runner import Runner
 
 SCENARIO = Path(__file__).resolve().parents[1] / "examples" / "evtol_charging.toml"
