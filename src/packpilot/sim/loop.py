@@ -72,6 +72,25 @@ def load_profile(cfg: ScenarioConfig) -> loads.LoadProfile:
     return loads.LoadProfile(kind=prof.kind, t_s=prof.t_s, value=prof.value, repeat=lc.repeat)
 
 
+def _hold_interval(
+    profile: loads.LoadProfile, x: float, value: float
+) -> tuple[loads.LoadProfile, float, float, float] | None:
+    """The interval around ``x`` over which ``profile.at`` holds ``value`` (``at(x)``): the
+    zero-order hold row that ``at`` picks, ``[t_i, t_i+1)``; before the first row the first
+    value, from the last row on 0 (a one-row profile: its value everywhere). ``None`` where
+    ``at`` does more than a lookup (a repeating profile, ``none``, no rows) or ``x`` is NaN."""
+    ts = profile.t_s
+    n = ts.size
+    if profile.repeat or profile.kind == "none" or n == 0 or x != x:
+        return None
+    if n == 1:
+        return (profile, -math.inf, math.inf, value)
+    i = int(np.searchsorted(ts, x, side="right")) - 1
+    lo = float(ts[i]) if i >= 0 else -math.inf
+    hi = float(ts[i + 1]) if i + 1 < n else math.inf
+    return (profile, lo, hi, value)
+
+
 def n_steps(cfg: ScenarioConfig) -> int:
     return math.ceil(cfg.sim.duration_s / cfg.sim.dt_s - 1e-9)
 
@@ -107,6 +126,11 @@ class ClosedLoop:
         self.m = self.core.m
         self.was_supplied = np.ones(P, np.bool_)
         self.unsupplied_s = np.zeros(P)
+        self._all_supplied = True
+        """Every pack was supplied at the last step (so ``unsupplied_s`` is all zero)."""
+        self._all_true = np.ones(P, np.bool_).tobytes()
+        self._held: tuple[loads.LoadProfile, float, float, float] | None = None
+        """(profile, lo, hi, value): ``profile.at(x) == value`` for every ``lo <= x < hi``."""
         self.profile = load_profile(self.cfg)
         self.metrics = Metrics(P, self.plant.pack.n_strings, self.cfg.sim.dt_s)
         self._traction = np.array(self.plant.topology.traction, np.int64)
@@ -145,7 +169,15 @@ class ClosedLoop:
 
     def demand(self, t_s: float) -> float:
         start = self.cfg.load.start_s
-        return self.profile.at(t_s - start) if t_s >= start else 0.0
+        if not t_s >= start:
+            return 0.0
+        x = t_s - start
+        held = self._held
+        if held is not None and held[0] is self.profile and held[1] <= x < held[2]:
+            return held[3]  # still inside the hold interval of the last lookup
+        value = self.profile.at(x)
+        self._held = _hold_interval(self.profile, x, value)
+        return value
 
     def step(self, k: int, dt_s: float) -> StepRecord:
         """One period of every pack."""
@@ -180,6 +212,8 @@ class ClosedLoop:
 
     def _supply_events(self, t: float, iv: Interval, events: list[list[Event]], dt: float) -> None:
         supplied = iv.supplied
+        if self._all_supplied and supplied.tobytes() == self._all_true:
+            return  # nothing changed: no event, was_supplied all True, unsupplied_s all zero
         for p in np.nonzero(supplied != self.was_supplied)[0].tolist():
             if not supplied[p]:
                 events[p].append(
@@ -195,6 +229,7 @@ class ClosedLoop:
                 events[p].append(Event(t, "LoadResupplied", None, "load supplied again"))
         self.was_supplied = supplied.copy()
         self.unsupplied_s = np.where(supplied, 0.0, self.unsupplied_s + dt)
+        self._all_supplied = bool(supplied.all())
 
     def close(self) -> None:
         self.links.close()

@@ -172,9 +172,10 @@ class Metrics:
             self.max_temp_c, self.final_soc, self.peak_abs, self.peak_val, self.peak_cross,
             self.unsupplied_steps,
         )  # fmt: skip
-        for p, evs in enumerate(events):
-            if evs and self.live[p]:
-                self.events[p].update(e.kind for e in evs)
+        if any(events):
+            for p, evs in enumerate(events):
+                if evs and self.live[p]:
+                    self.events[p].update(e.kind for e in evs)
         self.pack = pack
 
     def _ledgers(self, pack: Pack, mask: B1) -> None:

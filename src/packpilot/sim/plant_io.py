@@ -21,7 +21,7 @@ from packpilot.contract.arrays import NO_OPINION, BatteryArrays, CmdArrays, Meas
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo, Topology
 from packpilot.jit import kernel, kernel_inline
-from packpilot.model.numerics import pairwise_sum, segment_sum
+from packpilot.model.numerics import _block, pairwise_sum
 from packpilot.model.pack import Interval, Pack
 from packpilot.model.switches import KIND_RELAY
 
@@ -51,6 +51,7 @@ class SimulatedPlant:
         self._string_group_starts = np.asarray(pack.string_group_starts, np.int64)
         self._groups = np.array(pack.groups_per_string, np.int64)
         self._scratch = np.zeros(pack.n_strings)
+        self._aux = -1 if self.aux is None else self.aux
 
     @property
     def t_s(self) -> float:
@@ -91,14 +92,14 @@ class SimulatedPlant:
         pack read now (the charger status is the link's business)."""
         pack = self.pack
         soc, temp = pack.cell_states()
-        chg, dsg = pack.effective_gates()
         t = pack.t_s
         sense(
             *arenas, m_row, t, pack.cell_voltage_now(), soc, temp, pack.capacity_ah,
             pack.string_cell_starts,
-            self._group_starts, self._string_group_starts, self._groups, pack.string_a, chg, dsg,
-            pack.present_from_s <= t + 1e-12, self.traction, -1 if self.aux is None else self.aux,
-            pack.is_aux, pack.bus_v, bool(pack.charger_connected(t)[0]), self._scratch,
+            self._group_starts, self._string_group_starts, self._groups, pack.string_a,
+            pack.chg_on, pack.dsg_on, pack.welded, pack.fet_shorted, pack.present_from_s,
+            self.traction, self._aux, pack.is_aux, pack.bus_v, bool(pack.charger_connected(t)[0]),
+            self._scratch,
         )  # fmt: skip
 
     # ------------------------------------------------------------------ actuation
@@ -136,13 +137,32 @@ def _npmax(a: float, b: float) -> float:
 
 
 @kernel_inline
+def _sum(x: Any, lo: int, n: int) -> float:
+    """``numerics.pairwise_sum`` inlined for a short run (its own ``_block``): the same
+    additions in the same order, without a call that passes (and reference-counts) an array
+    view per sum: 14 sums per uav_mission pack cost ~0.5 us that way."""
+    return _block(x, lo, n) if n <= 128 else pairwise_sum(x, lo, n)
+
+
+@kernel_inline
+def _segment_sum(x: Any, starts: Any, k: int) -> float:
+    """``numerics.segment_sum`` (``np.add.reduceat(x, starts)[k]``), inlined."""
+    lo = starts[k]
+    hi = starts[k + 1] if k + 1 < starts.size else x.size
+    return float(x[lo] + _sum(x, lo + 1, hi - lo - 1))
+
+
+@kernel_inline
 def _read_string(
-    bat: BatteryArrays, p: int, k: int, s: int, cell_v: Array, soc: Array, temp: Array,
-    cap: Array, starts: Any, group_starts: Any, string_group_starts: Any, groups: Any,
-    string_a: Array, chg: Any, dsg: Any, present: Any,
+    bat: BatteryArrays, p: int, k: int, s: int, t_s: float, cell_v: Array, soc: Array,
+    temp: Array, cap: Array, starts: Any, group_starts: Any, string_group_starts: Any,
+    groups: Any, string_a: Array, chg_on: Any, dsg_on: Any, welded: Any, fet_shorted: Any,
+    present_from_s: Array,
 ) -> None:  # fmt: skip
     """String ``s`` of pack ``p`` into battery column ``k`` of ``bat``: the reductions NumPy's
-    ``reduceat`` does, in its order (sums first item + pairwise rest; NaN propagates)."""
+    ``reduceat`` does, in its order (sums first item + pairwise rest; NaN propagates). Switch
+    feedback is the gate as the hardware really is (``Pack.effective_gates``: welded relays
+    closed, shorted FETs on); presence is ``Pack.present`` at ``t_s``."""
     C = cell_v.shape[1]
     lo = starts[s]
     hi = starts[s + 1] if s + 1 < starts.shape[0] else C
@@ -158,7 +178,7 @@ def _read_string(
         tmin = _npmin(tmin, temp[p, c])
         rem = _npmin(rem, soc[p, c] * cap[p, c])
         full = _npmin(full, cap[p, c])
-    bat.voltage_v[p, k] = segment_sum(row, starts, s)
+    bat.voltage_v[p, k] = _segment_sum(row, starts, s)
     bat.current_a[p, k] = string_a[p, s]
     bat.temp_c[p, k] = tmax
     bat.min_temp_c[p, k] = tmin
@@ -171,11 +191,11 @@ def _read_string(
     g0 = string_group_starts[s]
     ng = groups[s]
     for g in range(bat.group_v.shape[2]):
-        bat.group_v[p, k, g] = segment_sum(row, group_starts, g0 + g) if g < ng else np.nan
+        bat.group_v[p, k, g] = _segment_sum(row, group_starts, g0 + g) if g < ng else np.nan
     bat.n_groups[p, k] = ng
-    bat.sw_chg[p, k] = chg[p, s]
-    bat.sw_dsg[p, k] = dsg[p, s]
-    bat.present[p, k] = present[s]
+    bat.sw_chg[p, k] = chg_on[p, s] | welded[s] | fet_shorted[p, s, 0]
+    bat.sw_dsg[p, k] = dsg_on[p, s] | welded[s] | fet_shorted[p, s, 1]
+    bat.present[p, k] = present_from_s[s] <= t_s + 1e-12
     bat.reported[p, k] = True
 
 
@@ -184,8 +204,8 @@ def sense(
     f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, m_row: int,
     t_s: float, cell_v: Array, soc: Array, temp: Array, cap: Array,
     starts: Any, group_starts: Any, string_group_starts: Any, groups: Any, string_a: Array,
-    chg: Any, dsg: Any, present: Any, traction: Any, aux: int, is_aux: Any, bus_v: Array,
-    docked: bool, scratch: Array,
+    chg_on: Any, dsg_on: Any, welded: Any, fet_shorted: Any, present_from_s: Array,
+    traction: Any, aux: int, is_aux: Any, bus_v: Array, docked: bool, scratch: Array,
 ) -> None:  # fmt: skip
     """What the sensors of every pack read now (all but the charger status), into the
     measurements at layout row ``m_row`` of the core's arena."""
@@ -193,12 +213,13 @@ def sense(
     for p in range(cell_v.shape[0]):
         m.t_s[p] = t_s
         for k in range(traction.shape[0]):
-            _read_string(m.bat, p, k, traction[k], cell_v, soc, temp, cap, starts,
-                         group_starts, string_group_starts, groups, string_a, chg, dsg,
-                         present)  # fmt: skip
+            _read_string(m.bat, p, k, traction[k], t_s, cell_v, soc, temp, cap, starts,
+                         group_starts, string_group_starts, groups, string_a, chg_on, dsg_on,
+                         welded, fet_shorted, present_from_s)  # fmt: skip
         if aux >= 0:
-            _read_string(m.aux, p, 0, aux, cell_v, soc, temp, cap, starts, group_starts,
-                         string_group_starts, groups, string_a, chg, dsg, present)  # fmt: skip
+            _read_string(m.aux, p, 0, aux, t_s, cell_v, soc, temp, cap, starts, group_starts,
+                         string_group_starts, groups, string_a, chg_on, dsg_on, welded,
+                         fet_shorted, present_from_s)  # fmt: skip
         m.has_aux[p] = aux >= 0
         m.bus_v[p] = bus_v[p]
         n = 0
@@ -206,7 +227,7 @@ def sense(
             if not is_aux[s]:
                 scratch[n] = string_a[p, s]
                 n += 1
-        m.load_current_a[p] = scratch[0] + pairwise_sum(scratch, 1, n - 1)
+        m.load_current_a[p] = scratch[0] + _sum(scratch, 1, n - 1)
         m.docked[p] = docked
 
 
