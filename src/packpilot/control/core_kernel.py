@@ -18,7 +18,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.arena import unpack
-from packpilot.contract.arrays import NO_OPINION, CmdArrays, EventBuf, MeasArrays, PackArrays
+from packpilot.contract.arrays import (
+    CmdArrays,
+    EventBuf,
+    MeasArrays,
+    PackArrays,
+    clear_commands,
+)
 from packpilot.control.charging import rules as charging
 from packpilot.control.equalization import rules as equalization
 from packpilot.control.limits import rules as limits
@@ -54,19 +60,8 @@ COMPILED = frozenset(METHOD_IDS)
 """Methods this step has a branch for (a core with any other part steps part by part)."""
 
 
-@kernel_inline
-def _clear(cmd: CmdArrays) -> None:
-    cmd.chg_on.fill(NO_OPINION)
-    cmd.dsg_on.fill(NO_OPINION)
-    cmd.charger_set.fill(False)
-    cmd.charger_v.fill(0.0)
-    cmd.charger_a.fill(0.0)
-    cmd.charger_enable.fill(False)
-    cmd.balancer_set.fill(False)
-    cmd.balancer_a.fill(0.0)
-    cmd.aux_relay.fill(NO_OPINION)
-    cmd.aux_charge_set.fill(False)
-    cmd.aux_charge_a.fill(0.0)
+_clear = kernel_inline(clear_commands)
+"""The contract's "no opinion anywhere", compiled into the step."""
 
 
 @kernel
