@@ -171,3 +171,24 @@ def test_sections_are_typed_and_a_listed_method_defaults() -> None:
     assert cfg.sequencing is None and cfg.section("sequencing") == SequencingConfig()
     assert not cfg.supervised
     assert parse_config({**dual_pack(), "soc": {}}).supervised
+
+
+@pytest.mark.parametrize(
+    ("sim", "match"),
+    [
+        ({"dt_s": 1.1754943508222875e-38}, r"sim\.dt_s: .*greater than or equal to 0\.0001"),
+        ({"dt_s": 1e-4, "duration_s": 1.0e5}, r"sim: duration_s / dt_s = 1e\+09 periods"),
+    ],
+)
+def test_a_run_without_end_is_refused(sim: dict[str, float], match: str) -> None:
+    # dt_s = 1.2e-38 (drawn by the config fuzz) meant ~1e37 periods: a hang, not an error
+    d = dual_pack()
+    d["sim"] = {**d.get("sim", {}), **sim}
+    with pytest.raises(ConfigError, match=match):
+        parse_config(d)
+
+
+def test_the_longest_allowed_run_is_accepted() -> None:
+    d = dual_pack()
+    d["sim"] = {**d.get("sim", {}), "dt_s": 1e-3, "duration_s": 1.0e5}  # exactly 1e8 periods
+    assert parse_config(d).sim.dt_s == 1e-3

@@ -193,13 +193,28 @@ class CanConfig(_Strict):
     log: str | None = Field(None, description="log every frame to this .blf or .asc file")
 
 
+MAX_STEPS = 100_000_000
+"""Most periods one run may take: about a day of simulated time at 1 ms, ~2 h of CPU. A bound,
+so that a typo such as ``dt_s = 1e-30`` is a clear error, not a run that never ends."""
+
+
 class SimConfig(_Strict):
-    dt_s: Annotated[float, Field(gt=0, le=10)] = 0.1
+    dt_s: Annotated[float, Field(ge=1e-4, le=10)] = 0.1
+    """The control period: 0.1 ms (faster than any BMS loop) to 10 s."""
     duration_s: PosFloat = 600.0
     stop_when_unsupplied_s: NonNegFloat | None = Field(
         None, description="stop after the load has been unsupplied this long"
     )
     progress: bool = True
+
+    @model_validator(mode="after")
+    def _bounded(self) -> SimConfig:
+        steps = self.duration_s / self.dt_s
+        if steps > MAX_STEPS:
+            raise ValueError(
+                f"duration_s / dt_s = {steps:.3g} periods, more than {MAX_STEPS:,} per run"
+            )
+        return self
 
 
 FaultKind = Literal[
