@@ -179,17 +179,7 @@ def build(
     per = config.battery_current_limit_a
     limit = float(config.charger_current_limit_a)
     prm = ChargingParams(
-        delta_v1=float(vs.delta_v1),
-        d1=float(vs.d1),
-        k1=float(vs.k1),
-        k2=float(vs.k2),
-        k3=float(vs.k3),
-        step=float(vs.step),
-        delta_v2=float(vs.delta_v2),
-        eps_eq=float(vs.eps_eq),
-        reach_tol=float(vs.reach_tol),
-        v_sat=float(vs.v_sat),
-        overvoltage_margin=float(vs.overvoltage_margin),
+        **{name: float(getattr(vs, name)) for name in Volts.__slots__},
         target_saturation=config.target_mode == "saturation",
         charger_current_limit_a=limit,
         has_battery_limit=per is not None,
