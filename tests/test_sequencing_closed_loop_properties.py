@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -98,9 +99,35 @@ def simulate(case: Case, sequencing: dict[str, float] | None = None) -> tuple[Re
     return res, np.array(ocv_after[1:])
 
 
+# Known to fail (issue #18; #15 replaces this invariant with "never above the charge limit"):
+# Hypothesis finds cases often, e.g. the one pinned below, and ocv0 (22, 22, 22.75, 22, 23) V,
+# battery 2 inserted at 2 s, 19 A then 0.5 A: 1.02 A into battery 2 at step 181. Not strict:
+# a draw may miss them; the pinned case is strict.
+@pytest.mark.xfail(strict=False, reason="issue #18: known counterexamples, see comment")
 @settings(max_examples=50, deadline=None)
 @given(cases())
 def test_closed_loop_invariants(case: Case) -> None:
+    _check_invariants(case)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue #18: at step 11, 6.9 A flows into battery 5 while the load is supplied",
+)
+def test_closed_loop_invariants_known_counterexample() -> None:
+    _check_invariants(
+        Case(
+            ocv0_v=(21.0, 21.0, 21.0, 21.0, 22.0, 21.5),
+            r_ohm=(0.03125,) * 6,
+            dt_s=0.1,
+            load_t_s=(0.0, 1.0),
+            load_a=(32.0, 1.0),
+            insert=None,
+        )
+    )
+
+
+def _check_invariants(case: Case) -> None:
     res, ocv = simulate(case)
     tr = res.trace
     n = len(case.ocv0_v)
