@@ -299,6 +299,30 @@ PHASES = (
 )  # fmt: skip
 
 
+def _timed_tail(loop: Any, t: float, iv: Any, dt_s: float, acc: dict[str, int]) -> Any:
+    """The part of ``ClosedLoop.step`` after the plant: event kinds, supply, metrics, stop."""
+    from packpilot.sim.loop import with_supply
+
+    pc = time.perf_counter_ns
+    core, plant = loop.core, loop.plant
+    a = pc()
+    kinds = core.event_kinds() if core.ev.n[0] else None
+    b = pc()
+    acc["events"] += b - a
+    supply = loop._supply_events(t, iv, dt_s)
+    kinds = with_supply(kinds, supply, plant.n_packs)
+    a = pc()
+    acc["supply"] += a - b
+    loop.metrics.add(plant.pack, iv, loop._traction, kinds)
+    b = pc()
+    acc["metrics"] += b - a
+    stop = loop.cfg.sim.stop_when_unsupplied_s
+    if stop is not None:
+        loop.metrics.stop(loop.unsupplied_s >= stop, plant.pack)
+    acc["stop"] += pc() - b
+    return supply
+
+
 def _timed_step(loop: Any, k: int, dt_s: float, acc: dict[str, int]) -> Any:
     """``ClosedLoop.step`` with a clock between its phases (same calls, same order)."""
     from packpilot.control.core_kernel import DIR_CMD, DIR_M
@@ -339,20 +363,9 @@ def _timed_step(loop: Any, k: int, dt_s: float, acc: dict[str, int]) -> Any:
     iv = plant.step(dt_s, demand, loop.profile.kind)
     a = pc()
     acc["plant.step"] += a - b
-    events = core.events() if core.ev.n[0] else [[] for _ in range(plant.n_packs)]
-    b = pc()
-    acc["events"] += b - a
-    loop._supply_events(t, iv, events, dt_s)
-    a = pc()
-    acc["supply"] += a - b
-    loop.metrics.add(plant.pack, iv, loop._traction, events)
-    b = pc()
-    acc["metrics"] += b - a
-    stop = loop.cfg.sim.stop_when_unsupplied_s
-    if stop is not None:
-        loop.metrics.stop(loop.unsupplied_s >= stop, plant.pack)
-    acc["stop"] += pc() - b
-    return StepRecord(k, iv, events)
+    loop.n_stepped += 1
+    supply = _timed_tail(loop, t, iv, dt_s, acc)
+    return StepRecord(k, iv, loop, supply)
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -191,6 +191,7 @@ class Core:
             self.supervisor = Supervised(prm, st, s0)
             s0 += len(sup_ctl.STATUS)
             self.sources.append(Source(sup_ctl.REASONS, sup_ctl.LABELS))
+        self._kinds = [[r.kind for r in x.reasons] for x in self.sources]
         per_pack = sum(x.method.max_events(info) for x in self.compiled)
         per_pack += 0 if supervisor is None else sup_ctl.max_events(info)
         per_pack += 64 * (len(self.parts) - len(self.compiled))
@@ -312,6 +313,19 @@ class Core:
             out[int(ev.pack[k])].append(
                 render_one(reason, ev.t_s[k], int(ev.battery[k]), ev.val[k], s.labels)
             )
+        return out
+
+    def event_kinds(self) -> list[list[str]]:
+        """The kinds of the last step's events, per pack, in order: what :meth:`events`
+        would render, without formatting a message (the metrics count kinds every step)."""
+        out: list[list[str]] = [[] for _ in range(self.n_packs)]
+        ev, kinds = self.ev, self._kinds
+        for k in range(int(ev.n[0])):
+            src = int(ev.src[k])
+            if src == sr.FOREIGN_SRC:
+                out[0].append(self._foreign[int(ev.code[k])].kind)
+            else:
+                out[int(ev.pack[k])].append(kinds[src][int(ev.code[k])])
         return out
 
     def status_channels(self) -> list[tuple[int, StatusChannel, Labels]]:

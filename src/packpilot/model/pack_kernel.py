@@ -29,7 +29,7 @@ from packpilot.jit import kernel
 from packpilot.model.bus_kernel import _V_FLOOR, _solve_one
 from packpilot.model.cell.kernels import _advance_kernel, _thevenin_kernel
 from packpilot.model.charger import FLAG_NAMES
-from packpilot.model.numerics import pairwise_sum, segment_sum
+from packpilot.model.numerics import segment_sum, short_sum
 from packpilot.model.switches import KIND_MOSFET, KIND_RELAY
 
 LOAD_KINDS: dict[str, int] = {"current": 0, "power": 1, "resistance": 2}
@@ -161,7 +161,7 @@ def pack_electrical(
         if aux_index >= 0:
             g0 = string_group_starts[aux_index]
             g1 = string_group_starts[aux_index + 1] if aux_index + 1 < S else G
-            v_aux = _npmax(pairwise_sum(gvp, g0, g1 - g0), 1e-3)
+            v_aux = _npmax(short_sum(gvp, g0, g1 - g0), 1e-3)
             i_aux = aux_charge_a[p] if bus_prev[p] >= prm[P_AUX_MIN_V] else 0.0
             aux_p_bus = i_aux * v_aux / prm[P_AUX_EFF]
             extra = prm[P_AUX_BMS_W] / v_aux - i_aux

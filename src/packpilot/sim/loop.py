@@ -98,13 +98,52 @@ def n_steps(cfg: ScenarioConfig) -> int:
 Hook = Callable[[float], None]
 
 
-@dataclass
-class StepRecord:
-    """What one period did, for the recorders: the plant's flows and the events."""
+def with_supply(
+    kinds: list[list[str]] | None, supply: Sequence[tuple[int, Event]], n_packs: int
+) -> list[list[str]] | None:
+    """The core's event kinds per pack followed by the loop's own (load supply)."""
+    if not supply:
+        return kinds
+    out = kinds or [[] for _ in range(n_packs)]
+    for p, e in supply:
+        out[p].append(e.kind)
+    return out
 
-    k: int
-    iv: Interval
-    events: list[list[Event]]
+
+class StepRecord:
+    """What one period did, for the recorders: the plant's flows and the events.
+
+    The events are rendered (messages formatted) only when read, and must be read before the
+    loop steps again: the core's event buffer holds one step. A campaign never reads them.
+    """
+
+    __slots__ = ("_events", "_loop", "_n", "_supply", "iv", "k")
+
+    def __init__(
+        self, k: int, iv: Interval, loop: ClosedLoop, supply: Sequence[tuple[int, Event]] = ()
+    ) -> None:
+        self.k = k
+        self.iv = iv
+        self._loop = loop
+        self._n = loop.n_stepped
+        self._supply = supply
+        self._events: list[list[Event]] | None = None
+
+    @property
+    def events(self) -> list[list[Event]]:
+        """The step's events per pack: the core's, then the loop's own (load supply)."""
+        if self._events is None:
+            loop = self._loop
+            if loop.n_stepped != self._n:
+                raise RuntimeError(
+                    f"the events of step {self.k} were read after the loop stepped again"
+                )
+            core = loop.core
+            out = core.events() if core.ev.n[0] else [[] for _ in range(core.n_packs)]
+            for p, e in self._supply:
+                out[p].append(e)
+            self._events = out
+        return self._events
 
 
 @dataclass
@@ -126,6 +165,8 @@ class ClosedLoop:
         self.m = self.core.m
         self.was_supplied = np.ones(P, np.bool_)
         self.unsupplied_s = np.zeros(P)
+        self.n_stepped = 0
+        """Periods stepped so far (a record's events are readable until the next one)."""
         self._all_supplied = True
         """Every pack was supplied at the last step (so ``unsupplied_s`` is all zero)."""
         self._all_true = np.ones(P, np.bool_).tobytes()
@@ -197,39 +238,37 @@ class ClosedLoop:
         if self.links:
             self.links.send(t, core.cmd)
         iv = plant.step(dt_s, np.full(plant.n_packs, self.demand(t)), self.profile.kind)
-        events = core.events() if core.ev.n[0] else [[] for _ in range(plant.n_packs)]
-        self._supply_events(t, iv, events, dt_s)
-        self.metrics.add(plant.pack, iv, self._traction, events)
+        self.n_stepped += 1
+        kinds = core.event_kinds() if core.ev.n[0] else None
+        supply = self._supply_events(t, iv, dt_s)
+        self.metrics.add(plant.pack, iv, self._traction, with_supply(kinds, supply, plant.n_packs))
         stop = self.cfg.sim.stop_when_unsupplied_s
         if stop is not None:
             self.metrics.stop(self.unsupplied_s >= stop, plant.pack)
-        return StepRecord(k, iv, events)
+        return StepRecord(k, iv, self, supply)
 
     @property
     def running(self) -> bool:
         """Some pack has not stopped yet."""
         return bool(self.metrics.live.any())
 
-    def _supply_events(self, t: float, iv: Interval, events: list[list[Event]], dt: float) -> None:
+    def _supply_events(self, t: float, iv: Interval, dt: float) -> list[tuple[int, Event]]:
+        """(pack, event) of every pack whose load supply changed at this step."""
         supplied = iv.supplied
         if self._all_supplied and supplied.tobytes() == self._all_true:
-            return  # nothing changed: no event, was_supplied all True, unsupplied_s all zero
+            return []  # nothing changed: no event, was_supplied all True, unsupplied_s all zero
+        out: list[tuple[int, Event]] = []
         for p in np.nonzero(supplied != self.was_supplied)[0].tolist():
             if not supplied[p]:
-                events[p].append(
-                    Event(
-                        t,
-                        "LoadUnsupplied",
-                        None,
-                        "bus cannot supply the load",
-                        {"bus_v": float(iv.bus_v[p]), "demand_a": float(iv.load_demand_a[p])},
-                    )
-                )
+                data = {"bus_v": float(iv.bus_v[p]), "demand_a": float(iv.load_demand_a[p])}
+                msg = "bus cannot supply the load"
+                out.append((p, Event(t, "LoadUnsupplied", None, msg, data)))
             else:
-                events[p].append(Event(t, "LoadResupplied", None, "load supplied again"))
+                out.append((p, Event(t, "LoadResupplied", None, "load supplied again")))
         self.was_supplied = supplied.copy()
         self.unsupplied_s = np.where(supplied, 0.0, self.unsupplied_s + dt)
         self._all_supplied = bool(supplied.all())
+        return out
 
     def close(self) -> None:
         self.links.close()

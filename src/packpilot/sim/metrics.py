@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.contract.bms import Event
 from packpilot.jit import kernel
 from packpilot.model.pack import Interval, Pack
 
@@ -161,9 +160,9 @@ class Metrics:
         self.dsg_diode = np.zeros((P, S))
 
     def add(
-        self, pack: Pack, iv: Interval, traction: I64, events: Sequence[Sequence[Event]]
+        self, pack: Pack, iv: Interval, traction: I64, kinds: Sequence[Sequence[str]] | None
     ) -> None:
-        """Fold the step just taken (``iv``, the plant after it, its events)."""
+        """Fold the step just taken (``iv``, the plant after it, its event kinds per pack)."""
         soc, temp = pack.cell_states()
         accumulate(
             self.live, pack.string_cell_starts, traction, iv.cell_v, temp, soc, pack.capacity_ah,
@@ -172,10 +171,10 @@ class Metrics:
             self.max_temp_c, self.final_soc, self.peak_abs, self.peak_val, self.peak_cross,
             self.unsupplied_steps,
         )  # fmt: skip
-        if any(events):
-            for p, evs in enumerate(events):
-                if evs and self.live[p]:
-                    self.events[p].update(e.kind for e in evs)
+        if kinds is not None:
+            for p, ks in enumerate(kinds):
+                if ks and self.live[p]:
+                    self.events[p].update(ks)
         self.pack = pack
 
     def _ledgers(self, pack: Pack, mask: B1) -> None:

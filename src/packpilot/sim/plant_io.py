@@ -21,7 +21,7 @@ from packpilot.contract.arrays import NO_OPINION, BatteryArrays, CmdArrays, Meas
 from packpilot.contract.bms import SwitchKind
 from packpilot.contract.topology import PackInfo, Topology
 from packpilot.jit import kernel, kernel_inline
-from packpilot.model.numerics import _block, pairwise_sum
+from packpilot.model.numerics import segment_sum, short_sum
 from packpilot.model.pack import Interval, Pack
 from packpilot.model.switches import KIND_RELAY
 
@@ -137,22 +137,6 @@ def _npmax(a: float, b: float) -> float:
 
 
 @kernel_inline
-def _sum(x: Any, lo: int, n: int) -> float:
-    """``numerics.pairwise_sum`` inlined for a short run (its own ``_block``): the same
-    additions in the same order, without a call that passes (and reference-counts) an array
-    view per sum: 14 sums per uav_mission pack cost ~0.5 us that way."""
-    return _block(x, lo, n) if n <= 128 else pairwise_sum(x, lo, n)
-
-
-@kernel_inline
-def _segment_sum(x: Any, starts: Any, k: int) -> float:
-    """``numerics.segment_sum`` (``np.add.reduceat(x, starts)[k]``), inlined."""
-    lo = starts[k]
-    hi = starts[k + 1] if k + 1 < starts.size else x.size
-    return float(x[lo] + _sum(x, lo + 1, hi - lo - 1))
-
-
-@kernel_inline
 def _read_string(
     bat: BatteryArrays, p: int, k: int, s: int, t_s: float, cell_v: Array, soc: Array,
     temp: Array, cap: Array, starts: Any, group_starts: Any, string_group_starts: Any,
@@ -178,7 +162,7 @@ def _read_string(
         tmin = _npmin(tmin, temp[p, c])
         rem = _npmin(rem, soc[p, c] * cap[p, c])
         full = _npmin(full, cap[p, c])
-    bat.voltage_v[p, k] = _segment_sum(row, starts, s)
+    bat.voltage_v[p, k] = segment_sum(row, starts, s)
     bat.current_a[p, k] = string_a[p, s]
     bat.temp_c[p, k] = tmax
     bat.min_temp_c[p, k] = tmin
@@ -191,7 +175,7 @@ def _read_string(
     g0 = string_group_starts[s]
     ng = groups[s]
     for g in range(bat.group_v.shape[2]):
-        bat.group_v[p, k, g] = _segment_sum(row, group_starts, g0 + g) if g < ng else np.nan
+        bat.group_v[p, k, g] = segment_sum(row, group_starts, g0 + g) if g < ng else np.nan
     bat.n_groups[p, k] = ng
     bat.sw_chg[p, k] = chg_on[p, s] | welded[s] | fet_shorted[p, s, 0]
     bat.sw_dsg[p, k] = dsg_on[p, s] | welded[s] | fet_shorted[p, s, 1]
@@ -227,7 +211,7 @@ def sense(
             if not is_aux[s]:
                 scratch[n] = string_a[p, s]
                 n += 1
-        m.load_current_a[p] = scratch[0] + _sum(scratch, 1, n - 1)
+        m.load_current_a[p] = scratch[0] + short_sum(scratch, 1, n - 1)
         m.docked[p] = docked
 
 
