@@ -80,3 +80,15 @@ def test_editing_an_imported_module_recompiles_the_cached_kernel(
         assert (first, second) == (2.25, 3.25)
     else:  # numba's own locator: the defect this module exists to prevent
         assert (first, second) == (2.5, 2.5)
+
+
+def test_core_kernels_run_without_the_numba_runtime() -> None:
+    """The core's kernels are compiled with ``_nrt`` off (no reference counting on arena
+    views, docs/kernels.md); the plant's, which allocate, keep it."""
+    from packpilot.control import core_kernel
+    from packpilot.control.sequencing import rules as seq
+    from packpilot.model import pack_kernel
+
+    for dispatcher in (core_kernel.core_step, seq.step_packs, seq.step_pack):
+        assert dispatcher.targetoptions.get("_nrt") is False, dispatcher
+    assert "_nrt" not in pack_kernel.segment_sums.targetoptions

@@ -32,7 +32,7 @@ charger voltage differ.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -231,6 +231,14 @@ class ChargingState(NamedTuple):
 # ------------------------------------------------------------------------------ helpers
 
 
+
+@kernel_inline
+def _set_row(dst: Any, p: int, src: Any) -> None:
+    """``dst[p, :] = src`` element by element: a slice assignment may allocate a temporary
+    (numba guards against overlap), and the core's kernels run without an allocator."""
+    for i in range(src.shape[0]):
+        dst[p, i] = src[i]
+
 @kernel_inline
 def stage_current(
     limit_a: float, sqrt_law: bool, full_a: float, has_battery_limit: bool,
@@ -342,9 +350,9 @@ def _set_plan(
         ev.val[k, 8] = cmd_v
         ev.val[k, 9] = why
     st.stage[p] = stage
-    st.members[p, :] = st.new_members[p]
-    st.first[p, :] = st.new_first[p]
-    st.second[p, :] = st.new_second[p]
+    _set_row(st.members, p, st.new_members[p])
+    _set_row(st.first, p, st.new_first[p])
+    _set_row(st.second, p, st.new_second[p])
     st.cmd_v[p] = cmd_v
     st.vr1_v[p] = vr1_v
     st.vt_v[p] = vt_v
@@ -366,7 +374,7 @@ def _set_simple(
 def _set_top_off(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: int,
                  t_s: float) -> None:  # fmt: skip
     """Latch a kept top-off: every eligible battery, no first / second, at V_sat."""
-    st.new_members[p, :] = st.elig[p]
+    _set_row(st.new_members, p, st.elig[p])
     st.new_first[p].fill(False)
     st.new_second[p].fill(False)
     _set_plan(st, p, TOP_OFF, prm.v_sat, math.nan, math.nan, math.nan, WHY_NONE, ev, src, t_s)
@@ -424,7 +432,7 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
             vt = est[i]  # the lowest of the third level (first in sorted order)
     vr1 = v2 - prm.d1
     if v1 < vr1:
-        st.new_members[p, :] = st.new_first[p]
+        _set_row(st.new_members, p, st.new_first[p])
         cmd_v = fmin(prm.v_sat, vr1 + prm.k1)
         _set_plan(st, p, S20, cmd_v, vr1, math.nan, math.nan, WHY_NONE, ev, src, t_s)
         return
