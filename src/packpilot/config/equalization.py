@@ -6,7 +6,6 @@ import math
 from typing import Literal, Self
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
     ValidationInfo,
@@ -14,11 +13,17 @@ from pydantic import (
     model_validator,
 )
 
+from packpilot.config.base import MAX_TIME_S, Strict
+
+MIN_PERIOD_S = 1e-4
+"""Shortest T1, T2 or sampling period: the shortest control period (``sim.dt_s``); a shorter
+one only multiplies the work per step."""
+
 TimeMode = Literal["string_current", "fixed_current"]
 Equalizer = Literal["unidirectional", "bidirectional"]
 
 
-class EqualizationConfig(BaseModel):
+class EqualizationConfig(Strict):
     """Settings of the Newton-iterated unit-balancing-Ah equalizer (TOML section
     ``[equalization]``). The patent gives no values except N ∈ [0, 1] Ah and T1 > T2; the
     defaults are the spec's placeholders."""
@@ -98,8 +103,10 @@ class EqualizationConfig(BaseModel):
     @classmethod
     def _time_positive(cls, v: float, info: ValidationInfo) -> float:
         name = info.field_name
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"{name} must be a positive time in s (got {v})")
+        if not (math.isfinite(v) and MIN_PERIOD_S <= v <= MAX_TIME_S):
+            raise ValueError(
+                f"{name} must be a time of {MIN_PERIOD_S:g}..{MAX_TIME_S:g} s (got {v})"
+            )
         return v
 
     @field_validator("n_ah")
@@ -127,8 +134,10 @@ class EqualizationConfig(BaseModel):
     @field_validator("max_balance_time_s")
     @classmethod
     def _clamp_positive(cls, v: float | None) -> float | None:
-        if v is not None and not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"max_balance_time_s must be a positive time in s or unset (got {v})")
+        if v is not None and not (math.isfinite(v) and 0.0 < v <= MAX_TIME_S):
+            raise ValueError(
+                f"max_balance_time_s must be a time of at most {MAX_TIME_S:g} s or unset (got {v})"
+            )
         return v
 
     @model_validator(mode="after")
