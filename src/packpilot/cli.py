@@ -19,6 +19,7 @@ from packpilot.control.registry import REGISTRY
 from packpilot.errors import PackPilotError
 
 if TYPE_CHECKING:
+    from packpilot.config import ScenarioConfig
     from packpilot.contract.record import Result
 
 app = typer.Typer(
@@ -79,38 +80,19 @@ def simulate(
 
         cfg = load_config(config)
         if can_interface or can_channel or can_log:
-            from packpilot.config import CanConfig
-
-            base = cfg.can or CanConfig()
-            can_cfg = base.model_copy(
-                update={
-                    k: v
-                    for k, v in (
-                        ("interface", can_interface),
-                        ("channel", can_channel),
-                        ("log", str(can_log) if can_log else None),
-                    )
-                    if v is not None
-                }
-            )
-            cfg = cfg.model_copy(update={"can": can_cfg})
-        if duration is not None:
-            cfg = cfg.model_copy(
-                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
-            )
-        if report is not None:  # before a long run, not after it
-            from packpilot.report.html import check_report_path
-
-            check_report_path(report)
+            cfg = _with_can(cfg, can_interface, can_channel, can_log)
+        cfg = _with_duration(cfg, duration)
+        _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         progress = False if no_progress or as_json else None
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
         if db is not None:
             from packpilot.io.telemetry import SQLiteRecorder
 
             with SQLiteRecorder(db) as recorder:
-                result = Runner(cfg, recorder=recorder, progress=progress).run()
+                build = lambda: Runner(cfg, recorder=recorder, progress=progress)  # noqa: E731
+                result = _named(config, build).run()
         else:
-            result = Runner(cfg, progress=progress).run()
+            result = _named(config, lambda: Runner(cfg, progress=progress)).run()
         if trace_csv is not None:
             from packpilot.io.telemetry import trace_to_csv
 
@@ -127,6 +109,70 @@ def simulate(
             _print_metrics(result.metrics)
 
     _guard(go)
+
+
+def _with_duration(cfg: ScenarioConfig, duration: float | None) -> ScenarioConfig:
+    """``--duration`` validated as ``sim.duration_s`` is (``--duration 0`` / ``-5`` were
+    tracebacks when the override bypassed the model)."""
+    if duration is None:
+        return cfg
+    return _revalidated(cfg, "sim", {"duration_s": duration}, "--duration")
+
+
+def _with_can(
+    cfg: ScenarioConfig, interface: str | None, channel: str | None, log: Path | None
+) -> ScenarioConfig:
+    """The ``[can]`` section with the command line's ``--can-*`` options, validated."""
+    update = {
+        k: v
+        for k, v in (("interface", interface), ("channel", channel), ("log", log))
+        if v is not None
+    }
+    return _revalidated(cfg, "can", {k: str(v) for k, v in update.items()}, "--can-*")
+
+
+def _revalidated(
+    cfg: ScenarioConfig, section: str, update: dict[str, Any], option: str
+) -> ScenarioConfig:
+    """``cfg`` with ``update`` merged into ``[section]``, through the section's model."""
+    from pydantic import ValidationError
+
+    from packpilot.config.base import fmt_error
+    from packpilot.errors import ConfigError
+
+    current = getattr(cfg, section)
+    data = {**(current.model_dump() if current is not None else {}), **update}
+    try:
+        return cfg.model_validate({**cfg.model_dump(), section: data})
+    except ValidationError as err:
+        raise ConfigError(fmt_error(option, err)) from None
+
+
+def _check_outputs(**paths: Path | None) -> None:
+    """Every output of ``simulate`` checked before the run, named by its flag."""
+    from packpilot.io.outputs import check_output
+
+    suffixes = {
+        "plot": (".png", ".svg", ".pdf"),
+        "report": (".html", ".htm"),
+        "can_log": (".blf", ".asc"),
+    }
+    for name, path in paths.items():
+        if path is not None:
+            check_output(path, f"--{name.replace('_', '-')}", suffixes.get(name, ()))
+
+
+def _named(config: Path, build: Callable[[], T]) -> T:
+    """Errors found while building a run from ``config`` (checks against the pack's cells)
+    name the file, as the config formatter's do."""
+    from packpilot.errors import ConfigError
+
+    try:
+        return build()
+    except ConfigError as err:
+        if str(config) in str(err):
+            raise
+        raise ConfigError(f"{config}: {err}") from None
 
 
 def _write_report(
@@ -261,12 +307,9 @@ def campaign(
         from packpilot import campaign as cp
         from packpilot.config import load_config
 
-        cfg = load_config(config)
-        if duration is not None:
-            cfg = cfg.model_copy(
-                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
-            )
+        cfg = _with_duration(load_config(config), duration)
         target = out if out is not None else Path(f"{config.stem}_campaign.parquet")
+        _check_outputs(out=target)
         show = not (as_json or no_progress) and sys.stdout.isatty()
         try:
             with cp.rich_progress(show) as progress:
@@ -325,12 +368,10 @@ def dashboard(
             raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
         if not 0 <= port <= 65535:
             raise ConfigError(f"--port {port}: must be 0..65535")
-        cfg = load_config(config)
-        if duration is not None:
-            cfg = cfg.model_copy(
-                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
-            )
-        runner = Runner(cfg, progress=False)
+        cfg = _with_duration(load_config(config), duration)
+        if db is not None:
+            _check_outputs(db=db)
+        runner = _named(config, lambda: Runner(cfg, progress=False))
         name = cfg.pack.name if "name" in cfg.pack.model_fields_set else config.stem
         dash = Dashboard(runner, scenario=name, speed=speed, db=db, host=host, port=port)
         typer.echo(f"dashboard for {name} on {dash.url}  (Ctrl-C to stop)", err=True)
