@@ -19,7 +19,7 @@ from pydantic import (
 from packpilot.errors import ConfigError
 
 
-def _plus_zero(x: float) -> float:
+def plus_zero(x: float) -> float:
     """``-0.0`` read as ``0.0``: it passes ``>= 0`` but flips the sign of whatever it scales
     (a spread of -0.0 made NumPy's ``uniform(high, low)`` refuse the draw)."""
     return x + 0.0
@@ -27,8 +27,8 @@ def _plus_zero(x: float) -> float:
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), AfterValidator(_plus_zero)]
-Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False), AfterValidator(_plus_zero)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), AfterValidator(plus_zero)]
+Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False), AfterValidator(plus_zero)]
 
 MAX_TIME_S = 1e9
 """Longest time any setting may name (~32 years): the longest run (10^8 periods of at most
@@ -37,7 +37,7 @@ CELL_V_MAX_V = 5.0
 """No cell chemistry PackPilot models rests above 5 V: a per-cell voltage beyond it is absurd."""
 
 Seconds = Annotated[
-    float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False), AfterValidator(_plus_zero)
+    float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False), AfterValidator(plus_zero)
 ]
 """A time or delay, 0 s to :data:`MAX_TIME_S`."""
 Period = Annotated[float, Field(gt=0, le=MAX_TIME_S, allow_inf_nan=False)]
@@ -139,4 +139,5 @@ __all__ = [
     "Strict",
     "fmt_error",
     "load_section_model",
+    "plus_zero",
 ]

@@ -38,6 +38,7 @@ from packpilot.config.base import (
     Strict,
     fmt_error,
     load_section_model,
+    plus_zero,
 )
 from packpilot.config.charging import ChargingConfig
 from packpilot.config.equalization import EqualizationConfig
@@ -105,10 +106,10 @@ class BatteryConfig(_Strict):
         None,
         description="battery DC resistance (sum of cell R0 at 25 degC, 50 % SOC); scales the cells",
     )
-    cell_soc_spread: Annotated[float, Field(ge=0, le=0.2)] = Field(
+    cell_soc_spread: Annotated[float, Field(ge=0, le=0.2), AfterValidator(plus_zero)] = Field(
         0.0, description="uniform +- spread of cell SOC inside each group"
     )
-    cell_capacity_spread: Annotated[float, Field(ge=0, le=0.3)] = Field(
+    cell_capacity_spread: Annotated[float, Field(ge=0, le=0.3), AfterValidator(plus_zero)] = Field(
         0.0, description="uniform +- relative spread of cell capacity"
     )
     switch: SwitchConfig | None = Field(None, description="default: pack.switch")

@@ -327,6 +327,7 @@ class SQLiteRecorder:
         try:
             self._commit(conn)
         except sqlite3.OperationalError as err:
+            self._drop_buffers()  # they cannot be written; closing must not fail again
             raise InputError(f"{self.path}: {_why(err)}") from None
 
     def _commit(self, conn: sqlite3.Connection) -> None:
@@ -350,7 +351,8 @@ class SQLiteRecorder:
                     (_dumps({k: sorted(v) for k, v in self._status_kinds.items()}), run_id),
                 )
         except BaseException:
-            conn.execute("ROLLBACK")
+            if conn.in_transaction:  # SQLITE_FULL has rolled it back already
+                conn.execute("ROLLBACK")
             raise
         conn.execute("COMMIT")
         self._steps.clear()
@@ -386,10 +388,9 @@ class SQLiteRecorder:
         finally:
             self._conn.close()
             self._conn = None
-            self._drop_buffers()
 
     def _drop_buffers(self) -> None:
-        """Forget rows a failed flush left behind (a full disk): they cannot be written."""
+        """Forget the buffered rows of a failed flush (a full disk): they cannot be written."""
         self._pending = 0
         self._steps.clear()
         self._aux_steps.clear()
