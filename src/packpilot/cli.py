@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime
 import json
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
@@ -35,15 +36,22 @@ T = TypeVar("T")
 
 
 def _guard(fn: Callable[[], T]) -> T:
-    try:
-        return fn()
-    except PackPilotError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(code=2) from None
-    except OSError as err:  # an output path in a missing directory, a read-only file, ...
-        where = f"{err.filename}: " if err.filename else ""
-        typer.echo(f"error: {where}{err.strerror or err}", err=True)
-        raise typer.Exit(code=2) from None
+    """Run a command: a user-facing error is one line and exit code 2. Warnings raised on the
+    way (a NumPy overflow on absurd input) are held back: shown after a command that works,
+    dropped when a clean error says what was wrong, so that error stays one line."""
+    with warnings.catch_warnings(record=True) as held:
+        try:
+            result = fn()
+        except PackPilotError as err:
+            typer.echo(f"error: {err}", err=True)
+            raise typer.Exit(code=2) from None
+        except OSError as err:  # an output path in a missing directory, a read-only file, ...
+            where = f"{err.filename}: " if err.filename else ""
+            typer.echo(f"error: {where}{err.strerror or err}", err=True)
+            raise typer.Exit(code=2) from None
+    for w in held:
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return result
 
 
 def _json_default(o: Any) -> Any:
