@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 from packpilot.config import ScenarioConfig
 from packpilot.config.base import CELL_V_MAX_V
+from packpilot.config.charging import ChargingConfig
 from packpilot.config.protection import ProtectionConfig
 from packpilot.contract.topology import PackInfo
 from packpilot.errors import ConfigError
@@ -46,9 +47,9 @@ def _check_protection(cfg: ScenarioConfig, full_v: float) -> None:
 def _check_charging(cfg: ScenarioConfig, infos: Sequence[PackInfo]) -> None:
     """The saturation voltage per cell must stay at or below the cell voltage limit (itself at
     most :data:`~packpilot.config.base.CELL_V_MAX_V`): 10 V per cell is a typo, not a setting."""
-    chg = cfg.section("charging")
-    limit = min(float(chg.cell_v_limit_v), CELL_V_MAX_V)
-    v_sat = float(chg.v_sat_v)
+    chg = cfg.charging or ChargingConfig()
+    limit = min(chg.cell_v_limit_v, CELL_V_MAX_V)
+    v_sat = chg.v_sat_v
     per_cell_basis = chg.voltage_basis == "cell"
     for info in infos:
         for b, groups in enumerate(info.groups_per_battery):
