@@ -21,6 +21,7 @@ from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
 from packpilot.model import loads
 from packpilot.model.pack import Pack
+from packpilot.sim import record
 from packpilot.sim.links import default_links, modelled
 from packpilot.sim.loop import ClosedLoop, build_core, load_profile, n_steps
 from packpilot.sim.plant_io import SimulatedPlant
@@ -108,6 +109,7 @@ class Runner:
             core.status_channels(),
             core.status.shape[2],
             capacity=min(total, 1 << 16),
+            max_rows=record.MAX_TRACE_ROWS,
         )
         self.run_id: int | None = None
         if self.recorder is not None:
