@@ -77,7 +77,11 @@ BAT = "pack.batteries.0"
         ("charging.cell_v_limit_v", 10.0, r"charging\.cell_v_limit_v"),
         ("plausibility.cell_v_range", [-1e9, 1e9], r"cell_v_range \(-1e\+09, 1e\+09\) must lie"),
         ("plausibility.temp_range_c", [-1e9, 1e9], r"temp_range_c .* must lie"),
-        ("plausibility.clear_after_s", 1e300, r"clear_after_s must be a finite value"),
+        (
+            "plausibility.clear_after_s",
+            1e300,
+            r"clear_after_s must be a finite value >= 0 \(at most",
+        ),
         ("equalization.t2_s", 1e-300, r"equalization\.t2_s: .*t2_s must be a time of"),
         ("equalization.t1_s", 1e300, r"equalization\.t1_s: .*t1_s must be a time of"),
     ],

@@ -112,7 +112,9 @@ class PlausibilityConfig(Strict):
                     raise ValueError(f"{name} must be > 0 s, or omitted to switch it off; got {v}")
                 continue
             if not (_finite(v) and 0.0 <= v <= MAX_TIME_S):
-                raise ValueError(f"{name} must be a finite value 0..{MAX_TIME_S:g}, got {v}")
+                raise ValueError(
+                    f"{name} must be a finite value >= 0 (at most {MAX_TIME_S:g}), got {v}"
+                )
         return self
 
     @classmethod
