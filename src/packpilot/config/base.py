@@ -3,6 +3,7 @@ formatter that turns a validation error into one line naming the file and the fi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Annotated, Any, TypeVar, get_args
 
@@ -59,13 +60,27 @@ def _holds_bool(value: Any) -> bool:
     return isinstance(value, list | tuple) and any(_holds_bool(v) for v in value)
 
 
+def _longest(value: Any) -> float:
+    """The largest finite magnitude of the numbers in ``value`` (also in lists and tables)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        x = abs(float(value))
+        return x if math.isfinite(x) else 0.0  # inf / NaN: each field's own check says
+    if isinstance(value, dict):
+        value = list(value.values())
+    if isinstance(value, list | tuple):
+        return max((_longest(v) for v in value), default=0.0)
+    return 0.0
+
+
 class Strict(BaseModel):
     """Unknown keys are errors; a validated config never changes; ``true`` is not a number.
 
     Pydantic's lax mode reads ``dt_s = true`` as 1.0 and ``thermal_nodes = true`` as 1. One
     check here, for every field of every section, refuses a boolean (also inside a list) unless
     the field's type itself names ``bool`` -- rather than a strict type per field, which would
-    also refuse a TOML array for a tuple."""
+    also refuse a TOML array for a tuple. By the same rule every field named ``*_s`` or ``t_*``
+    (sequencing's ``t_on``) is a time and holds at most :data:`MAX_TIME_S`
+    (``fault_hold_s = 1e308`` was accepted)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -75,6 +90,9 @@ class Strict(BaseModel):
         field = cls.model_fields.get(info.field_name or "")
         if field is not None and _holds_bool(value) and not _mentions_bool(field.annotation):
             raise ValueError("must not be a boolean")
+        name = info.field_name or ""
+        if (name.endswith("_s") or name.startswith("t_")) and _longest(value) > MAX_TIME_S:
+            raise ValueError(f"a time of at most {MAX_TIME_S:g} s is expected")
         return value
 
 

@@ -22,7 +22,7 @@ from typing import Any, Literal, Protocol
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import CELL_V_MAX_V, MAX_TIME_S, Strict, load_section_model
+from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
 
 Quantity = Literal[
     "cell_v_max", "cell_v_min", "chg_c_rate", "dsg_c_rate", "temp_max_c", "temp_min_c"
@@ -161,11 +161,9 @@ class LimitRow(Strict):
             raise ValueError(
                 f"{who}: debounce must be >= 1 consecutive samples, got {self.debounce}"
             )
-        if not (_finite(self.delay_s) and 0.0 <= self.delay_s <= MAX_TIME_S):
+        if not (_finite(self.delay_s) and self.delay_s >= 0.0):
             raise ValueError(f"{who}: delay_s must be a finite time >= 0 s, got {self.delay_s}")
-        if self.latch_s is not None and not (
-            _finite(self.latch_s) and 0.0 <= self.latch_s <= MAX_TIME_S
-        ):
+        if self.latch_s is not None and not (_finite(self.latch_s) and self.latch_s >= 0.0):
             raise ValueError(
                 f"{who}: latch_s must be a finite time >= 0 s or omitted for a manual reset, "
                 f"got {self.latch_s}"

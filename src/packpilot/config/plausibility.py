@@ -8,7 +8,7 @@ from typing import Any
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import CELL_V_MAX_V, MAX_TIME_S, Strict, load_section_model
+from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
 
 
 def _finite(x: object) -> bool:
@@ -108,13 +108,11 @@ class PlausibilityConfig(Strict):
         ):
             v = getattr(self, name)
             if name in ("stuck_time_s", "stuck_temp_time_s"):
-                if v is not None and not (_finite(v) and 0.0 < v <= MAX_TIME_S):
+                if v is not None and not (_finite(v) and v > 0.0):
                     raise ValueError(f"{name} must be > 0 s, or omitted to switch it off; got {v}")
                 continue
-            if not (_finite(v) and 0.0 <= v <= MAX_TIME_S):
-                raise ValueError(
-                    f"{name} must be a finite value >= 0 (at most {MAX_TIME_S:g}), got {v}"
-                )
+            if not (_finite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be a finite value >= 0, got {v}")
         return self
 
     @classmethod
