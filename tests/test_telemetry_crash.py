@@ -14,6 +14,7 @@ import pytest
 
 from packpilot.errors import InputError
 from packpilot.io.telemetry import SQLiteRecorder, list_runs, liveness, load_run
+from packpilot.report.html import run_info_from_db
 from tests.test_telemetry_sqlite import NAMES, make_samples
 
 
@@ -63,6 +64,7 @@ def test_a_run_whose_writer_died_is_aborted(tmp_path: Path) -> None:
     proc.join(30)
     (run,) = list_runs(db)
     assert run["status"] == "aborted"  # computed by a reader, the file is not touched
+    assert run_info_from_db(db).status == "aborted"  # what the report's header shows
     assert load_run(db).trace.t_s.size == 3  # every committed row is there
     with sqlite3.connect(db) as conn:
         assert conn.execute("SELECT status FROM runs").fetchone()[0] == "running"
