@@ -36,7 +36,9 @@ def test_unknown_key_is_named(tmp_path: Path) -> None:
 
 def test_negative_capacity_is_named(tmp_path: Path) -> None:
     p = _write(tmp_path, BASE + "capacity_ah = -5.0\n")
-    with pytest.raises(ConfigError, match=r"pack\.batteries\.0\.capacity_ah: .*greater than 0"):
+    with pytest.raises(
+        ConfigError, match=r"pack\.batteries\.0\.capacity_ah: .*greater than or equal to 0\.001"
+    ):
         load_config(p)
 
 

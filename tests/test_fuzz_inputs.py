@@ -4,10 +4,13 @@ field or row (or a normal run when the mutation happens to be valid)."""
 from __future__ import annotations
 
 import copy
+import time
 import tomllib
+import warnings
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import tomli_w
 from hypothesis import HealthCheck, given, settings
@@ -217,3 +220,125 @@ def test_not_a_file_and_unwritable_output(tmp_path: Path) -> None:
     res = RUNNER.invoke(app, ["replay", "equalization", str(log), "--out", str(out)])
     _check(res, "out.csv")
     assert res.exit_code == 2
+
+
+# ---------------------------------------------------------------- cheap, many (issue #18 §3)
+# The tests above feed the CLI and run 0.2 s of simulation per example; these validate and
+# parse only (a few ms each), so CI affords hundreds of cases: every drawn config must either
+# be one clean ConfigError naming the file, or a valid config whose run is bounded.
+
+ABSURD = st.sampled_from(
+    [0, -0.0, 1e-300, -1e-300, 1e308, -1e308, 1e24, -1, 2**70, True, False, "", [], {}, 1e9, 4.5]
+)
+SCHEMA_VALUES = st.one_of(ABSURD, BAD_VALUES, st.floats(-1e12, 1e12))
+SCHEMA_PATHS = [*PATHS, *((*p,) for p in MISSION_PATHS)]
+MAX_CASE_S = 5.0
+"""Bound on one case: validating never takes long; a hang (10^30 steps) would show here."""
+
+
+def _validated_or_one_line(p: Path) -> Any:
+    """``load_config(p)``: a config, or None after checking the error is one clean line."""
+    from packpilot.config import load_config
+    from packpilot.errors import ConfigError
+
+    try:
+        return load_config(p)
+    except ConfigError as err:
+        text = str(err)
+        assert "\n" not in text and len(text) < 1000, text
+        assert text.startswith(str(p)), text
+        return None
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=FIXTURE_OK)
+@given(
+    mutations=st.lists(
+        st.tuples(st.sampled_from(SCHEMA_PATHS), SCHEMA_VALUES), min_size=1, max_size=3
+    ),
+    mission=st.booleans(),
+)
+def test_fuzzed_schema_is_refused_cleanly_or_bounded(
+    tmp_path: Path, mutations: list[tuple[tuple[Any, ...], Any]], mission: bool
+) -> None:
+    from packpilot.config.scenario import MAX_STEPS
+    from packpilot.sim.loop import n_steps
+
+    cfg = copy.deepcopy(MISSION if mission else BASE)
+    for path, value in mutations:
+        try:
+            _set(cfg, path, value)
+        except (TypeError, IndexError, KeyError):
+            continue  # the path runs through a mutated scalar
+    p = tmp_path / "fuzz.toml"
+    try:
+        p.write_text(tomli_w.dumps(cfg))
+    except (TypeError, ValueError):
+        return
+    t0 = time.perf_counter()
+    scenario = _validated_or_one_line(p)
+    if scenario is not None:
+        assert 1 <= n_steps(scenario) <= MAX_STEPS
+    assert time.perf_counter() - t0 < MAX_CASE_S
+
+
+CSV_CELL = st.one_of(
+    CELL,
+    st.sampled_from(["1e306", "-1e306", "1e308", "1e-300", "-0", "1e24", "0x10", "1_0"]),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=FIXTURE_OK)
+@given(
+    column=st.sampled_from(["current_a", "power_w", "resistance_ohm"]),
+    rows=st.lists(st.lists(CSV_CELL, min_size=0, max_size=3), min_size=0, max_size=8),
+)
+def test_fuzzed_profile_csv_is_parsed_or_refused(
+    tmp_path: Path, column: str, rows: list[list[str]]
+) -> None:
+    from packpilot.errors import InputError
+    from packpilot.model import loads
+    from packpilot.model.loads import _BOUNDS
+
+    p = tmp_path / "prof.csv"
+    p.write_text("\n".join([f"t_s,{column}", *(",".join(r) for r in rows)]) + "\n")
+    try:
+        prof = loads.from_csv(p)
+    except InputError as err:
+        assert "\n" not in str(err) and str(err).startswith(str(p))
+        return
+    lo, hi = _BOUNDS[column]
+    assert np.all(np.isfinite(prof.t_s)) and np.all((lo <= prof.value) & (prof.value <= hi))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=FIXTURE_OK)
+@given(
+    method=st.sampled_from(["protection", "sequencing", "equalization"]),
+    rows=st.lists(st.lists(CSV_CELL, min_size=4, max_size=5), min_size=1, max_size=5),
+)
+def test_fuzzed_replay_csv_is_replayed_or_refused(
+    tmp_path: Path, method: str, rows: list[list[str]]
+) -> None:
+    """The replay functions in-process (no CLI): a clean InputError or a bounded replay."""
+    from packpilot.config import load_section
+    from packpilot.control.registry import REGISTRY
+    from packpilot.errors import InputError
+
+    header = {
+        "protection": ["t_s", "current_a", "temp_c", "min_cell_v"],
+        "sequencing": ["t_s", "v_0", "v_1", "i_0", "i_1"],
+        "equalization": ["t_s", "current_a", "v_0", "v_1", "v_2"],
+    }[method]
+    p = tmp_path / "log.csv"
+    body = [",".join(header), *(",".join(r[: len(header)]) for r in rows)]
+    p.write_text("\n".join(body) + "\n")
+    replay = REGISTRY[method].replay
+    assert replay is not None
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # a NumPy overflow is a finding
+        try:
+            replay.function()(p, load_section(None, method))
+        except InputError as err:
+            assert "\n" not in str(err) and str(err).startswith(str(p))
+    assert time.perf_counter() - t0 < MAX_CASE_S

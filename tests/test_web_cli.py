@@ -84,7 +84,7 @@ def test_bad_arguments_are_one_line_errors(tmp_path: Path) -> None:
     for args, needle in (
         (["--speed", "-1"], "--speed -1.0: must be >= 0"),
         (["--port", "70000"], "--port 70000: must be 0..65535"),
-        (["--db", str(tmp_path / "no" / "dir.sqlite")], "cannot open"),
+        (["--db", str(tmp_path / "no" / "dir.sqlite")], "does not exist"),
         (["--db", str(tmp_path / "bad.sqlite")], "not a PackPilot telemetry database"),
     ):
         r = subprocess.run(

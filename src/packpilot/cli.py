@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime
 import json
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
@@ -19,6 +20,7 @@ from packpilot.control.registry import REGISTRY
 from packpilot.errors import PackPilotError
 
 if TYPE_CHECKING:
+    from packpilot.config import ScenarioConfig
     from packpilot.contract.record import Result
 
 app = typer.Typer(
@@ -34,15 +36,22 @@ T = TypeVar("T")
 
 
 def _guard(fn: Callable[[], T]) -> T:
-    try:
-        return fn()
-    except PackPilotError as err:
-        typer.echo(f"error: {err}", err=True)
-        raise typer.Exit(code=2) from None
-    except OSError as err:  # an output path in a missing directory, a read-only file, ...
-        where = f"{err.filename}: " if err.filename else ""
-        typer.echo(f"error: {where}{err.strerror or err}", err=True)
-        raise typer.Exit(code=2) from None
+    """Run a command: a user-facing error is one line and exit code 2. Warnings raised on the
+    way (a NumPy overflow on absurd input) are held back: shown after a command that works,
+    dropped when a clean error says what was wrong, so that error stays one line."""
+    with warnings.catch_warnings(record=True) as held:
+        try:
+            result = fn()
+        except PackPilotError as err:
+            typer.echo(f"error: {err}", err=True)
+            raise typer.Exit(code=2) from None
+        except OSError as err:  # an output path in a missing directory, a read-only file, ...
+            where = f"{err.filename}: " if err.filename else ""
+            typer.echo(f"error: {where}{err.strerror or err}", err=True)
+            raise typer.Exit(code=2) from None
+    for w in held:
+        warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return result
 
 
 def _json_default(o: Any) -> Any:
@@ -79,38 +88,19 @@ def simulate(
 
         cfg = load_config(config)
         if can_interface or can_channel or can_log:
-            from packpilot.config import CanConfig
-
-            base = cfg.can or CanConfig()
-            can_cfg = base.model_copy(
-                update={
-                    k: v
-                    for k, v in (
-                        ("interface", can_interface),
-                        ("channel", can_channel),
-                        ("log", str(can_log) if can_log else None),
-                    )
-                    if v is not None
-                }
-            )
-            cfg = cfg.model_copy(update={"can": can_cfg})
-        if duration is not None:
-            cfg = cfg.model_copy(
-                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
-            )
-        if report is not None:  # before a long run, not after it
-            from packpilot.report.html import check_report_path
-
-            check_report_path(report)
+            cfg = _with_can(cfg, can_interface, can_channel, can_log)
+        cfg = _with_duration(cfg, duration)
+        _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         progress = False if no_progress or as_json else None
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
         if db is not None:
             from packpilot.io.telemetry import SQLiteRecorder
 
             with SQLiteRecorder(db) as recorder:
-                result = Runner(cfg, recorder=recorder, progress=progress).run()
+                build = lambda: Runner(cfg, recorder=recorder, progress=progress)  # noqa: E731
+                result = _named(config, build).run()
         else:
-            result = Runner(cfg, progress=progress).run()
+            result = _named(config, lambda: Runner(cfg, progress=progress)).run()
         if trace_csv is not None:
             from packpilot.io.telemetry import trace_to_csv
 
@@ -127,6 +117,70 @@ def simulate(
             _print_metrics(result.metrics)
 
     _guard(go)
+
+
+def _with_duration(cfg: ScenarioConfig, duration: float | None) -> ScenarioConfig:
+    """``--duration`` validated as ``sim.duration_s`` is (``--duration 0`` / ``-5`` were
+    tracebacks when the override bypassed the model)."""
+    if duration is None:
+        return cfg
+    return _revalidated(cfg, "sim", {"duration_s": duration}, "--duration")
+
+
+def _with_can(
+    cfg: ScenarioConfig, interface: str | None, channel: str | None, log: Path | None
+) -> ScenarioConfig:
+    """The ``[can]`` section with the command line's ``--can-*`` options, validated."""
+    update = {
+        k: v
+        for k, v in (("interface", interface), ("channel", channel), ("log", log))
+        if v is not None
+    }
+    return _revalidated(cfg, "can", {k: str(v) for k, v in update.items()}, "--can-*")
+
+
+def _revalidated(
+    cfg: ScenarioConfig, section: str, update: dict[str, Any], option: str
+) -> ScenarioConfig:
+    """``cfg`` with ``update`` merged into ``[section]``, through the section's model."""
+    from pydantic import ValidationError
+
+    from packpilot.config.base import fmt_error
+    from packpilot.errors import ConfigError
+
+    current = getattr(cfg, section)
+    data = {**(current.model_dump() if current is not None else {}), **update}
+    try:
+        return cfg.model_validate({**cfg.model_dump(), section: data})
+    except ValidationError as err:
+        raise ConfigError(fmt_error(option, err)) from None
+
+
+def _check_outputs(**paths: Path | None) -> None:
+    """Every output of ``simulate`` checked before the run, named by its flag."""
+    from packpilot.io.outputs import check_output
+
+    suffixes = {
+        "plot": (".png", ".svg", ".pdf"),
+        "report": (".html", ".htm"),
+        "can_log": (".blf", ".asc"),
+    }
+    for name, path in paths.items():
+        if path is not None:
+            check_output(path, f"--{name.replace('_', '-')}", suffixes.get(name, ()))
+
+
+def _named(config: Path, build: Callable[[], T]) -> T:
+    """Errors found while building a run from ``config`` (checks against the pack's cells)
+    name the file, as the config formatter's do."""
+    from packpilot.errors import ConfigError
+
+    try:
+        return build()
+    except ConfigError as err:
+        if str(config) in str(err):
+            raise
+        raise ConfigError(f"{config}: {err}") from None
 
 
 def _write_report(
@@ -261,12 +315,9 @@ def campaign(
         from packpilot import campaign as cp
         from packpilot.config import load_config
 
-        cfg = load_config(config)
-        if duration is not None:
-            cfg = cfg.model_copy(
-                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
-            )
+        cfg = _with_duration(load_config(config), duration)
         target = out if out is not None else Path(f"{config.stem}_campaign.parquet")
+        _check_outputs(out=target)
         show = not (as_json or no_progress) and sys.stdout.isatty()
         try:
             with cp.rich_progress(show) as progress:
@@ -325,12 +376,10 @@ def dashboard(
             raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
         if not 0 <= port <= 65535:
             raise ConfigError(f"--port {port}: must be 0..65535")
-        cfg = load_config(config)
-        if duration is not None:
-            cfg = cfg.model_copy(
-                update={"sim": cfg.sim.model_copy(update={"duration_s": duration})}
-            )
-        runner = Runner(cfg, progress=False)
+        cfg = _with_duration(load_config(config), duration)
+        if db is not None:
+            _check_outputs(db=db)
+        runner = _named(config, lambda: Runner(cfg, progress=False))
         name = cfg.pack.name if "name" in cfg.pack.model_fields_set else config.stem
         dash = Dashboard(runner, scenario=name, speed=speed, db=db, host=host, port=port)
         typer.echo(f"dashboard for {name} on {dash.url}  (Ctrl-C to stop)", err=True)

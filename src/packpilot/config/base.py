@@ -3,23 +3,97 @@ formatter that turns a validation error into one line naming the file and the fi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from packpilot.errors import ConfigError
 
+
+def plus_zero(x: float) -> float:
+    """``-0.0`` read as ``0.0``: it passes ``>= 0`` but flips the sign of whatever it scales
+    (a spread of -0.0 made NumPy's ``uniform(high, low)`` refuse the draw)."""
+    return x + 0.0
+
+
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False), AfterValidator(plus_zero)]
+Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False), AfterValidator(plus_zero)]
+
+MAX_TIME_S = 1e9
+"""Longest time any setting may name (~32 years): the longest run (10^8 periods of at most
+10 s). Larger values are typos, and a time of 1e308 s overflows once it becomes milliseconds."""
+CELL_V_MAX_V = 5.0
+"""No cell chemistry PackPilot models rests above 5 V: a per-cell voltage beyond it is absurd."""
+
+Seconds = Annotated[
+    float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False), AfterValidator(plus_zero)
+]
+"""A time or delay, 0 s to :data:`MAX_TIME_S`."""
+Period = Annotated[float, Field(gt=0, le=MAX_TIME_S, allow_inf_nan=False)]
+"""A duration that must pass (a timeout, a window): > 0 s, at most :data:`MAX_TIME_S`."""
+
+
+MAX_SHOWN_CHARS = 80
+"""Longest input value an error message quotes: a 1 MB battery name must not become a 1 MB
+"one-line" error."""
+
+
+def _mentions_bool(tp: Any) -> bool:
+    return tp is bool or any(_mentions_bool(a) for a in get_args(tp))
+
+
+def _holds_bool(value: Any) -> bool:
+    if isinstance(value, bool):
+        return True
+    return isinstance(value, list | tuple) and any(_holds_bool(v) for v in value)
+
+
+def _longest(value: Any) -> float:
+    """The largest finite magnitude of the numbers in ``value`` (also in lists and tables)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        x = abs(float(value))
+        return x if math.isfinite(x) else 0.0  # inf / NaN: each field's own check says
+    if isinstance(value, dict):
+        value = list(value.values())
+    if isinstance(value, list | tuple):
+        return max((_longest(v) for v in value), default=0.0)
+    return 0.0
 
 
 class Strict(BaseModel):
-    """Unknown keys are errors; a validated config never changes."""
+    """Unknown keys are errors; a validated config never changes; ``true`` is not a number.
+
+    Pydantic's lax mode reads ``dt_s = true`` as 1.0 and ``thermal_nodes = true`` as 1. One
+    check here, for every field of every section, refuses a boolean (also inside a list) unless
+    the field's type itself names ``bool`` -- rather than a strict type per field, which would
+    also refuse a TOML array for a tuple. By the same rule every field named ``*_s`` or ``t_*``
+    (sequencing's ``t_on``) is a time and holds at most :data:`MAX_TIME_S`
+    (``fault_hold_s = 1e308`` was accepted)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_as_number(cls, value: Any, info: ValidationInfo) -> Any:
+        field = cls.model_fields.get(info.field_name or "")
+        if field is not None and _holds_bool(value) and not _mentions_bool(field.annotation):
+            raise ValueError("must not be a boolean")
+        name = info.field_name or ""
+        if (name.endswith("_s") or name.startswith("t_")) and _longest(value) > MAX_TIME_S:
+            raise ValueError(f"a time of at most {MAX_TIME_S:g} s is expected")
+        return value
 
 
 M = TypeVar("M", bound=BaseModel)
@@ -45,11 +119,18 @@ def fmt_error(source: str, err: ValidationError, prefix: str = "") -> str:
     shown = (
         ""
         if isinstance(inp, dict | list) or first["type"] == "missing" or "(got " in msg
-        else f" (got {inp!r})"
+        else f" (got {_clip(repr(inp))})"
     )
     more = len(err.errors()) - 1
     tail = f" [+{more} more error(s)]" if more else ""
-    return f"{source}: {loc}: {msg}{shown}{tail}"
+    return f"{source}: {_clip(loc)}: {_clip(msg, 4 * MAX_SHOWN_CHARS)}{shown}{tail}"
+
+
+def _clip(text: str, limit: int = MAX_SHOWN_CHARS) -> str:
+    """``text`` shortened to ``limit`` characters (an ellipsis and the length say it was)."""
+    if len(text) <= limit:
+        return text
+    return f"{text[: limit - 1]}… ({len(text):,} chars)"
 
 
 def load_section_model(
@@ -64,11 +145,17 @@ def load_section_model(
 
 
 __all__ = [
+    "CELL_V_MAX_V",
+    "MAX_SHOWN_CHARS",
+    "MAX_TIME_S",
     "Finite",
     "Fraction",
     "NonNegFloat",
+    "Period",
     "PosFloat",
+    "Seconds",
     "Strict",
     "fmt_error",
     "load_section_model",
+    "plus_zero",
 ]

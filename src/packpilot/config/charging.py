@@ -11,9 +11,9 @@ import math
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import load_section_model
+from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
 
 REFERENCE_SERIES = 30
 """Series cells of the ~100 V battery the battery-level defaults were written for; with
@@ -35,7 +35,7 @@ VOLTAGE_FIELDS: tuple[str, ...] = (
 """Settings that scale with the series count when ``voltage_basis = "cell"``."""
 
 
-class ChargingConfig(BaseModel):
+class ChargingConfig(Strict):
     """Staged-charging settings. Voltages are per battery (``voltage_basis = "battery"``, the
     spec's ~100 V example values) or per series cell (``"cell"``, multiplied by each battery's
     series-group count)."""
@@ -118,7 +118,10 @@ class ChargingConfig(BaseModel):
         description="A battery at V_sat whose charge current has fallen to this is full (A).",
     )
     cell_v_limit_v: float = Field(
-        default=4.2, gt=0.0, description="Max cell voltage (per cell, never scaled): opens relay."
+        default=4.2,
+        gt=0.0,
+        le=CELL_V_MAX_V,
+        description="Max cell voltage (per cell, never scaled): opens relay.",
     )
     r_comp_initial_ohm: float = Field(
         default=0.0,

@@ -6,7 +6,6 @@ import math
 from typing import Literal, Self
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
     ValidationInfo,
@@ -14,11 +13,17 @@ from pydantic import (
     model_validator,
 )
 
+from packpilot.config.base import Strict
+
+MIN_PERIOD_S = 1e-4
+"""Shortest T1, T2 or sampling period: the shortest control period (``sim.dt_s``); a shorter
+one only multiplies the work per step."""
+
 TimeMode = Literal["string_current", "fixed_current"]
 Equalizer = Literal["unidirectional", "bidirectional"]
 
 
-class EqualizationConfig(BaseModel):
+class EqualizationConfig(Strict):
     """Settings of the Newton-iterated unit-balancing-Ah equalizer (TOML section
     ``[equalization]``). The patent gives no values except N ∈ [0, 1] Ah and T1 > T2; the
     defaults are the spec's placeholders."""
@@ -98,8 +103,8 @@ class EqualizationConfig(BaseModel):
     @classmethod
     def _time_positive(cls, v: float, info: ValidationInfo) -> float:
         name = info.field_name
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"{name} must be a positive time in s (got {v})")
+        if not (math.isfinite(v) and v >= MIN_PERIOD_S):
+            raise ValueError(f"{name} must be a time of at least {MIN_PERIOD_S:g} s (got {v})")
         return v
 
     @field_validator("n_ah")

@@ -20,9 +20,9 @@ from collections.abc import Mapping, Sequence
 from itertools import pairwise
 from typing import Any, Literal, Protocol
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import load_section_model
+from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
 
 Quantity = Literal[
     "cell_v_max", "cell_v_min", "chg_c_rate", "dsg_c_rate", "temp_max_c", "temp_min_c"
@@ -41,6 +41,17 @@ QUANTITY_DIRECTION: Mapping[str, Literal["above", "below"]] = {
     "temp_min_c": "below",
 }
 """The only meaningful direction of each quantity (a 'max cell voltage below' row is a typo)."""
+
+QUANTITY_RANGE: Mapping[str, tuple[float, float]] = {
+    "cell_v_max": (0.0, CELL_V_MAX_V),
+    "cell_v_min": (0.0, CELL_V_MAX_V),
+    "chg_c_rate": (0.0, 1000.0),
+    "dsg_c_rate": (0.0, 1000.0),
+    "temp_max_c": (-100.0, 300.0),
+    "temp_min_c": (-100.0, 300.0),
+}
+"""Where a threshold or reset of each quantity can physically lie (a cell_v trip at 100 V can
+never fire: it is a typo, most likely a battery voltage)."""
 
 QUANTITIES: tuple[str, ...] = tuple(QUANTITY_DIRECTION)
 TIERS: tuple[str, ...] = ("warn", "derate", "trip")
@@ -73,7 +84,7 @@ class Reading(Protocol):
 # --------------------------------------------------------------------------------- the table
 
 
-class LimitRow(BaseModel):
+class LimitRow(Strict):
     """One tier of one limit: when it fires, what it opens, and how it clears."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -129,6 +140,13 @@ class LimitRow(BaseModel):
             raise ValueError(f"{who}: threshold must be a finite number, got {self.threshold}")
         if not _finite(self.reset):
             raise ValueError(f"{who}: reset must be a finite number, got {self.reset}")
+        lo, hi = QUANTITY_RANGE[self.quantity]
+        for name in ("threshold", "reset"):
+            if not lo <= getattr(self, name) <= hi:
+                raise ValueError(
+                    f"{who}: {name} {getattr(self, name)} is outside {lo:g}..{hi:g} "
+                    f"(the physical range of {self.quantity})"
+                )
         if self.direction == "above" and not self.reset < self.threshold:
             raise ValueError(
                 f"{who}: reset {self.reset} must be below threshold {self.threshold} "
@@ -216,7 +234,7 @@ DEFAULT_ROWS: tuple[LimitRow, ...] = (
 # ------------------------------------------------------------------------------ derating
 
 
-class CurveTable(BaseModel):
+class CurveTable(Strict):
     """A piecewise-linear C-rate limit over one input, held constant beyond its end points."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -258,7 +276,7 @@ def _curve(points: Sequence[tuple[float, float]]) -> CurveTable:
     return CurveTable(x=tuple(p[0] for p in points), c_rate=tuple(p[1] for p in points))
 
 
-class DeratingConfig(BaseModel):
+class DeratingConfig(Strict):
     """Current-limit tables in C (multiplied by the battery capacity). Defaults: NMC/LiPo UAV cell
     with 2C continuous charge and 15C continuous discharge at room temperature."""
 
@@ -321,13 +339,15 @@ def _temp_lookup(table: CurveTable, bm: Reading) -> float:
 # ---------------------------------------------------------------------------------- config
 
 
-class LimitsConfig(BaseModel):
+class LimitsConfig(Strict):
     """Absolute safety limits (warn / derate / trip rows) and the current-derating tables."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     rows: tuple[LimitRow, ...] = Field(
-        default=DEFAULT_ROWS, description="The limit table; see docs/safety.md for the defaults."
+        default=DEFAULT_ROWS,
+        min_length=1,
+        description="The limit table; see docs/safety.md for the defaults.",
     )
     derating: DeratingConfig = Field(default_factory=DeratingConfig)
     derate_fraction: float = Field(

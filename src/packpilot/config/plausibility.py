@@ -6,16 +6,25 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import load_section_model
+from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
 
 
 def _finite(x: object) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
 
 
-class PlausibilityConfig(BaseModel):
+ENVELOPE: dict[str, tuple[float, float]] = {
+    "cell_v_range": (0.0, 2 * CELL_V_MAX_V),
+    "temp_range_c": (-100.0, 300.0),
+    "current_range_c": (-1000.0, 1000.0),
+    "soc_range": (-1.0, 2.0),
+}
+"""Where each plausibility range may lie: beyond this no sensor reading is physical."""
+
+
+class PlausibilityConfig(Strict):
     """Thresholds and delays of the plausibility checks (defaults: Li-ion, see docs/safety.md)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -76,10 +85,15 @@ class PlausibilityConfig(BaseModel):
 
     @model_validator(mode="after")
     def _check(self) -> PlausibilityConfig:
-        for name in ("cell_v_range", "temp_range_c", "current_range_c", "soc_range"):
+        for name, (least, most) in ENVELOPE.items():
             lo, hi = getattr(self, name)
             if not (_finite(lo) and _finite(hi) and lo < hi):
                 raise ValueError(f"{name} must be (low, high) finite with low < high, got {lo, hi}")
+            if not least <= lo < hi <= most:
+                raise ValueError(
+                    f"{name} ({lo:g}, {hi:g}) must lie within {least:g}..{most:g}: a wider "
+                    "range calls every reading plausible"
+                )
         for name in (
             "nonfinite_delay_s",
             "range_delay_s",

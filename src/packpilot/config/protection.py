@@ -15,7 +15,6 @@ from itertools import product
 from typing import Any, Literal
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
     ValidationInfo,
@@ -24,8 +23,12 @@ from pydantic import (
     model_validator,
 )
 
-from packpilot.config.base import load_section_model
+from packpilot.config.base import Strict, load_section_model
 
+MAX_T_MAX_S = 86_400.0
+"""Longest t_max: a day at the cut-off is already 'never trips' (1e308 s overflowed in ms)."""
+MAX_M_MS = 2**53
+"""Largest m = LCM(t_max in ms): the accumulated sums stay exact integers in float64."""
 CUTOFF_MIN_V = 2.0
 CUTOFF_MAX_V = 4.5
 """Allowed cut-off range: the values are cell-level Li-ion voltages (spec §3)."""
@@ -46,7 +49,7 @@ def _fmt(x: float) -> str:
     return f"{x:g}"
 
 
-class AxisRange(BaseModel):
+class AxisRange(Strict):
     """An interval of one status parameter with explicit open/closed edges.
 
     In TOML write it in interval notation, e.g. ``"(15, 25]"`` (15 excluded, 25 included) or
@@ -112,7 +115,7 @@ class AxisRange(BaseModel):
 _ALL = AxisRange()
 
 
-class ProtectionParameter(BaseModel):
+class ProtectionParameter(Strict):
     """One discharge protection parameter: a cut-off voltage and how long it may be held."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -136,8 +139,11 @@ class ProtectionParameter(BaseModel):
                 f"{who}: cutoff_v must be between {CUTOFF_MIN_V} and {CUTOFF_MAX_V} V "
                 f"(cell level), got {self.cutoff_v}"
             )
-        if not (math.isfinite(self.t_max_s) and self.t_max_s > 0.0):
-            raise ValueError(f"{who}: t_max_s must be a positive duration, got {self.t_max_s}")
+        if not (math.isfinite(self.t_max_s) and 0.0 < self.t_max_s <= MAX_T_MAX_S):
+            raise ValueError(
+                f"{who}: t_max_s must be a positive duration of at most {MAX_T_MAX_S:g} s, "
+                f"got {self.t_max_s}"
+            )
         ms = self.t_max_s * 1000.0
         if abs(ms - round(ms)) > 1e-6 * max(1.0, ms):
             raise ValueError(
@@ -150,7 +156,7 @@ class ProtectionParameter(BaseModel):
         return round(self.t_max_s * 1000.0)
 
 
-class TableRow(BaseModel):
+class TableRow(Strict):
     """Status-parameter ranges (one per axis; a missing axis = any value) -> a parameter."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -245,7 +251,7 @@ def check_coverage(rows: Sequence[TableRow], axes: Sequence[str]) -> None:
             )
 
 
-class ProtectionConfig(BaseModel):
+class ProtectionConfig(Strict):
     """Condition-dependent discharge protection (spec/discharge_protection.md)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -342,7 +348,18 @@ class ProtectionConfig(BaseModel):
                         f"table[{k}].ranges.{axis}: unknown axis; known: {', '.join(AXES)}"
                     )
         check_coverage(self.table, self.axes)
+        self._check_lcm()
         return self
+
+    def _check_lcm(self) -> None:
+        """m = LCM of the used t_max in ms must stay an exact integer of the accumulation."""
+        used = {r.param for r in self.table}
+        m_ms = math.lcm(*(p.t_max_ms for p in self.parameters if p.name in used))
+        if m_ms > MAX_M_MS:
+            raise ValueError(
+                f"parameters: m = LCM of t_max = {m_ms / 1000:.4g} s is too large (at most "
+                f"{MAX_M_MS / 1000:.4g} s); use t_max_s values with common factors"
+            )
 
     @property
     def axes(self) -> tuple[str, ...]:

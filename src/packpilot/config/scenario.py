@@ -27,13 +27,18 @@ from pydantic import (
 )
 
 from packpilot.config.base import (
+    CELL_V_MAX_V,
+    MAX_TIME_S,
     Finite,
     Fraction,
     NonNegFloat,
+    Period,
     PosFloat,
+    Seconds,
     Strict,
     fmt_error,
     load_section_model,
+    plus_zero,
 )
 from packpilot.config.charging import ChargingConfig
 from packpilot.config.equalization import EqualizationConfig
@@ -47,16 +52,34 @@ from packpilot.errors import ConfigError
 
 _Strict = Strict
 
+CELL_V_MIN_V = 1.0
+"""Lowest rest voltage per cell an initial ``ocv0_v`` may imply (below any chemistry's empty
+cell); with :data:`~packpilot.config.base.CELL_V_MAX_V` the window a battery's
+``ocv0_v / n_cells`` must fall in (every cell of a battery is in series)."""
+CELL_R_OHM = (1e-5, 10.0)
+"""Sane DC resistance of one cell (10 uOhm for a large prismatic cell to 10 Ohm for a coin cell);
+``resistance_ohm`` is checked as the per-cell value it implies."""
+MAX_CURRENT_A = 1e5
+"""Largest current a load, a charger or a converter may name (100 kA)."""
+MAX_POWER_W = 1e8
+"""Largest power a load may name (100 MW)."""
+MAX_VOLTAGE_V = 1e4
+"""Largest pack-level voltage a setting may name (10 kV)."""
+LOAD_R_OHM = (1e-6, 1e9)
+"""Sane resistance of a resistive load."""
+
 
 class SwitchConfig(_Strict):
     """Switch between a battery and the bus."""
 
     kind: Literal["relay", "mosfet_pair"] = "mosfet_pair"
     on_ohm: NonNegFloat = Field(
-        0.0005, description="relay contact resistance, or channel resistance of one FET"
+        0.0005, le=10.0, description="relay contact resistance, or channel resistance of one FET"
     )
-    diode_drop_v: NonNegFloat = Field(0.6, description="body-diode forward drop (spec: 0.5-0.7 V)")
-    diode_ohm: PosFloat = Field(0.002, description="body-diode slope resistance")
+    diode_drop_v: NonNegFloat = Field(
+        0.6, le=5.0, description="body-diode forward drop (spec: 0.5-0.7 V; at most 5 V)"
+    )
+    diode_ohm: PosFloat = Field(0.002, le=10.0, description="body-diode slope resistance")
     chg_on: bool = Field(True, description="initial charge-path state (relay: closed iff both)")
     dsg_on: bool = Field(True, description="initial discharge-path state")
     welded: bool = Field(False, description="relay contact welded closed (fault)")
@@ -75,21 +98,23 @@ class BatteryConfig(_Strict):
         None, description="initial rest voltage of the whole battery (alternative to soc0)"
     )
     group_soc0: list[Fraction] | None = Field(None, description="per-group initial SOC")
-    capacity_ah: PosFloat | None = Field(None, description="cell capacity; default from cell set")
-    group_capacity_scale: list[PosFloat] | None = None
+    capacity_ah: PosFloat | None = Field(
+        None, ge=1e-3, le=1e4, description="cell capacity (1 mAh..10 kAh); default from cell set"
+    )
+    group_capacity_scale: list[Annotated[float, Field(gt=0, le=10)]] | None = None
     resistance_ohm: PosFloat | None = Field(
         None,
         description="battery DC resistance (sum of cell R0 at 25 degC, 50 % SOC); scales the cells",
     )
-    cell_soc_spread: Annotated[float, Field(ge=0, le=0.2)] = Field(
+    cell_soc_spread: Annotated[float, Field(ge=0, le=0.2), AfterValidator(plus_zero)] = Field(
         0.0, description="uniform +- spread of cell SOC inside each group"
     )
-    cell_capacity_spread: Annotated[float, Field(ge=0, le=0.3)] = Field(
+    cell_capacity_spread: Annotated[float, Field(ge=0, le=0.3), AfterValidator(plus_zero)] = Field(
         0.0, description="uniform +- relative spread of cell capacity"
     )
     switch: SwitchConfig | None = Field(None, description="default: pack.switch")
-    present_from_s: NonNegFloat = Field(0.0, description="hot insertion time")
-    ambient_offset_c: Finite = 0.0
+    present_from_s: Seconds = Field(0.0, description="hot insertion time")
+    ambient_offset_c: Annotated[float, Field(ge=-100, le=100, allow_inf_nan=False)] = 0.0
 
     @model_validator(mode="after")
     def _check(self) -> BatteryConfig:
@@ -101,7 +126,27 @@ class BatteryConfig(_Strict):
                 raise ValueError(
                     f"{name} has {len(val)} entries but series_groups is {self.series_groups}"
                 )
+        self._check_physics()
         return self
+
+    def _check_physics(self) -> None:
+        """Values that pass their own bounds but are absurd for this battery's cell count
+        (``ocv0_v = 1e9`` on a 6S battery, ``resistance_ohm = 1e6``)."""
+        if self.ocv0_v is not None:
+            per_cell = self.ocv0_v / self.n_cells
+            if not CELL_V_MIN_V <= per_cell <= CELL_V_MAX_V:
+                raise ValueError(
+                    f"ocv0_v: {self.ocv0_v:g} V is {per_cell:.4g} V per cell ({self.n_cells} in "
+                    f"series); a cell rests within {CELL_V_MIN_V:g}..{CELL_V_MAX_V:g} V"
+                )
+        if self.resistance_ohm is not None:
+            per_cell = self.resistance_ohm / self.n_cells
+            lo, hi = CELL_R_OHM
+            if not lo <= per_cell <= hi:
+                raise ValueError(
+                    f"resistance_ohm: {self.resistance_ohm:g} Ohm is {per_cell:.3g} Ohm per cell "
+                    f"({self.n_cells} in series); a cell has {lo:g}..{hi:g} Ohm"
+                )
 
     @property
     def n_cells(self) -> int:
@@ -109,12 +154,12 @@ class BatteryConfig(_Strict):
 
 
 class PackConfig(_Strict):
-    name: str = "pack"
+    name: str = Field("pack", max_length=64)
     cell: str = Field("uav_5ah", description="cell parameter set name or path to a set file")
     ambient_c: Annotated[float, Field(ge=-60, le=80, allow_inf_nan=False)] = 25.0
     thermal_nodes: Literal[1, 2] = 2
     switch: SwitchConfig = SwitchConfig()
-    seed: int = 0
+    seed: int = Field(0, ge=0, lt=2**63)
     batteries: list[BatteryConfig] = Field(min_length=1, max_length=32)
 
     @field_validator("batteries")
@@ -133,13 +178,19 @@ class PackConfig(_Strict):
 
 class LoadConfig(_Strict):
     kind: Literal["current", "power", "resistance", "none"] = "none"
-    value: Finite = Field(0.0, description="constant demand, or the base the profile scales")
+    value: Finite = Field(
+        0.0,
+        description="constant demand, or the base the profile scales (at most 100 kA, 100 MW; "
+        "a resistance 1 uOhm..1 GOhm)",
+    )
     profile: str | None = Field(
         None, description="built-in profile (uav_flight, uav_hover, step) or a CSV path"
     )
     repeat: bool = False
-    v_min_v: NonNegFloat = Field(0.0, description="under-voltage lock-out of the load")
-    start_s: NonNegFloat = 0.0
+    v_min_v: NonNegFloat = Field(
+        0.0, le=MAX_VOLTAGE_V, description="under-voltage lock-out of the load"
+    )
+    start_s: Seconds = 0.0
 
     @model_validator(mode="after")
     def _check(self) -> LoadConfig:
@@ -147,17 +198,28 @@ class LoadConfig(_Strict):
             raise ValueError("value must be > 0 for a resistance load")
         if self.kind in ("current", "power") and self.value < 0:
             raise ValueError("value must be >= 0 (a load draws; use the charger to charge)")
+        self._check_magnitude()
         return self
+
+    def _check_magnitude(self) -> None:
+        """A 1e24 A load ran and reported 0 Wh delivered: refuse what no pack can supply."""
+        if self.kind == "current" and self.value > MAX_CURRENT_A:
+            raise ValueError(f"value: {self.value:g} A is more than {MAX_CURRENT_A:g} A")
+        if self.kind == "power" and self.value > MAX_POWER_W:
+            raise ValueError(f"value: {self.value:g} W is more than {MAX_POWER_W:g} W")
+        lo, hi = LOAD_R_OHM
+        if self.kind == "resistance" and self.value > 0 and not lo <= self.value <= hi:
+            raise ValueError(f"value: {self.value:g} Ohm is outside {lo:g}..{hi:g} Ohm")
 
 
 class ChargerConfig(_Strict):
     present: bool = False
-    connect_s: NonNegFloat = 0.0
-    disconnect_s: NonNegFloat | None = None
-    rated_v: PosFloat = 500.0
-    rated_a: PosFloat = 100.0
-    r_out_ohm: PosFloat = 0.01
-    heartbeat_timeout_s: PosFloat = 5.0
+    connect_s: Seconds = 0.0
+    disconnect_s: Seconds | None = None
+    rated_v: PosFloat = Field(500.0, le=MAX_VOLTAGE_V)
+    rated_a: PosFloat = Field(100.0, le=MAX_CURRENT_A)
+    r_out_ohm: PosFloat = Field(0.01, le=10.0)
+    heartbeat_timeout_s: Period = 5.0
     voltage_v: NonNegFloat = Field(0.0, description="setpoint used when no controller commands it")
     current_a: NonNegFloat = 0.0
     enable: bool = False
@@ -165,7 +227,7 @@ class ChargerConfig(_Strict):
 
 class BalancerConfig(_Strict):
     present: bool = False
-    max_current_a: PosFloat = 2.0
+    max_current_a: PosFloat = Field(2.0, le=MAX_CURRENT_A)
     bidirectional: bool = False
     efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
 
@@ -173,10 +235,10 @@ class BalancerConfig(_Strict):
 class AuxConfig(_Strict):
     """DC/DC from the bus into the auxiliary battery, and the BMS load it powers."""
 
-    dcdc_max_a: PosFloat = 5.0
+    dcdc_max_a: PosFloat = Field(5.0, le=MAX_CURRENT_A)
     dcdc_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
-    dcdc_min_input_v: NonNegFloat = 20.0
-    bms_load_w: NonNegFloat = 15.0
+    dcdc_min_input_v: NonNegFloat = Field(20.0, le=MAX_VOLTAGE_V)
+    bms_load_w: NonNegFloat = Field(15.0, le=MAX_POWER_W)
 
 
 class CanConfig(_Strict):
@@ -201,8 +263,9 @@ so that a typo such as ``dt_s = 1e-30`` is a clear error, not a run that never e
 class SimConfig(_Strict):
     dt_s: Annotated[float, Field(ge=1e-4, le=10)] = 0.1
     """The control period: 0.1 ms (faster than any BMS loop) to 10 s."""
-    duration_s: PosFloat = 600.0
-    stop_when_unsupplied_s: NonNegFloat | None = Field(
+    duration_s: Annotated[float, Field(ge=1e-4, le=MAX_TIME_S, allow_inf_nan=False)] = 600.0
+    """At least 0.1 ms (one period of any dt_s: a run has a first sample)."""
+    stop_when_unsupplied_s: Seconds | None = Field(
         None, description="stop after the load has been unsupplied this long"
     )
     progress: bool = True
@@ -234,8 +297,8 @@ class FaultConfig(_Strict):
     """A fault injected into the run at ``at_s`` (until ``until_s``, if given)."""
 
     kind: FaultKind
-    at_s: NonNegFloat
-    until_s: NonNegFloat | None = None
+    at_s: Seconds
+    until_s: Seconds | None = None
     battery: str | None = Field(None, description="battery name (sensor/switch/thermal faults)")
     quantity: Literal["voltage_v", "current_a", "temp_c", "min_cell_v", "max_cell_v", "soc"] = (
         "voltage_v"
@@ -375,11 +438,29 @@ def read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: not a file")
     try:
         with path.open("rb") as fh:
-            return tomllib.load(fh)
+            data = tomllib.load(fh)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    except RecursionError:  # tomllib parses nested arrays / inline tables recursively
+        raise ConfigError(f"{path}: nested more than {MAX_DEPTH} levels deep") from None
+    if _depth(data) > MAX_DEPTH:
+        raise ConfigError(f"{path}: nested more than {MAX_DEPTH} levels deep")
+    return data
+
+
+MAX_DEPTH = 16
+"""Deepest nesting of tables and arrays a scenario may use (the schema needs 5: a protection
+table row's ranges). A file nested 500 deep made tomllib raise RecursionError."""
+
+
+def _depth(node: object, level: int = 0) -> int:
+    """Nesting depth of parsed TOML, stopping once it is past :data:`MAX_DEPTH`."""
+    if level > MAX_DEPTH:
+        return level
+    children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
+    return max((_depth(c, level + 1) for c in children), default=level)
 
 
 def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConfig:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
+
+from packpilot.config.base import Strict
 
 
-class SequencingConfig(BaseModel):
+class SequencingConfig(Strict):
     """Thresholds of the parallel-discharge sequencing method (spec section 6 and defaults)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)

@@ -6,9 +6,9 @@ import math
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import load_section_model
+from packpilot.config.base import Strict, load_section_model
 
 VoltageSource = Literal["min", "avg"]
 
@@ -17,7 +17,7 @@ def _finite(x: float) -> bool:
     return isinstance(x, int | float) and math.isfinite(x)
 
 
-class SocConfig(BaseModel):
+class SocConfig(Strict):
     """Settings of the SOC estimator (the OCV table itself comes from the cell set)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
+
+from packpilot.config.base import Strict
 
 
-class SupervisorConfig(BaseModel):
+class SupervisorConfig(Strict):
     """Mode thresholds and the relay join limit (per ~100 V battery; scale with series count)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)

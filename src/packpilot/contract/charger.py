@@ -19,6 +19,20 @@ other list of flags (plant model, CAN codec, fault injection) is this one."""
 FAULT_FLAGS: tuple[str, ...] = CHARGER_FLAGS[:4]
 """Flags that mean the charger itself is faulted (a timeout is the link's problem)."""
 
+STATUS_MARGIN = 0.1
+"""How far above its rating a charger's reported output may be before the report is absurd."""
+
+
+def status_in_range(output_v: float, output_a: float, rated_v: float, rated_a: float) -> bool:
+    """Whether a charger's reported output is physically possible for the configured charger:
+    0..rated (+10 %) volts and amperes. A status frame is 16-bit counts, so a corrupted one
+    reads as up to 6,553.5 V / 6,553.5 A; such a report is rejected, never a measurement.
+    The one implementation: the python-can client calls it, the compiled link model
+    (``sim/elcon.py``) compiles this same function."""
+    top_v = rated_v * (1.0 + STATUS_MARGIN)
+    top_a = rated_a * (1.0 + STATUS_MARGIN)
+    return 0.0 <= output_v <= top_v and 0.0 <= output_a <= top_a
+
 
 @dataclass(frozen=True, slots=True)
 class ChargerCommand:

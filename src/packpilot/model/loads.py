@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.config.base import MAX_TIME_S
+from packpilot.config.scenario import LOAD_R_OHM, MAX_CURRENT_A, MAX_POWER_W
 from packpilot.errors import InputError, read_text
 
 Array = NDArray[np.float64]
@@ -89,8 +91,19 @@ def builtin(name: str, base: float, kind: str) -> LoadProfile:
 _COLUMN_KIND = {"current_a": "current", "power_w": "power", "resistance_ohm": "resistance"}
 
 
+_BOUNDS: dict[str, tuple[float, float]] = {
+    "t_s": (-MAX_TIME_S, MAX_TIME_S),
+    "current_a": (-MAX_CURRENT_A, MAX_CURRENT_A),
+    "power_w": (-MAX_POWER_W, MAX_POWER_W),
+    "resistance_ohm": LOAD_R_OHM,
+}
+"""What a profile cell may hold: the bounds ``[load]`` puts on its value, so a profile cannot
+ask for the 1e24 A that the config refuses."""
+
+
 def _check_cell(path: Path, lineno: int, col: str, cell: str) -> None:
-    """A load-profile cell must be a finite number (the error names its row and column)."""
+    """A load-profile cell must be a finite number within its column's bounds (the error
+    names its row and column)."""
     if cell == "":
         raise InputError(f"{path}: row {lineno}, column {col}: empty cell (gap)")
     try:
@@ -99,6 +112,9 @@ def _check_cell(path: Path, lineno: int, col: str, cell: str) -> None:
         raise InputError(f"{path}: row {lineno}, column {col}: {cell!r} is not a number") from None
     if not math.isfinite(x):
         raise InputError(f"{path}: row {lineno}, column {col}: {cell!r} is not finite")
+    lo, hi = _BOUNDS[col]
+    if not lo <= x <= hi:
+        raise InputError(f"{path}: row {lineno}, column {col}: {x:g} is outside {lo:g}..{hi:g}")
 
 
 def from_csv(path: Path, scale: float = 1.0, repeat: bool = False) -> LoadProfile:
@@ -138,8 +154,6 @@ def from_csv(path: Path, scale: float = 1.0, repeat: bool = False) -> LoadProfil
                     f"{path}: row {lineno}, column t_s: time {t:g} does not increase "
                     f"(previous {ts[-1]:g})"
                 )
-            if value_cols[0] == "resistance_ohm" and v <= 0.0:
-                raise InputError(f"{path}: row {lineno}, column resistance_ohm: must be > 0")
             ts.append(t)
             vs.append(v * scale)
     if not ts:

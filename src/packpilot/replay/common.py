@@ -19,7 +19,14 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.config.base import MAX_TIME_S
 from packpilot.errors import InputError, read_text
+
+MAX_LOG_ABS = MAX_TIME_S
+"""Largest magnitude any logged number may have (1e9: seconds, volts, amperes, degC alike).
+A time of 1e306 s overflowed when a method turned it into milliseconds, and a 1e308 time gap
+made an equalization replay apply its formulas gap / T1 times: nothing a logger writes is
+that large, so such a cell is refused with its row and column."""
 
 CellValue = float | int | str | bool | None
 
@@ -86,6 +93,10 @@ def _number(path: Path, lineno: int, name: str, cell: str, allow_nan: bool) -> f
         raise InputError(f"{path}: row {lineno}, column {name}: {cell!r} is not a number") from None
     if not allow_nan and not math.isfinite(value):
         raise InputError(f"{path}: row {lineno}, column {name}: {cell!r} is not a finite number")
+    if abs(value) > MAX_LOG_ABS:
+        raise InputError(
+            f"{path}: row {lineno}, column {name}: {value:g} is beyond +-{MAX_LOG_ABS:g}"
+        )
     return value
 
 

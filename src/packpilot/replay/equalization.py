@@ -11,10 +11,30 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import NDArray
+
 from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.equalization import EqualizationConfig, EqualizationController
+from packpilot.errors import InputError
 from packpilot.replay.common import CellValue, ReplayResult, read_log, row_durations
+
+MAX_UPDATES_PER_ROW = 100_000
+"""Most times one row may apply formula 1 or 2 (its duration / min(T1, T2)). A row held for
+a 1e308 s gap looped that many times; a day's gap at T2 = 60 s is 1,440."""
+
+
+def _check_gaps(path: Path, durations: NDArray[np.float64], config: EqualizationConfig) -> None:
+    """Refuse a log whose time gaps would apply the formulas more than the bound allows."""
+    per_row = durations / min(config.t1_s, config.t2_s)
+    k = int(np.argmax(per_row))
+    if per_row[k] > MAX_UPDATES_PER_ROW:
+        raise InputError(
+            f"{path}: row {k + 2}, column t_s: a gap of {durations[k]:g} s would apply the "
+            f"balancing formulas {per_row[k]:.3g} times (at most {MAX_UPDATES_PER_ROW:,}); "
+            "split the log at the gap"
+        )
 
 
 def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
@@ -26,6 +46,7 @@ def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
     cur = log.columns["current_a"]
     volts = [log.columns[c] for c in v_cols]
     durations = row_durations(t)
+    _check_gaps(log_path, durations, config)
     pack = PackInfo(
         n_batteries=1,
         groups_per_battery=(m,),

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 
 from packpilot.config import ScenarioConfig
 from packpilot.contract.arrays import CmdArrays, MeasArrays
-from packpilot.contract.charger import CHARGER_FLAGS
+from packpilot.contract.charger import CHARGER_FLAGS, status_in_range
 from packpilot.jit import kernel, kernel_inline
 from packpilot.model.pack import Pack
 
@@ -109,7 +109,9 @@ I_CL_SENT = 11
 I_CL_RECV = 12
 I_EM_SENT = 13
 I_EM_RECV = 14
-NI = 15
+I_CL_IMPL = 15
+"""Status frames the client rejected as beyond the charger's rating (``implausible``)."""
+NI = 16
 
 P_STATUS_TIMEOUT = 0
 """Client status timeout (s)."""
@@ -155,13 +157,22 @@ def decode_count(raw: int) -> float:
     return raw / COUNTS_PER_UNIT
 
 
+_in_range = kernel_inline(status_in_range)
+"""The contract's range check of a charger status, compiled (one implementation)."""
+
+
 @kernel_inline
-def _read(fs: Any, st: Any, p: int, t: float) -> None:
-    """``ChargerClient.read`` up to the timeout test: first poll, drain the queued status."""
+def _read(prm: Any, fs: Any, st: Any, p: int, t: float) -> None:
+    """``ChargerClient.read`` up to the timeout test: first poll, drain the queued status
+    (a status beyond the charger's rating is counted and dropped, as the client does)."""
     if math.isnan(fs[p, F_CL_FIRST]):
         fs[p, F_CL_FIRST] = t
     n = st[p, I_PEND]
-    if n > 0:
+    v, a = decode_count(st[p, I_PEND_V]), decode_count(st[p, I_PEND_A])
+    if n > 0 and not _in_range(v, a, prm[P_RATED_V], prm[P_RATED_A]):
+        st[p, I_CL_IMPL] += n
+        st[p, I_PEND] = 0
+    elif n > 0:
         st[p, I_CL_RECV] += n
         st[p, I_CL_HAS] = 1
         fs[p, F_CL_V] = decode_count(st[p, I_PEND_V])
@@ -194,7 +205,7 @@ def elcon_poll(
     """``ChargerLinks.poll`` over ``SilenceableLink(CanChargerLink)`` for every pack."""
     for p in range(fs.shape[0]):
         # the client reads (even while silenced: the wrapper polls, then drops the result)
-        _read(fs, st, p, t)
+        _read(prm, fs, st, p, t)
         ref = fs[p, F_CL_FIRST] if math.isnan(fs[p, F_CL_STATUS_T]) else fs[p, F_CL_STATUS_T]
         got = True
         if t - ref > prm[P_STATUS_TIMEOUT]:
@@ -287,7 +298,7 @@ def elcon_send(
             sent = True
             st[p, I_CL_SENT] += 1
             fs[p, F_CL_NEXT_TX] = _next_tx(nxt_s, t, prm[P_PERIOD])
-        _read(fs, st, p, t)
+        _read(prm, fs, st, p, t)
         # emulator.poll: forward the request to the dock, then the status frame when due
         if math.isnan(fs[p, F_EM_FIRST]):
             fs[p, F_EM_FIRST] = t
@@ -398,7 +409,7 @@ class ElconLinks:
         ``CanChargerLink`` (``FrameCounters`` fields)."""
         s = self.st[p]
 
-        def node(sent: int, received: int) -> dict[str, int]:
+        def node(sent: int, received: int, implausible: int = 0) -> dict[str, int]:
             return {
                 "sent": sent,
                 "received": received,
@@ -406,10 +417,11 @@ class ElconLinks:
                 "unexpected": 0,
                 "send_errors": 0,
                 "recv_errors": 0,
+                "implausible": implausible,
             }
 
         return {
-            "client": node(int(s[I_CL_SENT]), int(s[I_CL_RECV])),
+            "client": node(int(s[I_CL_SENT]), int(s[I_CL_RECV]), int(s[I_CL_IMPL])),
             "emulator": node(int(s[I_EM_SENT]), int(s[I_EM_RECV])),
         }
 

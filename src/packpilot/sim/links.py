@@ -58,6 +58,7 @@ def can_link(cfg: ScenarioConfig, pack: Pack, p: int = 0) -> ChargerLink:
         channel=cfg.can.channel,
         log_path=cfg.can.log,
         heartbeat_timeout_s=cfg.charger.heartbeat_timeout_s,
+        rating=(cfg.charger.rated_v, cfg.charger.rated_a),
     )
 
 

@@ -37,6 +37,7 @@ from packpilot.control.core_kernel import DIR_CMD, DIR_M
 from packpilot.control.registry import REGISTRY, SAFETY
 from packpilot.model import loads
 from packpilot.model.pack import Interval
+from packpilot.sim.cell_window import check_cell_window
 from packpilot.sim.faults import FaultInjector, Silenceable, SilenceableLink
 from packpilot.sim.links import ChargerLinks, PackLinks, default_links, pack_links
 from packpilot.sim.metrics import Metrics
@@ -49,6 +50,7 @@ def build_core(cfg: ScenarioConfig, infos: Sequence[PackInfo]) -> Core:
     """The BMS a scenario enables: its methods in the listed order, then the safety layers,
     under the supervisor when any of ``[supervisor]``, ``[limits]``, ``[plausibility]``,
     ``[soc]`` is present."""
+    check_cell_window(cfg, infos)
     parts: list[Part | Controller] = [
         REGISTRY[name].part(cfg.section(name), infos) for name in cfg.controller
     ]

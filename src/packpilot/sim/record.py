@@ -26,6 +26,12 @@ from packpilot.model.pack import Interval, Pack
 
 F64 = NDArray[np.float64]
 N_CH = len(BATTERY_CHANNELS)
+MAX_TRACE_ROWS = 1 << 17
+"""Most rows the in-memory trace keeps (131,072: every step of every example, the longest has
+28,800). A longer run keeps a decimated trace: when the buffer is full every other row is
+dropped and from then on only every 2nd (4th, ...) step is kept, so a week-long run holds as
+much memory as a 4-hour one. The last step is always in the trace; a streaming recorder
+(``--db``) still receives every step."""
 
 
 @kernel
@@ -114,7 +120,9 @@ def _render_column(col: F64, kind: str, labels: Any) -> list[list[StatusValue]]:
 
 
 class TraceBuffer:
-    """The trace of pack ``p`` of a run, in blocks that double as they fill."""
+    """The trace of pack ``p`` of a run, in blocks that double as they fill, up to
+    ``max_rows`` rows; past that, decimated (:data:`MAX_TRACE_ROWS`). ``stride`` is the step
+    spacing of the rows kept so far."""
 
     def __init__(
         self,
@@ -124,8 +132,16 @@ class TraceBuffer:
         n_status: int,
         p: int = 0,
         capacity: int = 1024,
+        max_rows: int = MAX_TRACE_ROWS,
     ) -> None:
+        if max_rows < 2 or max_rows % 2:
+            raise ValueError(f"max_rows must be even and >= 2, got {max_rows}")
         self.pack, self.topology, self.p = pack, topology, p
+        self.max_rows = max_rows
+        self.stride = 1
+        self._pending = False
+        """Row ``n`` holds the latest step, which the stride did not keep (yet)."""
+        capacity = max(1, min(capacity, max_rows + 1))  # + 1: the row of the latest step
         self.channels = list(channels)
         """(slot, StatusChannel, labels) of every compiled status channel, in output order."""
         S, G = pack.n_strings, pack.max_groups
@@ -140,16 +156,34 @@ class TraceBuffer:
         self.foreign: list[dict[str, list[StatusValue]]] = []
         """Per step, the status of Python parts (P = 1 only)."""
 
+    _ARRAYS = ("scalars", "step", "battery", "group_v", "status")
+
     def _grow(self) -> None:
-        for name in ("scalars", "step", "battery", "group_v", "status"):
+        size = min(2 * self.step.shape[0], self.max_rows + 1)
+        for name in self._ARRAYS:
             a = getattr(self, name)
-            b = np.zeros((2 * a.shape[0], *a.shape[1:]), a.dtype)
+            b = np.zeros((size, *a.shape[1:]), a.dtype)
             b[: a.shape[0]] = a
             setattr(self, name, b)
 
+    def _decimate(self) -> None:
+        """Keep every other row (steps that are multiples of the doubled stride)."""
+        n = self.n
+        for name in self._ARRAYS:
+            a = getattr(self, name)
+            half = a[0:n:2].copy()
+            a[: half.shape[0]] = half
+        if self.foreign:
+            self.foreign[:] = self.foreign[0:n:2]
+        self.n = (n + 1) // 2
+        self.stride *= 2
+
     def add(
         self, k: int, iv: Interval, status: F64, foreign: dict[str, list[StatusValue]] | None
-    ) -> None:
+    ) -> int:
+        """Write step ``k`` into the next row and return that row (for :meth:`sample`). The
+        row is kept when ``k`` is a multiple of :attr:`stride`; otherwise the next step
+        overwrites it (until then it is the trace's last row)."""
         if self.n == self.step.shape[0]:
             self._grow()
         pack, p, n = self.pack, self.p, self.n
@@ -167,8 +201,19 @@ class TraceBuffer:
             self.status,
         )  # fmt: skip
         if foreign is not None:
+            del self.foreign[n:]
             self.foreign.append(foreign)
-        self.n = n + 1
+        self._pending = k % self.stride != 0
+        if not self._pending:
+            self.n = n + 1
+            if self.n > self.max_rows:
+                self._decimate()
+        return n if self._pending else self.n - 1
+
+    @property
+    def rows(self) -> int:
+        """Rows the trace holds now: the kept ones and the latest step."""
+        return self.n + self._pending
 
     def _status_row(self, n: int) -> dict[str, list[StatusValue]]:
         out: dict[str, list[StatusValue]] = {}
@@ -197,7 +242,7 @@ class TraceBuffer:
 
     def trace(self) -> Trace:
         """Everything recorded, as the run's :class:`Trace`."""
-        n = self.n
+        n = self.rows
         if n == 0:
             raise ValueError("a trace needs at least one sample")
         names = [ch.name for _, ch, _ in self.channels]

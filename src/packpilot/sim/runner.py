@@ -21,6 +21,7 @@ from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
 from packpilot.model import loads
 from packpilot.model.pack import Pack
+from packpilot.sim import record
 from packpilot.sim.links import default_links, modelled
 from packpilot.sim.loop import ClosedLoop, build_core, load_profile, n_steps
 from packpilot.sim.plant_io import SimulatedPlant
@@ -63,9 +64,11 @@ class Runner:
         self.traction = list(self.plant.topology.traction)
         if self.controller is None:
             self.controller = build_core(self.cfg, self.plant.infos)
+        self._profile = load_profile(self.cfg)
+        # Last: a python-can bus opened before a later error was never shut down (python-can
+        # then warned "VirtualBus was not properly shut down" under the one-line error).
         if self.charger_link is None and self.cfg.charger.present and not modelled(self.cfg):
             self.charger_link = default_links(self.cfg, self.pack)[0]
-        self._profile = load_profile(self.cfg)
         self.loop: ClosedLoop | None = None
         self.events: list[Event] = []
 
@@ -106,6 +109,7 @@ class Runner:
             core.status_channels(),
             core.status.shape[2],
             capacity=min(total, 1 << 16),
+            max_rows=record.MAX_TRACE_ROWS,
         )
         self.run_id: int | None = None
         if self.recorder is not None:
@@ -116,12 +120,12 @@ class Runner:
         try:
             for k in range(total):
                 rec = loop.step(k, dt)
-                buf.add(k, rec.iv, core.status, core.python_status())
+                row = buf.add(k, rec.iv, core.status, core.python_status())
                 new_events = rec.events[0]
                 if new_events:
                     self.events.extend(new_events)
                 if self.recorder is not None:
-                    self.recorder.record(buf.sample(buf.n - 1))
+                    self.recorder.record(buf.sample(row))
                     if new_events:
                         self.recorder.record_events(new_events)
                 bar.update(k + 1)
@@ -134,7 +138,9 @@ class Runner:
             bar.close()
             loop.close()
             wall = time.perf_counter() - wall0
-            metrics = loop.metrics.of(0, wall, self.pack.names) if buf.n else {"wall_time_s": wall}
+            metrics = (
+                loop.metrics.of(0, wall, self.pack.names) if buf.rows else {"wall_time_s": wall}
+            )
             if self.recorder is not None:
                 self.recorder.finish(metrics, status=status)
         return Result(

@@ -16,7 +16,12 @@ from dataclasses import dataclass
 
 import can
 
-from packpilot.contract.charger import CHARGER_OFF, ChargerCommand, ChargerStatus
+from packpilot.contract.charger import (
+    CHARGER_OFF,
+    ChargerCommand,
+    ChargerStatus,
+    status_in_range,
+)
 from packpilot.io.can.bus import FrameLog
 from packpilot.io.can.codec import (
     PERIOD_S,
@@ -45,6 +50,8 @@ class FrameCounters:
     direction's frame."""
     send_errors: int = 0
     recv_errors: int = 0
+    implausible: int = 0
+    """Status frames that decoded but reported more than the charger can deliver (ignored)."""
 
 
 class ChargerClient:
@@ -57,13 +64,16 @@ class ChargerClient:
         period_s: float = PERIOD_S,
         status_timeout_s: float = 5.0,
         log: FrameLog | None = None,
+        rating: tuple[float, float] = (math.inf, math.inf),
     ) -> None:
+        """``rating``: the charger's rated (volts, amperes); a status beyond it is rejected."""
         if not (period_s > 0.0 and status_timeout_s > 0.0):
             raise ValueError("period_s and status_timeout_s must be positive")
         self.bus = bus
         self.period_s = period_s
         self.status_timeout_s = status_timeout_s
         self.log = log
+        self.rating = rating
         self.counters = FrameCounters()
         self.request: ChargerCommand = CHARGER_OFF
         self.last_status: ChargerStatus | None = None
@@ -141,6 +151,9 @@ class ChargerClient:
                 status = decode_status(msg)
             except FrameError:
                 self.counters.malformed += 1
+                continue
+            if not status_in_range(status.output_v, status.output_a, *self.rating):
+                self.counters.implausible += 1
                 continue
             self.counters.received += 1
             self.last_status = status

@@ -23,6 +23,7 @@ the bus from a third node.
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +50,7 @@ class CanChargerLink:
         status_timeout_s: float = 5.0,
         heartbeat_timeout_s: float = 5.0,
         bus_kwargs: dict[str, Any] | None = None,
+        rating: tuple[float, float] = (math.inf, math.inf),
     ) -> None:
         """``channel=None`` picks a fresh in-process channel, so parallel runs never share a
         virtual bus."""
@@ -58,7 +60,9 @@ class CanChargerLink:
         self._buses: list[can.BusABC] = []
         self.log = FrameLog(log_path) if log_path is not None else None
         self.bms_bus = self._open(interface, channel, kw)
-        self.client = ChargerClient(self.bms_bus, status_timeout_s=status_timeout_s, log=self.log)
+        self.client = ChargerClient(
+            self.bms_bus, status_timeout_s=status_timeout_s, log=self.log, rating=rating
+        )
         self.emulator: ChargerEmulator | None = None
         if charger is not None:
             charger_bus = self._open(interface, channel, kw)

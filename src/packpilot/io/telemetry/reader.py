@@ -18,24 +18,36 @@ from numpy.typing import NDArray
 from packpilot.contract.bms import Event, StatusValue
 from packpilot.contract.record import BATTERY_CHANNELS, Result, Trace
 from packpilot.errors import InputError
+from packpilot.io.telemetry.liveness import shown_status, writer_columns
 from packpilot.io.telemetry.schema import PACK_COLUMNS, _check_schema
 
 
 def _open_ro(path: Path | str) -> sqlite3.Connection:
+    """Open a telemetry file for reading only. A WAL file needs its ``-shm`` beside it, which
+    read-only media cannot hold: then the file is opened ``immutable`` (no locks, no WAL), which
+    reads every committed row of a run that finished (its WAL was checkpointed on close)."""
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: telemetry database not found")
     try:
-        conn = sqlite3.connect(f"{p.resolve().as_uri()}?mode=ro", uri=True)
-    except sqlite3.Error as err:
-        raise InputError(f"{p}: cannot open telemetry database ({err})") from err
+        return _connect_checked(p, "mode=ro")
+    except sqlite3.OperationalError:
+        pass  # read-only media: no -shm can be created next to the file
+    except sqlite3.DatabaseError as err:
+        raise InputError(f"{p}: not a PackPilot telemetry database ({err})") from None
+    try:
+        return _connect_checked(p, "immutable=1")
+    except sqlite3.DatabaseError as err:
+        raise InputError(f"{p}: not a PackPilot telemetry database ({err})") from None
+
+
+def _connect_checked(p: Path, query: str) -> sqlite3.Connection:
+    """A connection by URI (``query``) whose file holds a readable PackPilot schema."""
+    conn = sqlite3.connect(f"{p.resolve().as_uri()}?{query}", uri=True)
     try:
         conn.execute("SELECT 1 FROM runs LIMIT 1").fetchall()
         _check_schema(conn, p)
-    except sqlite3.DatabaseError as err:
-        conn.close()
-        raise InputError(f"{p}: not a PackPilot telemetry database ({err})") from err
-    except InputError:
+    except (sqlite3.DatabaseError, InputError):
         conn.close()
         raise
     return conn
@@ -228,10 +240,13 @@ def list_runs(path: Path | str) -> list[dict[str, Any]]:
     """Every run in the file, oldest first, with its JSON columns decoded and its step count."""
     conn = _open_ro(path)
     try:
+        writer = (
+            "writer_pid, writer_host, heartbeat_at" if writer_columns(conn) else "NULL, NULL, NULL"
+        )
         rows = conn.execute(
             "SELECT id, started_at, finished_at, status, config, versions, battery_names,"
-            " metrics, (SELECT COUNT(*) FROM pack_samples p WHERE p.run_id = runs.id)"
-            " FROM runs ORDER BY id"
+            " metrics, (SELECT COUNT(*) FROM pack_samples p WHERE p.run_id = runs.id),"
+            f" {writer} FROM runs ORDER BY id"
         ).fetchall()
     finally:
         conn.close()
@@ -240,7 +255,8 @@ def list_runs(path: Path | str) -> list[dict[str, Any]]:
             "id": r[0],
             "started_at": r[1],
             "finished_at": r[2],
-            "status": r[3],
+            "status": shown_status(r[3], r[9], r[10], r[11]),
+            "heartbeat_at": r[11],
             "config": json.loads(r[4]),
             "versions": json.loads(r[5]),
             "battery_names": json.loads(r[6]),

@@ -10,8 +10,10 @@ from __future__ import annotations
 import datetime as _dt
 import importlib.metadata
 import math
+import os
 import platform
 import sqlite3
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -23,6 +25,7 @@ from numpy.typing import NDArray
 from packpilot.contract.bms import Event, StatusValue
 from packpilot.contract.record import BATTERY_CHANNELS, StepSample
 from packpilot.errors import InputError
+from packpilot.io.telemetry.liveness import add_writer_columns, host_name, mark_aborted
 from packpilot.io.telemetry.schema import (
     _AUX_INSERT,
     _BAT_INSERT,
@@ -35,6 +38,50 @@ from packpilot.io.telemetry.schema import (
     _check_schema,
     _dumps,
 )
+
+COMMIT_EVERY_S = 0.5
+"""Wall time between commits while a run records (also every ``flush_every`` samples): a killed
+writer loses at most the last ~0.5 s of samples (docs/telemetry.md)."""
+
+
+def _open_for_writing(path: Path) -> sqlite3.Connection:
+    """Open (or create) a telemetry file, bring it to the current schema and mark the runs of
+    writers that died as ``aborted``. Every failure is one clean :class:`InputError`."""
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory, not a telemetry database file")
+    try:
+        conn = sqlite3.connect(path, isolation_level=None)
+    except sqlite3.Error as err:
+        raise InputError(f"{path}: cannot open telemetry database ({err})") from None
+    try:
+        conn.execute("PRAGMA journal_mode=WAL")
+        conn.execute("PRAGMA synchronous=NORMAL")
+        conn.executescript(_SCHEMA)
+        conn.execute(
+            "INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),)
+        )
+        _check_schema(conn, path)
+        add_writer_columns(conn)
+        mark_aborted(conn)
+    except sqlite3.DatabaseError as err:
+        conn.close()
+        raise InputError(f"{path}: {_why(err)}") from None
+    except InputError:
+        conn.close()
+        raise
+    return conn
+
+
+def _why(err: sqlite3.Error) -> str:
+    """What a user can act on, for SQLite's errors on opening or writing a file."""
+    text = str(err)
+    if isinstance(err, sqlite3.OperationalError):
+        if "full" in text:
+            return f"cannot write telemetry: the disk (or database) is full ({text})"
+        if "readonly" in text or "read-only" in text or "unable to open" in text:
+            return f"cannot write telemetry: read-only file or directory ({text})"
+        return f"cannot write telemetry ({text})"
+    return f"not a PackPilot telemetry database ({text})"
 
 
 def _utc_now() -> str:
@@ -75,27 +122,20 @@ class SQLiteRecorder:
     on an exception finishes an unfinished run with status ``error``.
     """
 
-    def __init__(self, path: Path | str, *, flush_every: int = 500) -> None:
+    def __init__(
+        self,
+        path: Path | str,
+        *,
+        flush_every: int = 500,
+        commit_every_s: float = COMMIT_EVERY_S,
+    ) -> None:
         if flush_every < 1:
             raise ValueError(f"flush_every must be >= 1, got {flush_every}")
         self.path = Path(path)
         self.flush_every = flush_every
-        conn = sqlite3.connect(self.path, isolation_level=None)
-        try:
-            conn.execute("PRAGMA journal_mode=WAL")
-            conn.execute("PRAGMA synchronous=NORMAL")
-            conn.executescript(_SCHEMA)
-            conn.execute(
-                "INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),)
-            )
-            _check_schema(conn, self.path)
-        except sqlite3.DatabaseError as err:
-            conn.close()
-            raise InputError(f"{self.path}: not a PackPilot telemetry database ({err})") from err
-        except InputError:
-            conn.close()
-            raise
-        self._conn: sqlite3.Connection | None = conn
+        self.commit_every_s = commit_every_s
+        self._last_commit = time.monotonic()
+        self._conn: sqlite3.Connection | None = _open_for_writing(self.path)
         self._run_id: int | None = None
         self._pending = 0
         self._steps: list[int] = []
@@ -130,17 +170,26 @@ class SQLiteRecorder:
         conn = self._connection()
         if self._run_id is not None:
             raise RuntimeError(f"run {self._run_id} is still in progress; finish() it first")
-        cur = conn.execute(
-            "INSERT INTO runs (started_at, status, config, versions, battery_names, channels)"
-            " VALUES (?, 'running', ?, ?, ?, ?)",
-            (
-                _utc_now(),
-                _dumps(config),
-                _dumps(_versions()),
-                _dumps(list(battery_names)),
-                _dumps(list(BATTERY_CHANNELS)),
-            ),
-        )
+        now = _utc_now()
+        try:
+            cur = conn.execute(
+                "INSERT INTO runs (started_at, status, config, versions, battery_names,"
+                " channels, writer_pid, writer_host, heartbeat_at)"
+                " VALUES (?, 'running', ?, ?, ?, ?, ?, ?, ?)",
+                (
+                    now,
+                    _dumps(config),
+                    _dumps(_versions()),
+                    _dumps(list(battery_names)),
+                    _dumps(list(BATTERY_CHANNELS)),
+                    os.getpid(),
+                    host_name(),
+                    now,
+                ),
+            )
+        except sqlite3.OperationalError as err:
+            raise InputError(f"{self.path}: {_why(err)}") from None
+        self._last_commit = time.monotonic()
         run_id = cur.lastrowid
         assert run_id is not None
         self._run_id = run_id
@@ -184,7 +233,10 @@ class SQLiteRecorder:
         if sample.status:
             self._record_status(run_id, step, sample.status)
         self._pending = k + 1
-        if self._pending >= self.flush_every:
+        if (
+            self._pending >= self.flush_every
+            or time.monotonic() - self._last_commit >= self.commit_every_s
+        ):
             self.flush()
 
     def _record_status(self, run_id: int, step: int, status: Mapping[str, Sequence[Any]]) -> None:
@@ -266,14 +318,25 @@ class SQLiteRecorder:
         return pack, bat, aux
 
     def flush(self) -> None:
-        """Write every buffered row in one transaction."""
+        """Write every buffered row and the run's heartbeat in one transaction; a full disk or
+        read-only media is one clean :class:`InputError` naming the file."""
         conn = self._connection()
+        self._last_commit = time.monotonic()
         if not (self._pending or self._event_rows):
             return
+        try:
+            self._commit(conn)
+        except sqlite3.OperationalError as err:
+            self._drop_buffers()  # they cannot be written; closing must not fail again
+            raise InputError(f"{self.path}: {_why(err)}") from None
+
+    def _commit(self, conn: sqlite3.Connection) -> None:
         run_id = self._run_id
         pack, bat, aux = self._sample_rows(run_id) if run_id is not None else ([], [], [])
         conn.execute("BEGIN")
         try:
+            if run_id is not None:
+                conn.execute("UPDATE runs SET heartbeat_at = ? WHERE id = ?", (_utc_now(), run_id))
             conn.executemany(_PACK_INSERT, pack)
             conn.executemany(_BAT_INSERT, bat)
             if aux:
@@ -288,7 +351,8 @@ class SQLiteRecorder:
                     (_dumps({k: sorted(v) for k, v in self._status_kinds.items()}), run_id),
                 )
         except BaseException:
-            conn.execute("ROLLBACK")
+            if conn.in_transaction:  # SQLITE_FULL has rolled it back already
+                conn.execute("ROLLBACK")
             raise
         conn.execute("COMMIT")
         self._steps.clear()
@@ -306,11 +370,14 @@ class SQLiteRecorder:
         try:
             self.flush()
         finally:
-            conn.execute(
-                "UPDATE runs SET finished_at = ?, status = ?, metrics = ? WHERE id = ?",
-                (_utc_now(), status, _dumps(dict(metrics)), run_id),
-            )
             self._run_id = None
+            try:
+                conn.execute(
+                    "UPDATE runs SET finished_at = ?, status = ?, metrics = ? WHERE id = ?",
+                    (_utc_now(), status, _dumps(dict(metrics)), run_id),
+                )
+            except sqlite3.OperationalError as err:
+                raise InputError(f"{self.path}: {_why(err)}") from None
 
     def close(self) -> None:
         """Flush what is buffered and close; an unfinished run stays ``running``."""
@@ -321,6 +388,14 @@ class SQLiteRecorder:
         finally:
             self._conn.close()
             self._conn = None
+
+    def _drop_buffers(self) -> None:
+        """Forget the buffered rows of a failed flush (a full disk): they cannot be written."""
+        self._pending = 0
+        self._steps.clear()
+        self._aux_steps.clear()
+        self._status_rows.clear()
+        self._event_rows.clear()
 
     def __enter__(self) -> SQLiteRecorder:
         return self
