@@ -224,16 +224,20 @@ class PhysicsLimits:
 
     @classmethod
     def of_config(cls, config: Mapping[str, Any] | None, names: Sequence[str]) -> PhysicsLimits:
-        """From a run's recorded config (``cfg.model_dump(mode="json")``), or defaults."""
+        """From a run's recorded config (``cfg.model_dump(mode="json")``); without one the
+        cells are unknown and the cell-voltage check is skipped."""
         cfg = config or {}
-        pack = cfg.get("pack") if isinstance(cfg.get("pack"), Mapping) else {}
-        assert isinstance(pack, Mapping)
+        pack = cfg.get("pack")
+        pack = pack if isinstance(pack, Mapping) else {}
         by_name = {
             b.get("name"): b for b in pack.get("batteries") or () if isinstance(b, Mapping)
         }
         default_cell = str(pack.get("cell") or "uav_5ah")
         v_min = tuple(
-            _cell_v_min(str((by_name.get(n) or {}).get("cell") or default_cell)) for n in names
+            _cell_v_min(str((by_name.get(n) or {}).get("cell") or default_cell))
+            if config is not None
+            else math.nan
+            for n in names
         )
         topo = Topology.of_config(cfg, names)
         traction = tuple(r != "aux" for r in topo.roles)
