@@ -37,7 +37,7 @@ def test_cross_charge_run_reads_alarm_first() -> None:
     assert page.index('<section id="verdict">') < page.index('<section id="summary">')
     verdict = section(page, "verdict")
     assert 'id="verdict-word">ALARM<' in verdict
-    assert "CrossCharge" in verdict and "charge limit (2C)" in verdict
+    assert "CrossCharge" in verdict and "(2C)" in verdict
     assert re.search(r"<td>[AB]</td><td><span class=\"sev alarm\">", verdict)
     header = page[: page.index("<main>")]
     assert "verdict-alarm" in header and ">ALARM<" in header

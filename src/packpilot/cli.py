@@ -456,15 +456,10 @@ def campaign(
         target = out if out is not None else Path(f"{path.stem}_campaign.parquet")
         check_campaign_out(target)
         cfg = _load(path, duration)
-        if spread is None and runs > 1:
-            typer.echo(
-                f"warning: no --spread: the {runs} runs share every parameter and give the"
-                " same result (add e.g. --spread capacity=5%,r0=10%)",
-                err=True,
-            )
         show = not (as_json or no_progress) and sys.stdout.isatty()
         try:
-            with cp.rich_progress(show) as progress:
+            with cp.rich_progress(show) as bar:
+                progress = _warn_identical(runs if spread is None else 0, bar)
                 report = cp.run_campaign(
                     cfg,
                     runs,
@@ -493,6 +488,28 @@ def campaign(
             )
 
     _guard(go)
+
+
+def _warn_identical(
+    runs: int, bar: Callable[[int, int], None] | None
+) -> Callable[[int, int], None]:
+    """The campaign's progress callback, which first (once every option has been checked and
+    the runs are about to start) warns that ``runs`` > 1 runs without spreads are identical."""
+    warned = runs < 2
+
+    def progress(done: int, total: int) -> None:
+        nonlocal warned
+        if not warned:
+            warned = True
+            typer.echo(
+                f"warning: no --spread: the {runs} runs share every parameter and give the"
+                " same result (add e.g. --spread capacity=5%,r0=10%)",
+                err=True,
+            )
+        if bar is not None:
+            bar(done, total)
+
+    return progress
 
 
 def check_campaign_out(out: Path) -> None:

@@ -170,7 +170,7 @@ def fmt_time(t_s: float) -> str:
     if not math.isfinite(t_s):
         return "–"
     sign = "-" if t_s < 0 else ""
-    t = abs(t_s)
+    t = round(abs(t_s), 1)  # 299.99999 s (1500 steps of 0.2 s) reads 0:05:00.0, not 0:04:60.0
     h, rem = divmod(t, 3600.0)
     m, s = divmod(rem, 60.0)
     return f"{sign}{int(h)}:{int(m):02d}:{s:04.1f}"
@@ -690,7 +690,7 @@ figcaption { color: var(--muted); font-size: .85rem; margin-top: .25rem; }
 .warn { background: #fdf0d5; border-left: 4px solid #d08a00; padding: .4rem .7rem; }
 .badge { display: inline-block; padding: 0 .45rem; border-radius: .6rem; font-size: .85rem;
          font-weight: 600; background: #e1e5eb; }
-.badge.ok { background: #d6f0dc; color: #135d27; }
+.badge.ok { background: #e1e5eb; } /* the run completed: how it went is the verdict's */
 .badge.error, .badge.running, .badge.interrupted { background: #f8d9d6; color: #8a1c12; }
 .badge.verdict-ok, .verdict.ok { background: #d6f0dc; color: #135d27; }
 .badge.verdict-warning, .verdict.warning { background: #fdf0d5; color: #7a4d00; }
@@ -743,7 +743,7 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
     name = info.config_name or "run"
     run = f"run {result.run_id}" if result.run_id is not None else "in-memory run"
     status = info.status or "unknown"
-    badge = f'<span class="badge {esc(status)}">{esc(status)}</span>'
+    badge = f'<span class="badge {esc(status)}" title="run status">run {esc(status)}</span>'
     word = verdict.word
     badge += f' <span class="badge verdict-{esc(word.lower())}">{esc(word)}</span>'
     when = fmt_date(info.started_at) if info.started_at else ""

@@ -173,13 +173,17 @@ class _Progress:
         self.t0 = time.perf_counter()
         self.bar: Any = None
         self.task: Any = None
-        self.next_tenth = 1
+        self.next_at = max(1, -(-total // 10))
+        """Steps done at which the next plain line is due (one per tenth)."""
 
     def update(self, done: int) -> None:
-        if not self.enabled or done % 200:
+        if not self.enabled:
             return
         if self.lines:
-            self._line(done)
+            if done >= self.next_at:
+                self._line(done)
+            return
+        if done % 200:
             return
         if self.bar is None:
             if time.perf_counter() - self.t0 < 1.0:
@@ -188,9 +192,7 @@ class _Progress:
         self.bar.update(self.task, completed=done)
 
     def _line(self, done: int) -> None:
-        if done * 10 < self.next_tenth * self.total:
-            return
-        self.next_tenth = done * 10 // self.total + 1
+        self.next_at = -(-(done * 10 // self.total + 1) * self.total // 10)  # ceil
         wall = time.perf_counter() - self.t0
         print(
             f"simulating: {100 * done // self.total:3d} %"

@@ -258,6 +258,8 @@ class _Check:
     count: int = 0
     worst: float = math.nan
     duration_s: float = 0.0
+    limit: float = math.nan
+    """The threshold at the first occurrence (the cross-charge limit in A)."""
 
 
 class PhysicsWatch:
@@ -307,17 +309,21 @@ class PhysicsWatch:
             self._column(("cell", s), t_s, dt, cell_v[:, s] < self._v_min[s], -cell_v[:, s])
             self._column(("soc", s), t_s, dt, soc[:, s] < 0.0, -soc[:, s])
             over = idle[:, s] & (into_a[:, s] > limit_a[:, s])
-            self._column(("cross", s), t_s, dt, over, into_a[:, s])
+            self._column(("cross", s), t_s, dt, over, into_a[:, s], limit_a[:, s])
         self._column(("load", len(self.limits.names)), t_s, dt, lost, short_a)
         self._last_t_s = float(t_s[-1])
 
-    def _column(self, key: tuple[str, int], t_s: F64, dt: F64, cond: B1, badness: F64) -> None:
+    def _column(
+        self, key: tuple[str, int], t_s: F64, dt: F64, cond: B1, badness: F64,
+        limit: F64 | None = None,
+    ) -> None:  # fmt: skip
         """Fold one condition's chunk into its row: episodes, first time, worst value."""
         c = self._checks[key]
         if cond.any():
             idx = np.flatnonzero(cond)
             if c.count == 0:
                 c.first_t_s = float(t_s[idx[0]])
+                c.limit = math.nan if limit is None else float(limit[idx[0]])
             worst = float(np.nanmax(badness[idx]))
             c.worst = worst if math.isnan(c.worst) else max(c.worst, worst)
             c.duration_s += float(dt[idx].sum())
@@ -353,7 +359,7 @@ class PhysicsWatch:
         if what == "cross":
             return (
                 f"cross-charge {c.worst:.1f} A from another battery, above its charge limit"
-                f" ({lim.charge_c:g}C)"
+                f" {c.limit:.1f} A ({lim.charge_c:g}C)"
             )
         return f"load short of its demand by up to {c.worst:.1f} A for {c.duration_s:.1f} s"
 
