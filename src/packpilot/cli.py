@@ -23,6 +23,7 @@ from packpilot.control.registry import REGISTRY
 from packpilot.errors import PackPilotError
 
 if TYPE_CHECKING:
+    from packpilot.config import ScenarioConfig
     from packpilot.contract.record import Result
     from packpilot.sim.verdict import Verdict
 
@@ -186,7 +187,7 @@ def simulate(
         raise typer.Exit(code=code)
 
 
-def _load(path: Path, duration: float | None) -> Any:
+def _load(path: Path, duration: float | None) -> ScenarioConfig:
     """The scenario, with ``--duration`` applied."""
     from packpilot.config import load_config
 
@@ -197,8 +198,8 @@ def _load(path: Path, duration: float | None) -> Any:
 
 
 def _with_can(
-    cfg: Any, interface: str | None, channel: str | None, log: Path | None
-) -> Any:
+    cfg: ScenarioConfig, interface: str | None, channel: str | None, log: Path | None
+) -> ScenarioConfig:
     """The ``--can-*`` options applied; refused when there is nothing for CAN to carry (no
     charger) or the interface is not one python-can knows, before the run starts."""
     if not (interface or channel or log):
@@ -226,7 +227,7 @@ def _with_can(
     return cfg.model_copy(update={"can": can_cfg})
 
 
-def _run_interruptible(cfg: Any, db: Path | None, progress: bool | None) -> Result:
+def _run_interruptible(cfg: ScenarioConfig, db: Path | None, progress: bool | None) -> Result:
     """The run; Ctrl-C ends it with a message and exit code 130 (a ``--db`` run is stamped
     ``interrupted``, with every sample up to that point)."""
     from packpilot.sim.runner import Runner

@@ -91,9 +91,9 @@ UNKNOWN_KIND = KindRow(Severity.WARNING, "unknown")
 """What an event kind without a row counts as (a run read from an older or newer file):
 visible, never silently "ok"."""
 
-MATCH_FIELDS: tuple[str, ...] = ("limit", "kind", "source", "field")
+MATCH_FIELDS: tuple[str, ...] = ("limit", "tier", "kind", "source", "field")
 """Data fields that must agree between a condition and the event that clears it (a limit's
-reset clears that limit, a plausibility kind's clearing that kind)."""
+reset clears that tier of that limit, a plausibility kind's clearing that kind)."""
 
 
 def row_of(kind: str) -> KindRow:
