@@ -66,7 +66,6 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "LimitDerate": KindRow(Severity.WARNING, "limit", "LimitReset"),
         "CommandRefused": KindRow(Severity.WARNING, "refused"),
         "CrossCurrentRisk": KindRow(Severity.WARNING, "crosscurrent"),
-        "ReverseCurrent": KindRow(Severity.WARNING, "crosscurrent"),
         "SourceIsolated": KindRow(Severity.WARNING, "isolated"),
         # routine: the controllers doing their job
         "BalancingUpdated": _I,
@@ -80,6 +79,9 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "LoadResupplied": _I,
         "ModeChanged": _I,
         "ProtectionReset": _I,
+        # sequencing saw a battery take charge from a sibling and stood it by: the controller
+        # handling it (the physics check flags a cross-charge that is too large)
+        "ReverseCurrent": _I,
         "SocCorrected": _I,
         "StageChanged": _I,
         "StateChanged": _I,
