@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import EXAMPLES, ROOT
 
 CLI = [sys.executable, "-m", "packpilot.cli"]
@@ -209,3 +211,19 @@ def test_make_demo_installs_only_the_package_and_test_adds_the_extras() -> None:
     assert '-e ".[test]"' in blocks["$(TEST_STAMP)"][1]
     demo = blocks["demo"][1]
     assert "--progress" in demo and ">&2" in demo  # progress and what is going on, on stderr
+
+
+def test_installed_examples_are_found_by_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A wheel installs the examples under <prefix>/share/packpilot/examples (pyproject's
+    data-files); a name resolves there when neither ./examples nor a checkout has it."""
+    from packpilot.cli import scenario_path
+
+    shared = tmp_path / "share" / "packpilot" / "examples"
+    shared.mkdir(parents=True)
+    (shared / "only_installed.toml").write_text("")
+    monkeypatch.setattr(sys, "prefix", str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    assert scenario_path(Path("only_installed")) == shared / "only_installed.toml"
+    assert 'data-files]\n' in (ROOT / "pyproject.toml").read_text()

@@ -77,8 +77,8 @@ def _main(
 
 def scenario_path(config: Path) -> Path:
     """The scenario file ``config`` names: a path, or an example's name (``uav_mission``
-    finds ``examples/uav_mission.toml`` here or next to the installed package), so the README's
-    commands work from anywhere."""
+    finds ``examples/uav_mission.toml`` here, in the source tree or among the installed
+    examples), so the README's commands work from anywhere."""
     if config.exists() or config.suffix or len(config.parts) > 1:
         return config
     for folder in _example_dirs():
@@ -97,12 +97,14 @@ def scenario_path(config: Path) -> Path:
 
 
 def _example_dirs() -> list[Path]:
-    """Where named examples are looked up: ./examples, then the source tree's examples."""
+    """Where named examples are looked up: ./examples, the source tree's (an editable
+    install), then the ones a wheel installs under ``<prefix>/share/packpilot/examples``."""
     import packpilot
 
     here = Path("examples")
-    shipped = Path(packpilot.__file__).resolve().parents[2] / "examples"
-    return [d for d in (here, shipped) if d.is_dir()]
+    checkout = Path(packpilot.__file__).resolve().parents[2] / "examples"
+    installed = Path(sys.prefix) / "share" / "packpilot" / "examples"
+    return [d for d in (here, checkout, installed) if d.is_dir()]
 
 
 def _guard(fn: Callable[[], T]) -> T:
