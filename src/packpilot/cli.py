@@ -146,7 +146,9 @@ def simulate(
     report: Annotated[
         Path | None, typer.Option(help="write a self-contained HTML report of the run")
     ] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="print the verdict and the metrics as JSON")
+    ] = False,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
     progress: Annotated[
         bool | None,
