@@ -3,21 +3,31 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
+TEST_STAMP := $(VENV)/.test-extras-stamp
 OUT    := out
 
 .PHONY: demo test bench lint clean venv browser
 
 venv: $(STAMP)
 
+# The demo needs only the package and its runtime dependencies; the test extras (pytest,
+# PyBaMM, linters, ...) are installed by `make test` / `make lint` on top (TEST_STAMP).
 $(STAMP): pyproject.toml
+	@echo "setup: creating $(VENV) and installing packpilot (runtime dependencies only)" >&2
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet -e .
 	touch $(STAMP)
+
+$(TEST_STAMP): $(STAMP) pyproject.toml
+	@echo "setup: installing the test extras (pytest, PyBaMM, linters)" >&2
+	$(PY) -m pip install --quiet -e ".[test]"
+	touch $(TEST_STAMP)
 
 demo: $(STAMP)
 	mkdir -p $(OUT)
-	$(PY) -m packpilot.cli simulate examples/uav_mission.toml --no-progress \
+	@echo "demo: simulating the 90-minute UAV mission (about 100 s; the first run also compiles the kernels)" >&2
+	$(PY) -m packpilot.cli simulate examples/uav_mission.toml --progress \
 		--db $(OUT)/demo.sqlite --report $(OUT)/report.html --plot $(OUT)/demo.png \
 		--can-log $(OUT)/demo_can.blf --json > $(OUT)/demo_summary.json
 	@echo "demo: full UAV mission (flight, dock, staged charging over CAN, balancing)"
@@ -43,7 +53,7 @@ browser:
 # test process and subprocess compiles from scratch and shares what it compiled; the in-tree
 # cache is neither read nor touched), removed afterwards.
 COLD_KERNELS ?=
-test: $(STAMP) browser
+test: $(TEST_STAMP) browser
 	@set -e; \
 	if [ -n "$(COLD_KERNELS)" ]; then \
 		cache=$$(mktemp -d "$${TMPDIR:-/tmp}/packpilot-kernels.XXXXXX"); \
@@ -54,10 +64,10 @@ test: $(STAMP) browser
 	echo "PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider"; \
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider
 
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
 	$(VENV)/bin/mypy --strict src
 	$(VENV)/bin/lint-imports

@@ -2,6 +2,10 @@
 
 Every user-facing error (bad config, bad log, bad CAN frame) is a :class:`PackPilotError`:
 printed as one line on stderr with exit code 2, never a traceback.
+
+Exit codes: 0 done; 2 a user error (one ``error: ...`` line); 3 ``simulate --fail-on`` found an
+alarm of a listed category (the run itself completed and its outputs were written); 130
+interrupted (Ctrl-C).
 """
 
 from __future__ import annotations
@@ -22,33 +26,106 @@ from packpilot.errors import PackPilotError
 if TYPE_CHECKING:
     from packpilot.config import ScenarioConfig
     from packpilot.contract.record import Result
+    from packpilot.sim.verdict import Verdict
 
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     help="PackPilot: battery management for multi-battery packs.",
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # plain help: "[seed, i]" is text, not markup; nothing is cut
 )
-replay_app = typer.Typer(no_args_is_help=True, help="Replay a CSV log through a control method.")
+replay_app = typer.Typer(
+    no_args_is_help=True,
+    help="Replay a CSV log through a control method.",
+    rich_markup_mode=None,
+)
 app.add_typer(replay_app, name="replay")
 
 T = TypeVar("T")
 
+EXIT_USER_ERROR = 2
+EXIT_FAIL_ON = 3
+"""``simulate --fail-on``: an alarm of a listed category (for CI)."""
+EXIT_INTERRUPTED = 130
+"""Ctrl-C, as a shell reports SIGINT (128 + 2)."""
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        import importlib.metadata
+
+        try:
+            version = importlib.metadata.version("packpilot")
+        except importlib.metadata.PackageNotFoundError:
+            version = "unknown"
+        typer.echo(f"packpilot {version}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", help="print the version and exit", callback=_version_callback,
+            is_eager=True,
+        ),
+    ] = False,
+) -> None:
+    """PackPilot: battery management for multi-battery packs."""
+
+
+def scenario_path(config: Path) -> Path:
+    """The scenario file ``config`` names: a path, or an example's name (``uav_mission``
+    finds ``examples/uav_mission.toml`` here, in the source tree or among the installed
+    examples), so the README's commands work from anywhere."""
+    if config.exists() or config.suffix or len(config.parts) > 1:
+        return config
+    for folder in _example_dirs():
+        candidate = folder / f"{config.name}.toml"
+        if candidate.is_file():
+            return candidate
+    import difflib
+
+    from packpilot.errors import ConfigError
+
+    names = sorted({p.stem for d in _example_dirs() for p in d.glob("*.toml")})
+    close = difflib.get_close_matches(config.name, names, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    known = f"; examples: {', '.join(names)}" if names else ""
+    raise ConfigError(f"{config}: no such file, and no example of that name{hint}{known}")
+
+
+def _example_dirs() -> list[Path]:
+    """Where named examples are looked up: ./examples, the source tree's (an editable
+    install), then the ones a wheel installs under ``<prefix>/share/packpilot/examples``."""
+    import packpilot
+
+    here = Path("examples")
+    checkout = Path(packpilot.__file__).resolve().parents[2] / "examples"
+    installed = Path(sys.prefix) / "share" / "packpilot" / "examples"
+    return [d for d in (here, checkout, installed) if d.is_dir()]
+
 
 def _guard(fn: Callable[[], T]) -> T:
-    """Run a command: a user-facing error is one line and exit code 2. Warnings raised on the
-    way (a NumPy overflow on absurd input) are held back: shown after a command that works,
-    dropped when a clean error says what was wrong, so that error stays one line."""
+    """Run a command: a user-facing error is one line and exit code 2; Ctrl-C is exit code
+    130 without a traceback. Warnings raised on the way (a NumPy overflow on absurd input) are
+    held back: shown after a command that works, dropped when a clean error says what was
+    wrong, so that error stays one line."""
     with warnings.catch_warnings(record=True) as held:
         try:
             result = fn()
         except PackPilotError as err:
             typer.echo(f"error: {err}", err=True)
-            raise typer.Exit(code=2) from None
+            raise typer.Exit(code=EXIT_USER_ERROR) from None
+        except KeyboardInterrupt:  # Ctrl-C while loading or compiling: no traceback either
+            typer.echo("interrupted", err=True)
+            raise typer.Exit(code=EXIT_INTERRUPTED) from None
         except OSError as err:  # an output path in a missing directory, a read-only file, ...
             where = f"{err.filename}: " if err.filename else ""
             typer.echo(f"error: {where}{err.strerror or err}", err=True)
-            raise typer.Exit(code=2) from None
+            raise typer.Exit(code=EXIT_USER_ERROR) from None
     for w in held:
         warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     return result
@@ -62,61 +139,159 @@ def _json_default(o: Any) -> Any:
     return str(o)
 
 
+FAIL_ON_HELP = (
+    "exit with code 3 when the run had an alarm of one of these categories (comma-separated):"
+    " trip, fault, unsupplied, overdischarge, crosscharge, limit, refused, crosscurrent,"
+    " isolated, unknown"
+)
+
+
 @app.command()
 def simulate(
-    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
     db: Annotated[Path | None, typer.Option(help="record telemetry to this SQLite file")] = None,
     trace_csv: Annotated[Path | None, typer.Option(help="write the per-step trace as CSV")] = None,
     plot: Annotated[Path | None, typer.Option(help="write a PNG of V, I, SOC, T")] = None,
     report: Annotated[
         Path | None, typer.Option(help="write a self-contained HTML report of the run")
     ] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="print the verdict and the metrics as JSON")
+    ] = False,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
-    no_progress: Annotated[bool, typer.Option("--no-progress", help="no progress bar")] = False,
+    progress: Annotated[
+        bool | None,
+        typer.Option(
+            "--progress/--no-progress",
+            help="progress on stderr (default: a bar when stderr is a terminal)",
+            show_default=False,
+        ),
+    ] = None,
     can_interface: Annotated[
         str | None, typer.Option(help="charger over CAN: python-can interface (virtual, socketcan)")
     ] = None,
     can_channel: Annotated[str | None, typer.Option(help="CAN channel, e.g. can0")] = None,
     can_log: Annotated[Path | None, typer.Option(help="log CAN frames to .blf or .asc")] = None,
+    fail_on: Annotated[str | None, typer.Option(help=FAIL_ON_HELP)] = None,
 ) -> None:
-    """Run a closed-loop simulation of a scenario."""
+    """Run a closed-loop simulation of a scenario.
 
-    def go() -> None:
-        from packpilot.config import load_config
-        from packpilot.sim.runner import Runner
+    Exit codes: 0 done, 2 bad input, 3 --fail-on matched, 130 interrupted (Ctrl-C).
+    """
 
-        cfg = load_config(config)
-        if can_interface or can_channel or can_log:
-            cfg = _with_can(cfg, can_interface, can_channel, can_log)
-        cfg = _with_duration(cfg, duration)
+    def go() -> int:
+        from packpilot.sim.verdict import parse_fail_on
+
+        path = scenario_path(config)
+        categories = parse_fail_on(fail_on) if fail_on is not None else []
+        cfg = _with_can(_load(path, duration), can_interface, can_channel, can_log)
         _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
-        progress = False if no_progress or as_json else None
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
-        if db is not None:
-            from packpilot.io.telemetry import SQLiteRecorder
+        result = _run_interruptible(cfg, path, db, progress)
+        _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report, db,
+                       started)  # fmt: skip
+        return _summarise(result, cfg.model_dump(mode="json"), as_json, categories)
 
-            with SQLiteRecorder(db) as recorder:
-                build = lambda: Runner(cfg, recorder=recorder, progress=progress)  # noqa: E731
-                result = _named(config, build).run()
-        else:
-            result = _named(config, lambda: Runner(cfg, progress=progress)).run()
-        if trace_csv is not None:
-            from packpilot.io.telemetry import trace_to_csv
+    code = _guard(go)
+    if code:
+        raise typer.Exit(code=code)
 
-            trace_to_csv(result, trace_csv)
-        if plot is not None:
-            from packpilot.report.plots import plot_run
 
-            plot_run(result, plot)
-        if report is not None:
-            _write_report(result, report, cfg.model_dump(mode="json"), config, db, started)
-        if as_json:
-            typer.echo(json.dumps(result.metrics, default=_json_default))
-        else:
-            _print_metrics(result.metrics)
+def _load(path: Path, duration: float | None) -> ScenarioConfig:
+    """The scenario, with ``--duration`` applied (validated as ``sim.duration_s`` is)."""
+    from packpilot.config import load_config
 
-    _guard(go)
+    return _with_duration(load_config(path), duration)
+
+
+def _with_can(
+    cfg: ScenarioConfig, interface: str | None, channel: str | None, log: Path | None
+) -> ScenarioConfig:
+    """The ``--can-*`` options applied; refused when there is nothing for CAN to carry (no
+    charger) or the interface is not one python-can knows, before the run starts."""
+    if not (interface or channel or log):
+        return cfg
+    from packpilot.errors import ConfigError
+
+    if not cfg.charger.present:
+        raise ConfigError(
+            "--can-*: this scenario has no charger ([charger] present = false); the CAN link"
+            " only carries the charger's setpoints and status"
+        )
+    if interface is not None:
+        import can
+
+        known = sorted(can.interfaces.VALID_INTERFACES)
+        if interface not in known:
+            raise ConfigError(
+                f"--can-interface {interface!r}: not a python-can interface; one of"
+                f" {', '.join(known)}"
+            )
+    update = {
+        k: str(v)
+        for k, v in (("interface", interface), ("channel", channel), ("log", log))
+        if v is not None
+    }
+    return _revalidated(cfg, "can", update, "--can-*")
+
+
+def _run_interruptible(
+    cfg: ScenarioConfig, path: Path, db: Path | None, progress: bool | None
+) -> Result:
+    """The run; Ctrl-C ends it with a message and exit code 130 (a ``--db`` run is stamped
+    ``interrupted``, with every sample up to that point)."""
+    from packpilot.sim.runner import Runner
+
+    runner = _named(path, lambda: Runner(cfg, progress=progress))
+    try:
+        if db is None:
+            return runner.run()
+        from packpilot.io.telemetry import SQLiteRecorder
+
+        with SQLiteRecorder(db) as recorder:
+            runner.recorder = recorder
+            return runner.run()
+    except KeyboardInterrupt:
+        t_s = runner.steps_done * cfg.sim.dt_s
+        kept = f"; {db} holds the run up to there, status 'interrupted'" if db else ""
+        typer.echo(f"interrupted at t = {t_s:.1f} s{kept}", err=True)
+        raise typer.Exit(code=EXIT_INTERRUPTED) from None
+
+
+def _write_outputs(
+    result: Result, cfg: dict[str, Any], path: Path, trace_csv: Path | None, plot: Path | None,
+    report: Path | None, db: Path | None, started: str,
+) -> None:  # fmt: skip
+    if trace_csv is not None:
+        from packpilot.io.telemetry import trace_to_csv
+
+        trace_to_csv(result, trace_csv)
+    if plot is not None:
+        from packpilot.report.plots import plot_run
+
+        plot_run(result, plot)
+    if report is not None:
+        _write_report(result, report, cfg, path, db, started)
+
+
+def _summarise(
+    result: Result, cfg: dict[str, Any], as_json: bool, categories: list[str]
+) -> int:
+    """Print the verdict, the alarms and the metrics; the exit code ``--fail-on`` asks for."""
+    from packpilot.sim.verdict import fail_on, run_verdict
+
+    verdict = run_verdict(result, cfg)
+    if as_json:
+        out = {"verdict": verdict.as_dict(), **result.metrics}
+        typer.echo(json.dumps(out, default=_json_default))
+    else:
+        _print_verdict(verdict)
+        _print_metrics(result.metrics)
+    hits = fail_on(verdict, categories)
+    if hits:
+        typer.echo(f"fail-on: {', '.join(hits)} (exit code {EXIT_FAIL_ON})", err=True)
+        return EXIT_FAIL_ON
+    return 0
 
 
 def _with_duration(cfg: ScenarioConfig, duration: float | None) -> ScenarioConfig:
@@ -125,18 +300,6 @@ def _with_duration(cfg: ScenarioConfig, duration: float | None) -> ScenarioConfi
     if duration is None:
         return cfg
     return _revalidated(cfg, "sim", {"duration_s": duration}, "--duration")
-
-
-def _with_can(
-    cfg: ScenarioConfig, interface: str | None, channel: str | None, log: Path | None
-) -> ScenarioConfig:
-    """The ``[can]`` section with the command line's ``--can-*`` options, validated."""
-    update = {
-        k: v
-        for k, v in (("interface", interface), ("channel", channel), ("log", log))
-        if v is not None
-    }
-    return _revalidated(cfg, "can", {k: str(v) for k, v in update.items()}, "--can-*")
 
 
 def _revalidated(
@@ -205,28 +368,60 @@ def _write_report(
     write_report(result, out, info)
 
 
+def _print_verdict(verdict: Verdict) -> None:
+    """The verdict and the alarms table, first: what a reader must not miss."""
+    from rich.console import Console
+    from rich.table import Table
+    from rich.text import Text
+
+    style = {"OK": "bold green", "WARNING": "bold yellow"}.get(verdict.word, "bold red")
+    con = Console()
+    con.print(Text.assemble("verdict: ", (verdict.word, style)))
+    if not verdict.alarms:
+        return
+    table = Table(title="alarms", show_header=True)
+    for col in ("first at (s)", "battery", "severity", "cause", "cleared"):
+        table.add_column(col, justify="right" if col.startswith("first") else "left")
+    for a in verdict.alarms:
+        cleared = f"yes ({a.cleared_t_s:.1f} s)" if a.cleared_t_s is not None else "no"
+        times = f" ×{a.count}" if a.count > 1 else ""
+        table.add_row(
+            f"{a.t_s:.1f}", a.battery or "pack", a.severity.label,
+            Text(f"{a.kind}: {a.cause}{times}"), cleared,
+        )  # fmt: skip
+    con.print(table)
+
+
+def _metric_text(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        return ", ".join(_metric_text(x) for x in v)
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_metric_text(x)}" for k, x in v.items()) or "none"
+    return str(v)
+
+
 def _print_metrics(m: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table
+    from rich.text import Text
 
     table = Table(title="run summary", show_header=True)
     table.add_column("metric")
     table.add_column("value", justify="right")
     for k, v in m.items():
-        if isinstance(v, float):
-            text = f"{v:.4g}"
-        elif isinstance(v, list):
-            text = ", ".join(f"{x:.4g}" if isinstance(x, float) else str(x) for x in v)
-        else:
-            text = str(v)
-        table.add_row(k, text)
+        table.add_row(k, Text(_metric_text(v)))  # Text: a value is never read as markup
     Console().print(table)
 
 
 @app.command()
 def report(
     db: Annotated[Path, typer.Argument(help="telemetry SQLite file (simulate --db)")],
-    out: Annotated[Path, typer.Option(help="HTML file to write")],
+    out: Annotated[
+        Path | None,
+        typer.Option(help="HTML file to write (default: next to DB, run.sqlite -> run.html)"),
+    ] = None,
     run_id: Annotated[int | None, typer.Option(help="run to report (default: latest)")] = None,
 ) -> None:
     """Write a self-contained HTML report (plots inline, no network) of a recorded run."""
@@ -234,10 +429,16 @@ def report(
     def go() -> None:
         from packpilot.report.html import report_from_db
 
-        path = report_from_db(db, out, run_id)
+        target = out if out is not None else default_report_path(db, run_id)
+        path = report_from_db(db, target, run_id)
         typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
 
     _guard(go)
+
+
+def default_report_path(db: Path, run_id: int | None) -> Path:
+    """``run.sqlite`` -> ``run.html`` (``run_3.html`` for ``--run-id 3``), beside the file."""
+    return db.with_name(db.stem + (f"_{run_id}" if run_id is not None else "") + ".html")
 
 
 def _replay(method: str, log: Path, config: Path | None, out: Path | None, as_json: bool) -> None:
@@ -285,7 +486,7 @@ for _entry in REGISTRY.values():
 
 @app.command()
 def campaign(
-    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
     runs: Annotated[int, typer.Option(help="number of runs (run indices 0..N-1)")],
     spread: Annotated[
         str | None,
@@ -313,14 +514,16 @@ def campaign(
 
     def go() -> None:
         from packpilot import campaign as cp
-        from packpilot.config import load_config
 
-        cfg = _with_duration(load_config(config), duration)
-        target = out if out is not None else Path(f"{config.stem}_campaign.parquet")
+        path = scenario_path(config)
+        target = out if out is not None else Path(f"{path.stem}_campaign.parquet")
+        check_campaign_out(target)
         _check_outputs(out=target)
+        cfg = _load(path, duration)
         show = not (as_json or no_progress) and sys.stdout.isatty()
         try:
-            with cp.rich_progress(show) as progress:
+            with cp.rich_progress(show) as bar:
+                progress = _warn_identical(runs if spread is None else 0, bar)
                 report = cp.run_campaign(
                     cfg,
                     runs,
@@ -351,9 +554,43 @@ def campaign(
     _guard(go)
 
 
+def _warn_identical(
+    runs: int, bar: Callable[[int, int], None] | None
+) -> Callable[[int, int], None]:
+    """The campaign's progress callback, which first (once every option has been checked and
+    the runs are about to start) warns that ``runs`` > 1 runs without spreads are identical."""
+    warned = runs < 2
+
+    def progress(done: int, total: int) -> None:
+        nonlocal warned
+        if not warned:
+            warned = True
+            typer.echo(
+                f"warning: no --spread: the {runs} runs share every parameter and give the"
+                " same result (add e.g. --spread capacity=5%,r0=10%)",
+                err=True,
+            )
+        if bar is not None:
+            bar(done, total)
+
+    return progress
+
+
+def check_campaign_out(out: Path) -> None:
+    """A campaign writes Parquet (``--resume`` reads it back): refuse any other suffix before
+    the runs, rather than Parquet bytes in a file called ``.csv``."""
+    from packpilot.errors import InputError
+
+    if out.suffix.lower() != ".parquet":
+        raise InputError(
+            f"--out {out}: a campaign writes Parquet; give a .parquet name (pyarrow or pandas"
+            " read it; pyarrow.csv.write_csv converts it)"
+        )
+
+
 @app.command()
 def dashboard(
-    config: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
     host: Annotated[str, typer.Option(help="address to listen on")] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="TCP port (0: any free port)")] = 8765,
     speed: Annotated[
@@ -367,7 +604,6 @@ def dashboard(
     def go() -> None:
         import contextlib
 
-        from packpilot.config import load_config
         from packpilot.errors import ConfigError
         from packpilot.sim.runner import Runner
         from packpilot.web.app import Dashboard
@@ -376,11 +612,12 @@ def dashboard(
             raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
         if not 0 <= port <= 65535:
             raise ConfigError(f"--port {port}: must be 0..65535")
-        cfg = _with_duration(load_config(config), duration)
+        path = scenario_path(config)
+        cfg = _load(path, duration)
         if db is not None:
             _check_outputs(db=db)
-        runner = _named(config, lambda: Runner(cfg, progress=False))
-        name = cfg.pack.name if "name" in cfg.pack.model_fields_set else config.stem
+        runner = _named(path, lambda: Runner(cfg, progress=False))
+        name = cfg.pack.name if "name" in cfg.pack.model_fields_set else path.stem
         dash = Dashboard(runner, scenario=name, speed=speed, db=db, host=host, port=port)
         typer.echo(f"dashboard for {name} on {dash.url}  (Ctrl-C to stop)", err=True)
         dash.start()

@@ -3,9 +3,10 @@ formatter that turns a validation error into one line naming the file and the fi
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Mapping
-from typing import Annotated, Any, TypeVar, get_args
+from typing import Annotated, Any, TypeVar, get_args, get_origin
 
 from pydantic import (
     AfterValidator,
@@ -105,14 +106,54 @@ def _printable(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
-def fmt_error(source: str, err: ValidationError, prefix: str = "") -> str:
-    """``source: section.field: what is wrong (got value)`` on one line."""
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    """The models a field's annotation can hold (through ``X | None``, ``list[X]``,
+    ``dict[str, X]``, ``Annotated[X, ...]``)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    origin = get_origin(annotation)
+    if origin is None:
+        return []
+    args = get_args(annotation)
+    if origin is Annotated:
+        args = args[:1]
+    elif origin is dict:
+        args = args[1:]
+    return [m for a in args for m in _models_in(a)]
+
+
+def _keys_at(model: type[BaseModel], loc: tuple[int | str, ...]) -> set[str]:
+    """The keys allowed where ``loc`` points (its last part is the key itself)."""
+    models = [model]
+    for part in loc[:-1]:
+        if not isinstance(part, str):
+            continue  # a list index: the element is the same model
+        fields = [cur.model_fields[part] for cur in models if part in cur.model_fields]
+        nxt = [m for f in fields for m in _models_in(f.annotation)]
+        models = nxt or models  # a validator's or a union member's tag: stay where we are
+    return {k for m in models for k in m.model_fields}
+
+
+def did_you_mean(model: type[BaseModel] | None, loc: tuple[int | str, ...]) -> str:
+    """`` (did you mean 'cutoff_v'?)`` for an unknown key close to an allowed one, else ``""``:
+    a typo in a long TOML file should point at the fix, not only at the mistake."""
+    if model is None or not loc or not isinstance(loc[-1], str):
+        return ""
+    close = difflib.get_close_matches(loc[-1], sorted(_keys_at(model, loc)), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def fmt_error(
+    source: str, err: ValidationError, prefix: str = "", model: type[BaseModel] | None = None
+) -> str:
+    """``source: section.field: what is wrong (got value)`` on one line; with ``model`` (what
+    was validated), an unknown key close to an allowed one adds ``(did you mean 'x'?)``."""
     first = err.errors()[0]
     loc = ".".join(_printable(str(p)) for p in first["loc"] if not str(p).startswith("function-"))
     loc = f"{prefix}{loc}" if loc else prefix.rstrip(".") or "(top level)"
     msg = first["msg"]
     if first["type"] == "extra_forbidden":
-        msg = "unknown key"
+        msg = "unknown key" + did_you_mean(model, tuple(first["loc"]))
     elif first["type"] == "value_error":
         msg = msg.removeprefix("Value error, ")  # pydantic's prefix on a validator's message
     inp = first.get("input")
@@ -141,7 +182,7 @@ def load_section_model(
     try:
         return cls.model_validate(dict(data or {}))
     except ValidationError as err:
-        raise ConfigError(fmt_error(source, err, prefix=f"{section}.")) from None
+        raise ConfigError(fmt_error(source, err, prefix=f"{section}.", model=cls)) from None
 
 
 __all__ = [
@@ -155,6 +196,7 @@ __all__ = [
     "PosFloat",
     "Seconds",
     "Strict",
+    "did_you_mean",
     "fmt_error",
     "load_section_model",
     "plus_zero",

@@ -469,7 +469,7 @@ def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConf
     try:
         return ScenarioConfig.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(fmt_error(source, err)) from None
+        raise ConfigError(fmt_error(source, err, model=ScenarioConfig)) from None
 
 
 def load_config(path: str | Path) -> ScenarioConfig:

@@ -34,8 +34,14 @@ MAX_PANELS_PER_FIGURE = 10
 ChannelKind = Literal["numeric", "bool", "label"]
 
 
+ALARM_COLOR = "tab:red"
+"""Trips and alarms; no battery is drawn in it (``C3`` is this red, so it is skipped)."""
+BATTERY_COLORS: tuple[str, ...] = ("C0", "C1", "C2", "C4", "C5", "C6", "C7", "C8", "C9")
+
+
 def battery_color(b: int) -> str:
-    return f"C{b % 10}"
+    """Battery ``b``'s colour, the same in every figure, never the alarm colour."""
+    return BATTERY_COLORS[b % len(BATTERY_COLORS)]
 
 
 # --------------------------------------------------------------------------- time axis
@@ -632,12 +638,12 @@ def protection_figure(
                 ax.broken_barh(
                     runs,
                     (0.0, 1.0),
-                    color="tab:red",
+                    color=ALARM_COLOR,
                     alpha=0.18,
                     lw=0,
                     transform=ax.get_xaxis_transform(),
                 )
-                handles.append(Line2D([], [], color="tab:red", alpha=0.4, lw=6, label="tripped"))
+                handles.append(Line2D([], [], color=ALARM_COLOR, alpha=0.4, lw=6, label="tripped"))
         if frac is not None and b in frac.columns:
             ax2 = ax.twinx()
             x, y = _step_xy(frac, 100.0 * frac.numeric(b), t, axis)

@@ -32,8 +32,10 @@ from packpilot.contract.topology import Topology
 from packpilot.errors import InputError
 from packpilot.report import figures as F
 from packpilot.report.plots import figure_png_base64
+from packpilot.sim.verdict import Verdict, run_verdict
 
 SECTION_IDS: tuple[str, ...] = (
+    "verdict",
     "summary",
     "events",
     "batteries",
@@ -42,6 +44,7 @@ SECTION_IDS: tuple[str, ...] = (
     "controllers",
 )
 SECTION_TITLES = {
+    "verdict": "Verdict",
     "summary": "Summary",
     "events": "Events",
     "batteries": "Batteries",
@@ -167,7 +170,7 @@ def fmt_time(t_s: float) -> str:
     if not math.isfinite(t_s):
         return "–"
     sign = "-" if t_s < 0 else ""
-    t = abs(t_s)
+    t = round(abs(t_s), 1)  # 299.99999 s (1500 steps of 0.2 s) reads 0:05:00.0, not 0:04:60.0
     h, rem = divmod(t, 3600.0)
     m, s = divmod(rem, 60.0)
     return f"{sign}{int(h)}:{int(m):02d}:{s:04.1f}"
@@ -286,6 +289,32 @@ def select_events(events: Sequence[Event], limit: int = MAX_EVENT_ROWS) -> list[
         chosen.extend(by_kind[k][:share])
         left -= min(share, len(by_kind[k]))
     return sorted(chosen)
+
+
+def _verdict(verdict: Verdict) -> str:
+    """The verdict and the alarms table: the first thing a reader sees."""
+    word = verdict.word
+    head = (
+        f'<p class="verdict {esc(word.lower())}" id="verdict-word">{esc(word)}</p>'
+        + ("" if verdict.alarms else '<p class="note">No warning, alarm or fault: the events'
+           " and the physics checks (over-discharge, cross-charge, load loss) are clean.</p>")
+    )  # fmt: skip
+    if not verdict.alarms:
+        return head
+    rows = [
+        (
+            f"{fmt_num(a.t_s)} s ({fmt_time(a.t_s)})",
+            a.battery or "pack",
+            f'<span class="sev {a.severity.label}">{esc(a.severity.label)}</span>',
+            esc(a.kind) + (f" ×{a.count}" if a.count > 1 else ""),
+            esc(a.cause),
+            "no" if a.cleared_t_s is None else f"yes, at {fmt_num(a.cleared_t_s)} s",
+            esc(a.source),
+        )
+        for a in verdict.alarms
+    ]
+    header = ("first at", "battery", "severity", "what", "cause", "cleared?", "from")
+    return head + table(header, rows, cls="alarms", raw=True)
 
 
 def _summary(result: Result, info: RunInfo) -> str:
@@ -661,8 +690,17 @@ figcaption { color: var(--muted); font-size: .85rem; margin-top: .25rem; }
 .warn { background: #fdf0d5; border-left: 4px solid #d08a00; padding: .4rem .7rem; }
 .badge { display: inline-block; padding: 0 .45rem; border-radius: .6rem; font-size: .85rem;
          font-weight: 600; background: #e1e5eb; }
-.badge.ok { background: #d6f0dc; color: #135d27; }
-.badge.error, .badge.running { background: #f8d9d6; color: #8a1c12; }
+.badge.ok { background: #e1e5eb; } /* the run completed: how it went is the verdict's */
+.badge.error, .badge.running, .badge.interrupted { background: #f8d9d6; color: #8a1c12; }
+.badge.verdict-ok, .verdict.ok { background: #d6f0dc; color: #135d27; }
+.badge.verdict-warning, .verdict.warning { background: #fdf0d5; color: #7a4d00; }
+.badge.verdict-alarm, .badge.verdict-fault, .verdict.alarm, .verdict.fault
+  { background: #f8d9d6; color: #8a1c12; }
+.verdict { display: inline-block; font-size: 1.6rem; font-weight: 700; padding: .2rem 1rem;
+           border-radius: .4rem; margin: .2rem 0 .6rem; }
+.sev { font-weight: 600; }
+.sev.fault, .sev.alarm { color: #b3261e; }
+.sev.warning { color: #8a5a00; }
 pre { background: var(--bg2); padding: .6rem; overflow: auto; font-size: .78rem; }
 footer { color: var(--muted); font-size: .8rem; text-align: center; padding: 1rem; }
 """
@@ -692,7 +730,9 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
     info = info or RunInfo()
     axis = F.TimeAxis.of(result.trace.t_s)
     channels = F.status_channels(result)
+    verdict = run_verdict(result, info.config)
     body = {
+        "verdict": _verdict(verdict),
         "summary": _summary(result, info),
         "events": _events(result, axis, info),
         "batteries": _batteries(result, axis, info),
@@ -703,7 +743,9 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
     name = info.config_name or "run"
     run = f"run {result.run_id}" if result.run_id is not None else "in-memory run"
     status = info.status or "unknown"
-    badge = f'<span class="badge {esc(status)}">{esc(status)}</span>'
+    badge = f'<span class="badge {esc(status)}" title="run status">run {esc(status)}</span>'
+    word = verdict.word
+    badge += f' <span class="badge verdict-{esc(word.lower())}">{esc(word)}</span>'
     when = fmt_date(info.started_at) if info.started_at else ""
     sub = " · ".join(x for x in (esc(name), esc(run), badge, esc(when)) if x)
     nav = "".join(f'<a href="#{s}">{esc(SECTION_TITLES[s])}</a>' for s in SECTION_IDS)

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
 from packpilot.errors import InputError
+from packpilot.report.figures import battery_color
 
 _FORMATS = ("png", "svg", "pdf")
 _MAX_EVENT_LABELS = 12
@@ -125,7 +126,7 @@ def run_figure(result: Result) -> Figure:
     t = tr.t_s / scale
     ax_v, ax_i, ax_soc, ax_t = axes
     for b, name in enumerate(result.battery_names):
-        color = f"C{b % 10}"
+        color = battery_color(b)
         ax_v.plot(t, tr.channel("voltage_v")[:, b], color=color, lw=1.2, label=name)
         ax_i.plot(t, tr.channel("current_a")[:, b], color=color, lw=1.2, label=name)
         ax_soc.plot(t, 100.0 * tr.channel("soc")[:, b], color=color, lw=1.2, label=name)

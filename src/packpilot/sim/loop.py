@@ -46,6 +46,11 @@ from packpilot.sim.plant_io import SimulatedPlant
 Array = NDArray[np.float64]
 
 
+LOOP_EVENT_KINDS: tuple[str, ...] = ("LoadUnsupplied", "LoadResupplied")
+"""The events the loop itself emits (the plant's load supply), beside the core's reason tables:
+every kind needs a row in :data:`packpilot.contract.severity.EVENT_SEVERITY`."""
+
+
 def build_core(cfg: ScenarioConfig, infos: Sequence[PackInfo]) -> Core:
     """The BMS a scenario enables: its methods in the listed order, then the safety layers,
     under the supervisor when any of ``[supervisor]``, ``[limits]``, ``[plausibility]``,
@@ -264,9 +269,9 @@ class ClosedLoop:
             if not supplied[p]:
                 data = {"bus_v": float(iv.bus_v[p]), "demand_a": float(iv.load_demand_a[p])}
                 msg = "bus cannot supply the load"
-                out.append((p, Event(t, "LoadUnsupplied", None, msg, data)))
+                out.append((p, Event(t, LOOP_EVENT_KINDS[0], None, msg, data)))
             else:
-                out.append((p, Event(t, "LoadResupplied", None, "load supplied again")))
+                out.append((p, Event(t, LOOP_EVENT_KINDS[1], None, "load supplied again")))
         self.was_supplied = supplied.copy()
         self.unsupplied_s = np.where(supplied, 0.0, self.unsupplied_s + dt)
         self._all_supplied = bool(supplied.all())
@@ -324,4 +329,12 @@ def wall() -> float:
     return time.perf_counter()
 
 
-__all__ = ["ClosedLoop", "StepRecord", "build_core", "load_profile", "n_steps", "sample"]
+__all__ = [
+    "LOOP_EVENT_KINDS",
+    "ClosedLoop",
+    "StepRecord",
+    "build_core",
+    "load_profile",
+    "n_steps",
+    "sample",
+]

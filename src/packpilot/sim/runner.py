@@ -8,6 +8,7 @@ into metrics. Its controller is the scenario's core by default; any scalar
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -71,6 +72,8 @@ class Runner:
             self.charger_link = default_links(self.cfg, self.pack)[0]
         self.loop: ClosedLoop | None = None
         self.events: list[Event] = []
+        self.steps_done = 0
+        """Steps completed so far (where an interrupted run stopped)."""
 
     @property
     def profile(self) -> loads.LoadProfile:
@@ -88,6 +91,24 @@ class Runner:
     def pack(self) -> Pack:
         return self.plant.pack
 
+    def _prepare(
+        self, core: Core, links: list[ChargerLink] | None, total: int
+    ) -> tuple[ClosedLoop, TraceBuffer]:
+        """The loop of this run and the buffer its trace goes into."""
+        hooks = [lambda t, h=h: h(self, t) for h in self.hooks]
+        loop = ClosedLoop.of(self.cfg, core=core, links=links, hooks=hooks, plant=self.plant)
+        loop.profile = self._profile
+        self.loop = loop
+        buf = TraceBuffer(
+            self.pack,
+            self.plant.topology,
+            core.status_channels(),
+            core.status.shape[2],
+            capacity=min(total, 1 << 16),
+            max_rows=record.MAX_TRACE_ROWS,
+        )
+        return loop, buf
+
     def run(self) -> Result:
         cfg = self.cfg
         dt = cfg.sim.dt_s
@@ -99,24 +120,14 @@ class Runner:
             links = [self.charger_link]
         elif not modelled(cfg):
             links = []
-        hooks = [lambda t, h=h: h(self, t) for h in self.hooks]
-        loop = ClosedLoop.of(cfg, core=core, links=links, hooks=hooks, plant=self.plant)
-        loop.profile = self._profile
-        self.loop = loop
-        buf = TraceBuffer(
-            self.pack,
-            self.plant.topology,
-            core.status_channels(),
-            core.status.shape[2],
-            capacity=min(total, 1 << 16),
-            max_rows=record.MAX_TRACE_ROWS,
-        )
+        loop, buf = self._prepare(core, links, total)
         self.run_id: int | None = None
         if self.recorder is not None:
             self.run_id = self.recorder.start(cfg.model_dump(mode="json"), self.pack.names)
         wall0 = time.perf_counter()
         status = "ok"
-        bar = _Progress(total, enabled=cfg.sim.progress if self.progress is None else self.progress)
+        enabled = cfg.sim.progress if self.progress is None else self.progress
+        bar = _Progress(total, enabled, lines=self.progress is True and not sys.stderr.isatty())
         try:
             for k in range(total):
                 rec = loop.step(k, dt)
@@ -129,8 +140,12 @@ class Runner:
                     if new_events:
                         self.recorder.record_events(new_events)
                 bar.update(k + 1)
+                self.steps_done = k + 1
                 if not loop.running:
                     break
+        except KeyboardInterrupt:
+            status = "interrupted"  # the user stopped it (Ctrl-C): not a failure of the run
+            raise
         except BaseException:
             status = "error"
             raise
@@ -153,38 +168,59 @@ class Runner:
 
 
 class _Progress:
-    """A rich progress bar that appears only once a run has taken more than ~1 s."""
+    """Progress on **stderr** (stdout stays clean for ``--json``): a rich bar on a terminal
+    once a run has taken more than ~1 s; with ``lines`` (progress asked for explicitly, stderr
+    not a terminal: ``make demo`` in CI, a log file) one plain line per tenth of the run."""
 
-    def __init__(self, total: int, enabled: bool) -> None:
+    def __init__(self, total: int, enabled: bool, lines: bool = False) -> None:
         self.total = total
-        self.enabled = enabled
+        self.enabled = enabled and (lines or sys.stderr.isatty())
+        self.lines = lines
         self.t0 = time.perf_counter()
         self.bar: Any = None
         self.task: Any = None
+        self.next_at = max(1, -(-total // 10))
+        """Steps done at which the next plain line is due (one per tenth)."""
 
     def update(self, done: int) -> None:
-        if not self.enabled or done % 200:
+        if not self.enabled:
+            return
+        if self.lines:
+            if done >= self.next_at:
+                self._line(done)
+            return
+        if done % 200:
             return
         if self.bar is None:
             if time.perf_counter() - self.t0 < 1.0:
                 return
-            from rich.progress import (
-                BarColumn,
-                Progress,
-                TaskProgressColumn,
-                TimeRemainingColumn,
-            )
-
-            self.bar = Progress(
-                "[progress.description]{task.description}",
-                BarColumn(),
-                TaskProgressColumn(),
-                TimeRemainingColumn(),
-                transient=True,
-            )
-            self.bar.start()
-            self.task = self.bar.add_task("simulating", total=self.total)
+            self._start()
         self.bar.update(self.task, completed=done)
+
+    def _line(self, done: int) -> None:
+        self.next_at = -(-(done * 10 // self.total + 1) * self.total // 10)  # ceil
+        wall = time.perf_counter() - self.t0
+        print(
+            f"simulating: {100 * done // self.total:3d} %"
+            f" ({done}/{self.total} steps, {wall:.0f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    def _start(self) -> None:
+        from rich.console import Console
+        from rich.progress import BarColumn, Progress, TaskProgressColumn, TimeRemainingColumn
+
+        self.bar = Progress(
+            "[progress.description]{task.description}",
+            BarColumn(),
+            TaskProgressColumn(),
+            TimeRemainingColumn(),
+            transient=True,
+            console=Console(stderr=True),
+        )
+        self.bar.start()
+        self.task = self.bar.add_task("simulating", total=self.total)
 
     def close(self) -> None:
         if self.bar is not None:

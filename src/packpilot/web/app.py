@@ -90,6 +90,7 @@ def create_app(live: LiveRun, push_interval_s: float = 0.2) -> FastAPI:
                         "state": st["state"],
                         "t_s": st["t_s"],
                         "progress": st["progress"],
+                        "verdict": st["verdict"],
                         "latest": st["latest"],
                         "points": up.points,
                         "events": up.events,

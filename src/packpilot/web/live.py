@@ -24,8 +24,10 @@ import numpy as np
 
 from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Recorder, StepSample
+from packpilot.contract.severity import row_of
 from packpilot.contract.topology import Topology
 from packpilot.errors import PackPilotError
+from packpilot.sim.verdict import RunWatch
 
 CHART_CHANNELS: tuple[str, ...] = ("voltage_v", "current_a", "soc", "temp_c")
 """Per-battery channels kept in the chart history (the four charts of the page)."""
@@ -33,6 +35,10 @@ CHART_CHANNELS: tuple[str, ...] = ("voltage_v", "current_a", "soc", "temp_c")
 _CHART_COLS = [BATTERY_CHANNELS.index(c) for c in CHART_CHANNELS]
 
 STATES = ("starting", "running", "finished", "stopped", "error")
+
+WATCH_CHUNK = 256
+"""Samples the writer holds before it folds them into the physics checks (readers fold what is
+pending whenever they ask for the verdict), so a step costs one append."""
 
 
 class RunStopped(Exception):
@@ -72,6 +78,7 @@ def event_dict(index: int, e: Event, topology: Topology) -> dict[str, Any]:
             "index": index,
             "t_s": e.t_s,
             "kind": e.kind,
+            "severity": row_of(e.kind).severity.label,
             "battery": b,
             "battery_name": topology.battery_name(b),
             "message": e.message,
@@ -168,6 +175,8 @@ class LiveRun:
         self.topology = Topology.of_config(None, self.battery_names)
         self._started_wall: float | None = None
         self._finished_wall: float | None = None
+        self._watch = RunWatch(None, self.battery_names)
+        self._pending: list[StepSample] = []
 
     # ------------------------------------------------------------------ writer side
     def on_start(
@@ -176,6 +185,8 @@ class LiveRun:
         with self._lock:
             self.battery_names = list(battery_names)
             self.topology = Topology.of_config(config, battery_names)
+            self._watch = RunWatch(config, battery_names)
+            self._pending = []
             self.state = "running"
             self._started_wall = time.time()
             self._version += 1
@@ -184,6 +195,9 @@ class LiveRun:
         with self._lock:
             self._latest = s
             self._version += 1
+            self._pending.append(s)
+            if len(self._pending) >= WATCH_CHUNK:
+                self._fold()
             if s.step % self._stride:
                 return
             self._points.append(_chart_point(s))
@@ -197,6 +211,7 @@ class LiveRun:
     def on_events(self, events: Sequence[Event]) -> None:
         with self._lock:
             self._events.extend(events)
+            self._watch.events.feed(events)
             self._version += 1
 
     def on_finish(self, metrics: Mapping[str, Any], state: str, error: str | None = None) -> None:
@@ -224,7 +239,18 @@ class LiveRun:
             self._finished_wall = self._finished_wall or time.time()
             self._version += 1
 
+    def _fold(self) -> None:
+        """Feed the pending samples to the physics checks (holding the lock)."""
+        self._watch.physics.feed_samples(self._pending)
+        self._pending = []
+
     # ------------------------------------------------------------------ reader side
+    def verdict(self) -> dict[str, Any]:
+        """The run's verdict and alarms so far (the same checks as the report and the CLI)."""
+        with self._lock:
+            self._fold()
+            return jsonable_dict(self._watch.verdict().as_dict())
+
     @property
     def version(self) -> int:
         return self._version
@@ -240,6 +266,7 @@ class LiveRun:
             n_events = len(self._events)
             state, metrics, error = self.state, self.metrics, self.error
             names = list(self.battery_names)
+        verdict = self.verdict()
         t_s = latest.t_s if latest is not None else 0.0
         return jsonable_dict(
             {
@@ -253,6 +280,7 @@ class LiveRun:
                 "progress": _progress(state, t_s, self.duration_s),
                 "speed": self.speed,
                 "n_events": n_events,
+                "verdict": verdict,
                 "latest": None if latest is None else sample_summary(latest, names),
                 "metrics": metrics,
                 "error": error,
@@ -319,7 +347,9 @@ class DashboardRecorder:
             if self.tee is not None:
                 self.tee.finish(metrics, status=status)
         finally:
-            state = {"ok": "finished", "stopped": "stopped"}.get(status, "error")
+            state = {"ok": "finished", "stopped": "stopped", "interrupted": "stopped"}.get(
+                status, "error"
+            )
             self.live.on_finish(metrics, state)
 
 

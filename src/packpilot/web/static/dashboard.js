@@ -3,15 +3,19 @@
 // messages with new chart points, new events, the latest sample and, at the end, the metrics.
 "use strict";
 
-const COLORS = ["#1f6fd1", "#d62f2f", "#1f9d55", "#e07b00", "#8e44ad", "#0f9fa8", "#c2185b",
-  "#6d4c41"];
+// Battery colours: none of them is the alarm red (ALARM), so "battery B" never reads as an alarm.
+const COLORS = ["#1f6fd1", "#e07b00", "#1f9d55", "#8e44ad", "#0f9fa8", "#6d4c41", "#5c6bc0",
+  "#7a8a00"];
+const ALARM = "#d33a2c";
 const CHARTS = [
   { key: "voltage_v", title: "Voltage", unit: "V", scale: 1 },
   { key: "current_a", title: "Current (+ discharge)", unit: "A", scale: 1 },
   { key: "soc", title: "SOC", unit: "%", scale: 100 },
   { key: "temp_c", title: "Temperature", unit: "°C", scale: 1 },
 ];
-const BAD_KINDS = /Trip|Fault|Unsupplied|Refused|Over|Under|Error|Timeout|Weld|Implausible/i;
+// Each event carries its severity from the one table (contract/severity.py); routine events
+// that change a mode or stage are still marked, in blue.
+const isBad = (e) => e.severity === "alarm" || e.severity === "fault";
 const INFO_KINDS = /Mode|Stage|Joined|Reset|Resupplied/i;
 const MAX_EVENT_ROWS = 1000;
 
@@ -97,6 +101,7 @@ function onUpdate(msg) {
   S.state = msg.state;
   S.metrics = msg.metrics;
   renderStatus(msg);
+  if (msg.verdict) renderVerdict(msg.verdict);
   renderCards();
   if (msg.metrics) renderMetrics(msg.metrics);
   const b = document.body.dataset;
@@ -128,6 +133,28 @@ function renderStatus(msg) {
     err.hidden = false;
     err.textContent = (msg.state === "stopped" ? "stopped: " : "error: ") + msg.error;
   } else err.hidden = true;
+}
+
+// ------------------------------------------------------------------ verdict + alarms
+function renderVerdict(v) {
+  const badge = $("verdict");
+  badge.textContent = v.verdict;
+  badge.className = "badge verdict-" + v.verdict.toLowerCase();
+  document.body.dataset.verdict = v.verdict;
+  const rows = v.alarms || [];
+  $("alarms-none").hidden = rows.length > 0;
+  $("alarms").hidden = rows.length === 0;
+  const tbody = document.querySelector("#alarms tbody");
+  tbody.textContent = "";
+  for (const a of rows) {
+    const tr = el("tr", "sev-" + a.severity);
+    const what = a.kind + (a.count > 1 ? " ×" + a.count : "");
+    const cleared = a.cleared ? "yes, at " + fmtTime(a.cleared_t_s) : "no";
+    tr.append(el("td", null, fmtTime(a.t_s)), el("td", null, a.battery || "pack"),
+      el("td", "sev", a.severity), el("td", null, what), el("td", null, a.cause),
+      el("td", null, cleared));
+    tbody.append(tr);
+  }
 }
 
 // ------------------------------------------------------------------ battery cards
@@ -226,7 +253,8 @@ function addEvents(evs) {
   for (const e of evs) {
     S.events.push(e);
     const tr = el("tr");
-    const cls = BAD_KINDS.test(e.kind) ? "kind-bad" : INFO_KINDS.test(e.kind) ? "kind-info" : "kind-other";
+    const cls = isBad(e) ? "kind-bad" : e.severity === "warning" ? "kind-warn"
+      : INFO_KINDS.test(e.kind) ? "kind-info" : "kind-other";
     tr.append(el("td", null, fmtTime(e.t_s)), el("td", cls, e.kind),
       el("td", null, e.battery_name || ""), el("td", null, e.message || ""));
     tbody.insertBefore(tr, tbody.firstChild); // newest on top
@@ -329,10 +357,10 @@ function drawChart(spec) {
   for (let k = S.events.length - 1; k >= 0 && marks < 200; k--) {
     const e = S.events[k];
     if (!isNum(e.t_s) || e.t_s < t0 || e.t_s > t1) continue;
-    const bad = BAD_KINDS.test(e.kind);
+    const bad = isBad(e);
     if (!bad && !INFO_KINDS.test(e.kind)) continue;
     marks++;
-    g.strokeStyle = bad ? "rgba(211, 58, 44, 0.35)" : "rgba(47, 111, 222, 0.25)";
+    g.strokeStyle = bad ? ALARM + "59" : "rgba(47, 111, 222, 0.25)"; // 0x59: 35 % alpha
     const x = Math.round(X(e.t_s)) + 0.5;
     g.beginPath(); g.moveTo(x, pad.t); g.lineTo(x, pad.t + ph); g.stroke();
   }

@@ -1,0 +1,424 @@
+"""Did the run go wrong? A verdict and an alarms table, from the events and from physics.
+
+Events say what the BMS *noticed*; a run with no controller notices nothing, yet its cells can
+still be drained below empty, one battery can still push 40 A into another, and the load can
+still lose power. So the verdict has two sources, both computed here, once, for every view
+(``simulate``'s summary and ``--fail-on``, the HTML report, the live dashboard):
+
+* **events**: every event kind has a severity in one table (:mod:`packpilot.contract.severity`);
+  warnings, alarms and faults become rows of the alarms table, one per kind, battery and
+  cause, with the first time, the count and whether the condition was cleared;
+* **physics checks** on the recorded plant truth (the trace: what really happened, not what the
+  sensors reported): over-discharge (a cell below its cell set's minimum voltage: alarm; SOC
+  below 0 %: warning), cross-charge (current into a traction battery above its charge limit
+  while no charger delivers: alarm) and load loss (the load got less than it asked for: alarm).
+
+The checks are streaming (:class:`PhysicsWatch` takes the trace in chunks of any length), so
+the dashboard feeds it as samples arrive and a finished run feeds its whole trace at once, with
+the same code. Nothing here changes a run: severities and verdicts are presentation.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.config.limits import LimitsConfig
+from packpilot.contract.bms import Event
+from packpilot.contract.record import BATTERY_CHANNELS, Result, StepSample
+from packpilot.contract.severity import MATCH_FIELDS, VERDICTS, Severity, row_of
+from packpilot.contract.topology import Topology
+
+F64 = NDArray[np.float64]
+B1 = NDArray[np.bool_]
+
+CATEGORIES: tuple[str, ...] = (
+    "fault", "trip", "unsupplied", "overdischarge", "crosscharge", "limit", "refused",
+    "crosscurrent", "isolated", "unknown",
+)  # fmt: skip
+"""Every category an alarm can have: what ``simulate --fail-on`` accepts."""
+
+DEFAULT_CHARGE_C = 2.0
+"""Charge limit (1/h) when neither the scenario nor the default limits table names one."""
+LOAD_LOSS_REL = 0.01
+LOAD_LOSS_ABS_A = 0.05
+"""The load counts as unsupplied when it got less than its demand by more than 1 % and 50 mA
+(the bus solve is exact; this only keeps rounding out)."""
+CHARGER_IDLE_A = 0.01
+"""A charger delivering at most this is not charging: current into a battery then comes from
+another battery."""
+
+_CH = {name: k for k, name in enumerate(BATTERY_CHANNELS)}
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """One row of the alarms table."""
+
+    t_s: float
+    """First time the condition was seen."""
+    battery: str | None
+    """Display name; None for the whole pack."""
+    kind: str
+    """The event kind, or the physics check (``OverDischarge``, ``CrossCharge``, ``LoadLoss``)."""
+    category: str
+    severity: Severity
+    cause: str
+    cleared_t_s: float | None = None
+    """When the condition last ended; None while it stands (or for a one-off)."""
+    count: int = 1
+    """Episodes (physics) or events (event kinds) of this row."""
+    source: str = "event"
+    """``event`` (what the BMS reported) or ``physics`` (what the trace shows)."""
+
+    @property
+    def cleared(self) -> bool:
+        return self.cleared_t_s is not None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "t_s": self.t_s,
+            "battery": self.battery,
+            "kind": self.kind,
+            "category": self.category,
+            "severity": self.severity.label,
+            "cause": self.cause,
+            "cleared": self.cleared,
+            "cleared_t_s": self.cleared_t_s,
+            "count": self.count,
+            "source": self.source,
+        }
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """A run's verdict: its highest severity and the alarms behind it."""
+
+    severity: Severity
+    alarms: tuple[Alarm, ...]
+
+    @property
+    def word(self) -> str:
+        """``OK``, ``WARNING``, ``ALARM`` or ``FAULT``."""
+        return VERDICTS[self.severity]
+
+    @property
+    def categories(self) -> frozenset[str]:
+        return frozenset(a.category for a in self.alarms)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "verdict": self.word,
+            "severity": self.severity.label,
+            "alarms": [a.as_dict() for a in self.alarms],
+        }
+
+
+def verdict_of(alarms: Iterable[Alarm]) -> Verdict:
+    """The verdict of a set of alarms: the worst first, then by time."""
+    rows = sorted(alarms, key=lambda a: (-a.severity, a.t_s))
+    worst = max((a.severity for a in rows), default=Severity.INFO)
+    return Verdict(worst, tuple(rows))
+
+
+# --------------------------------------------------------------------------- events
+
+
+def _match_key(e: Event) -> tuple[tuple[str, Any], ...]:
+    return tuple((k, e.data[k]) for k in (*MATCH_FIELDS, "reason") if k in e.data)
+
+
+def _clears(opened: Event, clearing: Event) -> bool:
+    """``clearing`` ends ``opened``: same battery, same values where both name a match field."""
+    if clearing.battery != opened.battery:
+        return False
+    return all(
+        opened.data[k] == clearing.data[k]
+        for k in MATCH_FIELDS
+        if k in opened.data and k in clearing.data
+    )
+
+
+@dataclass
+class EventAlarms:
+    """Warnings, alarms and faults among the events, as alarms-table rows (fed in order)."""
+
+    topology: Topology
+    _rows: dict[tuple[Any, ...], Alarm] = field(default_factory=dict)
+    _open: dict[tuple[Any, ...], Event] = field(default_factory=dict)
+
+    def feed(self, events: Iterable[Event]) -> None:
+        for e in events:
+            self._clear_by(e)
+            row = row_of(e.kind)
+            if row.severity > Severity.INFO:
+                self._note(e, row.category, row.severity)
+
+    def _note(self, e: Event, category: str, severity: Severity) -> None:
+        key = (e.kind, e.battery, _match_key(e))
+        old = self._rows.get(key)
+        if old is None:
+            name = self.topology.battery_name(e.battery)
+            self._rows[key] = Alarm(e.t_s, name, e.kind, category, severity, e.message)
+        else:
+            self._rows[key] = replace(old, count=old.count + 1, cleared_t_s=None)
+        if row_of(e.kind).cleared_by is not None:
+            self._open[key] = e
+
+    def _clear_by(self, e: Event) -> None:
+        for key, opened in list(self._open.items()):
+            if row_of(opened.kind).cleared_by == e.kind and _clears(opened, e):
+                self._rows[key] = replace(self._rows[key], cleared_t_s=e.t_s)
+                del self._open[key]
+
+    def alarms(self) -> list[Alarm]:
+        return list(self._rows.values())
+
+
+# --------------------------------------------------------------------------- physics
+
+
+@functools.cache
+def _cell_v_min(cell: str) -> float:
+    """Minimum voltage of a cell set (NaN when it cannot be loaded: the check is skipped)."""
+    from packpilot.errors import PackPilotError
+    from packpilot.model.cell import load_parameter_file, load_parameter_set
+
+    try:
+        if cell.endswith((".json", ".toml", ".npz")) or "/" in cell:
+            from pathlib import Path
+
+            return float(load_parameter_file(Path(cell)).v_min_v)
+        return float(load_parameter_set(cell).v_min_v)
+    except (PackPilotError, OSError, ValueError):
+        return math.nan
+
+
+def _charge_c(config: Mapping[str, Any]) -> float:
+    """The lowest charge C-rate any row of the scenario's limits table (else the default
+    table, the project's written-down datasheet figure) treats as too much."""
+    raw = config.get("limits")
+    try:
+        limits = LimitsConfig.model_validate(raw) if isinstance(raw, Mapping) else LimitsConfig()
+    except ValueError:
+        limits = LimitsConfig()
+    rates = [r.threshold for r in limits.rows if r.quantity == "chg_c_rate"]
+    return min(rates, default=DEFAULT_CHARGE_C)
+
+
+@dataclass(frozen=True)
+class PhysicsLimits:
+    """What the physics checks compare against, per string (trace battery)."""
+
+    names: tuple[str, ...]
+    traction: tuple[bool, ...]
+    cell_v_min: tuple[float, ...]
+    charge_c: float
+    """Charge limit as a C-rate: limit (A) = charge_c × the battery's full capacity (Ah)."""
+
+    @classmethod
+    def of_config(cls, config: Mapping[str, Any] | None, names: Sequence[str]) -> PhysicsLimits:
+        """From a run's recorded config (``cfg.model_dump(mode="json")``); without one the
+        cells are unknown and the cell-voltage check is skipped."""
+        cfg = config or {}
+        pack = cfg.get("pack")
+        pack = pack if isinstance(pack, Mapping) else {}
+        by_name = {
+            b.get("name"): b for b in pack.get("batteries") or () if isinstance(b, Mapping)
+        }
+        default_cell = str(pack.get("cell") or "uav_5ah")
+        v_min = tuple(
+            _cell_v_min(str((by_name.get(n) or {}).get("cell") or default_cell))
+            if config is not None
+            else math.nan
+            for n in names
+        )
+        topo = Topology.of_config(cfg, names)
+        traction = tuple(r != "aux" for r in topo.roles)
+        return cls(tuple(names), traction, v_min, _charge_c(cfg))
+
+
+@dataclass
+class _Check:
+    """One physics condition on one column (a string, or the pack): its alarm row and state."""
+
+    kind: str
+    category: str
+    severity: Severity
+    battery: str | None
+    on: bool = False
+    first_t_s: float = math.nan
+    cleared_t_s: float | None = None
+    count: int = 0
+    worst: float = math.nan
+    duration_s: float = 0.0
+    limit: float = math.nan
+    """The threshold at the first occurrence (the cross-charge limit in A)."""
+
+
+class PhysicsWatch:
+    """Over-discharge, cross-charge and load loss on the plant's trace, fed in chunks."""
+
+    def __init__(self, limits: PhysicsLimits) -> None:
+        self.limits = limits
+        n = len(limits.names)
+        self._v_min = np.array(limits.cell_v_min, dtype=np.float64)
+        self._traction = np.array(limits.traction, dtype=np.bool_)
+        self._checks: dict[tuple[str, int], _Check] = {}
+        over, alarm, warning = "overdischarge", Severity.ALARM, Severity.WARNING
+        for s, name in enumerate(limits.names):
+            self._checks[("cell", s)] = _Check("OverDischarge", over, alarm, name)
+            self._checks[("soc", s)] = _Check("OverDischarge", over, warning, name)
+            self._checks[("cross", s)] = _Check("CrossCharge", "crosscharge", alarm, name)
+        self._checks[("load", n)] = _Check("LoadLoss", "unsupplied", Severity.ALARM, None)
+        self._last_t_s = math.nan
+
+    def feed_samples(self, samples: Sequence[StepSample]) -> None:
+        """A chunk of the dashboard's samples."""
+        if not samples:
+            return
+        self.feed(
+            np.array([s.t_s for s in samples]),
+            np.stack([s.battery for s in samples]),
+            np.array([s.load_demand_a for s in samples]),
+            np.array([s.load_a for s in samples]),
+            np.array([s.charger_a for s in samples]),
+        )
+
+    def feed(self, t_s: F64, battery: F64, demand_a: F64, load_a: F64, charger_a: F64) -> None:
+        """A chunk of the trace: ``battery`` shaped (steps, strings, BATTERY_CHANNELS)."""
+        if t_s.size == 0:
+            return
+        dt = np.diff(t_s, prepend=t_s[0] if math.isnan(self._last_t_s) else self._last_t_s)
+        dt = np.where(dt > 0, dt, np.median(dt) if dt.size > 1 else 0.0)
+        with np.errstate(invalid="ignore"):
+            cell_v = battery[:, :, _CH["min_cell_v"]]
+            soc = battery[:, :, _CH["soc"]]
+            limit_a = self.limits.charge_c * battery[:, :, _CH["full_ah"]]
+            into_a = -battery[:, :, _CH["current_a"]]
+            idle = (charger_a <= CHARGER_IDLE_A)[:, None] & self._traction[None, :]
+            short_a = demand_a - load_a
+            lost = short_a > np.maximum(LOAD_LOSS_REL * demand_a, LOAD_LOSS_ABS_A)
+        for s in range(len(self.limits.names)):
+            self._column(("cell", s), t_s, dt, cell_v[:, s] < self._v_min[s], -cell_v[:, s])
+            self._column(("soc", s), t_s, dt, soc[:, s] < 0.0, -soc[:, s])
+            over = idle[:, s] & (into_a[:, s] > limit_a[:, s])
+            self._column(("cross", s), t_s, dt, over, into_a[:, s], limit_a[:, s])
+        self._column(("load", len(self.limits.names)), t_s, dt, lost, short_a)
+        self._last_t_s = float(t_s[-1])
+
+    def _column(
+        self, key: tuple[str, int], t_s: F64, dt: F64, cond: B1, badness: F64,
+        limit: F64 | None = None,
+    ) -> None:  # fmt: skip
+        """Fold one condition's chunk into its row: episodes, first time, worst value."""
+        c = self._checks[key]
+        if cond.any():
+            idx = np.flatnonzero(cond)
+            if c.count == 0:
+                c.first_t_s = float(t_s[idx[0]])
+                c.limit = math.nan if limit is None else float(limit[idx[0]])
+            worst = float(np.nanmax(badness[idx]))
+            c.worst = worst if math.isnan(c.worst) else max(c.worst, worst)
+            c.duration_s += float(dt[idx].sum())
+        prev = np.concatenate(([c.on], cond[:-1]))
+        rises = cond & ~prev
+        falls = ~cond & prev
+        c.count += int(rises.sum())
+        if falls.any():
+            c.cleared_t_s = float(t_s[np.flatnonzero(falls)[-1]])
+        if cond[-1]:
+            c.cleared_t_s = None
+        c.on = bool(cond[-1])
+
+    def alarms(self) -> list[Alarm]:
+        out = []
+        for (what, s), c in self._checks.items():
+            if c.count == 0:
+                continue
+            out.append(
+                Alarm(
+                    c.first_t_s, c.battery, c.kind, c.category, c.severity,
+                    self._cause(what, s, c), c.cleared_t_s, c.count, "physics",
+                )
+            )  # fmt: skip
+        return out
+
+    def _cause(self, what: str, s: int, c: _Check) -> str:
+        lim = self.limits
+        if what == "cell":
+            return f"cell below its minimum {lim.cell_v_min[s]:g} V (lowest {-c.worst:.3f} V)"
+        if what == "soc":
+            return f"SOC below 0 % (lowest {-100.0 * c.worst:.1f} %)"
+        if what == "cross":
+            return (
+                f"cross-charge {c.worst:.1f} A from another battery, above its charge limit"
+                f" {c.limit:.1f} A ({lim.charge_c:g}C)"
+            )
+        return f"load short of its demand by up to {c.worst:.1f} A for {c.duration_s:.1f} s"
+
+
+# --------------------------------------------------------------------------- a run
+
+
+class RunWatch:
+    """Events and physics of one run, streaming: what every view of a run asks for."""
+
+    def __init__(self, config: Mapping[str, Any] | None, names: Sequence[str]) -> None:
+        self.events = EventAlarms(Topology.of_config(config, names))
+        self.physics = PhysicsWatch(PhysicsLimits.of_config(config, names))
+
+    def verdict(self) -> Verdict:
+        return verdict_of([*self.events.alarms(), *self.physics.alarms()])
+
+
+def run_verdict(result: Result, config: Mapping[str, Any] | None) -> Verdict:
+    """The verdict of a finished (or recorded) run."""
+    watch = RunWatch(config, result.battery_names)
+    tr = result.trace
+    if len(tr.t_s):
+        watch.physics.feed(tr.t_s, tr.battery, tr.load_demand_a, tr.load_a, tr.charger_a)
+    watch.events.feed(result.events)
+    return watch.verdict()
+
+
+def fail_on(verdict: Verdict, categories: Iterable[str]) -> list[str]:
+    """The listed categories this run's alarms fall in (``simulate --fail-on``)."""
+    wanted = set(categories)
+    return sorted(wanted & verdict.categories)
+
+
+def parse_fail_on(text: str) -> list[str]:
+    """``"trip,fault"`` -> ``["trip", "fault"]``; an unknown category is an error naming the
+    allowed ones."""
+    from packpilot.errors import ConfigError
+
+    items = [x.strip() for x in text.split(",") if x.strip()]
+    bad = [x for x in items if x not in CATEGORIES]
+    if bad or not items:
+        raise ConfigError(
+            f"--fail-on {text!r}: unknown category {', '.join(bad) or '(none given)'};"
+            f" choose from {', '.join(CATEGORIES)}"
+        )
+    return items
+
+
+__all__ = [
+    "CATEGORIES",
+    "Alarm",
+    "EventAlarms",
+    "PhysicsLimits",
+    "PhysicsWatch",
+    "RunWatch",
+    "Verdict",
+    "fail_on",
+    "parse_fail_on",
+    "run_verdict",
+    "verdict_of",
+]

@@ -1,0 +1,81 @@
+"""Issue #17 §1 on the live dashboard, in a real headless Chromium: the verdict badge and the
+alarms table (from the same checks as the CLI and the report), and battery colours that are
+never the alarm colour. Uses the browser harness of ``test_web_browser.py`` (loopback only).
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from packpilot.config import parse_config
+from packpilot.sim.runner import Runner
+from packpilot.web.app import Dashboard
+from tests import test_web_browser as wb
+from tests.conftest import dual_pack
+
+pytestmark = wb.pytestmark
+
+browser = wb.browser
+"""The module-scoped headless Chromium of the dashboard browser test (a fixture)."""
+
+ARTIFACTS = "PACKPILOT_ARTIFACTS"
+"""Set to a directory to keep the screenshot for a look (default: the test's tmp_path)."""
+
+
+@pytest.fixture(scope="module")
+def cross_charge() -> Iterator[Dashboard]:
+    """Two batteries 2 V apart, no controller, a hover load: A charges B far above 2C."""
+    data = dual_pack(
+        switch={"kind": "mosfet_pair", "on_ohm": 0.0005}, duration_s=20.0, dt_s=0.1,
+        load={"kind": "current", "value": 14.0},
+    )  # fmt: skip
+    runner = Runner(parse_config(data), progress=False)
+    dash = Dashboard(runner, scenario="cross_charge", speed=4.0, host="127.0.0.1", port=0)
+    thread = threading.Thread(target=dash.serve, name="uvicorn-verdict", daemon=True)
+    dash.start()
+    thread.start()
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        try:
+            wb.get_json(dash.url + "api/status")
+            break
+        except OSError:
+            time.sleep(0.05)
+    yield dash
+    dash.stop()
+    thread.join(10.0)
+
+
+def test_dashboard_shows_the_verdict_and_the_alarms(
+    browser: wb.Cdp, cross_charge: Dashboard, tmp_path: Path
+) -> None:
+    browser.call("Page.navigate", url=cross_charge.url)
+    live = browser.wait_body(lambda d: d.get("verdict") == "ALARM", 60.0)
+    assert live["state"] in ("running", "finished")
+    rows = browser.eval(
+        "[...document.querySelectorAll('#alarms tbody tr')].map(r =>"
+        " [...r.cells].map(c => c.textContent))"
+    )
+    cross = [r for r in rows if r[3].startswith("CrossCharge")]
+    assert cross and cross[0][1] == "B" and cross[0][2] == "alarm", rows
+    assert "charge limit" in cross[0][4]
+    badge = browser.eval("getComputedStyle(document.getElementById('verdict')).backgroundColor")
+    assert badge == "rgb(211, 58, 44)"  # the alarm colour
+    swatches = browser.eval(
+        "[...document.querySelectorAll('.swatch')].map(e => getComputedStyle(e).backgroundColor)"
+    )
+    assert len(swatches) == 2 and badge not in swatches  # B is not drawn in the alarm colour
+    data = browser.wait_body(lambda d: d.get("state") == "finished", 60.0)
+    assert data["verdict"] == "ALARM"
+    api = wb.get_json(cross_charge.url + "api/status")["verdict"]
+    assert api["verdict"] == "ALARM" and any(a["battery"] == "B" for a in api["alarms"])
+    shot = base64.b64decode(browser.call("Page.captureScreenshot", format="png")["data"])
+    (Path(os.environ.get(ARTIFACTS, tmp_path)) / "dashboard_verdict.png").write_bytes(shot)
+    assert len(shot) > 40_000
