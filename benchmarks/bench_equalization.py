@@ -21,6 +21,12 @@ cut-off) and its ratio to the physical limit, and the energy dissipated by balan
 physical limit is the same discharge from a perfectly top-balanced string of the same groups
 (every group at the SOC this protocol charges a balanced string to), without balancing.
 
+Issue #15 §2 (the charge follows AH): for the method, the charge its equalizers delivered vs
+the charge S43 granted, per group, cumulative to the end of each cycle (``delivered_vs_granted``
+= the smallest group's ratio; ``owed_end_ah`` = the most any group is still owed, carried into
+the next cycle; goal ≥ 0.95), and :func:`time_vs_ah`: the balancing time of one grant against
+AH at 10 A and 1.5 A string current (goal: proportional, 3600·AH/I within 1 %, and monotone).
+
 Run: ``python benchmarks/bench_equalization.py [--cycles N]``.
 """
 
@@ -40,7 +46,15 @@ from baselines import PassiveTopBalancer, PassiveTopBalancerConfig
 from packpilot.config import ScenarioConfig, load_config
 from packpilot.config.base import load_section_model
 from packpilot.config.equalization import EqualizationConfig
-from packpilot.contract.bms import Commands, Controller, ControlOutput, Measurements, NullController
+from packpilot.contract.bms import (
+    BatteryMeasurement,
+    Commands,
+    Controller,
+    ControlOutput,
+    Measurements,
+    NullController,
+    SwitchKind,
+)
 from packpilot.contract.charger import ChargerCommand
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
@@ -130,6 +144,10 @@ class CycleStats:
     balancing_moved_ah: float = 0.0
     loss_by_phase_wh: dict[str, float] = field(default_factory=dict)
     max_cell_v: float = -math.inf
+    eq_granted_ah: list[float] = field(default_factory=list)
+    """Cumulative charge S43 granted per group, at the end of the cycle (the method only)."""
+    eq_delivered_ah: list[float] = field(default_factory=list)
+    eq_owed_ah: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -149,6 +167,7 @@ class CycleDriver:
     done: bool = False
     _snap: str | None = None
     _load: loads.LoadProfile | None = None
+    method: Controller | None = None
 
     def __post_init__(self) -> None:
         self.stats.append(CycleStats(cycle=0))
@@ -208,6 +227,11 @@ class CycleDriver:
             spread_mv = float(ocv.max() - ocv.min()) * 1000.0
             if self._snap == "bottom":
                 st.rest_spread_bottom_mv = spread_mv
+                if isinstance(self.method, EqualizationController):
+                    view = self.method.strings[0]
+                    st.eq_granted_ah = view.ledger_granted_ah
+                    st.eq_delivered_ah = view.ledger_gross_ah
+                    st.eq_owed_ah = view.owed_ah
                 if st.cycle >= self.proto.cycles:
                     self.done = True
                 else:
@@ -323,7 +347,8 @@ def run_strategy(
 
     def make_method(info: PackInfo) -> Controller:
         if strategy in ("newton", "newton_bidir"):
-            return EqualizationController(eq, info)
+            driver.method = EqualizationController(eq, info)
+            return driver.method
         if strategy == "passive":
             return PassiveTopBalancer(proto.passive, info)
         return NullController()
@@ -352,8 +377,78 @@ def reference_limit(name: str) -> float:
     return driver.stats[0].usable_ah
 
 
+def _delivered_vs_granted(s: CycleStats) -> tuple[float, float, float]:
+    """Smallest per-group delivered/granted ratio (groups granted something), the most any
+    group is still owed, and the most any group lost (granted − delivered − owed: 0 when
+    nothing is dropped)."""
+    ratios = [d / g for d, g in zip(s.eq_delivered_ah, s.eq_granted_ah, strict=True) if g > 0]
+    lost = [
+        g - d - o
+        for g, d, o in zip(s.eq_granted_ah, s.eq_delivered_ah, s.eq_owed_ah, strict=True)
+    ]
+    return (
+        min(ratios) if ratios else math.nan,
+        max(s.eq_owed_ah, default=math.nan),
+        max((abs(x) for x in lost), default=math.nan),
+    )
+
+
+TIME_GOAL_REL = 0.01
+
+
+def time_vs_ah() -> list[dict[str, Any]]:
+    """Balancing time of one grant vs AH (issue #15's example: default config, 2 A equalizer).
+
+    A 2-group string with ``dv_set_v = 0.5`` V: group 0 lags by 1 V for one T1 (one formula-1
+    update, AH ← (AH0 + N)/2), then sits at ΔV = dv_set exactly (no further update) until what
+    it is owed is delivered. Time and charge are read from the controller's ledger."""
+    info = PackInfo(1, (2,), (1,), (SwitchKind.RELAY,), has_balancers=True)
+
+    def meas(t: float, gv: tuple[float, float], cur: float) -> Measurements:
+        b = BatteryMeasurement(
+            voltage_v=sum(gv), current_a=cur, temp_c=25.0, min_cell_v=min(gv),
+            max_cell_v=max(gv), soc=0.5, full_capacity_ah=10.0, remaining_capacity_ah=5.0,
+            group_voltages_v=gv,
+        )  # fmt: skip
+        return Measurements(t_s=t, batteries=(b,), bus_v=b.voltage_v)
+
+    rows: list[dict[str, Any]] = []
+    for cur in (10.0, 1.5):
+        times: list[float] = []
+        for ah0 in (0.0, 0.125, 0.25, 0.375, 0.4375):
+            ctrl = EqualizationController(EqualizationConfig(dv_set_v=0.5), info)
+            ctrl.strings[0].ah = [ah0, 0.0]
+            k = 0
+            for k in range(120):
+                ctrl.step(meas(float(k), (11.0, 13.0), cur), 1.0)
+            while ctrl.strings[0].owed_ah[0] > 0.0 and k < 100_000:
+                k += 1
+                ctrl.step(meas(float(k), (12.0, 13.0), cur), 1.0)
+            view = ctrl.strings[0]
+            ah = view.ah[0]
+            i_eq = min(cur, ctrl.prm.equalizer_max_a)
+            expect = 3600.0 * ah / i_eq
+            times.append(view.ledger_time_s[0])
+            rel = abs(view.ledger_time_s[0] / expect - 1.0)
+            rows.append(
+                {
+                    "scenario": "time_vs_ah",
+                    "strategy": f"newton {cur:g} A",
+                    "ah": ah,
+                    "balancing_time_s": round(view.ledger_time_s[0], 2),
+                    "expected_s": round(expect, 2),
+                    "delivered_ah": round(view.ledger_gross_ah[0], 6),
+                    "goal": "time = 3600·AH/I within 1 %, monotone in AH",
+                    "verdict": "met"
+                    if rel <= TIME_GOAL_REL and times == sorted(times)
+                    else "NOT MET",
+                }
+            )
+    return rows
+
+
 def run(cycles: int | None = None) -> list[dict[str, Any]]:
-    """One row per scenario, strategy and cycle."""
+    """One row per scenario, strategy and cycle, then the time-vs-AH rows."""
     rows: list[dict[str, Any]] = []
     for name in PROTOCOLS:
         limit = reference_limit(name)
@@ -377,16 +472,35 @@ def run(cycles: int | None = None) -> list[dict[str, Any]]:
                         "max_cell_v": round(s.max_cell_v, 3),
                     }
                 )
+                if strategy in ("newton", "newton_bidir"):
+                    ratio, owed, lost = _delivered_vs_granted(s)
+                    rows[-1]["granted_ah"] = round(sum(s.eq_granted_ah), 3)
+                    rows[-1]["delivered_vs_granted"] = round(ratio, 4)
+                    rows[-1]["owed_end_ah"] = round(owed, 4)
+                    rows[-1]["dropped_ah"] = float(f"{lost:.1e}")
+                    rows[-1]["goal"] = (
+                        "spread <= 10 mV, usable >= 0.98, delivered >= 0.95 of granted "
+                        "(cumulative to this cycle's end; the rest is owed, carried over)"
+                    )
+                    met = (
+                        s.rest_spread_top_mv <= 10.0
+                        and s.usable_ah / limit >= 0.98
+                        and ratio >= 0.95
+                    )
+                    rows[-1]["verdict"] = "met" if met else "NOT MET"
+    rows.extend(time_vs_ah())
     return rows
 
 
 def main(argv: list[str]) -> None:
     cycles = int(argv[argv.index("--cycles") + 1]) if "--cycles" in argv else None
     rows = run(cycles)
-    cols = list(rows[0])
+    cols: list[str] = []
+    for r in rows:
+        cols += [c for c in r if c not in cols]
     print(" | ".join(cols))
     for r in rows:
-        print(" | ".join(str(r[c]) for c in cols))
+        print(" | ".join(str(r.get(c, "")) for c in cols))
 
 
 if __name__ == "__main__":

@@ -223,9 +223,11 @@ def _charging_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
 
 
 def _equalization_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
-    """Rest spread and usable capacity of the method per scenario."""
+    """Rest spread and usable capacity of the method per scenario; delivered vs granted Ah and
+    the balancing time vs AH (issue #15 §2), with their verdicts."""
     out: list[Headline] = []
-    for sc in sorted({r["scenario"] for r in rows}):
+    timing = [r for r in rows if r["scenario"] == "time_vs_ah"]
+    for sc in sorted({r["scenario"] for r in rows} - {"time_vs_ah"}):
         m = [r for r in rows if r["scenario"] == sc and r["strategy"] == "newton"]
         last = m[-1]
         ok = [
@@ -247,6 +249,41 @@ def _equalization_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
                 f"equalization {sc}: first cycle meeting both",
                 str(ok[0]) if ok else "none",
                 "stated",
+            )
+        )
+        for strategy in ("newton", "newton_bidir"):
+            m = [r for r in rows if r["scenario"] == sc and r["strategy"] == strategy]
+            if not m or "delivered_vs_granted" not in m[-1]:
+                continue
+            end = m[-1]["delivered_vs_granted"]
+            worst = min(r["delivered_vs_granted"] for r in m)
+            out.append(
+                (
+                    f"equalization {sc} {strategy}: delivered / granted Ah, worst group, "
+                    "whole run (worst cycle end)",
+                    f"{end:.4f} ({worst:.4f}) ({'met' if end >= 0.95 else 'NOT MET'})",
+                    ">= 0.95",
+                )
+            )
+            lost = max(r["dropped_ah"] for r in m)
+            out.append(
+                (
+                    f"equalization {sc} {strategy}: Ah dropped (granted - delivered - owed)",
+                    f"{lost:.1e} ({'met' if lost <= 1e-6 else 'NOT MET'})",
+                    "0 (rounding)",
+                )
+            )
+    for strategy in sorted({r["strategy"] for r in timing}):
+        t = [r for r in timing if r["strategy"] == strategy]
+        worst = max(abs(r["balancing_time_s"] / r["expected_s"] - 1.0) for r in t)
+        times = [r["balancing_time_s"] for r in t]
+        verdict = "met" if worst <= 0.01 and times == sorted(times) else "NOT MET"
+        out.append(
+            (
+                f"equalization {strategy}: balancing time vs 3600·AH/I, AH "
+                f"{t[0]['ah']:g}-{t[-1]['ah']:g} Ah",
+                f"{', '.join(f'{x:g}' for x in times)} s; worst {worst * 100:.2f} % ({verdict})",
+                "proportional within 1 %, monotone",
             )
         )
     return out

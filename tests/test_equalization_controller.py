@@ -46,7 +46,7 @@ LOW0 = (12.97, 13.0, 13.0, 13.0)  # group 0 lags by 22.5 mV
 
 
 def test_first_update_grants_time_and_current() -> None:
-    cfg = EqualizationConfig(equalizer_max_a=5.0, max_balance_time_s=1000.0)
+    cfg = EqualizationConfig(equalizer_max_a=5.0)
     ctrl = EqualizationController(cfg, pack())
     outs = [ctrl.step(meas(float(k), batt(LOW0, 10.0)), 1.0) for k in range(121)]
     # t = 0..118: nothing; t = 119 the 120th sample fires formula 1.
@@ -63,6 +63,7 @@ def test_first_update_grants_time_and_current() -> None:
     assert outs[119].commands.balancer_a == ((5.0, 0.0, 0.0, 0.0),)
     # 3600·0.25/5 = 180 s granted, 1 s already used.
     assert list(outs[119].status["eq_time_s_g0"]) == [pytest.approx(179.0)]
+    assert list(outs[119].status["eq_owed_ah_g0"]) == [pytest.approx(0.25 - 5.0 / 3600)]
     assert outs[119].status["eq_ah_g0"] == [0.25]
     assert list(outs[119].status["eq_dv_mv_g0"]) == [pytest.approx(22.5)]
 
@@ -70,9 +71,7 @@ def test_first_update_grants_time_and_current() -> None:
 def test_balancing_delivers_exactly_ah_when_undisturbed() -> None:
     # dv_set = 0.5 V makes group 0 sit exactly at ΔV = dv_set after the lag: no further updates,
     # so the granted time runs out and the ledger must show exactly AH = 0.25 Ah.
-    cfg = EqualizationConfig(
-        dv_set_v=0.5, equalizer_max_a=3.0, min_current_a=0.5, max_balance_time_s=1000.0
-    )
+    cfg = EqualizationConfig(dv_set_v=0.5, equalizer_max_a=3.0, min_current_a=0.5)
     ctrl = EqualizationController(cfg, pack((2,)))
     for k in range(120):
         ctrl.step(meas(float(k), batt((11.0, 13.0), -2.5)), 1.0)  # ΔV0 = +1 V, charging
@@ -86,17 +85,17 @@ def test_balancing_delivers_exactly_ah_when_undisturbed() -> None:
         total += out.commands.balancer_a[0][0] / 3600.0
     assert st.ah == [0.25, 0.0]
     assert st.ledger_gross_ah[0] == pytest.approx(0.25)
+    assert st.ledger_granted_ah[0] == 0.25
+    assert st.owed_ah[0] == 0.0
     assert st.ledger_time_s[0] == pytest.approx(360.0)
     assert total + 2.5 / 3600 == pytest.approx(0.25)  # plus the first second at t = 119
 
 
 def test_partial_last_step_is_prorated() -> None:
-    cfg = EqualizationConfig(
-        dv_set_v=0.5, time_mode="fixed_current", fixed_current_a=1.0, max_balance_time_s=1e4
-    )
+    cfg = EqualizationConfig(dv_set_v=0.5, time_mode="fixed_current", fixed_current_a=1.0)
     ctrl = EqualizationController(cfg, pack((2,)))
     ctrl.strings[0].ah = [0.001, 0.0]  # 3.6 s at 1 A
-    ctrl.strings[0].remaining_s = [3.6, 0.0]
+    ctrl.strings[0].owed_ah = [0.001, 0.0]
     cur = [
         ctrl.step(meas(k * 1.0, batt((12.0, 13.0), 5.0)), 1.0).commands.balancer_a[0][0]  # type: ignore[index]
         for k in range(5)
@@ -106,15 +105,19 @@ def test_partial_last_step_is_prorated() -> None:
 
 
 def test_gate_holds_remaining_time_below_min_current() -> None:
-    cfg = EqualizationConfig(dv_set_v=0.5, min_current_a=1.0, max_balance_time_s=1e4)
+    cfg = EqualizationConfig(dv_set_v=0.5, min_current_a=1.0)
     ctrl = EqualizationController(cfg, pack((2,)))
-    ctrl.strings[0].remaining_s = [100.0, 0.0]
+    ctrl.strings[0].owed_ah = [1.5 * 100.0 / 3600.0, 0.0]  # 100 s at 1.5 A
     out = ctrl.step(meas(0.0, batt((12.0, 13.0), 0.5)), 1.0)
     assert out.commands.balancer_a == ((0.0, 0.0),)
-    assert ctrl.strings[0].remaining_s[0] == 100.0
+    assert ctrl.strings[0].owed_ah[0] == 1.5 * 100.0 / 3600.0  # held, not lost
+    # Quoted at the equalizer's rating while the gate is closed: 0.0417 Ah at 2 A.
+    assert ctrl.strings[0].remaining_s[0] == pytest.approx(75.0)
     out = ctrl.step(meas(1.0, batt((12.0, 13.0), 1.5)), 1.0)
     assert out.commands.balancer_a == ((1.5, 0.0),)
-    assert ctrl.strings[0].remaining_s[0] == 99.0
+    assert ctrl.strings[0].remaining_s[0] == pytest.approx(99.0)
+    with pytest.raises(AttributeError):
+        ctrl.strings[0].remaining_s = [1.0, 0.0]  # derived from owed_ah
 
 
 def test_fixed_current_balance_at_rest() -> None:
@@ -123,10 +126,9 @@ def test_fixed_current_balance_at_rest() -> None:
         time_mode="fixed_current",
         fixed_current_a=0.8,
         balance_at_rest=True,
-        max_balance_time_s=1e4,
     )
     ctrl = EqualizationController(cfg, pack((2,)))
-    ctrl.strings[0].remaining_s = [10.0, 0.0]
+    ctrl.strings[0].owed_ah = [0.01, 0.0]
     out = ctrl.step(meas(0.0, batt((12.0, 13.0), 0.0)), 1.0)
     assert out.commands.balancer_a == ((0.8, 0.0),)
 
@@ -136,7 +138,7 @@ def test_nan_group_voltage_stops_string_and_faults_once() -> None:
     ctrl = EqualizationController(cfg, pack((4, 4)))
     for k in range(130):
         ctrl.step(meas(float(k), batt(LOW0, 10.0), batt(LOW0, 10.0)), 1.0)
-    assert ctrl.strings[0].remaining_s[0] > 0
+    assert ctrl.strings[0].owed_ah[0] > 0
     bad = batt((math.nan, 13.0, 13.0, 13.0), 10.0)
     out = ctrl.step(meas(130.0, bad, batt(LOW0, 10.0)), 1.0)
     assert out.commands.balancer_a is not None
@@ -148,9 +150,13 @@ def test_nan_group_voltage_stops_string_and_faults_once() -> None:
     out = ctrl.step(meas(131.0, bad, batt(LOW0, 10.0)), 1.0)
     assert not [e for e in out.events if e.kind == "Fault"]
     assert ctrl.strings[0].ah[0] == 0.25  # learned AH kept
+    owed = ctrl.strings[0].owed_ah[0]
+    assert owed == pytest.approx(0.25 - 11 * 5.0 / 3600)  # owed Ah kept, not delivered
     assert ctrl.strings[0].hi_timer_s == [0.0] * 4
     out = ctrl.step(meas(132.0, batt(LOW0, 10.0), batt(LOW0, 10.0)), 1.0)
     assert [e.kind for e in out.events] == ["FaultCleared"]
+    assert out.commands.balancer_a is not None and out.commands.balancer_a[0][0] == 5.0
+    assert ctrl.strings[0].owed_ah[0] == pytest.approx(owed - 5.0 / 3600)
     assert out.status["eq_fault"] == [False, False]
 
 
@@ -186,14 +192,14 @@ def test_absent_battery_idles_silently() -> None:
 
 
 def test_bidirectional_drives_the_minority() -> None:
-    cfg = EqualizationConfig(dv_set_v=0.5, equalizer="bidirectional", max_balance_time_s=1e4)
+    cfg = EqualizationConfig(dv_set_v=0.5, equalizer="bidirectional")
     ctrl = EqualizationController(cfg, pack())
     st = ctrl.strings[0]
     gv = (13.0, 13.0, 13.0, 13.0)
-    st.remaining_s = [50.0, 0.0, 0.0, 0.0]  # one group to charge: unidirectional behaviour
+    st.owed_ah = [0.1, 0.0, 0.0, 0.0]  # one group to charge: unidirectional behaviour
     out = ctrl.step(meas(0.0, batt(gv, 1.5)), 1.0)
     assert out.commands.balancer_a == ((1.5, 0.0, 0.0, 0.0),)
-    st.remaining_s = [50.0, 50.0, 50.0, 0.0]  # three to charge: discharge the leader instead
+    st.owed_ah = [0.1, 0.1, 0.1, 0.0]  # three to charge: discharge the leader instead
     out = ctrl.step(meas(1.0, batt(gv, 1.5)), 1.0)
     assert out.commands.balancer_a == ((0.0, 0.0, 0.0, -1.5),)
     # Relative charge per group is the same as with a unidirectional equalizer.
@@ -249,7 +255,8 @@ def test_saturated_ah_still_regrants_time() -> None:
     assert [e.kind for e in outs[119].events] == []  # no change, no event
     assert outs[119].commands.balancer_a == ((5.0, 0.0, 0.0, 0.0),)
     assert ctrl.strings[0].counts["formula1"] == 1
-    assert ctrl.strings[0].remaining_s[0] == pytest.approx(120.0 - 6.0)
+    # Owed raised from 0 to AH = 0.5 Ah: 360 s at 5 A, 6 s already delivered.
+    assert ctrl.strings[0].remaining_s[0] == pytest.approx(360.0 - 6.0)
 
 
 def test_passive_top_balancer_bleeds_high_groups_while_charging() -> None:

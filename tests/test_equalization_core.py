@@ -148,22 +148,20 @@ def test_long_sample_applies_formula_repeatedly() -> None:
 
 
 def test_balancing_time_string_current() -> None:
-    cfg = EqualizationConfig(equalizer_max_a=5.0, max_balance_time_s=10_000.0)
+    cfg = EqualizationConfig(equalizer_max_a=5.0)
     assert balancing_time_s(0.25, 2.0, cfg) == pytest.approx(450.0)  # 3600·0.25/2
     assert balancing_time_s(0.25, -2.0, cfg) == pytest.approx(450.0)  # charging works too
     # String current above the equalizer rating: time uses the clamped current.
     assert balancing_time_s(0.25, 50.0, cfg) == pytest.approx(180.0)
     # Below the minimum current: skipped.
     assert balancing_time_s(0.25, 0.1, cfg) == 0.0
-    # Clamp to the update period (t1 by default).
-    assert balancing_time_s(0.25, 2.0, EqualizationConfig(equalizer_max_a=5.0)) == 120.0
+    # No clamp to the update period (issue #15): the time is proportional to AH.
+    assert balancing_time_s(0.4375, 2.0, cfg) == pytest.approx(787.5)
     assert balancing_time_s(0.0, 2.0, cfg) == 0.0
 
 
 def test_balancing_time_fixed_current() -> None:
-    cfg = EqualizationConfig(
-        time_mode="fixed_current", fixed_current_a=1.5, max_balance_time_s=10_000.0
-    )
+    cfg = EqualizationConfig(time_mode="fixed_current", fixed_current_a=1.5)
     assert balancing_time_s(0.3, 40.0, cfg) == pytest.approx(720.0)  # 3600·0.3/1.5
     assert balancing_time_s(0.3, 0.0, cfg) == 0.0  # gate closed at rest
     rest = cfg.model_copy(update={"balance_at_rest": True})
@@ -197,7 +195,8 @@ def test_lower_median() -> None:
         ({"equalizer_max_a": 0.0}, "equalizer_max_a"),
         ({"fixed_current_a": 3.0, "equalizer_max_a": 2.0}, "fixed_current_a"),
         ({"balance_at_rest": True}, "balance_at_rest"),
-        ({"max_balance_time_s": -5.0}, "max_balance_time_s"),
+        ({"max_balance_time_s": 500.0}, "max_balance_time_s"),
+        ({"ah_per": "battery"}, "ah_per"),
         ({"min_current_a": float("nan")}, "min_current_a"),
         ({"bogus": 1}, "bogus"),
     ],
@@ -210,6 +209,7 @@ def test_config_rejections_name_the_field(kwargs: dict[str, object], field: str)
 
 def test_config_defaults() -> None:
     assert (CFG.dv_set_v, CFG.t1_s, CFG.t2_s, CFG.n_ah) == (0.005, 120.0, 60.0, 0.5)
-    assert CFG.balance_time_clamp_s == 120.0
+    assert CFG.max_balance_time_s is None
+    assert CFG.ah_per == "cell"  # the claims: one unit balancing Ah per cell
     assert EqualizationConfig(n_ah=0.0).n_ah == 0.0
     assert EqualizationConfig(n_ah=1.0).n_ah == 1.0

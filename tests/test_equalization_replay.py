@@ -39,6 +39,10 @@ def test_replay_lagging_group(tmp_path: Path) -> None:
     assert s["final_ah"] == [0.0, 0.0, 0.4375, 0.0]
     assert s["updates"] == {"formula1": 3, "formula2": 18, "subtract_min": 0}
     assert s["balancing_events"] == 3
+    # Owed raised to AH = 0.4375 Ah at t = 359 s, then 41 s delivered at 2 A; the rest owed.
+    owed = res.columns.index("owed_ah_g2")
+    assert res.rows[-1][owed] == pytest.approx(0.4375 - 2.0 * 41 / 3600)
+    assert s["charge_owed_ah"] == [0.0, 0.0, pytest.approx(0.4375 - 2.0 * 41 / 3600), 0.0]
 
 
 def test_replay_subtract_min_counted(tmp_path: Path) -> None:

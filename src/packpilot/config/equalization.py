@@ -21,6 +21,7 @@ one only multiplies the work per step."""
 
 TimeMode = Literal["string_current", "fixed_current"]
 Equalizer = Literal["unidirectional", "bidirectional"]
+AhPer = Literal["cell", "group"]
 
 
 class EqualizationConfig(Strict):
@@ -82,8 +83,16 @@ class EqualizationConfig(Strict):
     )
     max_balance_time_s: float | None = Field(
         None,
-        description="Clamp of one balancing time (s); None = t1_s, the longest a persisting "
-        "condition waits for its next AH update.",
+        description="Removed (issue #15): a balancing time is no longer clamped; what one "
+        "update period cannot deliver is owed and carried over. Must be unset.",
+    )
+    ah_per: AhPer = Field(
+        "cell",
+        description="Where the unit balancing Ah is kept: 'cell' (the claims: every cell of "
+        "every series group, updated from its group's voltage difference, S41 over all cells) "
+        "or 'group' (one per group, the spec's earlier [REC]). With group voltages and one "
+        "equalizer per group (this plant) both give the same commands: the cells of a group "
+        "share its ΔV and, in series, its equalizer's charge.",
     )
     equalizer: Equalizer = Field(
         "unidirectional",
@@ -131,9 +140,13 @@ class EqualizationConfig(Strict):
 
     @field_validator("max_balance_time_s")
     @classmethod
-    def _clamp_positive(cls, v: float | None) -> float | None:
-        if v is not None and not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"max_balance_time_s must be a positive time in s or unset (got {v})")
+    def _clamp_removed(cls, v: float | None) -> float | None:
+        if v is not None:
+            raise ValueError(
+                f"max_balance_time_s (got {v}) was removed: balancing times are no longer "
+                "clamped, the charge one update period cannot deliver is owed and carried "
+                "over (issue #15, docs/equalization.md); leave it unset"
+            )
         return v
 
     @model_validator(mode="after")
@@ -155,9 +168,5 @@ class EqualizationConfig(Strict):
             )
         return self
 
-    @property
-    def balance_time_clamp_s(self) -> float:
-        return self.t1_s if self.max_balance_time_s is None else self.max_balance_time_s
 
-
-__all__ = ["EqualizationConfig", "Equalizer", "TimeMode"]
+__all__ = ["AhPer", "EqualizationConfig", "Equalizer", "TimeMode"]

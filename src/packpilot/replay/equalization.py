@@ -57,7 +57,7 @@ def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
     ctrl = EqualizationController(config, pack)
     columns = ["t_s", "current_a"]
     for k in range(m):
-        columns += [f"dv_mv_g{k}", f"ah_g{k}", f"time_s_g{k}", f"i_eq_a_g{k}"]
+        columns += [f"dv_mv_g{k}", f"ah_g{k}", f"time_s_g{k}", f"i_eq_a_g{k}", f"owed_ah_g{k}"]
     rows: list[list[CellValue]] = []
     n_events = 0
     for i in range(len(log)):
@@ -85,6 +85,7 @@ def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
                 out.status[f"eq_ah_g{k}"][0],
                 out.status[f"eq_time_s_g{k}"][0],
                 out.status[f"eq_i_a_g{k}"][0],
+                out.status[f"eq_owed_ah_g{k}"][0],
             ]
         rows.append(row)
     st = ctrl.strings[0]
@@ -94,6 +95,8 @@ def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
         "final_ah": list(st.ah),
         "updates": dict(st.counts),
         "balancing_events": n_events,
+        "charge_granted_ah": list(st.ledger_granted_ah),
+        "charge_owed_ah": list(st.owed_ah),
         "charge_commanded_ah": list(st.ledger_net_ah),
         "balancing_time_s": list(st.ledger_time_s),
     }

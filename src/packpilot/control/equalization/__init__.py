@@ -2,7 +2,7 @@
 
 from packpilot.config.equalization import EqualizationConfig
 from packpilot.control.equalization.controller import (
-    EVENT_MIN_CHANGE_AH,
+    EVENT_RESOLUTION_AH,
     METHOD,
     AhUpdate,
     EqualizationController,
@@ -18,7 +18,7 @@ from packpilot.control.equalization.controller import (
 )
 
 __all__ = [
-    "EVENT_MIN_CHANGE_AH",
+    "EVENT_RESOLUTION_AH",
     "METHOD",
     "AhUpdate",
     "EqualizationConfig",

@@ -1,7 +1,8 @@
 """Equalization as a core method, and its one-pack face :class:`EqualizationController`.
 
 The status channels depend on the topology: ``eq_fault``, then ``eq_dv_mv_g{k}``,
-``eq_ah_g{k}``, ``eq_time_s_g{k}`` and ``eq_i_a_g{k}`` for every group k of the largest
+``eq_ah_g{k}``, ``eq_time_s_g{k}``, ``eq_i_a_g{k}`` and ``eq_owed_ah_g{k}`` for every group k of
+the largest
 battery (None for a battery with fewer groups). :data:`METHOD` declares them for
 :data:`MAX_GROUPS` groups, which bounds the memory any pack's kernel may write; a core that
 runs a given topology takes :func:`method_for` (exactly the channels of its groups) and
@@ -30,7 +31,7 @@ from packpilot.contract.events import Labels, Reason, fields
 from packpilot.contract.topology import PackInfo
 from packpilot.control.equalization import rules
 from packpilot.control.equalization.rules import (
-    EVENT_MIN_CHANGE_AH,
+    EVENT_RESOLUTION_AH,
     EqParams,
     EqState,
     formula1,
@@ -50,8 +51,8 @@ MAX_GROUPS = 64
 
 EVENTS_PER_GROUP = 24
 """Room for ``BalancingUpdated`` events of one group in one step. A formula moves AH by half
-its distance to N (or to 0) and AH stays within 0..1 Ah, so changes of at least
-``EVENT_MIN_CHANGE_AH`` number at most 20 per sample however long it stands for; one more
+its distance to N (or to 0) and AH stays within 0..1 Ah, so changes of more than
+``EVENT_RESOLUTION_AH`` number at most 14 per sample however long it stands for; one more
 for the subtraction. (Events beyond the room would be counted in ``EventBuf.dropped``.)"""
 
 _SOURCE = "source:l:source"
@@ -86,8 +87,8 @@ LABELS: Labels = {"formula": FORMULAS, "source": ("equalization",)}
 
 
 def status_channels(n_groups: int) -> tuple[StatusChannel, ...]:
-    """``eq_fault`` and the four channels of each of ``n_groups`` groups, in the kernel's
-    order (``1 + 4k + j``)."""
+    """``eq_fault`` and the five channels of each of ``n_groups`` groups, in the kernel's
+    order (``1 + 5k + j``)."""
     out = [StatusChannel("eq_fault", "b")]
     for k in range(n_groups):
         out += [
@@ -95,6 +96,7 @@ def status_channels(n_groups: int) -> tuple[StatusChannel, ...]:
             StatusChannel(f"eq_ah_g{k}"),
             StatusChannel(f"eq_time_s_g{k}"),
             StatusChannel(f"eq_i_a_g{k}"),
+            StatusChannel(f"eq_owed_ah_g{k}"),
         ]
     return tuple(out)
 
@@ -115,7 +117,6 @@ def params(config: EqualizationConfig, status_groups: int = 0) -> EqParams:
         equalizer_max_a=float(config.equalizer_max_a),
         fixed_current_a=float(config.fixed_current_a),
         balance_at_rest=bool(config.balance_at_rest),
-        clamp_s=float(config.balance_time_clamp_s),
         bidirectional=config.equalizer == "bidirectional",
         status_groups=int(status_groups),
     )
@@ -136,10 +137,12 @@ def new_state(
         ah=zeros(),
         hi_timer_s=zeros(),
         lo_timer_s=zeros(),
+        owed_ah=zeros(),
         remaining_s=zeros(),
         dv_v=np.full(shape, np.nan),
         current_a=zeros(),
         ledger_time_s=zeros(),
+        ledger_granted_ah=zeros(),
         ledger_gross_ah=zeros(),
         ledger_net_ah=zeros(),
         since_sample_s=np.zeros((n_packs, n_batteries)),
@@ -208,7 +211,7 @@ def status_of(
     out: dict[str, list[StatusValue]] = {
         "eq_fault": [bool(x != 0.0) for x in status[p, :, s0 + rules.ST_FAULT]]
     }
-    names = ("eq_dv_mv_g", "eq_ah_g", "eq_time_s_g", "eq_i_a_g")
+    names = ("eq_dv_mv_g", "eq_ah_g", "eq_time_s_g", "eq_i_a_g", "eq_owed_ah_g")
     for k in range(n_groups):
         c = s0 + 1 + rules.PER_GROUP * k
         for j, name in enumerate(names):
@@ -253,8 +256,9 @@ def balancing_time_s(ah: float, string_current_a: float, config: EqualizationCon
     """S43: seconds of balancing that deliver ``ah`` Ah at the equalizer current.
 
     The current is the one the equalizer will actually carry (string current clamped to its
-    rating, or I_eq), so time × current = AH whenever the clamp to ``balance_time_clamp_s``
-    does not bite. Zero when the gate is closed ("skip below a minimum current").
+    rating, or I_eq), so time × current = AH: proportional to AH, never clamped (an update
+    period too short to deliver it leaves the rest owed). Zero when the gate is closed ("skip
+    below a minimum current").
     """
     return float(rules.balancing_time(params(config), float(ah), float(string_current_a)))
 
@@ -341,6 +345,8 @@ class _Row:
         return [float(x) for x in a[0, view.battery, : view.n_groups]]
 
     def __set__(self, view: StringView, values: Sequence[float]) -> None:
+        if self.name == "remaining_s":
+            raise AttributeError("remaining_s is derived from owed_ah: write owed_ah")
         a = getattr(view.ctrl.st, self.name)
         vals = [float(x) for x in values]
         if len(vals) != view.n_groups:
@@ -349,18 +355,23 @@ class _Row:
 
 
 class StringView:
-    """One string's equalizer state (AH, timers, remaining times, ledger, counts), read from
-    and written into the controller's state arrays."""
+    """One string's equalizer state (AH, timers, owed Ah, remaining times, ledger, counts),
+    read from and written into the controller's state arrays."""
 
     ah = _Row("ah")
     hi_timer_s = _Row("hi_timer_s")
     lo_timer_s = _Row("lo_timer_s")
+    owed_ah = _Row("owed_ah")
+    """Charge granted and not yet delivered (carried over until delivered)."""
     remaining_s = _Row("remaining_s")
+    """Time to deliver ``owed_ah`` at the present equalizer current (read-only)."""
     dv_v = _Row("dv_v")
     ledger_time_s = _Row("ledger_time_s")
     """Seconds each group's balancing was active (prorated on the last partial step)."""
+    ledger_granted_ah = _Row("ledger_granted_ah")
+    """Charge granted by S43 (the raises of the owed Ah): delivered + owed."""
     ledger_gross_ah = _Row("ledger_gross_ah")
-    """Charge the AH rule commanded into each group: Σ I_eq·time/3600."""
+    """Charge the AH rule delivered into each group: Σ I_eq·time/3600."""
     ledger_net_ah = _Row("ledger_net_ah")
     """Charge actually commanded (after the bidirectional median shift): Σ balancer_a·dt/3600."""
 
@@ -387,7 +398,7 @@ class EqualizationController(CompiledController):
     """One Newton-iterated equalizer per string; commands ``Commands.balancer_a``.
 
     Fail-safe: a string whose group voltages or current are NaN/non-positive/missing gets all
-    its equalizers at 0 A, its timers and remaining times cleared (AH is kept) and one
+    its equalizers at 0 A, its timers cleared (AH and the owed Ah are kept) and one
     ``Fault`` event; ``FaultCleared`` is emitted when valid data returns. An absent battery is
     idled silently. ``strings[b]`` reads (and, for tests, writes) string b's state.
     """
@@ -419,7 +430,7 @@ class EqualizationController(CompiledController):
 
 
 __all__ = [
-    "EVENT_MIN_CHANGE_AH",
+    "EVENT_RESOLUTION_AH",
     "FORMULAS",
     "MAX_GROUPS",
     "METHOD",

@@ -10,16 +10,19 @@ Per string (a traction battery = one string of series groups), every sample peri
   (formula 2), likewise; equality resets both timers and updates nothing;
 * if every AH_g > 0, the minimum is subtracted from all (S41/S42);
 * at every AH update of group g (formula 1 or 2 applied, even when the value does not change,
-  or the subtraction) its balancing time is recomputed, replacing what remained:
-  t_g = 3600·AH_g/I with I the current the equalizer will carry (the string current clamped to
-  ``equalizer_max_a``, or the fixed ``fixed_current_a``), clamped to ``max_balance_time_s``.
+  or the subtraction) the group is granted AH_g (S43): its **owed Ah** is raised to AH_g if it
+  is below (``granted`` books the raise); it is never lowered but by delivery, so a balance the
+  equalizer's current limit cannot deliver before the next update is carried over, not dropped
+  (issue #15; the spec's [REC] clamped the time to the update period, which dropped it).
 
-While t_g > 0 and the gate is open (|I_string| ≥ ``min_current_a``, or always in fixed-current
-mode with ``balance_at_rest``) group g's equalizer pushes that current into the group and t_g
-counts down (the last partial step prorated). With bidirectional equalizers the string's
-currents are shifted by their lower median. A string whose group voltages or current cannot
-drive the method is held: equalizers at 0 A, timers and remaining times cleared, AH kept, one
-``Fault`` (``FaultCleared`` when valid data returns); an absent battery is held silently.
+While Ah is owed and the gate is open (|I_string| ≥ ``min_current_a``, or always in
+fixed-current mode with ``balance_at_rest``) group g's equalizer carries the current I (the
+string current clamped to ``equalizer_max_a``, or the fixed ``fixed_current_a``) and the owed
+Ah drops by I·dt (the last partial step prorated): the balancing time is 3600·AH/I, from AH
+and the battery current (S43). With bidirectional equalizers the string's currents are
+shifted by their lower median. A string whose group voltages or current cannot drive the
+method is held: equalizers at 0 A, timers cleared, AH and owed Ah kept, one ``Fault``
+(``FaultCleared`` when valid data returns); an absent battery is held silently.
 
 State is (P, B, G) for the per-group values (G = the most series groups of any battery; a
 battery with fewer groups leaves the rest of its row unused) and (P, B) per string.
@@ -41,9 +44,11 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 B1 = NDArray[np.bool_]
 
-EVENT_MIN_CHANGE_AH = 1e-6
-"""AH changes smaller than 1 µAh are applied and counted but not emitted as events: halving an
-already negligible AH every ``t2_s`` would otherwise flood telemetry for hours."""
+EVENT_RESOLUTION_AH = 1e-4
+"""Resolution of ``BalancingUpdated`` (0.1 mAh, the precision its message prints): an AH update
+is emitted only when it changes AH by more than this. Smaller changes (re-applying formula 1 at
+AH = N, halving an AH that is already ≈ 0 every ``t2_s``) are applied and counted but not
+emitted: they rendered as "AH 0.0000 -> 0.0000"."""
 
 SAMPLE_TOL = 1e-9
 
@@ -59,13 +64,14 @@ FAULT_GROUP_VOLTAGE = 2
 FAULT_CURRENT = 3
 FAULT_CLEARED = 4
 
-# Status channels: ``eq_fault``, then per group k the four channels below at 1 + 4k + j.
+# Status channels: ``eq_fault``, then per group k the five channels below at 1 + 5k + j.
 ST_FAULT = 0
 ST_DV_MV = 0
 ST_AH = 1
 ST_TIME = 2
 ST_I = 3
-PER_GROUP = 4
+ST_OWED = 4
+PER_GROUP = 5
 
 
 class EqParams(NamedTuple):
@@ -80,11 +86,9 @@ class EqParams(NamedTuple):
     equalizer_max_a: float
     fixed_current_a: float
     balance_at_rest: bool
-    clamp_s: float
-    """Clamp of one balancing time (``max_balance_time_s``, or ``t1_s`` when unset)."""
     bidirectional: bool
     status_groups: int
-    """Groups of the status layout: channels ``1 + 4k + j`` for k < this."""
+    """Groups of the status layout: channels ``1 + 5k + j`` for k < this."""
 
 
 class EqState(NamedTuple):
@@ -94,16 +98,21 @@ class EqState(NamedTuple):
     """(P, B, G) how long ΔV_g > dv_set has persisted (less the T1 already spent)."""
     lo_timer_s: F64
     """(P, B, G) how long ΔV_g < dv_set has persisted (less the T2 already spent)."""
+    owed_ah: F64
+    """(P, B, G) charge granted to each group and not yet delivered (carried over)."""
     remaining_s: F64
-    """(P, B, G) balancing time left."""
+    """(P, B, G) time to deliver the owed Ah at the equalizer's present current (while the gate
+    is closed: at its nominal current, ``fixed_current_a`` or ``equalizer_max_a``)."""
     dv_v: F64
     """(P, B, G) ΔV of the last sample (NaN after a hold)."""
     current_a: F64
     """(P, B, G) equalizer currents of the last step (after the bidirectional shift)."""
     ledger_time_s: F64
     """(P, B, G) seconds each group's balancing was active (prorated on the last step)."""
+    ledger_granted_ah: F64
+    """(P, B, G) charge granted by S43: Σ of the raises of the owed Ah (= delivered + owed)."""
     ledger_gross_ah: F64
-    """(P, B, G) charge the AH rule commanded into each group: Σ I_eq·time/3600."""
+    """(P, B, G) charge the AH rule delivered into each group: Σ I_eq·time/3600."""
     ledger_net_ah: F64
     """(P, B, G) charge actually commanded (after the median shift): Σ balancer_a·dt/3600."""
     since_sample_s: F64
@@ -162,12 +171,20 @@ def equalizer_current(prm: EqParams, string_current_a: float) -> float:
 
 @kernel
 def balancing_time(prm: EqParams, ah: float, string_current_a: float) -> float:
-    """S43: seconds of balancing that deliver ``ah`` Ah at the equalizer current, clamped to
-    ``clamp_s``; zero when the gate is closed."""
+    """S43: seconds of balancing that deliver ``ah`` Ah at the equalizer current (the string
+    current within the equalizer's rating, else the rating; or the fixed current): proportional
+    to AH, never clamped (what one update period cannot deliver is owed). Zero when the gate
+    is closed."""
     i_eq = equalizer_current(prm, string_current_a)
     if ah <= 0.0 or i_eq <= 0.0:
         return 0.0
-    return fmin(3600.0 * ah / i_eq, prm.clamp_s)
+    return 3600.0 * ah / i_eq
+
+
+@kernel
+def nominal_current(prm: EqParams) -> float:
+    """The current the remaining time is quoted at while the gate is closed."""
+    return prm.fixed_current_a if prm.fixed_current else prm.equalizer_max_a
 
 
 @kernel
@@ -249,7 +266,7 @@ def _book(
     st: EqState, p: int, i: int, g: int, formula: int, old: float, new: float, dv: float
 ) -> None:
     """One application of a rule to group ``g`` of string ``i``: logged, and recorded as a
-    ``BalancingUpdated`` event when it moved AH by at least ``EVENT_MIN_CHANGE_AH``."""
+    ``BalancingUpdated`` event when it moved AH by more than ``EVENT_RESOLUTION_AH``."""
     st.updated[p, g] = True
     e = st.log_n[p]
     if e < st.log.shape[1]:
@@ -258,7 +275,7 @@ def _book(
         st.log[p, e, 2] = old
         st.log[p, e, 3] = new
     st.log_n[p] = e + 1
-    if abs(new - old) >= EVENT_MIN_CHANGE_AH:
+    if abs(new - old) > EVENT_RESOLUTION_AH:
         e = st.rec_n[p]
         if e < st.rec_code.shape[1]:
             st.rec_code[p, e, 0] = BALANCING_UPDATED
@@ -277,11 +294,11 @@ def sample_string(
     current_a: float,
 ) -> bool:  # fmt: skip
     """Steps S1-S43 for string ``i`` of pack ``p`` (its ``n`` group voltages are valid):
-    ΔV, persistence timers, formula 1/2, subtract-the-minimum, then the balancing time of every
+    ΔV, persistence timers, formula 1/2, subtract-the-minimum, then the grant (S43) of every
     updated group. ``ts_s`` is the time this sample stands for (zero-order hold): a timer that
     reaches its set time fires and is reduced by it, so a long sample applies the formula
-    repeatedly. Every update is logged; those that change AH by at least
-    ``EVENT_MIN_CHANGE_AH`` are recorded as events. Returns whether the minimum was
+    repeatedly. Every update is logged; those that change AH by more than
+    ``EVENT_RESOLUTION_AH`` are recorded as events. Returns whether the minimum was
     subtracted."""
     ah, hi, lo, dvs = st.ah, st.hi_timer_s, st.lo_timer_s, st.dv_v
     counts, upd = st.counts, st.updated
@@ -335,9 +352,15 @@ def sample_string(
             ah[p, i, g] = new
             _book(st, p, i, g, SUBTRACT_MIN, old, new, dvs[p, i, g])
         counts[p, i, SUBTRACT_MIN] += 1
+    owed, granted = st.owed_ah, st.ledger_granted_ah
     for g in range(n):
         if upd[p, g]:
-            st.remaining_s[p, i, g] = balancing_time(prm, ah[p, i, g], current_a)
+            # S43: the group is owed AH_g from now on; what is still owed from earlier grants
+            # is kept (never lowered but by delivery), so nothing granted is dropped.
+            a = ah[p, i, g]
+            if a > owed[p, i, g]:
+                granted[p, i, g] += a - owed[p, i, g]
+                owed[p, i, g] = a
     return subtracted
 
 
@@ -347,12 +370,12 @@ def _pack(
     reported: B1, present: B1, p: int, dt: float, status: F64, s0: int,
 ) -> None:  # fmt: skip
     """Every string of pack ``p`` for one step of ``dt``: input checks (hold and a recorded
-    ``Fault`` / ``FaultCleared``), the sample when due, the equalizer currents (remaining
-    time counted down, ledger booked) and the status channels."""
+    ``Fault`` / ``FaultCleared``), the sample when due, the equalizer currents (owed Ah
+    delivered, ledger booked) and the status channels."""
     ah, hi, lo, rem, dvs, cur = (
         st.ah, st.hi_timer_s, st.lo_timer_s, st.remaining_s, st.dv_v, st.current_a
     )  # fmt: skip
-    since, faulted = st.since_sample_s, st.faulted
+    since, faulted, owed = st.since_sample_s, st.faulted, st.owed_ah
     rec_n, rec_code, rec_val = st.rec_n, st.rec_code, st.rec_val
     l_time, l_gross, l_net, buf = (
         st.ledger_time_s, st.ledger_gross_ah, st.ledger_net_ah, st.sort_buf
@@ -395,12 +418,11 @@ def _pack(
         if fault:
             faulted[p, i] = True
         if not ok:
-            # Hold: forget persistence and pending balancing; AH (learned) and the fault flag
-            # are kept; the equalizers idle.
+            # Hold: forget persistence; AH (learned), the owed Ah (granted, not yet delivered:
+            # carried, never dropped) and the fault flag are kept; the equalizers idle.
             for g in range(hi.shape[2]):
                 hi[p, i, g] = 0.0
                 lo[p, i, g] = 0.0
-                rem[p, i, g] = 0.0
                 dvs[p, i, g] = np.nan
                 cur[p, i, g] = 0.0
             since[p, i] = 0.0
@@ -421,20 +443,30 @@ def _pack(
                 ts = since[p, i]
                 since[p, i] = 0.0
                 sample_string(prm, st, group_v, p, i, n, ts, cur_a)
-            # Equalizer currents for the next dt; the last partial step is prorated so that
-            # charge = time × current exactly.
+            # Equalizer currents for the next dt: each group's owed Ah is delivered at i_eq,
+            # the last partial step prorated so that the charge is exactly what was owed.
             i_eq = equalizer_current(prm, cur_a)
             for g in range(n):
                 cur[p, i, g] = 0.0
             if i_eq > 0.0 and dt > 0.0:
+                step_ah = i_eq * dt / 3600.0
                 for g in range(n):
-                    used = fmin(rem[p, i, g], dt)
-                    if used <= 0.0:
+                    q = owed[p, i, g]
+                    if q <= 0.0:
                         continue
-                    cur[p, i, g] = i_eq * used / dt
-                    rem[p, i, g] -= used
-                    l_time[p, i, g] += used
-                    l_gross[p, i, g] += i_eq * used / 3600.0
+                    if q >= step_ah:
+                        cur[p, i, g] = i_eq
+                        owed[p, i, g] = q - step_ah
+                        l_time[p, i, g] += dt
+                        l_gross[p, i, g] += step_ah
+                    else:
+                        cur[p, i, g] = q * 3600.0 / dt
+                        owed[p, i, g] = 0.0
+                        l_time[p, i, g] += q * 3600.0 / i_eq
+                        l_gross[p, i, g] += q
+            i_ref = i_eq if i_eq > 0.0 else nominal_current(prm)
+            for g in range(n):
+                rem[p, i, g] = 3600.0 * owed[p, i, g] / i_ref
             if prm.bidirectional and n > 1:
                 shift = lower_median(cur[p, i], n, buf[p])
                 for g in range(n):
@@ -449,11 +481,13 @@ def _pack(
                 status[p, i, c + ST_AH] = ah[p, i, k]
                 status[p, i, c + ST_TIME] = rem[p, i, k]
                 status[p, i, c + ST_I] = cur[p, i, k]
+                status[p, i, c + ST_OWED] = owed[p, i, k]
             else:  # this battery has no group k (None to a reader)
                 status[p, i, c + ST_DV_MV] = np.nan
                 status[p, i, c + ST_AH] = np.nan
                 status[p, i, c + ST_TIME] = np.nan
                 status[p, i, c + ST_I] = np.nan
+                status[p, i, c + ST_OWED] = np.nan
 
 
 @kernel
