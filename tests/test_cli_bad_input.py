@@ -70,8 +70,13 @@ def test_a_bad_duration_is_refused_by_campaign_and_dashboard_too(tmp_path: Path)
 def test_every_output_is_checked_before_the_run(
     tmp_path: Path, option: str, name: str, needle: str
 ) -> None:
-    """The run would create the database first: no database file means nothing ran."""
-    p = _scenario(tmp_path)
+    """The run would create the database first: no database file means nothing ran. (A CAN
+    log needs a scenario with a charger: without one, ``--can-*`` is refused first.)"""
+    if option == "--can-log":
+        p = tmp_path / "scenario.toml"
+        p.write_text((EXAMPLES / "uav_mission.toml").read_text())
+    else:
+        p = _scenario(tmp_path)
     db = tmp_path / "run.sqlite"
     out = tmp_path / name
     res = RUNNER.invoke(app, ["simulate", str(p), "--db", str(db), option, str(out), "--json"])
