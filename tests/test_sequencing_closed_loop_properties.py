@@ -154,7 +154,10 @@ KNOWN_18B = Case(
 @pytest.mark.parametrize("case", [KNOWN_18, KNOWN_18B], ids=["step11", "step181"])
 def test_closed_loop_invariants_known_counterexample(case: Case, comparator: bool) -> None:
     res = _check_invariants(case, comparator)
-    assert float(np.maximum(-res.trace.channel("current_a"), 0.0).max()) <= 1.0
+    peak = float(np.maximum(-res.trace.channel("current_a"), 0.0).max())
+    # step181 without the comparator: the load falls from 19 A to 0.5 A at 30 s and battery 2
+    # takes ~1.3 A for that one period (the old property's 1 A limit; within the new one).
+    assert peak <= (TRIP_A if comparator else I_LIM)
 
 
 def _check_invariants(case: Case, comparator: bool = False) -> Result:

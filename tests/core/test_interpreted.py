@@ -83,7 +83,9 @@ def _close(a: Any, b: Any, where: str) -> None:
 @pytest.fixture(scope="module")
 def interpreted(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("interpreted")
-    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "PYTHONPATH": str(ROOT)}
+    # The checkout's own sources first: an editable install may point at another worktree.
+    path = os.pathsep.join([str(ROOT / "src"), str(ROOT)])
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "PYTHONPATH": path}
     subprocess.run(
         [sys.executable, "-c", _SCRIPT, str(out), *example_names()],
         cwd=ROOT,

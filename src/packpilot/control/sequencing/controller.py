@@ -148,8 +148,8 @@ REASONS = (
     ),
     Reason(
         "CrossCurrentRisk",
-        "battery {battery}: {predicted_a:.2f} A (above its charge limit) would flow into it if "
-        "the load vanished; R3 closed it (diode conduction)",
+        "battery {battery}: {predicted_a:.2f} A (above its {i_limit_a:.2f} A charge limit) would "
+        "flow into it if the load vanished",
         fields("predicted_a", "i_limit_a", "_battery:i"),
     ),
     Reason(

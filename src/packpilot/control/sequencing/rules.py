@@ -617,8 +617,9 @@ def _discharge_tick(
             chg_on[p, k] = True
 
     # Zero-load prediction of the engaged set: an engaged battery that would take more than
-    # its charge limit if the load vanished (only R3 can have caused it) is flagged once per
-    # episode; the reverse cut (or the plant's comparator) bounds it.
+    # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
+    # voltages drifted apart during co-discharge) is flagged once per episode; the reverse cut
+    # (or the plant's comparator) bounds it. Nothing is opened on a prediction.
     m = _engaged(state, chg_on, p, grp, -1)
     for k in range(n):
         pred[k] = 0.0
