@@ -398,6 +398,37 @@ def test_reverse_cut_opens_only_the_victims_charge_fet_in_the_same_period() -> N
     assert out.commands.chg_on[2] is True
 
 
+def test_reverse_cut_is_not_undone_in_the_same_period() -> None:
+    # A sample whose voltages say battery 1 would discharge (sensor offsets, a stale R) while
+    # its current says a sibling charges it: the cut stands for this period; the engage rule
+    # may close it again only from the next sample on.
+    ctrl, _ = _engaged_three()
+    out = ctrl.step(meas(0.3, [24.0, 24.05, 24.0], [4.0, -0.6, 1.0]), 0.1)
+    assert out.commands.chg_on == (True, False, True)
+
+
+def test_r3_hands_over_from_a_sibling_the_closed_battery_would_charge() -> None:
+    # Battery 1, inserted 0.4 V above the engaged battery 0 (< v_th: no take-over), joins by R2
+    # but stays open: engaged it would push ~7.7 A into battery 0 even at the present 5 A. When
+    # its diode conducts (0.6 A) R3 must close it, and battery 0's charge FET opens in the same
+    # period, before that current can flow (embodiment 5: battery 1 is the higher one).
+    ctrl = SequencingController(NO_EST, pack_info(2))
+    ctrl.step(meas(0.0, [21.6, 21.0], [0.0, 0.0], [True, False]), 0.1)
+    out = ctrl.step(meas(0.1, [21.6, 22.0], [0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+    assert out.commands.chg_on == (True, False)
+    out = ctrl.step(meas(0.2, [21.5, 21.99], [4.5, 0.6]), 0.1)
+    assert out.commands.chg_on == (True, False)
+    out = ctrl.step(meas(0.3, [21.5, 21.99], [4.5, 0.6]), 0.1)
+    assert out.commands.chg_on == (False, True)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+    kinds = [(e.kind, e.battery) for e in out.events]
+    assert ("DiodeBypassed", 1) in kinds and ("ReverseCurrent", 0) in kinds
+    (hand,) = [e for e in out.events if e.kind == "ReverseCurrent"]
+    assert hand.data["source"] == 1
+    assert isinstance(hand.data["current_a"], float) and hand.data["current_a"] < -0.5
+
+
 def test_slow_reverse_cut_after_q_rev_of_small_reverse_current() -> None:
     # 0.4 A (below i_rev) into battery 2 while battery 0 sources: cut once more than
     # q_rev_as = 0.5 A s has flowed in one episode, i.e. at the 13th sample at dt = 0.1 s

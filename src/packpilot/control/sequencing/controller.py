@@ -172,8 +172,15 @@ REASONS = (
         "sequencing measurements valid again, re-initialising (R1)",
         fields("reason:l:fault"),
     ),
+    Reason(
+        "ReverseCurrent",
+        "battery {battery}: charge FET off, {current_a:.2f} A would flow into it from battery "
+        "{source} (closed by R3)",
+        fields("current_a", "i_rev", "path:l:path", "_battery:i", "source:i"),
+    ),
 )
 assert [r.kind for r in REASONS][rules.FAULT_CLEARED] == "FaultCleared"
+assert len(REASONS) == rules.HANDOVER + 1
 assert [r.kind for r in REASONS][rules.RISK] == "CrossCurrentRisk"
 
 STATUS = (
@@ -255,6 +262,7 @@ def build(
         grp=idx(),
         order=idx(),
         cut=no(b),
+        r3=no(b),
         inserted=no(b),
         was_c=no(b),
         was_d=no(b),

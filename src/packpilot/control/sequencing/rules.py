@@ -42,7 +42,9 @@ Rules applied every control period in discharge mode (see ``docs/parallel_discha
   battery would take more than its charge limit. Highest fast voltage first.
 * R3: a battery with discharge FET on and charge FET off that sources more than ``i_det``
   (its charge diode conducts) gets its charge FET on after a debounce, no later than ``t_on``.
-  Only current measured over a period in which the controller held that FET off counts.
+  Only current measured over a period in which the controller held that FET off counts. If,
+  engaged, it would charge an engaged sibling by more than ``i_rev`` at the present load, that
+  sibling's charge FET opens in the same period (hand-over to the higher battery).
   R3 outranks (b): the diode must not carry the current; if the zero-load prediction then
   exceeds a charge limit the battery is flagged (``CrossCurrentRisk``) and the reverse cut
   (or the plant's reverse-current comparator, ``[pack.switch] reverse_comparator``) bounds it.
@@ -123,6 +125,9 @@ MODE_NO_BATTERY = 10
 """ModeChanged with no battery present: the scalar pack current was the integer 0."""
 FAULT = 11
 FAULT_CLEARED = 12
+HANDOVER = 13
+"""R3 closed a battery that would charge an engaged sibling at the present load: the sibling's
+charge FET opened (ReverseCurrent, predicted, no state change)."""
 
 # Slots of a state-change event: from, to, reason, battery (message only), then the data.
 V_FROM = 0
@@ -229,6 +234,8 @@ class SequencingState(NamedTuple):
     grp: I64
     order: I64
     cut: B1
+    r3: B1
+    """R3 closed this battery's charge FET in this period."""
     inserted: B1
     was_c: B1
     was_d: B1
@@ -601,6 +608,10 @@ def _discharge_tick(
     # Only current measured over a period in which this controller held the charge FET off
     # and the discharge FET on can have flowed through the diode. Outranks the engage rule's
     # charge-limit test: the diode must not carry the current (flagged below if at risk).
+    r3 = st.r3
+    src_r3 = -1
+    for k in range(n):
+        r3[k] = False
     for k in range(n):
         if (state[p, k] != DISCHARGING and state[p, k] != STANDBY) or chg_on[p, k]:
             conduct_since_s[p, k] = np.nan
@@ -615,6 +626,29 @@ def _discharge_tick(
                 ev.val[r, V_DATA + 1] = cur[k]
         else:
             chg_on[p, k] = True
+        r3[k] = True
+        if src_r3 < 0 or ef[k] > ef[src_r3]:
+            src_r3 = k
+    # Hand-over: if the batteries R3 closed, now engaged, would charge an engaged sibling by
+    # more than i_rev at the present load, they are the higher ones (embodiment 5: discharge
+    # current means no other battery can charge them) and the sibling's charge FET opens in
+    # the same period, before the current flows; it stays admitted and re-engages by the
+    # engage rule. Never one R3 closed in this period: its diode current says it sources.
+    if src_r3 >= 0:
+        m2 = _engaged(state, chg_on, p, grp, -1)
+        _share(grp, m2, ef, g, _load(pres, cur), pred)
+        for q in range(m2):
+            j = grp[q]
+            if not r3[j] and pred[j] > prm.i_rev:
+                chg_on[p, j] = False
+                cut[j] = True
+                conduct_since_s[p, j] = np.nan
+                r = emit(ev, p, src, HANDOVER, j, t)
+                ev.val[r, 0] = -pred[j]
+                ev.val[r, 1] = prm.i_rev
+                ev.val[r, 2] = PATH_CHG
+                ev.val[r, 3] = j
+                ev.val[r, 4] = src_r3
 
     # Zero-load prediction of the engaged set: an engaged battery that would take more than
     # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
