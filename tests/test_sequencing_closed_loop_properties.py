@@ -164,9 +164,25 @@ SWEEP_7 = Case(
 )
 
 
+# The same sweep after the hand-over: battery 3 inserted 0.46 V above battery 2; R3 closed it
+# and the hand-over opened batteries 1 and 4 (predicted > i_rev) but not battery 2, which the
+# prediction with 1 and 4 still engaged kept below i_rev: 2.7 A into it for one period. The
+# hand-over now opens the worst first and predicts the rest again.
+SWEEP_7B = Case(
+    ocv0_v=(21.0, 21.5625, 21.6328125, 22.08984375, 21.5625),
+    r_ohm=(0.03125, 0.03125, 0.03125, 0.02734375, 0.03125),
+    dt_s=0.1,
+    load_t_s=(0.0, 1.0),
+    load_a=(0.0, 11.0),
+    insert=(3, 1.0),
+)
+
+
 @pytest.mark.parametrize("comparator", [False, True])
 @pytest.mark.parametrize(
-    "case", [KNOWN_18, KNOWN_18B, SWEEP_7], ids=["step11", "step181", "sweep7"]
+    "case",
+    [KNOWN_18, KNOWN_18B, SWEEP_7, SWEEP_7B],
+    ids=["step11", "step181", "sweep7", "sweep7b"],
 )
 def test_closed_loop_invariants_known_counterexample(case: Case, comparator: bool) -> None:
     res = _check_invariants(case, comparator)

@@ -634,21 +634,27 @@ def _discharge_tick(
     # current means no other battery can charge them) and the sibling's charge FET opens in
     # the same period, before the current flows; it stays admitted and re-engages by the
     # engage rule. Never one R3 closed in this period: its diode current says it sources.
-    if src_r3 >= 0:
+    # Worst first, the rest predicted again without it (opening one shifts the others).
+    load_a = _load(pres, cur)
+    while src_r3 >= 0:
         m2 = _engaged(state, chg_on, p, grp, -1)
-        _share(grp, m2, ef, g, _load(pres, cur), pred)
+        _share(grp, m2, ef, g, load_a, pred)
+        j = -1
         for q in range(m2):
-            j = grp[q]
-            if not r3[j] and pred[j] > prm.i_rev:
-                chg_on[p, j] = False
-                cut[j] = True
-                conduct_since_s[p, j] = np.nan
-                r = emit(ev, p, src, HANDOVER, j, t)
-                ev.val[r, 0] = -pred[j]
-                ev.val[r, 1] = prm.i_rev
-                ev.val[r, 2] = PATH_CHG
-                ev.val[r, 3] = j
-                ev.val[r, 4] = src_r3
+            x = grp[q]
+            if not r3[x] and pred[x] > prm.i_rev and (j < 0 or pred[x] > pred[j]):
+                j = x
+        if j < 0:
+            break
+        chg_on[p, j] = False
+        cut[j] = True
+        conduct_since_s[p, j] = np.nan
+        r = emit(ev, p, src, HANDOVER, j, t)
+        ev.val[r, 0] = -pred[j]
+        ev.val[r, 1] = prm.i_rev
+        ev.val[r, 2] = PATH_CHG
+        ev.val[r, 3] = j
+        ev.val[r, 4] = src_r3
 
     # Zero-load prediction of the engaged set: an engaged battery that would take more than
     # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
