@@ -175,7 +175,7 @@ REASONS = (
     Reason(
         "ReverseCurrent",
         "battery {battery}: charge FET off, {current_a:.2f} A would flow into it from battery "
-        "{source} (closed by R3)",
+        "{source} at the present load",
         fields("current_a", "i_rev", "path:l:path", "_battery:i", "source:i"),
     ),
 )
@@ -262,7 +262,7 @@ def build(
         grp=idx(),
         order=idx(),
         cut=no(b),
-        r3=no(b),
+        skip=no(b),
         inserted=no(b),
         was_c=no(b),
         was_d=no(b),

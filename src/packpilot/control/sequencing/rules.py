@@ -126,8 +126,9 @@ MODE_NO_BATTERY = 10
 FAULT = 11
 FAULT_CLEARED = 12
 HANDOVER = 13
-"""R3 closed a battery that would charge an engaged sibling at the present load: the sibling's
-charge FET opened (ReverseCurrent, predicted, no state change)."""
+"""A sibling would charge this engaged battery at the present load once a cut or an R3 closure
+has changed the engaged set: its charge FET opened (ReverseCurrent, predicted, no state
+change)."""
 
 # Slots of a state-change event: from, to, reason, battery (message only), then the data.
 V_FROM = 0
@@ -234,8 +235,9 @@ class SequencingState(NamedTuple):
     grp: I64
     order: I64
     cut: B1
-    r3: B1
-    """R3 closed this battery's charge FET in this period."""
+    skip: B1
+    """Batteries a re-prediction may not open this period (measured sourcing, or closed by
+    R3)."""
     inserted: B1
     was_c: B1
     was_d: B1
@@ -482,6 +484,48 @@ def _engage(
 
 
 @kernel_inline
+def _open_charged(
+    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, load_a: float,
+    t: float,
+) -> None:  # fmt: skip
+    """Open, worst first, the charge FET of every engaged battery not in ``st.skip`` that its
+    engaged siblings would charge by more than ``i_rev`` at the present pack current, and
+    predict the rest again after each (opening one shifts the others). Used after the reverse
+    cut (so the remaining siblings do not pour the same current into the next battery in the
+    following period) and after R3 (the hand-over)."""
+    state = st.state
+    chg_on = st.chg_on
+    ef = st.ef
+    pred = st.pred
+    grp = st.grp
+    skip = st.skip
+    while True:
+        m = _engaged(state, chg_on, p, grp, -1)
+        if m < 2:
+            break
+        _share(grp, m, ef, st.g, load_a, pred)
+        j = -1
+        top = -1
+        for q in range(m):
+            x = grp[q]
+            if top < 0 or ef[x] > ef[top]:
+                top = x
+            if not skip[x] and pred[x] > prm.i_rev and (j < 0 or pred[x] > pred[j]):
+                j = x
+        if j < 0:
+            break
+        chg_on[p, j] = False
+        st.cut[j] = True
+        st.conduct_since_s[p, j] = np.nan
+        r = emit(ev, p, src, HANDOVER, j, t)
+        ev.val[r, 0] = -pred[j]
+        ev.val[r, 1] = prm.i_rev
+        ev.val[r, 2] = PATH_CHG
+        ev.val[r, 3] = j
+        ev.val[r, 4] = top
+
+
+@kernel_inline
 def _discharge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     cur: F64, pres: B1, t: float, dt: float, n_inserted: int,
@@ -520,6 +564,7 @@ def _discharge_tick(
     # (the engage rule or R3 closes it again once it would discharge). Only when some other
     # battery sources current; otherwise the charge comes from outside (mode logic).
     rev_q_as = st.rev_q_as
+    skip = st.skip
     for k in range(n):
         cut[k] = False
     for k in range(n):
@@ -545,6 +590,14 @@ def _discharge_tick(
             ev.val[r, 1] = prm.i_rev
             ev.val[r, 2] = PATH_CHG
             ev.val[r, 3] = k
+    # Cascade: with the victims open, the remaining siblings would pour the same current into
+    # the next engaged battery in the coming period; open those now (not one that sources).
+    any_cut = False
+    for k in range(n):
+        skip[k] = cur[k] > i_det
+        any_cut = any_cut or cut[k]
+    if any_cut:
+        _open_charged(prm, st, ev, src, p, _load(pres, cur), t)
 
     # Hot insertion (R1 re-applied to the newcomer): a battery v_th above the bus takes over
     # and the batteries v_th below it stand by in the same period, so none is charged.
@@ -608,10 +661,9 @@ def _discharge_tick(
     # Only current measured over a period in which this controller held the charge FET off
     # and the discharge FET on can have flowed through the diode. Outranks the engage rule's
     # charge-limit test: the diode must not carry the current (flagged below if at risk).
-    r3 = st.r3
-    src_r3 = -1
+    any_r3 = False
     for k in range(n):
-        r3[k] = False
+        skip[k] = False
     for k in range(n):
         if (state[p, k] != DISCHARGING and state[p, k] != STANDBY) or chg_on[p, k]:
             conduct_since_s[p, k] = np.nan
@@ -626,35 +678,15 @@ def _discharge_tick(
                 ev.val[r, V_DATA + 1] = cur[k]
         else:
             chg_on[p, k] = True
-        r3[k] = True
-        if src_r3 < 0 or ef[k] > ef[src_r3]:
-            src_r3 = k
+        skip[k] = True
+        any_r3 = True
     # Hand-over: if the batteries R3 closed, now engaged, would charge an engaged sibling by
     # more than i_rev at the present load, they are the higher ones (embodiment 5: discharge
     # current means no other battery can charge them) and the sibling's charge FET opens in
     # the same period, before the current flows; it stays admitted and re-engages by the
     # engage rule. Never one R3 closed in this period: its diode current says it sources.
-    # Worst first, the rest predicted again without it (opening one shifts the others).
-    load_a = _load(pres, cur)
-    while src_r3 >= 0:
-        m2 = _engaged(state, chg_on, p, grp, -1)
-        _share(grp, m2, ef, g, load_a, pred)
-        j = -1
-        for q in range(m2):
-            x = grp[q]
-            if not r3[x] and pred[x] > prm.i_rev and (j < 0 or pred[x] > pred[j]):
-                j = x
-        if j < 0:
-            break
-        chg_on[p, j] = False
-        cut[j] = True
-        conduct_since_s[p, j] = np.nan
-        r = emit(ev, p, src, HANDOVER, j, t)
-        ev.val[r, 0] = -pred[j]
-        ev.val[r, 1] = prm.i_rev
-        ev.val[r, 2] = PATH_CHG
-        ev.val[r, 3] = j
-        ev.val[r, 4] = src_r3
+    if any_r3:
+        _open_charged(prm, st, ev, src, p, _load(pres, cur), t)
 
     # Zero-load prediction of the engaged set: an engaged battery that would take more than
     # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
