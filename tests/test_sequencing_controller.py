@@ -167,19 +167,18 @@ def hover(t: float) -> float:
     return 0.0 if t < 1.0 else 30.0
 
 
+def hover20(t: float) -> float:
+    """20 A: the path's I*R (20 mOhm + 2 x 2 mOhm FETs: 0.48 V) stays below the 0.6 V diode drop,
+    so a standby battery's diode does not conduct before the fast voltages meet (R2, not R3)."""
+    return 0.0 if t < 1.0 else 20.0
+
+
 def _consistent(out: ControlOutput) -> None:
-    for state, chg, dsg, iso in zip(
-        out.status["seq_state"],
-        out.commands.chg_on,
-        out.commands.dsg_on,
-        out.status["seq_isolated"],
-        strict=True,
+    for state, chg, dsg in zip(
+        out.status["seq_state"], out.commands.chg_on, out.commands.dsg_on, strict=True
     ):
         if state == "STANDBY":
-            # Source isolation ([REC], added with the R3-conflict fix) opens the discharge FET
-            # of a STANDBY battery too, and says so in seq_isolated; otherwise STANDBY is the
-            # spec's pattern. The charge FET is off either way.
-            assert (chg, dsg) == (False, not iso)
+            assert (chg, dsg) == (False, True)
         elif state == "OFF":
             assert (chg, dsg) == (False, False)
         elif state == "DISCHARGING":
@@ -193,11 +192,9 @@ def _consistent(out: ControlOutput) -> None:
 
 def test_defaults_match_spec_table() -> None:
     cfg = SequencingConfig()
-    assert (cfg.v_th, cfg.v_co, cfg.i_det, cfg.t_on, cfg.i_rev) == (0.5, 0.3, 0.5, 0.1, 0.5)
+    assert (cfg.v_th, cfg.v_co, cfg.i_det, cfg.t_on, cfg.i_rev) == (0.5, 0.05, 0.5, 0.1, 0.5)
     assert 0.0 <= cfg.t_debounce <= cfg.t_on
-    # Rest merge [REC]: window 0.5 A x (2 x 20 mOhm + 4 x 0.1 mOhm) = 20.2 mV, i_merge <= i_rev.
-    assert cfg.i_merge <= cfg.i_rev
-    assert cfg.v_merge == pytest.approx(0.0202)
+    assert cfg.charge_limit_c == 0.5  # issue #15: 0.5C
 
 
 @pytest.mark.parametrize(
@@ -210,10 +207,9 @@ def test_defaults_match_spec_table() -> None:
         ({"i_rev": float("inf")}, "i_rev"),
         ({"v_co": 0.6}, "v_co"),
         ({"t_debounce": 0.2}, "t_debounce"),
-        ({"i_merge": 0.6}, "i_merge"),
-        ({"i_merge": 0.0}, "i_merge"),
-        ({"r_loop_ohm": 0.0}, "r_loop_ohm"),
-        ({"t_rest": -0.1}, "t_rest"),
+        ({"charge_limit_c": 0.0}, "charge_limit_c"),
+        ({"default_capacity_ah": -1.0}, "default_capacity_ah"),
+        ({"i_guard": 0.8}, "i_guard"),  # the cross-current guard is gone (issue #15)
         ({"v_thresh": 0.5}, "v_thresh"),
     ],
 )
@@ -234,7 +230,9 @@ def test_r1_admits_batteries_within_v_th_of_the_highest(n: int) -> None:
     out = ctrl.step(meas(0.0, volts, [0.0] * n), 0.1)
     expected = ["DISCHARGING" if 25.0 - v < 0.5 else "STANDBY" for v in volts]
     assert list(out.status["seq_state"]) == expected
-    assert out.commands.chg_on == (False,) * n, "no charge FET closes before current is seen"
+    # The highest battery engages at once (alone it cannot be charged); the admitted ones
+    # below it wait: at zero load they would take current from it.
+    assert out.commands.chg_on == (True,) + (False,) * (n - 1)
     assert out.commands.dsg_on == (True,) * n
     _consistent(out)
 
@@ -251,7 +249,7 @@ def test_r1_all_within_v_th_discharge_together(n: int) -> None:
 
 
 @pytest.mark.parametrize("n", [2, 3, 4, 5, 6])
-def test_spread_pack_hovers_without_cross_current_and_everyone_joins(n: int) -> None:
+def test_spread_pack_hovers_without_cross_current_and_everyone_joins_once(n: int) -> None:
     ocv = [25.0 - 3.0 * k / (n - 1) for k in range(n)]  # 3 V spread
     r = [0.015 + 0.01 * ((k * 7) % n) / n for k in range(n)]
     plant = TinyPlant(ocv0=ocv, r_ohm=r)
@@ -259,19 +257,20 @@ def test_spread_pack_hovers_without_cross_current_and_everyone_joins(n: int) -> 
     assert run.unsupplied_steps == 0
     assert run.peak_into_a <= 1.0
     assert list(run.outputs[-1].status["seq_state"]) == ["DISCHARGING"] * n
+    assert run.outputs[-1].commands.chg_on == (True,) * n, "every battery engaged at the end"
     joins = [e for e in run.events if e.kind == "BatteryJoined"]
-    first: dict[int, float] = {}
-    for e in joins:
-        assert e.battery is not None
-        first.setdefault(e.battery, e.t_s)
-    # Every standby battery joins, the first time in voltage order (highest standby first).
-    # Later joins are re-merges of batteries the cross-current guard opened (time sharing
-    # between batteries whose fast voltages V + I*R drift apart under load).
-    assert set(range(1, n)) <= set(first)
-    assert sorted(range(1, n), key=lambda b: first[b]) == list(range(1, n))
-    for e in run.events:
-        if e.kind == "CrossCurrentGuard":
-            assert any(j.battery == e.battery and j.t_s > e.t_s for j in joins)
+    # Every standby battery joins exactly once (no chatter), in voltage order: by R2, or by R3
+    # where the few engaged batteries carry so much of the 10n A load that the bus sags a
+    # diode drop below the next one before the fast voltages meet.
+    assert [e.battery for e in joins] == list(range(1, n))
+    assert all(e.data["reason"] in ("R2", "R3") for e in joins)
+    assert not any(e.kind == "ReverseCurrent" for e in run.events)
+    # Once every FET pair is on (the last joiner may wait admitted for the engage rule or R3),
+    # no FET moves any more.
+    k_all = next(i for i, o in enumerate(run.outputs) if o.commands.chg_on == (True,) * n)
+    assert k_all >= round(joins[-1].t_s / 0.25)
+    gates = {(o.commands.chg_on, o.commands.dsg_on) for o in run.outputs[k_all:]}
+    assert len(gates) == 1
     for out in run.outputs:
         _consistent(out)
     # Co-discharge levels them: final OCV spread is a small fraction of the initial 3 V.
@@ -279,26 +278,50 @@ def test_spread_pack_hovers_without_cross_current_and_everyone_joins(n: int) -> 
     assert max(final) - min(final) < 0.35
 
 
-def test_two_batteries_2v_apart_low_one_waits_then_joins() -> None:
+def test_two_batteries_2v_apart_low_one_waits_then_both_discharge_to_the_end() -> None:
     plant = TinyPlant(ocv0=[25.0, 23.0], r_ohm=[0.02, 0.02])
-    run = closed_loop(plant, hover, t_end=400.0)
+    run = closed_loop(plant, hover20, t_end=1500.0)
     assert run.peak_into_a == 0.0
-    join = next(e for e in run.events if e.kind == "BatteryJoined")
+    joins = [e for e in run.events if e.kind == "BatteryJoined"]
+    assert len(joins) == 1
+    join = joins[0]
     assert join.battery == 1 and join.data["reason"] == "R2"
-    dv = join.data["dv"]
-    assert isinstance(dv, float) and 0.3 <= dv < 0.35
+    de = join.data["de_v"]
+    # Joined once the fast voltages met: less than v_co (50 mV) below battery 0's.
+    assert isinstance(de, float) and -0.05 < de <= 0.0
     # Until the join battery 1 carried nothing: its charge diode stayed reverse biased.
     k_join = round(join.t_s / 0.1)
     assert all(out.status["seq_state"][1] == "STANDBY" for out in run.outputs[1:k_join])
+    # R2 switches the joiner's charge FET in the same period (not only a relabel), and both
+    # FET pairs stay on, sharing the load, until the end.
+    for out in run.outputs[k_join:]:
+        assert out.commands.chg_on == (True, True) and out.commands.dsg_on == (True, True)
+    assert min(run.plant.i) > 0.4 * 20.0 and max(run.plant.i) < 0.6 * 20.0
 
 
-def test_diode_conduction_on_power_up_is_bypassed_within_t_on() -> None:
-    plant = TinyPlant(ocv0=[25.0, 23.0], r_ohm=[0.02, 0.02])
-    run = closed_loop(plant, hover, t_end=3.0, dt=0.02)
+def test_diode_conduction_of_a_standby_battery_is_bypassed_within_t_on() -> None:
+    # 0.5 V apart (>= v_th): battery 1 stands by. At 60 A the bus sags 1.2 V below battery 0,
+    # more than a diode drop below battery 1, whose charge diode then conducts: R3 closes its
+    # FET within t_on. The zero-load prediction then puts 0.5 V / 40 mOhm = 12.5 A into it,
+    # above its 2.5 A charge limit: flagged once.
+    plant = TinyPlant(ocv0=[25.0, 24.5], r_ohm=[0.02, 0.02])
+    run = closed_loop(plant, lambda t: 0.0 if t < 1.0 else 60.0, t_end=3.0, dt=0.02)
     bypass = [e for e in run.events if e.kind == "DiodeBypassed"]
-    assert len(bypass) == 1 and bypass[0].battery == 0
+    assert len(bypass) == 1 and bypass[0].battery == 1
     conduction = bypass[0].data["conduction_s"]
     assert isinstance(conduction, float) and conduction <= 0.1
+    joins = [e for e in run.events if e.kind == "BatteryJoined"]
+    assert [(e.battery, e.data["reason"]) for e in joins] == [(1, "R3")]
+    risk = [e for e in run.events if e.kind == "CrossCurrentRisk"]
+    assert [e.battery for e in risk] == [1]
+    assert risk[0].data["i_limit_a"] == pytest.approx(2.5)
+
+
+def test_power_up_engages_the_highest_battery_without_diode_conduction() -> None:
+    plant = TinyPlant(ocv0=[25.0, 23.0], r_ohm=[0.02, 0.02])
+    run = closed_loop(plant, hover, t_end=3.0, dt=0.02)
+    assert run.outputs[0].commands.chg_on == (True, False)
+    assert not any(e.kind == "DiodeBypassed" for e in run.events)
 
 
 @pytest.mark.parametrize("dt", [0.1, 0.5])
@@ -306,21 +329,16 @@ def test_hot_inserted_higher_battery_takes_over_without_cross_current(dt: float)
     # dt > t_on: the demoted battery's current of the previous period flowed through its FET,
     # so it must not be mistaken for diode conduction (R3) and re-close the FET at once.
     plant = TinyPlant(ocv0=[23.0, 25.2], r_ohm=[0.02, 0.02], present=[True, False])
-    run = closed_loop(plant, hover, t_end=600.0, dt=dt, insert=(100.0, 1))
+    run = closed_loop(plant, hover20, t_end=1200.0, dt=dt, insert=(100.0, 1))
     assert run.peak_into_a == 0.0
     k = round(100.0 / dt)
     assert list(run.outputs[k].status["seq_state"]) == ["STANDBY", "DISCHARGING"]
-    assert run.outputs[k].commands.chg_on[0] is False
-    rejoin = [e for e in run.events if e.kind == "BatteryJoined"]
-    assert rejoin[0].battery == 0 and rejoin[0].data["reason"] == "R2"
-    assert rejoin[0].t_s > 100.0
-    # Later, co-discharging under the 30 A hover, battery 1 would push more than i_guard into
-    # battery 0, whose diode would conduct if the guard opened it (the R3 conflict): source
-    # isolation [REC] now isolates battery 1 and brings it back by the isolation rules (it
-    # used to stay engaged with a CrossCurrentRisk). Battery 0 still (re)joins by R2 only.
-    for e in rejoin[1:]:
-        reason = e.data["reason"]
-        assert reason in ("isolation take-over", "isolation merge") if e.battery == 1 else True
+    assert run.outputs[k].commands.chg_on == (False, True)
+    joins = [e for e in run.events if e.kind == "BatteryJoined"]
+    assert [(e.battery, e.data["reason"]) for e in joins] == [(0, "R2")]
+    assert joins[0].t_s > 100.0
+    k_join = round(joins[0].t_s / dt)
+    assert all(o.commands.chg_on == (True, True) for o in run.outputs[k_join:])
 
 
 @pytest.mark.parametrize("n", [3, 6])
@@ -334,9 +352,7 @@ def test_hot_inserted_lower_battery_stands_by_then_joins_by_r2(n: int) -> None:
     assert run.outputs[k - 1].status["seq_state"][n - 1] == "OFF"
     assert run.outputs[k].status["seq_state"][n - 1] == "STANDBY"
     join = [e for e in run.events if e.kind == "BatteryJoined" and e.battery == n - 1]
-    # R2 (v_co above the loaded bus) or, under a heavier load, the load merge first (its
-    # IR-compensated voltage has met the others' before its terminal voltage is v_co above).
-    assert len(join) == 1 and join[0].data["reason"] in ("R2", "load merge")
+    assert len(join) == 1 and join[0].data["reason"] == "R2"
     assert join[0].t_s > 50.0
     assert run.peak_into_a <= 1.0
 
@@ -353,91 +369,174 @@ def test_removed_discharging_battery_goes_off_and_the_rest_take_over() -> None:
     assert not any(e.kind == "Fault" for e in out.events), "an absent battery's NaN is no fault"
 
 
-def test_reverse_current_demotes_only_the_victim() -> None:
-    # The hand-made currents (4 A vs 1 A at equal terminal voltages) also mean battery 2 has
-    # a lower fast voltage V + I*R than battery 0: the guard is switched off to test the
-    # reverse-current rule alone (see test_guard_* below).
-    ctrl = SequencingController(SequencingConfig(i_guard=1e3), pack_info(3))
+NO_EST = SequencingConfig(i_step=1e3)
+"""Resistance estimator off: the fast voltage is V + I x r_batt_ohm (20 mOhm)."""
+
+
+def _engaged_three() -> tuple[SequencingController, list[float]]:
+    ctrl = SequencingController(NO_EST, pack_info(3))
     v = [24.0, 24.0, 24.0]
     for k in range(3):
         out = ctrl.step(meas(0.1 * k, v, [5.0, 5.0, 5.0]), 0.1)
     assert out.commands.chg_on == (True, True, True)
+    return ctrl, v
+
+
+def test_reverse_cut_opens_only_the_victims_charge_fet_in_the_same_period() -> None:
+    ctrl, v = _engaged_three()
     out = ctrl.step(meas(0.3, v, [4.0, -0.6, 1.0]), 0.1)
-    assert list(out.status["seq_state"]) == ["DISCHARGING", "STANDBY", "DISCHARGING"]
-    assert [e.kind for e in out.events] == ["ReverseCurrent"]
+    # Embodiment 5: the charge FET is on only while discharge current flows. The victim stays
+    # admitted (no state change, no join/demote chatter); only its charge FET opens.
+    assert out.commands.chg_on == (True, False, True)
+    assert out.commands.dsg_on == (True, True, True)
+    assert list(out.status["seq_state"]) == ["DISCHARGING"] * 3
+    assert [(e.kind, e.battery, e.data["path"]) for e in out.events] == [
+        ("ReverseCurrent", 1, "chg")
+    ]
     # A reverse current below i_rev is tolerated.
     out = ctrl.step(meas(0.4, v, [4.0, 0.0, -0.4]), 0.1)
-    assert out.status["seq_state"][2] == "DISCHARGING"
+    assert out.commands.chg_on[2] is True
 
 
-def _guard_pair(cfg: SequencingConfig) -> SequencingController:
-    """Two batteries admitted at rest (24.0 V), both engaged by R3 under 20 A each."""
-    ctrl = SequencingController(cfg, pack_info(2))
-    ctrl.step(meas(0.0, [24.0, 24.0], [0.0, 0.0]), 0.1)
-    ctrl.step(meas(0.1, [23.6, 23.6], [20.0, 20.0]), 0.1)
-    out = ctrl.step(meas(0.2, [23.6, 23.6], [20.0, 20.0]), 0.1)
-    assert out.commands.chg_on == (True, True)
-    assert not any(e.kind.startswith("CrossCurrent") for e in out.events)
-    return ctrl
+def test_reverse_cut_is_not_undone_in_the_same_period() -> None:
+    # A sample whose voltages say battery 1 would discharge (sensor offsets, a stale R) while
+    # its current says a sibling charges it: the cut stands for this period; the engage rule
+    # may close it again only from the next sample on.
+    ctrl, _ = _engaged_three()
+    out = ctrl.step(meas(0.3, [24.0, 24.05, 24.0], [4.0, -0.6, 1.0]), 0.1)
+    assert out.commands.chg_on == (True, False, True)
 
 
-# Resistance estimator off (i_step huge): the fast voltage is V + I x r_batt_ohm (20 mOhm).
-NO_EST = SequencingConfig(i_step=1e3)
-
-
-def test_guard_opens_the_battery_that_would_be_charged_at_zero_load() -> None:
-    ctrl = _guard_pair(NO_EST)
-    # Equal terminals, 5 A vs 15 A: fast voltages 23.9 vs 24.1 V. At zero load battery 1 would
-    # push 0.2 V / 40 mOhm = 5 A into battery 0. Battery 1 alone at 20 A sits at 23.7 V, above
-    # 23.9 - v_diode, so opening battery 0 takes it off the bus without diode conduction.
-    out = ctrl.step(meas(0.3, [23.8, 23.8], [5.0, 15.0]), 0.1)
-    ev = [e for e in out.events if e.kind == "CrossCurrentGuard"]
-    assert [e.battery for e in ev] == [0]
-    assert ev[0].data["predicted_a"] == pytest.approx(5.0)
+def test_r3_hands_over_from_a_sibling_the_closed_battery_would_charge() -> None:
+    # Battery 1, inserted 0.4 V above the engaged battery 0 (< v_th: no take-over), joins by R2
+    # but stays open: engaged it would push ~7.7 A into battery 0 even at the present 5 A. When
+    # its diode conducts (0.6 A) R3 must close it, and battery 0's charge FET opens in the same
+    # period, before that current can flow (embodiment 5: battery 1 is the higher one).
+    ctrl = SequencingController(NO_EST, pack_info(2))
+    ctrl.step(meas(0.0, [21.6, 21.0], [0.0, 0.0], [True, False]), 0.1)
+    out = ctrl.step(meas(0.1, [21.6, 22.0], [0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+    assert out.commands.chg_on == (True, False)
+    out = ctrl.step(meas(0.2, [21.5, 21.99], [4.5, 0.6]), 0.1)
+    assert out.commands.chg_on == (True, False)
+    out = ctrl.step(meas(0.3, [21.5, 21.99], [4.5, 0.6]), 0.1)
     assert out.commands.chg_on == (False, True)
-    assert list(out.status["seq_state"]) == ["STANDBY", "DISCHARGING"]
-    assert out.status["seq_zero_load_into_a"] == [0.0, 0.0]
-    assert out.status["seq_at_risk"] == [False, False]
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+    kinds = [(e.kind, e.battery) for e in out.events]
+    assert ("DiodeBypassed", 1) in kinds and ("ReverseCurrent", 0) in kinds
+    (hand,) = [e for e in out.events if e.kind == "ReverseCurrent"]
+    assert hand.data["source"] == 1
+    assert isinstance(hand.data["current_a"], float) and hand.data["current_a"] < -0.5
 
 
-def test_guard_leaves_a_pair_within_i_guard_alone() -> None:
-    ctrl = _guard_pair(NO_EST)
-    # 14 mV apart in fast voltage: 0.35 A at zero load, below i_guard (0.8 A).
-    out = ctrl.step(meas(0.3, [23.8, 23.8], [9.65, 10.35]), 0.1)
+def test_slow_reverse_cut_after_q_rev_of_small_reverse_current() -> None:
+    # 0.4 A (below i_rev) into battery 2 while battery 0 sources: cut once more than
+    # q_rev_as = 0.5 A s has flowed in one episode, i.e. at the 13th sample at dt = 0.1 s
+    # (0.52 A s), not before; an interruption (the battery sources again) restarts the count.
+    ctrl, v = _engaged_three()
+    t = 0.3
+    for _ in range(3):
+        out = ctrl.step(meas(t, v, [3.0, 0.0, -0.4]), 0.1)
+        t += 0.1
+    out = ctrl.step(meas(t, v, [3.0, 0.0, 0.2]), 0.1)  # sources again: new episode
+    t += 0.1
+    for i in range(13):
+        out = ctrl.step(meas(t, v, [3.0, 0.0, -0.4]), 0.1)
+        t += 0.1
+        assert out.commands.chg_on[2] is (i < 12), i
+    assert [e.kind for e in out.events] == ["ReverseCurrent"]
+
+
+def test_reverse_cut_needs_a_sibling_feeding_it() -> None:
+    # Charge from outside (every battery charged, nobody sourcing) is the mode logic's
+    # business, not a cross current.
+    ctrl, v = _engaged_three()
+    out = ctrl.step(meas(0.3, v, [-0.6, -0.6, 0.0]), 0.1)
+    assert out.commands.chg_on == (True, True, True)
+    assert not out.events
+
+
+def test_cut_battery_stays_open_at_zero_load_and_re_engages_when_it_would_discharge() -> None:
+    ctrl, _ = _engaged_three()
+    ctrl.step(meas(0.3, [24.0, 24.0, 24.0], [4.0, -1.0, -3.0]), 0.1)  # load dropped: both cut
+    out = ctrl.step(meas(0.4, [24.05, 23.98, 23.98], [0.0, 0.0, 0.0]), 0.1)
+    # At zero load battery 0 (E = 24.05 V) would charge the others: they stay open.
+    assert out.commands.chg_on == (True, False, False)
+    # The load returns: at 30 A the bus sags below them, they would discharge: re-engaged.
+    out = ctrl.step(meas(0.5, [23.45, 23.98, 23.98], [30.0, 0.0, 0.0]), 0.1)
+    assert out.commands.chg_on == (True, True, True)
+    assert not any(e.kind == "BatteryJoined" for e in out.events)
+
+
+def _standby_pair(
+    cfg: SequencingConfig, v1: float, i0: float = 20.0
+) -> tuple[SequencingController, ControlOutput]:
+    """Battery 0 discharging (engaged, 24.0 V at rest, r_batt 20 mOhm prior), battery 1 at
+    rest ``v1`` >= v_th below it (STANDBY); then one sample at ``i0`` on battery 0."""
+    ctrl = SequencingController(cfg, pack_info(2))
+    ctrl.step(meas(0.0, [24.0, v1], [0.0, 0.0]), 0.1)
+    v0 = 24.0 - i0 * 0.02
+    out = ctrl.step(meas(0.1, [v0, v1], [i0, 0.0]), 0.1)
+    return ctrl, out
+
+
+def test_r2_joins_when_the_fast_voltages_are_within_v_co() -> None:
+    ctrl, out = _standby_pair(NO_EST, 23.0)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "STANDBY"]
+    # Battery 0 at 20 A: terminal 23.0 - 0.04 = 22.96 V, fast voltage 23.36 V (40 mV above
+    # battery 1's 23.32 V at rest; its terminal voltage is already 0.36 V below it).
+    out = ctrl.step(meas(0.2, [22.96, 23.32], [20.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+    assert out.commands.chg_on == (True, True), "R2 closes the joiner's FET in the same period"
+    (join,) = [e for e in out.events if e.kind == "BatteryJoined"]
+    assert join.data["de_v"] == pytest.approx(-0.04)
+
+
+def test_r2_waits_while_the_fast_voltages_are_v_co_apart() -> None:
+    ctrl, out = _standby_pair(NO_EST, 23.0)
+    out = ctrl.step(meas(0.2, [22.96, 23.30], [20.0, 0.0]), 0.1)  # 60 mV apart
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "STANDBY"]
+    assert out.commands.chg_on == (True, False)
+
+
+def test_engage_waits_for_the_charge_limit_at_zero_load() -> None:
+    # v_co wide open (0.5 V): battery 1 joins 0.2 V (fast) below battery 0. At the present
+    # 20 A it would discharge (5 A), but if the load vanished battery 0 would push
+    # 0.2 V / 40 mOhm = 5 A into it, above its 2.5 A charge limit (0.5C of 5 Ah): admitted,
+    # FET open. With a 1.5C limit (7.5 A) the same join closes the FET at once.
+    for c_rate, engaged in ((0.5, False), (1.5, True)):
+        cfg = SequencingConfig(i_step=1e3, v_co=0.5, charge_limit_c=c_rate)
+        ctrl, out = _standby_pair(cfg, 23.0)
+        out = ctrl.step(meas(0.2, [22.96, 23.16], [20.0, 0.0]), 0.1)
+        assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+        assert out.commands.chg_on == (True, engaged)
+
+
+def test_engage_needs_the_joiner_to_discharge_at_the_present_load() -> None:
+    # Two batteries admitted at rest 30 mV apart (R1: within v_th). At zero load the lower one
+    # would be charged (0.75 A): it keeps its FET open while the higher one engages.
+    ctrl = SequencingController(SequencingConfig(), pack_info(2))
+    out = ctrl.step(meas(0.0, [24.03, 24.0], [0.0, 0.0]), 0.1)
+    assert out.commands.chg_on == (True, False)
+    out = ctrl.step(meas(0.1, [24.03, 24.0], [0.0, 0.0]), 0.1)
+    assert out.commands.chg_on == (True, False)
+    # Under 20 A it would carry 9.25 A: engaged.
+    out = ctrl.step(meas(0.2, [23.63, 24.0], [20.0, 0.0]), 0.1)
     assert out.commands.chg_on == (True, True)
-    assert out.status["seq_zero_load_into_a"][0] == pytest.approx(0.35)
 
 
-def test_guard_keeps_a_battery_whose_diode_would_conduct() -> None:
-    ctrl = _guard_pair(NO_EST)
-    # Same 0.2 V fast-voltage gap at 40 A: battery 1 alone would sit at 24.1 - 0.8 = 23.3 V,
-    # below 23.9 - v_diode = 23.4 V, so battery 0's diode would take the current (and R3 would
-    # close it again). It stays engaged and is flagged at risk, once.
-    out = ctrl.step(meas(0.3, [23.6, 23.6], [15.0, 25.0]), 0.1)
+def test_engage_keeps_a_higher_joiner_open_if_it_would_charge_an_engaged_one() -> None:
+    # Battery 1 admitted 30 mV *above* the engaged battery 0 at rest (hot insertion below
+    # v_th): it would discharge, but it would push 0.75 A into battery 0 at the present (zero)
+    # load, more than i_rev / 2: it waits, feeding the bus through its diode when needed.
+    ctrl = SequencingController(SequencingConfig(), pack_info(2))
+    out = ctrl.step(meas(0.0, [24.0, 23.0], [0.0, 0.0], [True, False]), 0.1)
+    out = ctrl.step(meas(0.1, [24.0, 24.03], [0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+    assert out.commands.chg_on == (True, False)
+    # 5 mV above: 0.125 A, within i_rev / 2: engaged.
+    out = ctrl.step(meas(0.2, [24.0, 24.005], [0.0, 0.0]), 0.1)
     assert out.commands.chg_on == (True, True)
-    risk = [e for e in out.events if e.kind == "CrossCurrentRisk"]
-    assert [e.battery for e in risk] == [0] and risk[0].data["predicted_a"] == pytest.approx(5.0)
-    assert out.status["seq_at_risk"] == [True, False]
-    out = ctrl.step(meas(0.4, [23.6, 23.6], [15.0, 25.0]), 0.1)
-    assert not any(e.kind == "CrossCurrentRisk" for e in out.events)
-
-
-def test_guard_keeps_the_bus_above_cut_off() -> None:
-    # The first guard case again, but with a cut-off of 3.35 V/cell x 7 cells = 23.45 V.
-    pack = PackInfo(
-        n_batteries=2,
-        groups_per_battery=(1, 1),
-        cells_per_group=(7, 7),
-        switch_kind=(SwitchKind.MOSFET_PAIR,) * 2,
-    )
-    ctrl = SequencingController(SequencingConfig(i_step=1e3, v_cutoff_cell_v=3.35), pack)
-    ctrl.step(meas(0.0, [24.0, 24.0], [0.0, 0.0]), 0.1)
-    ctrl.step(meas(0.1, [23.6, 23.6], [20.0, 20.0]), 0.1)
-    ctrl.step(meas(0.2, [23.6, 23.6], [20.0, 20.0]), 0.1)
-    # 3.35 x 7 + 0.3 = 23.75 V > 23.7 V (battery 1 alone at 20 A): battery 0 is needed.
-    out = ctrl.step(meas(0.3, [23.8, 23.8], [5.0, 15.0]), 0.1)
-    assert out.commands.chg_on == (True, True)
-    assert [e.battery for e in out.events if e.kind == "CrossCurrentRisk"] == [0]
 
 
 def test_resistance_estimate_from_a_current_step() -> None:
@@ -454,14 +553,16 @@ def test_resistance_estimate_from_a_current_step() -> None:
 def test_load_drop_after_co_discharge_is_stopped_within_one_period() -> None:
     plant = TinyPlant(ocv0=[25.0, 24.6, 24.0], r_ohm=[0.015, 0.03, 0.02])
     run = closed_loop(plant, lambda t: 45.0 if 1.0 <= t < 600.0 else 0.0, t_end=620.0)
+    assert run.peak_into_a <= 2.5, "never above the 0.5C charge limit while supplying"
     rev = [e for e in run.events if e.kind == "ReverseCurrent"]
-    # Source isolation [REC] keeps the batteries that would push current into an engaged
-    # sibling off the bus under the heavy load (the R3 conflict), so the drop at 600 s may find
-    # nothing to stop; if reverse-current protection acts, it acts within one period.
+    # The drop at 600 s may push current between the co-discharging batteries for the period
+    # in which it happens; the reverse cut opens them at the next sample.
     assert all(600.0 < e.t_s <= 600.2 for e in rev)
-    assert run.peak_into_a <= 1.0
-    # After the protection acted nobody is charged any more.
+    # After the cut nobody is charged any more, and nobody re-engages at zero load.
     assert max(-x for x in run.plant.i) <= 0.5
+    k = round(600.3 / 0.1)
+    gates = {o.commands.chg_on for o in run.outputs[k:]}
+    assert len(gates) == 1
 
 
 # ----------------------------------------------------------------------------- charge mode

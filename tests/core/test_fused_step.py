@@ -36,7 +36,7 @@ def _core(info: PackInfo) -> Core:
     ]
     protection = ProtectionConfig.model_validate({"parameters": fast})
     parts = [
-        Part.build(SEQUENCING, SequencingConfig(t_mode=0.3, t_rest=0.5), [info]),
+        Part.build(SEQUENCING, SequencingConfig(t_mode=0.3), [info]),
         Part.build(PROTECTION, protection, [info]),
         Part.build(CHARGING, ChargingConfig(), [info]),
         Part.build(

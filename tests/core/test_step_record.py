@@ -25,7 +25,9 @@ def test_metrics_count_the_kinds_of_the_rendered_events() -> None:
     for k in range(n_steps(loop.cfg)):
         rec = loop.step(k, dt)
         seen.update(e.kind for e in rec.events[0])
-    assert sum(seen.values()) > 10  # the mission's first 200 s emit events
+    # The mission's first 200 s emit events (ten since issue #15 removed the hover's
+    # join/guard chatter: R1, one R2 join, risk flags, a mode change, balancing).
+    assert sum(seen.values()) >= 5
     assert loop.metrics.events[0] == seen
     assert list(loop.metrics.events[0]) == list(seen)  # the same first-seen order
     loop.close()

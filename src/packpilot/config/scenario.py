@@ -83,6 +83,19 @@ class SwitchConfig(_Strict):
     chg_on: bool = Field(True, description="initial charge-path state (relay: closed iff both)")
     dsg_on: bool = Field(True, description="initial discharge-path state")
     welded: bool = Field(False, description="relay contact welded closed (fault)")
+    reverse_comparator: bool = Field(
+        False,
+        description=(
+            "MOSFET pair only: a reverse-current comparator / ideal-diode controller drives the "
+            "charge FET. While no charger output is on, current into the battery above "
+            "reverse_trip_a opens the charge FET within the plant step (its body diode then "
+            "blocks charging; the battery can still discharge through it). Off by default: "
+            "optional hardware; the controller's reverse cut acts one control period later."
+        ),
+    )
+    reverse_trip_a: PosFloat = Field(
+        1.0, description="reverse-current comparator trip current (A into the battery)"
+    )
 
 
 class BatteryConfig(_Strict):

@@ -22,12 +22,14 @@ class SequencingConfig(Strict):
         ),
     )
     v_co: float = Field(
-        0.3,
+        0.05,
         gt=0.0,
         description=(
-            "R2 co-discharge threshold (V): a standby battery joins when its terminal voltage "
-            "exceeds the highest discharging battery's terminal voltage by at least v_co. Keep it "
-            "at or below the body-diode drop (~0.5-0.7 V) and at or below v_th."
+            "R2 co-discharge threshold (V): a standby battery joins once its fast voltage "
+            "V + I*R is less than v_co below the highest discharging battery's (the voltages "
+            "have met; issue #15). Sets the worst sharing error right after a join "
+            "(v_co / R_loop, 1.25 A at 40 mOhm) and the zero-load current into the lower one. "
+            "At most v_th."
         ),
     )
     i_det: float = Field(
@@ -59,9 +61,20 @@ class SequencingConfig(Strict):
         0.5,
         gt=0.0,
         description=(
-            "Reverse-current protection (A): an engaged discharging battery taking more than "
-            "i_rev of charging current from a sibling has its charge FET opened (-> STANDBY); "
-            "mirrored for the discharge FET of a charging battery that feeds a sibling."
+            "Reverse cut (A; embodiments 5 and 7: the charge FET is on only while discharge "
+            "current flows): an engaged discharging battery taking more than i_rev of charging "
+            "current from a sibling has its charge FET opened in that period (it stays "
+            "admitted: the engage rule or R3 closes it again once it would discharge); mirrored "
+            "for the discharge FET of a charging battery that feeds a sibling."
+        ),
+    )
+    q_rev_as: float = Field(
+        0.5,
+        gt=0.0,
+        description=(
+            "Slow reverse cut (A s): an engaged battery that siblings keep charging below i_rev "
+            "(a circulating current at light load) has its charge FET opened once this much "
+            "charge has flowed into it in one uninterrupted episode (0.5 A s = 0.14 mAh)."
         ),
     )
     t_mode: float = Field(
@@ -74,46 +87,21 @@ class SequencingConfig(Strict):
         ),
     )
 
-    i_merge: float = Field(
+    charge_limit_c: float = Field(
         0.5,
         gt=0.0,
         description=(
-            "Rest merge (A, [REC]): the largest circulating current a rest merge may cause. A "
-            "standby battery rejoins at rest only if its voltage is within i_merge * r_loop_ohm "
-            "of every engaged battery, so closing its charge FET pushes at most about i_merge "
-            "between them. Keep it at or below i_rev so a merge never trips reverse-current "
-            "protection (which would demote it again and chatter)."
+            "Charge limit of each battery (C; issue #15's invariant): no battery may take more "
+            "than charge_limit_c x its capacity. The engage rule closes a charge FET only if, "
+            "with it closed, no engaged battery would take more than that if the load vanished."
         ),
     )
-    r_loop_ohm: float = Field(
-        0.0404,
+    default_capacity_ah: float = Field(
+        5.0,
         gt=0.0,
         description=(
-            "Lowest resistance (ohm) of the loop between two batteries: both internal "
-            "resistances plus the four FET on-resistances (2 x 20 mOhm + 4 x 0.1 mOhm for the "
-            "spec's example). Use the lowest expected value: a smaller r_loop_ohm only narrows "
-            "the rest-merge window i_merge * r_loop_ohm."
-        ),
-    )
-    t_rest: float = Field(
-        0.2,
-        ge=0.0,
-        description=(
-            "Rest debounce (s) for the rest merge: every present battery must carry at most "
-            "i_det for t_rest before a standby battery may rejoin, so terminal voltages are "
-            "close to open-circuit voltages and a passing load step does not count as rest."
-        ),
-    )
-
-    i_guard: float = Field(
-        0.8,
-        gt=0.0,
-        description=(
-            "Cross-current guard (A, [REC]): the largest current the engaged batteries may push "
-            "into one of them if the load vanished within the next control period. Predicted "
-            "each period from each engaged battery's ohmic-free voltage V + I*R (R estimated "
-            "online); the battery that would take more is opened (-> STANDBY) before it can. "
-            "Keep it below the 1 A acceptance limit by the estimation error."
+            "Capacity (Ah) assumed for the charge limit where the topology does not state a "
+            "battery's capacity (replay logs, the scalar API without capacities)."
         ),
     )
     r_batt_ohm: float = Field(
@@ -132,70 +120,6 @@ class SequencingConfig(Strict):
             "resistance estimate (-dV/dI), so sensor noise does not dominate the quotient."
         ),
     )
-    v_diode: float = Field(
-        0.5,
-        gt=0.0,
-        description=(
-            "Lowest expected charge-diode forward drop (V). The guard does not open a battery "
-            "whose diode would then conduct at the present load (R3 would close it again)."
-        ),
-    )
-    v_cutoff_cell_v: float = Field(
-        3.3,
-        ge=0.0,
-        description=(
-            "Cell cut-off voltage (V per series cell; the load's under-voltage lock-out divided "
-            "by the cells in series). The guard does not open a battery when the others alone "
-            "would hold the bus less than v_reserve above cut-off: the load must stay supplied "
-            "while any battery is above cut-off, which outranks the cross-current prediction."
-        ),
-    )
-    v_reserve: float = Field(
-        0.3,
-        ge=0.0,
-        description=(
-            "Headroom (V) above cut-off the remaining batteries must keep for the guard to open "
-            "a battery (covers the polarisation that builds up after the load shifts to them)."
-        ),
-    )
-    isolate_source: bool = Field(
-        True,
-        description=(
-            "Source isolation ([REC]): when the guard predicts more than i_guard into a battery "
-            "it may not open because R3 closed it at this load (its diode conducted), turn off "
-            "both FETs of "
-            "the battery that would push that current (the highest fast voltage), provided the "
-            "rest hold the bus v_reserve + v_iso_margin above cut-off. False keeps the victim "
-            "engaged and only flags it (CrossCurrentRisk)."
-        ),
-    )
-    t_iso_hold: float = Field(
-        1.0,
-        ge=0.0,
-        description=(
-            "Source isolation: shortest time (s) an isolated battery stays isolated before it "
-            "may take over, merge or return to standby (a forced release does not wait), and "
-            "shortest time after a take-over or release before it may be isolated again (no "
-            "chatter at a load that hovers around the take-over limit)."
-        ),
-    )
-    v_iso_margin: float = Field(
-        0.2,
-        ge=0.0,
-        description=(
-            "Source isolation hysteresis (V): isolated batteries take over only if, alone at "
-            "the present load (pessimistic R), they keep the bus this far above every other "
-            "battery's fast voltage minus v_diode (their diodes stay off), and return to "
-            "standby only with their own diode this far from conducting; isolating needs the "
-            "rest this far "
-            "above cut-off + v_reserve, releasing is forced below cut-off + v_reserve."
-        ),
-    )
-
-    @property
-    def v_merge(self) -> float:
-        """Rest-merge window (V): i_merge * r_loop_ohm."""
-        return self.i_merge * self.r_loop_ohm
 
     @model_validator(mode="after")
     def _check_relations(self) -> SequencingConfig:
@@ -203,17 +127,6 @@ class SequencingConfig(Strict):
             raise ValueError(
                 f"v_co ({self.v_co} V) must be <= v_th ({self.v_th} V): a standby battery "
                 "more than v_th above the discharging set would otherwise not join (R1 vs R2)"
-            )
-        if self.i_merge > self.i_rev:
-            raise ValueError(
-                f"i_merge ({self.i_merge} A) must be <= i_rev ({self.i_rev} A): a rest merge "
-                "pushing more than i_rev would be undone by reverse-current protection at once "
-                "and repeat every t_rest (charge FET chatter with cross-charging at rest)"
-            )
-        if self.i_merge > self.i_guard:
-            raise ValueError(
-                f"i_merge ({self.i_merge} A) must be <= i_guard ({self.i_guard} A): a merge the "
-                "cross-current guard would undo at once would chatter"
             )
         if self.t_debounce > self.t_on:
             raise ValueError(

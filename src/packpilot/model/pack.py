@@ -206,6 +206,9 @@ class Pack:
         self.sw_on_ohm = np.array([s.on_ohm for s in sw])
         self.sw_drop_v = np.array([s.diode_drop_v for s in sw])
         self.sw_diode_ohm = np.array([s.diode_ohm for s in sw])
+        self.sw_rev_trip_a = np.array(
+            [s.reverse_trip_a if s.reverse_comparator and s.kind != "relay" else np.inf for s in sw]
+        )
         self.welded = np.array([s.welded and s.kind == "relay" for s in sw])
         P = self.n_packs
         self.chg_on = np.tile(np.array([s.chg_on for s in sw]), (P, 1))
@@ -446,7 +449,7 @@ class Pack:
         pack_kernel.pack_electrical(
             self.cell_string, self.cell_group, self.string_cell_starts, self.group_starts,
             self.string_group_starts, self.sw_kind, self.sw_on_ohm, self.sw_drop_v,
-            self.sw_diode_ohm, self.is_aux, self.present_from_s,
+            self.sw_diode_ohm, self.sw_rev_trip_a, self.is_aux, self.present_from_s,
             -1 if self.aux_index is None else self.aux_index, prm, t, h, kind,
             self.chg_on, self.dsg_on, self.welded, self.fet_shorted, self.balancer_a,
             self.aux_charge_a, self.bus_v, self.group_v_prev, self.e_cell, self.r_cell,
@@ -519,8 +522,14 @@ class Pack:
     def step_reference(self, dt_s: float, load_kind: str, load_value: Array) -> Interval:
         """Readable NumPy version of :meth:`step` (same contract and results; ~7x slower per pack).
 
-        Solve the bus for the coming period, advance every cell, return the flows.
+        Solve the bus for the coming period, advance every cell, return the flows. The
+        reverse-current comparator (``[pack.switch] reverse_comparator``) is modelled only in
+        the kernel (:func:`pack_kernel.pack_electrical`); this reference refuses it.
         """
+        if np.isfinite(self.sw_rev_trip_a).any():
+            raise NotImplementedError(
+                "step_reference does not model the reverse-current comparator; use step()"
+            )
         P = self.n_packs
         t = self.t_s
         present = self.present(t) & ~self.is_aux[None, :]

@@ -70,6 +70,7 @@ def pack_electrical(
     sw_on_ohm: Any,
     sw_drop_v: Any,
     sw_diode_ohm: Any,
+    sw_rev_trip_a: Any,
     is_aux: Any,
     present_from_s: Any,
     aux_index: int,
@@ -217,25 +218,51 @@ def pack_electrical(
             if f != _TIMEOUT_FLAG and flags[p, f]:
                 faulted = True
         ch_en = ch_connected and on_req[p] and not timeout and not faulted and i_req[p] > 0.0
-        # Bus solve: as bus_kernel._solve_all, one pack.
+        # Bus solve: as bus_kernel._solve_all, one pack. A fitted reverse-current comparator
+        # (ideal-diode controller on the charge FET, armed while no charger output is on) that
+        # sees more than its trip current flowing into its battery opens that charge FET within
+        # the step: the string is solved again with the charge path blocked (the body diode
+        # still lets the battery discharge). Each pass trips at least one more string.
         vset = v_req[p]
         ilim = i_req[p]
         want = la > 0.0 or lg > 0.0 or lp > 0.0
-        v, root = _solve_one(
-            e_s, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, ch_rout, la, lg, lp, vm
-        )
+        la0, lg0, lp0 = la, lg, lp
+        v = 0.0
         ok = True
-        if want and not (root and v >= vm):
-            ok = False
-            la = 0.0
-            lg = 0.0
-            lp = 0.0
+        for _ in range(S + 1):
+            la, lg, lp = la0, lg0, lp0
             v, root = _solve_one(
-                e_s, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, ch_rout,
-                0.0, 0.0, 0.0, 0.0,
+                e_s, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, ch_rout, la, lg, lp,
+                vm,
             )  # fmt: skip
-        if not root:
-            v = 0.0
+            ok = True
+            if want and not (root and v >= vm):
+                ok = False
+                la = 0.0
+                lg = 0.0
+                lp = 0.0
+                v, root = _solve_one(
+                    e_s, dok, ddrop, dohm, cok, cdrop, cohm, ch_en, vset, ilim, ch_rout,
+                    0.0, 0.0, 0.0, 0.0,
+                )  # fmt: skip
+            if not root:
+                v = 0.0
+            tripped = False
+            if not ch_en:
+                for s in range(S):
+                    if not (cok[s] and chg[s] and sw_kind[s] == KIND_MOSFET):
+                        continue
+                    if welded[s] or fet_shorted[p, s, 0] or not chg_on[p, s]:
+                        continue
+                    q = (e_s[s] + cdrop[s] - v) / cohm[s]
+                    if q < -sw_rev_trip_a[s]:
+                        tripped = True
+                        chg[s] = False
+                        cok[s] = False
+                        ddrop[s] = sw_drop_v[s]
+                        dohm[s] = r_s[s] + (sw_on_ohm[s] + sw_diode_ohm[s])
+            if not tripped:
+                break
         bus_v[p] = v
         supplied[p] = ok
         for s in range(S):

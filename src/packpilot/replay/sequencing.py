@@ -80,8 +80,8 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
     )
     docked = _flag_column(log, "docked") if "docked" in log.columns else np.zeros(len(log), bool)
 
-    # The log carries no cell count: one "cell" per battery, so the guard's cut-off reserve
-    # (v_cutoff_cell_v x cells) only bites if v_cutoff_cell_v is set to the battery cut-off.
+    # The log carries no cell count or capacity: one "cell" per battery; the charge limit uses
+    # the config's default_capacity_ah.
     pack = PackInfo(
         n_batteries=n,
         groups_per_battery=(1,) * n,
@@ -96,7 +96,6 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
     kinds: Counter[str] = Counter()
     joins: list[dict[str, object]] = []
     reverse: list[dict[str, object]] = []
-    guard: list[dict[str, object]] = []
     risk: list[dict[str, object]] = []
     max_diode_s = 0.0
     for r in range(len(log)):
@@ -122,8 +121,8 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
                 reverse.append(
                     {"t_s": ev.t_s, "battery": ev.battery, "current_a": ev.data.get("current_a")}
                 )
-            elif ev.kind in ("CrossCurrentGuard", "CrossCurrentRisk"):
-                (guard if ev.kind == "CrossCurrentGuard" else risk).append(
+            elif ev.kind == "CrossCurrentRisk":
+                risk.append(
                     {
                         "t_s": ev.t_s,
                         "battery": ev.battery,
@@ -142,7 +141,6 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
         "transitions": dict(sorted(kinds.items())),
         "joins": joins,
         "reverse_current": reverse,
-        "cross_current_guard": guard,
         "cross_current_risk": risk,
         "max_diode_conduction_s": max_diode_s,
         "final_states": [s.value for s in ctrl.states],

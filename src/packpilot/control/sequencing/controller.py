@@ -56,31 +56,19 @@ REASON_LABELS: tuple[str, ...] = (
     "inserted while charging",
     "R1 init",
     "R1 no battery discharging",
-    "charging current from a sibling",
     "R1 inserted above bus",
     "R2",
-    "rest merge",
-    "load merge",
     "R3",
-    "would be charged if the load vanished",
-    "isolation merge",
-    "isolation ended",
-    "isolation forced",
-    "isolation take-over",
 )
 """Why a battery's state changed, by ``rules.R_*``; per-battery reasons follow
 (:func:`reason_labels`)."""
 assert len(REASON_LABELS) == rules.N_FIXED_REASONS
-assert REASON_LABELS[rules.R_TAKE_OVER] == "isolation take-over"
+assert REASON_LABELS[rules.R_R3] == "R3"
 
 
 def reason_labels(n: int) -> tuple[str, ...]:
     """The reason labels of a pack of ``n`` batteries."""
-    return (
-        *REASON_LABELS,
-        *(f"R1 battery {k} inserted" for k in range(n)),
-        *(f"would charge battery {k}, which R3 closed at this load" for k in range(n)),
-    )
+    return (*REASON_LABELS, *(f"R1 battery {k} inserted" for k in range(n)))
 
 
 def fault_reason(row: Sequence[float], n: int) -> str:
@@ -135,22 +123,19 @@ def _set(kind: str, *data: str) -> Reason:
     return Reason(kind, _SET_MSG, fields(*_SET, *data))
 
 
+_REVERSE = fields("current_a", "i_rev", "path:l:path", "_battery:i")
+
 REASONS = (
     _set("StateChanged"),
     _set("StateChanged", "v", "v_max"),
-    _set("ReverseCurrent", "current_a", "i_rev"),
-    _set("StateChanged", "v", "v_ref"),
-    _set("BatteryJoined", "v", "v_ref", "dv", "idle:b"),
-    _set("BatteryJoined", "v", "v_lo", "v_hi", "v_merge"),
-    _set("BatteryJoined", "v", "predicted_a", "i_merge"),
-    _set("BatteryJoined", "v", "current_a"),
-    _set("CrossCurrentGuard", "predicted_a", "i_guard", "e_fast_v", "r_ohm"),
-    _set("SourceIsolated", "victim:i", "predicted_a", "e_fast_v", "v_rest_v"),
-    _set("BatteryJoined", "predicted_a", "isolated_s"),
-    _set("BatteryJoined", "v_alone_v", "e_rest_v", "isolated_s"),
     Reason(
-        "StateChanged", "battery {battery}: {reason}, discharge FET on (STANDBY)", fields(*_SET)
+        "ReverseCurrent",
+        "battery {battery}: charge FET off, {current_a:.2f} A of charging current from a sibling",
+        _REVERSE,
     ),
+    _set("StateChanged", "v", "v_ref"),
+    _set("BatteryJoined", "e_fast_v", "e_ref_v", "de_v"),
+    _set("BatteryJoined", "v", "current_a"),
     Reason(
         "DiodeBypassed",
         "battery {battery}: {path} FET on after {conduction_s:.3f} s of diode conduction",
@@ -159,13 +144,13 @@ REASONS = (
     Reason(
         "ReverseCurrent",
         "battery {battery}: discharging into a sibling while charging",
-        fields("current_a", "i_rev", "path:l:path", "_battery:i"),
+        _REVERSE,
     ),
     Reason(
         "CrossCurrentRisk",
-        "battery {battery}: {predicted_a:.2f} A would flow into it if the load vanished, but it "
-        "must stay engaged",
-        fields("predicted_a", "i_guard", "_battery:i"),
+        "battery {battery}: {predicted_a:.2f} A (above its {i_limit_a:.2f} A charge limit) would "
+        "flow into it if the load vanished",
+        fields("predicted_a", "i_limit_a", "_battery:i"),
     ),
     Reason(
         "ModeChanged",
@@ -187,9 +172,16 @@ REASONS = (
         "sequencing measurements valid again, re-initialising (R1)",
         fields("reason:l:fault"),
     ),
+    Reason(
+        "ReverseCurrent",
+        "battery {battery}: charge FET off, {current_a:.2f} A would flow into it from battery "
+        "{source} at the present load",
+        fields("current_a", "i_rev", "path:l:path", "_battery:i", "source:i"),
+    ),
 )
 assert [r.kind for r in REASONS][rules.FAULT_CLEARED] == "FaultCleared"
-assert [r.kind for r in REASONS][rules.RELEASED] == "StateChanged"
+assert len(REASONS) == rules.HANDOVER + 1
+assert [r.kind for r in REASONS][rules.RISK] == "CrossCurrentRisk"
 
 STATUS = (
     StatusChannel("seq_state", "l:state"),
@@ -199,12 +191,11 @@ STATUS = (
     StatusChannel("seq_v_ref_v", "o"),
     StatusChannel("seq_zero_load_into_a", "f"),
     StatusChannel("seq_at_risk", "b"),
-    StatusChannel("seq_isolated", "b"),
     StatusChannel("seq_diode_s", "f"),
 )
-"""Per battery: its state and FET commands, the pack mode, the bus reference (None outside
-discharge), the guard's zero-load prediction (0 outside discharge), the guard's risk flag,
-source isolation and how long its diode has conducted."""
+"""Per battery: its state and FET commands, the pack mode, the bus reference (highest admitted
+fast voltage; None outside discharge), the zero-load prediction of the engaged set (0 outside
+discharge), whether that exceeds its charge limit, and how long its diode has conducted."""
 assert STATUS[rules.ST_DIODE].name == "seq_diode_s"
 
 
@@ -216,7 +207,6 @@ def build(
     n = info.n_batteries
     if n < 1:
         raise ValueError("SequencingController needs at least one battery")
-    cells = max(info.cells_per_group) if info.cells_per_group else 0
     P = len(infos)
     fault = np.zeros((P, rules.N_FAULT))
     prm = SequencingParams(
@@ -226,19 +216,12 @@ def build(
         t_on=float(config.t_on),
         t_debounce=float(config.t_debounce),
         i_rev=float(config.i_rev),
+        q_rev_as=float(config.q_rev_as),
         t_mode=float(config.t_mode),
-        i_merge=float(config.i_merge),
-        v_merge=float(config.v_merge),
-        t_rest=float(config.t_rest),
-        i_guard=float(config.i_guard),
+        charge_limit_c=float(config.charge_limit_c),
+        default_capacity_ah=float(config.default_capacity_ah),
         r_batt_ohm=float(config.r_batt_ohm),
         i_step=float(config.i_step),
-        v_diode=float(config.v_diode),
-        v_cut=float(config.v_cutoff_cell_v * cells),
-        v_reserve=float(config.v_reserve),
-        isolate_source=bool(config.isolate_source),
-        t_iso_hold=float(config.t_iso_hold),
-        v_iso_margin=float(config.v_iso_margin),
         n_batteries=int(n),
         fault_text=fault,
     )
@@ -262,38 +245,25 @@ def build(
         r_ohm=nan(pb),
         last_v_v=nan(pb),
         last_i_a=nan(pb),
-        hold_load_a=nan(pb),
-        guard_opened=no(pb),
         at_risk=no(pb),
-        isolated_since_s=nan(pb),
-        released_at_s=nan(pb),
+        rev_q_as=np.zeros(pb),
         zero_load_into_a=nan(pb),
         mode=np.full(P, rules.MODE_DISCHARGE, np.int64),
         initialized=no((P,)),
         last_t_s=nan((P,)),
         mode_evidence_since_s=nan((P,)),
         v_ref_v=nan((P,)),
-        rest_since_s=nan((P,)),
         zero_load_valid=no((P,)),
         fault=fault,
         ef=nan(b),
         g=nan(b),
-        gp=nan(b),
+        i_lim=nan(b),
         pred=np.zeros(b),
-        pred2=np.zeros(b),
         grp=idx(),
-        grp2=idx(),
         order=idx(),
-        ready=idx(),
-        diodes=idx(),
-        iso=idx(),
-        demoted=no(b),
-        keep=no(b),
-        held=no(b),
-        dheld=no(b),
-        ing=no(b),
+        cut=no(b),
+        skip=no(b),
         inserted=no(b),
-        rest=no(b),
         was_c=no(b),
         was_d=no(b),
     )
@@ -361,11 +331,6 @@ class SequencingController(CompiledController):
     def r_ohm(self) -> tuple[float, ...]:
         """Each battery's resistance estimate (ohm; NaN until a current step was seen)."""
         return tuple(float(x) for x in self.st.r_ohm[0])
-
-    @property
-    def isolated(self) -> tuple[bool, ...]:
-        """Batteries held off by source isolation."""
-        return tuple(not math.isnan(x) for x in self.st.isolated_since_s[0])
 
     @property
     def initialized(self) -> bool:

@@ -1,57 +1,53 @@
 """Discharge sequencing of parallel batteries behind charge/discharge MOSFET pairs, compiled.
 
-Spec: ``spec/parallel_discharge.md`` (DJI CN 201680002560.8), generalised to N >= 2 batteries.
+Spec: ``spec/parallel_discharge.md`` (DJI CN 201680002560.8), generalised to N >= 2 batteries;
+issue #15 section 1 supersedes the spec's [REC] where they disagree (docs/parallel_discharge.md).
 Each battery sits behind a charge FET (its body diode conducts when the battery *discharges*)
-in series with a discharge FET (its diode conducts when the battery is *charged*). The point of
-the method is that a battery whose charge FET is off can feed the bus through the diode but can
-never be charged by a higher sibling, so directly paralleled batteries at different voltages do
-not push tens of amperes into each other.
+in series with a discharge FET (its diode conducts when the battery is *charged*). A battery
+whose charge FET is off can feed the bus through the diode but can never be charged by a
+higher sibling, so directly paralleled batteries at different voltages do not push tens of
+amperes into each other.
 
 States (per battery) and the FET pattern each one commands:
 
-* ``DISCHARGING`` - admitted to discharge: discharge FET on; charge FET on once *engaged*.
-  Engagement follows R3 (diode conduction seen -> FET on within ``t_on``) or the *level rule*
-  (the battery's voltage has reached the bus reference, so closing the FET cannot charge it).
-* ``STANDBY`` - discharge FET on, charge FET off (the charge diode blocks any charging); both
-  off while the battery is isolated by source isolation ([REC]).
-* ``CHARGING`` - charge FET on; discharge FET on once charging current is seen through its
-  diode (R4).
+* ``DISCHARGING`` - admitted to discharge: discharge FET on; charge FET on while *engaged*.
+  The charge FET is on only while the battery discharges (embodiments 5 and 7): it closes
+  when discharge current flows (R3, through the diode) or is predicted to flow at the present
+  load (the engage rule, which completes R2), and opens when charging current is seen.
+* ``STANDBY`` - discharge FET on, charge FET off (the charge diode blocks any charging).
+* ``CHARGING`` - charge FET on; discharge FET on once charging current is seen (R4).
 * ``OFF`` - both FETs off: the battery is not present.
+
+The invariant (issue #15): current into a battery never exceeds its charge limit
+(``charge_limit_c`` x capacity), any reverse current is cut within one control period (plus
+the FET's switching delay), and reverse current above 1 A never lasts longer than that.
 
 Rules applied every control period in discharge mode (see ``docs/parallel_discharge.md``):
 
 * R1 at (re)initialisation (power-up, fault recovery, return from charge mode, empty
-  discharging set): batteries within ``v_th`` of the highest discharge, the others stand by.
-  A hot-inserted battery that is ``v_th`` or more above the bus reference takes over (R1
-  re-applied to it); any other inserted battery starts in STANDBY.
-* Reverse current: an engaged discharging battery taking more than ``i_rev`` of charge from a
-  sibling has its charge FET opened (-> STANDBY).
-* R2: a standby battery ``v_co`` or more above the bus reference (the highest discharging
-  battery's terminal voltage) joins. At rest (no current anywhere) it takes over instead of
-  co-discharging, because rest voltages are open-circuit voltages and co-discharge would push
-  about (V_k - V_ref) / R_loop into the others.
-* Rest merge ([REC], not in the source text): when every battery has carried at most
-  ``i_det`` for ``t_rest``, a standby (or admitted, not yet engaged) battery whose voltage is
-  within ``v_merge = i_merge * r_loop_ohm`` of every engaged battery rejoins with its charge FET
-  on, like R1 admitting batteries within ``v_th`` at power-up, but with a window sized so the
-  circulating current it can cause stays at or below ``i_merge <= i_rev``.
-* Load merge ([REC]): under load, a standby or admitted battery whose *fast voltage*
-  ``V + I*R`` (R estimated online from current steps) matches the engaged ones' closes its
-  charge FET; the level rule (which completes R2) closes one only under the same check.
+  discharging set): batteries within ``v_th`` of the highest are admitted (DISCHARGING), the
+  others stand by. A hot-inserted battery ``v_th`` or more above the bus reference takes over
+  (R1 re-applied to it); any other inserted battery starts in STANDBY.
+* Reverse cut (embodiment 5): an engaged battery taking more than ``i_rev`` of charge from a
+  sibling, or ``q_rev_as`` of charge in one episode of smaller reverse current (a light-load
+  circulating current), has its charge FET opened at once. It stays admitted (DISCHARGING):
+  the engage rule or R3 closes the FET again when it would discharge, so a load drop costs
+  one FET opening and no state change.
+* R2: a standby battery joins (DISCHARGING) once its *fast voltage* ``E = V + I*R`` (R
+  estimated online; the open-circuit voltage minus polarisation) is within ``v_co`` of the
+  highest admitted battery's, or above it: "the voltages meet".
+* Engage (R2's FET action): an admitted battery whose charge FET is open closes it when, with
+  it engaged, (a) at the present load it would discharge and nobody engaged would take more
+  than ``i_rev / 2`` (hysteresis against the reverse cut), and (b) if the load vanished, no
+  battery would take more than its charge limit. Highest fast voltage first.
 * R3: a battery with discharge FET on and charge FET off that sources more than ``i_det``
   (its charge diode conducts) gets its charge FET on after a debounce, no later than ``t_on``.
-  Only current measured over a period in which the controller held that FET off counts.
-* Cross-current guard ([REC]): a sampled controller cannot stop the current that flows between
-  co-discharging batteries in the period in which the load falls, so every period it predicts
-  that current at zero load from the fast voltages and opens (-> STANDBY) any battery that
-  would take more than ``i_guard``, unless R3 needs it closed or the bus needs it above cut-off
-  (then ``CrossCurrentRisk``).
-* Source isolation ([REC], ``isolate_source``): when the guard predicts more than ``i_guard``
-  into a battery that R3 closed at the present load (opening it would only make its diode
-  conduct again: the R3 conflict), the battery pushing that current is *isolated* - STANDBY
-  with the discharge FET off too (``seq_isolated``) - if the rest carry the load with
-  pessimistic resistances. It comes back by take-over, merge, plain STANDBY or, near
-  cut-off, forced (:func:`_release_isolated`), after at least ``t_iso_hold``.
+  Only current measured over a period in which the controller held that FET off counts. If,
+  engaged, it would charge an engaged sibling by more than ``i_rev`` at the present load, that
+  sibling's charge FET opens in the same period (hand-over to the higher battery).
+  R3 outranks (b): the diode must not carry the current; if the zero-load prediction then
+  exceeds a charge limit the battery is flagged (``CrossCurrentRisk``) and the reverse cut
+  (or the plant's reverse-current comparator, ``[pack.switch] reverse_comparator``) bounds it.
 
 Invalid measurements (a battery missing from the sample; non-finite or negative voltage,
 non-finite current, time or period) put the pack in a fail-safe: every charge FET off, every
@@ -61,11 +57,9 @@ controller re-initialises with R1.
 
 Deterministic: the only clock is the sample time ``m.t_s[p]`` (for timers) and ``dt_s`` (the
 control period, used to predict whether waiting one more period would miss the ``t_on``
-deadline). The kernels keep the decisions of the scalar controller they replaced (checked
-step by step until that controller was deleted): "none" is NaN (floats) or -1 (indices), a
-ranking is a stable insertion sort, a maximum the first maximum, sums from 0 left to right.
-Arrays are bound to local names once per function (a tuple attribute read in a loop costs a
-reference-count round trip in numba).
+deadline). "None" is NaN (floats) or -1 (indices), a ranking is a stable insertion sort, sums
+run from 0 left to right. Arrays are bound to local names once per function (a tuple
+attribute read in a loop costs a reference-count round trip in numba).
 """
 
 from __future__ import annotations
@@ -119,24 +113,22 @@ SET = 0
 """A state change without data (StateChanged)."""
 SET_R1 = 1
 REVERSE = 2
+"""The reverse cut opened an engaged battery's charge FET (ReverseCurrent, no state change)."""
 INSERTED_ABOVE = 3
 JOIN_R2 = 4
-JOIN_REST = 5
-JOIN_LOAD = 6
-JOIN_R3 = 7
-GUARD = 8
-ISOLATED = 9
-JOIN_ISO_MERGE = 10
-JOIN_TAKE_OVER = 11
-RELEASED = 12
-DIODE = 13
-REVERSE_DSG = 14
-RISK = 15
-MODE = 16
-MODE_NO_BATTERY = 17
+JOIN_R3 = 5
+DIODE = 6
+REVERSE_DSG = 7
+RISK = 8
+MODE = 9
+MODE_NO_BATTERY = 10
 """ModeChanged with no battery present: the scalar pack current was the integer 0."""
-FAULT = 18
-FAULT_CLEARED = 19
+FAULT = 11
+FAULT_CLEARED = 12
+HANDOVER = 13
+"""A sibling would charge this engaged battery at the present load once a cut or an R3 closure
+has changed the engaged set: its charge FET opened (ReverseCurrent, predicted, no state
+change)."""
 
 # Slots of a state-change event: from, to, reason, battery (message only), then the data.
 V_FROM = 0
@@ -145,8 +137,7 @@ V_REASON = 2
 V_BATTERY = 3
 V_DATA = 4
 
-# Reason labels (``controller.REASON_LABELS``); then "R1 battery {k} inserted" for each k,
-# then "would charge battery {k}, which R3 closed at this load" for each k.
+# Reason labels (``controller.REASON_LABELS``); then "R1 battery {k} inserted" for each k.
 R_NONE = 0
 R_FAIL_SAFE = 1
 R_REMOVED = 2
@@ -155,18 +146,10 @@ R_CHARGE_MODE = 4
 R_INSERTED_CHARGING = 5
 R_R1_INIT = 6
 R_R1_EMPTY = 7
-R_REVERSE = 8
-R_INSERTED_ABOVE = 9
-R_R2 = 10
-R_REST_MERGE = 11
-R_LOAD_MERGE = 12
-R_R3 = 13
-R_GUARD = 14
-R_ISO_MERGE = 15
-R_ISO_ENDED = 16
-R_ISO_FORCED = 17
-R_TAKE_OVER = 18
-N_FIXED_REASONS = 19
+R_INSERTED_ABOVE = 8
+R_R2 = 9
+R_R3 = 10
+N_FIXED_REASONS = 11
 
 PATH_CHG = 0
 PATH_DSG = 1
@@ -179,8 +162,7 @@ ST_MODE = 3
 ST_V_REF = 4
 ST_ZERO_LOAD = 5
 ST_AT_RISK = 6
-ST_ISOLATED = 7
-ST_DIODE = 8
+ST_DIODE = 7
 
 
 class SequencingParams(NamedTuple):
@@ -190,21 +172,15 @@ class SequencingParams(NamedTuple):
     t_on: float
     t_debounce: float
     i_rev: float
+    q_rev_as: float
+    """Slow reverse cut: charge (A s) a sibling may push into an engaged battery per episode."""
     t_mode: float
-    i_merge: float
-    v_merge: float
-    """i_merge * r_loop_ohm."""
-    t_rest: float
-    i_guard: float
+    charge_limit_c: float
+    """Charge limit per battery in C: at most charge_limit_c x capacity_ah amperes into it."""
+    default_capacity_ah: float
+    """Capacity assumed where the topology does not state one (replay logs)."""
     r_batt_ohm: float
     i_step: float
-    v_diode: float
-    v_cut: float
-    """Pack cut-off voltage: v_cutoff_cell_v times the most cells in series of a group."""
-    v_reserve: float
-    isolate_source: bool
-    t_iso_hold: float
-    v_iso_margin: float
     n_batteries: int
     fault_text: F64
     """The State's ``fault`` array itself: the event renderer formats the fail-safe reason
@@ -226,20 +202,13 @@ class SequencingState(NamedTuple):
     last_v_v: F64
     last_i_a: F64
     """The previous sample's battery-side voltage and current (resistance estimate)."""
-    hold_load_a: F64
-    """Pack current at which R3 last had to close this battery's charge FET: the guard leaves
-    it engaged while the pack current stays above 0.9 of that (its diode would conduct)."""
-    guard_opened: B1
-    """The guard opened this battery's charge FET and no rule has closed it since."""
     at_risk: B1
-    """The guard predicts more than i_guard into this battery but may not open it."""
-    isolated_since_s: F64
-    """Source isolation: time both FETs were opened (state STANDBY); NaN = not isolated."""
-    released_at_s: F64
-    """Source isolation: time this battery last left isolation by a take-over, the standby
-    release or a forced release; not isolated again within t_iso_hold of that."""
+    """The zero-load prediction puts more than its charge limit into this engaged battery."""
+    rev_q_as: F64
+    """Charge (A s) pushed into this engaged battery by siblings in the present episode of
+    reverse current (0 when it sources or is not engaged)."""
     zero_load_into_a: F64
-    """Guard prediction of the last discharge period (valid where ``zero_load_valid``)."""
+    """Zero-load prediction of the last discharge period (valid where ``zero_load_valid``)."""
     mode: I64
     """(P,) MODE_DISCHARGE, MODE_CHARGE or MODE_FAULT."""
     initialized: B1
@@ -248,9 +217,7 @@ class SequencingState(NamedTuple):
     mode_evidence_since_s: F64
     """(P,) first sample of the current run of evidence for leaving the mode."""
     v_ref_v: F64
-    """(P,) bus reference of the last period (highest discharging terminal voltage)."""
-    rest_since_s: F64
-    """(P,) first sample of the current run with every battery at or below i_det."""
+    """(P,) bus reference of the last period (highest admitted fast voltage)."""
     zero_load_valid: B1
     """(P,)."""
     fault: F64
@@ -262,23 +229,16 @@ class SequencingState(NamedTuple):
     """Fast voltage V + I*R of each battery."""
     g: F64
     """1 / R estimate."""
-    gp: F64
-    """1 / pessimistic R."""
+    i_lim: F64
+    """Charge limit (A) of each battery in this pack."""
     pred: F64
-    pred2: F64
     grp: I64
-    grp2: I64
     order: I64
-    ready: I64
-    diodes: I64
-    iso: I64
-    demoted: B1
-    keep: B1
-    held: B1
-    dheld: B1
-    ing: B1
+    cut: B1
+    skip: B1
+    """Batteries a re-prediction may not open this period (measured sourcing, or closed by
+    R3)."""
     inserted: B1
-    rest: B1
     was_c: B1
     was_d: B1
 
@@ -289,7 +249,6 @@ class Switches(NamedTuple):
     state: I64
     chg_on: B1
     dsg_on: B1
-    isolated_since_s: F64
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -320,7 +279,6 @@ def _set(
         d = False
     sw.chg_on[p, k] = c
     sw.dsg_on[p, k] = d
-    sw.isolated_since_s[p, k] = np.nan
     if old == new:
         return -1
     r = emit(ev, p, src, code, k, t)
@@ -357,17 +315,15 @@ def _engaged(state: I64, chg_on: B1, p: int, grp: I64, extra: int) -> int:
 
 
 @kernel_inline
-def _zero_load(grp: I64, m: int, ef: F64, g: F64, out: F64) -> None:
-    """Current (A, > 0 = charging) into each battery of ``grp[:m]`` if the load vanished now.
+def _share(grp: I64, m: int, ef: F64, g: F64, load_a: float, out: F64) -> None:
+    """Current (A, > 0 = charging) into each battery of ``grp[:m]`` if they alone carried
+    ``load_a`` (0 = the load vanished).
 
-    The engaged batteries then form a loop of voltage sources behind their resistances; the
-    lowest ones are charged by the others. Zero load is the worst case: any load current
-    only lowers the current into every battery. FET on-resistances are left out, which
-    overestimates the current (the safe side).
+    The engaged batteries form a loop of voltage sources behind their resistances: the bus
+    settles at (sum E g - load) / sum g. FET on-resistances are left out, which overestimates
+    any current between them (the safe side).
     """
-    if m < 2:
-        for i in range(m):
-            out[grp[i]] = 0.0
+    if m < 1:
         return
     num = 0.0
     for i in range(m):
@@ -376,28 +332,30 @@ def _zero_load(grp: I64, m: int, ef: F64, g: F64, out: F64) -> None:
     den = 0.0
     for i in range(m):
         den += g[grp[i]]
-    v0 = num / den
+    v0 = (num - load_a) / den
     for i in range(m):
         k = grp[i]
         out[k] = (v0 - ef[k]) * g[k]
 
 
 @kernel_inline
-def _max_over(grp: I64, m: int, x: F64) -> float:
-    best: float = x[grp[0]]
-    for i in range(1, m):
-        if x[grp[i]] > best:
-            best = x[grp[i]]
-    return best
+def _e_ref(state: I64, p: int, ef: F64) -> float:
+    """Bus reference for R2: highest fast voltage of the DISCHARGING batteries (NaN: none).
+
+    Admitted batteries whose charge FET is still open count too, so a standby battery joins
+    only when it meets every battery already admitted to discharge (joins go in order)."""
+    have = False
+    v = np.nan
+    for k in range(state.shape[1]):
+        if state[p, k] == DISCHARGING and (not have or ef[k] > v):
+            v = ef[k]
+            have = True
+    return v
 
 
 @kernel_inline
 def _v_ref(state: I64, p: int, volt: F64) -> float:
-    """Bus reference for R2: highest terminal voltage of the DISCHARGING batteries (NaN: none).
-
-    Admitted batteries whose charge FET is still open count too, so a standby battery joins
-    only above every battery already admitted to discharge (joins go in voltage order).
-    """
+    """Highest terminal voltage of the DISCHARGING batteries (NaN: none): hot insertion."""
     have = False
     v = np.nan
     for k in range(state.shape[1]):
@@ -418,23 +376,14 @@ def _load(pres: B1, cur: F64) -> float:
 
 
 @kernel_inline
-def _r_est(prm: SequencingParams, st: SequencingState, p: int, k: int) -> float:
-    r = st.r_ohm[p, k]
-    return prm.r_batt_ohm if math.isnan(r) else r
-
-
-@kernel_inline
 def _r1(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     pres: B1, t: float, reason: int,
 ) -> None:  # fmt: skip
     """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
     state = st.state
-    chg_on = st.chg_on
-    dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
-    isolated_since_s = st.isolated_since_s
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    sw = Switches(state, st.chg_on, st.dsg_on)
     n = state.shape[1]
     have = False
     v_max = 0.0
@@ -481,435 +430,99 @@ def _diode_rule(
     return due
 
 
-# ------------------------------------------------------------------------------ source isolation
+
+# ------------------------------------------------------------------------------ discharge mode
 
 
 @kernel_inline
-def _bus_held(
-    prm: SequencingParams, st: SequencingState, p: int, pres: B1, iso: int, grp: I64, m: int,
-    load_a: float,
-) -> float:  # fmt: skip
-    """Pessimistic bus voltage (V) if battery ``iso`` stopped and the rest of ``grp[:m]``
-    (engaged) plus every other battery with its discharge FET on (through its diode) carried
-    ``load_a``.
-
-    Resistances are inflated: 1.25 x the estimate (polarisation builds up once the load has
-    moved to the rest), 2 x the prior for a battery that has not yet seen a current step.
-    Diodes drop ``v_diode + v_iso_margin``, the pessimistic end of the 0.5-0.7 V range.
-    """
-    state = st.state
-    dsg_on = st.dsg_on
-    ef = st.ef
-    gp = st.gp
-    diodes = st.diodes
-    rest = st.rest
-    n = state.shape[1]
-    for j in range(n):
-        rest[j] = False
-    cnt = 0
-    num = 0.0
-    for i in range(m):
-        j = grp[i]
-        if j != iso:
-            rest[j] = True
-            cnt += 1
-            num += ef[j] * gp[j]
-    if cnt == 0:
-        return -np.inf
-    den = 0.0
-    for i in range(m):
-        j = grp[i]
-        if j != iso:
-            den += gp[j]
-    v_rest = (num - load_a) / den
-    nd = 0
-    for j in range(n):
-        if j != iso and not rest[j] and pres[j] and dsg_on[p, j]:
-            diodes[nd] = j
-            nd += 1
-    _sort_desc(diodes, nd, ef)
-    v_drop = prm.v_diode + prm.v_iso_margin
-    for i in range(nd):
-        j = diodes[i]
-        e_j = ef[j] - v_drop
-        if v_rest >= e_j:
-            break
-        num += e_j * gp[j]
-        den += gp[j]
-        v_rest = (num - load_a) / den
-    return v_rest
-
-
-@kernel_inline
-def _isolate_source(
-    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, pres: B1,
-    victim: int, grp: I64, m: int, pred: F64, load_a: float, t: float,
-) -> bool:  # fmt: skip
-    """Source isolation [REC]: open *both* FETs of the battery that would charge ``victim``.
-
-    The guard cannot open the victim: its charge diode would conduct and R3 would close it
-    again (diode stress). So the battery with the highest fast voltage among its siblings
-    (the one pushing the current) is isolated instead: STANDBY with the discharge FET off
-    too, because with only its charge FET off it would still discharge through its charge
-    diode. Only if the rest (the victim included) hold the bus ``v_reserve`` +
-    ``v_iso_margin`` above cut-off at the present load, with pessimistic resistances
-    (:func:`_bus_held`), and not within ``t_iso_hold`` of its last release (no chatter).
-    Isolating the victim instead (both its FETs off) was tried: it leaves the high battery
-    carrying a heavy load alone, which drags the bus under the next battery's diode, and
-    did worse in the closed-loop sweeps. Returns whether a battery was isolated.
-    """
-    state = st.state
-    chg_on = st.chg_on
-    dsg_on = st.dsg_on
-    isolated_since_s = st.isolated_since_s
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
-    if not prm.isolate_source:
-        return False
-    ef = st.ef
-    s = -1
-    for i in range(m):
-        j = grp[i]
-        if j != victim and pred[j] < 0.0 and (s < 0 or ef[j] > ef[s]):
-            s = j
-    if s < 0:
-        return False
-    rel = st.released_at_s[p, s]
-    if not math.isnan(rel) and t - rel + EPS_S < prm.t_iso_hold:
-        return False
-    v_rest = _bus_held(prm, st, p, pres, s, grp, m, load_a)
-    if v_rest < prm.v_cut + prm.v_reserve + prm.v_iso_margin:
-        return False
-    n = state.shape[1]
-    reason = N_FIXED_REASONS + n + victim
-    r = _set(sw, ev, src, p, s, STANDBY, False, t, ISOLATED, reason)
-    if r >= 0:
-        ev.val[r, V_DATA] = victim
-        ev.val[r, V_DATA + 1] = pred[victim]
-        ev.val[r, V_DATA + 2] = ef[s]
-        ev.val[r, V_DATA + 3] = v_rest
-    dsg_on[p, s] = False
-    isolated_since_s[p, s] = t
-    st.conduct_since_s[p, s] = np.nan
-    st.guard_opened[p, s] = False
-    st.hold_load_a[p, s] = np.nan
-    return True
-
-
-@kernel_inline
-def _guard(
-    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, pres: B1,
-    cur: F64, t: float,
+def _engage(
+    prm: SequencingParams, st: SequencingState, p: int, pres: B1, load_a: float
 ) -> None:  # fmt: skip
-    """Open, before the load can fall, the charge FET of any engaged battery that would take
-    more than ``i_guard`` from its siblings at zero load (worst victim first).
-
-    A sampled controller cannot react within the period in which the load falls; between
-    that step and the next sample the plant pushes (E_a - E_b) / (R_a + R_b) into the lower
-    battery. Batteries co-discharging on one bus have equal terminal voltages, so their
-    fast voltages E = V + I*R differ by their I*R difference (16 vs 30 mOhm at 10 A: 0.14 V,
-    3 A). Not opened: a battery in ``keep`` (closed by R3 this period), the last engaged
-    one, one whose diode would conduct at the present load (R3 would re-close it), and one
-    without which the others would hold the bus less than ``v_reserve`` above cut-off.
-    Source isolation [REC] applies to the R3 conflict only: a victim that R3 closed this
-    period, or closed earlier at (0.9 of) the present load, cannot be opened (its diode
-    would conduct and R3 close it again), so the battery that would push the current is
-    isolated instead, if the rest can carry the load (:func:`_isolate_source`). A victim kept
-    for any other reason (last engaged, cut-off reserve, a diode that would conduct only
-    once opened) stays engaged and is flagged (``CrossCurrentRisk``, once per episode).
-    """
+    """Engage rule (R2's FET action; embodiment 5: the charge FET is on only while discharge
+    current flows): close the charge FET of an admitted battery when, with it engaged, it
+    would discharge at the present load, no engaged battery would take more than ``i_rev``/2
+    (half the reverse cut's threshold: no close-cut-close chatter) and, if the load vanished,
+    none would take more than its charge limit. Highest fast voltage first, each against
+    everything engaged so far."""
     state = st.state
     chg_on = st.chg_on
-    dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
-    hold_load_a = st.hold_load_a
-    guard_opened = st.guard_opened
-    at_risk = st.at_risk
-    isolated_since_s = st.isolated_since_s
-    zero_load_into_a = st.zero_load_into_a
-    zero_load_valid = st.zero_load_valid
     ef = st.ef
     g = st.g
+    i_lim = st.i_lim
     pred = st.pred
     grp = st.grp
-    keep = st.keep
-    held = st.held
-    dheld = st.dheld
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    order = st.order
+    cut = st.cut
     n = state.shape[1]
-    load_a = _load(pres, cur)
-    v_cut = prm.v_cut
+    m = 0
     for k in range(n):
-        held[k] = False
-        dheld[k] = keep[k]
-    for k in range(n):
-        if state[p, k] != DISCHARGING or not chg_on[p, k]:
-            hold_load_a[p, k] = np.nan
+        if state[p, k] == DISCHARGING and not chg_on[p, k] and not cut[k] and pres[k]:
+            order[m] = k
+            m += 1
+    _sort_desc(order, m, ef)
+    for i in range(m):
+        k = order[i]
+        m2 = _engaged(state, chg_on, p, grp, k)
+        _share(grp, m2, ef, g, load_a, pred)
+        ok = pred[k] <= 0.0
+        for q in range(m2):
+            j = grp[q]
+            if j != k and pred[j] > 0.5 * prm.i_rev:
+                ok = False
+        if not ok:
             continue
-        if not keep[k]:
-            guard_opened[p, k] = False
-        if not math.isnan(hold_load_a[p, k]):
-            if load_a >= 0.9 * hold_load_a[p, k]:
-                dheld[k] = True
-            else:
-                hold_load_a[p, k] = np.nan
+        _share(grp, m2, ef, g, 0.0, pred)
+        for q in range(m2):
+            j = grp[q]
+            if pred[j] > i_lim[j]:
+                ok = False
+        if not ok:
+            continue
+        chg_on[p, k] = True
+        conduct_since_s[p, k] = np.nan
+
+
+@kernel_inline
+def _open_charged(
+    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, load_a: float,
+    t: float,
+) -> None:  # fmt: skip
+    """Open, worst first, the charge FET of every engaged battery not in ``st.skip`` that its
+    engaged siblings would charge by more than ``i_rev`` at the present pack current, and
+    predict the rest again after each (opening one shifts the others). Used after the reverse
+    cut (so the remaining siblings do not pour the same current into the next battery in the
+    following period) and after R3 (the hand-over)."""
+    state = st.state
+    chg_on = st.chg_on
+    ef = st.ef
+    pred = st.pred
+    grp = st.grp
+    skip = st.skip
     while True:
         m = _engaged(state, chg_on, p, grp, -1)
-        _zero_load(grp, m, ef, g, pred)
-        k = -1
-        for i in range(m):
-            j = grp[i]
-            if pred[j] > prm.i_guard and not held[j] and (k < 0 or pred[j] > pred[k]):
-                k = j
-        if k < 0:
+        if m < 2:
             break
-        if m > 1:
-            num = 0.0
-            for i in range(m):
-                j = grp[i]
-                if j != k:
-                    num += ef[j] * g[j]
-            den = 0.0
-            for i in range(m):
-                j = grp[i]
-                if j != k:
-                    den += g[j]
-            v_bus = (num - load_a) / den
-        else:
-            v_bus = -np.inf
-        if m == 1 or v_bus < v_cut + prm.v_reserve:
-            held[k] = True
-            continue
-        if dheld[k]:
-            # R3 conflict: R3 closed it because its diode conducted at this load, so opening
-            # it would only make the diode conduct again. Take the source away instead.
-            if not _isolate_source(prm, st, ev, src, p, pres, k, grp, m, pred, load_a, t):
-                held[k] = True
-            continue
-        if ef[k] - prm.v_diode >= v_bus:
-            held[k] = True
-            continue
-        r = _set(sw, ev, src, p, k, STANDBY, False, t, GUARD, R_GUARD)
-        if r >= 0:
-            ev.val[r, V_DATA] = pred[k]
-            ev.val[r, V_DATA + 1] = prm.i_guard
-            ev.val[r, V_DATA + 2] = ef[k]
-            ev.val[r, V_DATA + 3] = _r_est(prm, st, p, k)
-        conduct_since_s[p, k] = np.nan
-        guard_opened[p, k] = True
-    # What is left above i_guard the controller knowingly keeps (R3, cut-off reserve, last
-    # battery): flagged once per episode, so the risk is visible in the event log.
-    m = _engaged(state, chg_on, p, grp, -1)
-    for k in range(n):
-        pred[k] = 0.0
-    _zero_load(grp, m, ef, g, pred)
-    for k in range(n):
-        risk = pred[k] > prm.i_guard
-        if risk and not at_risk[p, k]:
-            r = emit(ev, p, src, RISK, k, t)
-            ev.val[r, 0] = pred[k]
-            ev.val[r, 1] = prm.i_guard
-            ev.val[r, 2] = k
-        at_risk[p, k] = risk
-        zero_load_into_a[p, k] = pred[k]
-    zero_load_valid[p] = True
-
-
-@kernel_inline
-def _take_over(
-    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, pres: B1,
-    iso: I64, ni: int, load_a: float, t: float,
-) -> bool:  # fmt: skip
-    """Isolation take-over: the isolated batteries (highest fast voltage first, the fewest
-    that suffice) discharge and everybody else stands by, when that is safe.
-
-    A set ``T`` of isolated batteries held at least ``t_iso_hold`` qualifies when, carrying
-    the present load alone with pessimistic resistances, it holds the bus ``v_iso_margin``
-    above every other battery's fast voltage minus ``v_diode`` (no charge diode outside ``T``
-    conducts, so R3 cannot pull a lower battery back in under it) and ``v_reserve`` above
-    cut-off, and the batteries of ``T`` would not push more than ``v_co`` apart (fast
-    voltages). The discharging batteries outside ``T`` go to plain STANDBY; the other
-    isolated ones stay isolated until they merge with ``T`` (or their diodes would stay off,
-    or the load forces them back). This is R1 applied to the isolated set; without it a
-    higher isolated battery would wait while the lower ones drain, and be left with its
-    energy at the end.
-    """
-    state = st.state
-    chg_on = st.chg_on
-    dsg_on = st.dsg_on
-    conduct_since_s = st.conduct_since_s
-    isolated_since_s = st.isolated_since_s
-    released_at_s = st.released_at_s
-    ef = st.ef
-    gp = st.gp
-    ready = st.ready
-    ing = st.ing
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
-    n = state.shape[1]
-    r = 0
-    for i in range(ni):
-        k = iso[i]
-        since = isolated_since_s[p, k]
-        if not math.isnan(since) and t - since + EPS_S >= prm.t_iso_hold:
-            ready[r] = k
-            r += 1
-    _sort_desc(ready, r, ef)
-    for j in range(n):
-        ing[j] = False
-    load0 = 0.0 if load_a < 0.0 else load_a  # max(load_a, 0.0): load_a unless 0.0 > it
-    for m in range(1, r + 1):
-        ing[ready[m - 1]] = True
-        num = 0.0
-        for i in range(m):
-            j = ready[i]
-            num += ef[j] * gp[j]
-        den = 0.0
-        for i in range(m):
-            den += gp[ready[i]]
-        v_alone = (num - load0) / den
-        e_rest = -np.inf
-        for j in range(n):
-            if pres[j] and not ing[j] and math.isnan(isolated_since_s[p, j]) and ef[j] > e_rest:
-                e_rest = ef[j]
-        e_max = ef[ready[0]]
-        e_min = ef[ready[0]]
-        for i in range(1, m):
-            x = ef[ready[i]]
-            if x > e_max:
-                e_max = x
-            if x < e_min:
-                e_min = x
-        if e_max - e_min > prm.v_co:
+        _share(grp, m, ef, st.g, load_a, pred)
+        j = -1
+        top = -1
+        for q in range(m):
+            x = grp[q]
+            if top < 0 or ef[x] > ef[top]:
+                top = x
+            if not skip[x] and pred[x] > prm.i_rev and (j < 0 or pred[x] > pred[j]):
+                j = x
+        if j < 0:
             break
-        if v_alone < e_rest - prm.v_diode + prm.v_iso_margin:
-            continue
-        if v_alone < prm.v_cut + prm.v_reserve:
-            continue
-        for j in range(n):
-            if ing[j] or not pres[j]:
-                continue
-            if state[p, j] == DISCHARGING:
-                _set(sw, ev, src, p, j, STANDBY, False, t, SET, R_TAKE_OVER)
-        for i in range(m):
-            j = ready[i]
-            since = isolated_since_s[p, j]
-            row = _set(sw, ev, src, p, j, DISCHARGING, True, t, JOIN_TAKE_OVER, R_TAKE_OVER)
-            if row >= 0:
-                ev.val[row, V_DATA] = v_alone
-                ev.val[row, V_DATA + 1] = e_rest
-                ev.val[row, V_DATA + 2] = t - (t if math.isnan(since) else since)
-            conduct_since_s[p, j] = np.nan
-            released_at_s[p, j] = t
-        return True
-    return False
-
-
-@kernel_inline
-def _release_isolated(
-    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
-    cur: F64, pres: B1, t: float,
-) -> None:  # fmt: skip
-    """Bring an isolated battery back when that is safe, or when the load needs it.
-
-    Not before ``t_iso_hold`` (unless forced), then the first that applies:
-
-    * take-over (:func:`_take_over`, not while a charge diode conducts: R3 would then act on
-      a current the take-over has just changed);
-    * merge: with it engaged, the zero-load prediction puts at most ``i_merge`` into it and
-      at most ``i_guard`` into anyone (the load merge's test), or at least no more than
-      now into anyone (a battery between the engaged ones' fast voltages narrows a risk
-      the guard could not open, and then lets the guard open the victim);
-    * standby: at the present bus its charge diode stays off with ``v_iso_margin`` to
-      spare, so plain STANDBY (diode-OR) is safe and R2 / load merge take it from there;
-    * forced: the engaged batteries hold the bus less than ``v_reserve`` above cut-off (or
-      none is engaged): plain STANDBY whatever the risk (it feeds the bus through its
-      diode and R3 closes it): the load must stay supplied.
-    """
-    state = st.state
-    chg_on = st.chg_on
-    dsg_on = st.dsg_on
-    isolated_since_s = st.isolated_since_s
-    released_at_s = st.released_at_s
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
-    n = state.shape[1]
-    iso = st.iso
-    ni = 0
-    for k in range(n):
-        if not math.isnan(isolated_since_s[p, k]):
-            iso[ni] = k
-            ni += 1
-    if ni == 0:
-        return
-    ef = st.ef
-    g = st.g
-    pred = st.pred
-    pred2 = st.pred2
-    grp = st.grp
-    grp2 = st.grp2
-    load_a = _load(pres, cur)
-    # A diode conducting now (R3 pending) was driven by the present bus; a take-over would
-    # leave R3 acting on stale current. Wait until R3 has closed it.
-    diode_on = False
-    for j in range(n):
-        if pres[j] and dsg_on[p, j] and not chg_on[p, j] and cur[j] > prm.i_det:
-            diode_on = True
-            break
-    if not diode_on and _take_over(prm, st, ev, src, p, pres, iso, ni, load_a, t):
-        return
-    _sort_desc(iso, ni, ef)
-    v_floor = prm.v_cut + prm.v_reserve
-    for i in range(ni):
-        k = iso[i]
-        since = isolated_since_s[p, k]
-        if math.isnan(since):
-            continue
-        m = _engaged(state, chg_on, p, grp, -1)
-        # Bus estimate: the lowest engaged battery; with none engaged (R1 has just admitted
-        # batteries with their charge FETs open) the highest admitted one less a diode drop;
-        # with nobody admitted, nothing supplies the load but the diodes: forced.
-        have_adm = False
-        adm_max = 0.0
-        for j in range(n):
-            if pres[j] and state[p, j] == DISCHARGING and (not have_adm or volt[j] > adm_max):
-                adm_max = volt[j]
-                have_adm = True
-        if m > 0:
-            bus_v = volt[grp[0]]
-            for q in range(1, m):
-                if volt[grp[q]] < bus_v:
-                    bus_v = volt[grp[q]]
-        elif have_adm:
-            bus_v = adm_max - prm.v_diode
-        else:
-            bus_v = -np.inf
-        forced = bus_v < v_floor
-        if not forced and t - since + EPS_S < prm.t_iso_hold:
-            continue
-        if m > 0:
-            m2 = _engaged(state, chg_on, p, grp2, k)
-            _zero_load(grp2, m2, ef, g, pred)
-            _zero_load(grp, m, ef, g, pred2)
-            worst = _max_over(grp, m, pred2)
-            lim = worst if worst > prm.i_guard else prm.i_guard
-            if pred[k] <= prm.i_merge and _max_over(grp2, m2, pred) <= lim:
-                r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_ISO_MERGE, R_ISO_MERGE)
-                if r >= 0:
-                    ev.val[r, V_DATA] = pred[k]
-                    ev.val[r, V_DATA + 1] = t - since
-                continue
-        e_k = ef[k]
-        quiet = bus_v >= e_k - prm.v_diode + prm.v_iso_margin
-        if not (quiet or forced):
-            continue
-        _set(sw, ev, src, p, k, STANDBY, False, t, SET, R_NONE)
-        released_at_s[p, k] = t
-        r = emit(ev, p, src, RELEASED, k, t)
-        ev.val[r, V_FROM] = STANDBY
-        ev.val[r, V_TO] = STANDBY
-        ev.val[r, V_REASON] = R_ISO_ENDED if quiet else R_ISO_FORCED
-        ev.val[r, V_BATTERY] = k
-
-
-# ------------------------------------------------------------------------------ the modes
+        chg_on[p, j] = False
+        st.cut[j] = True
+        st.conduct_since_s[p, j] = np.nan
+        r = emit(ev, p, src, HANDOVER, j, t)
+        ev.val[r, 0] = -pred[j]
+        ev.val[r, 1] = prm.i_rev
+        ev.val[r, 2] = PATH_CHG
+        ev.val[r, 3] = j
+        ev.val[r, 4] = top
 
 
 @kernel_inline
@@ -921,23 +534,22 @@ def _discharge_tick(
     chg_on = st.chg_on
     dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
-    hold_load_a = st.hold_load_a
-    guard_opened = st.guard_opened
-    isolated_since_s = st.isolated_since_s
+    at_risk = st.at_risk
+    zero_load_into_a = st.zero_load_into_a
+    zero_load_valid = st.zero_load_valid
     initialized = st.initialized
     v_ref_v = st.v_ref_v
-    rest_since_s = st.rest_since_s
     ef = st.ef
     g = st.g
+    i_lim = st.i_lim
     pred = st.pred
     grp = st.grp
     order = st.order
-    demoted = st.demoted
-    keep = st.keep
+    cut = st.cut
     inserted = st.inserted
     was_c = st.was_c
     was_d = st.was_d
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    sw = Switches(state, chg_on, dsg_on)
     n = state.shape[1]
     i_det = prm.i_det
 
@@ -946,24 +558,46 @@ def _discharge_tick(
         initialized[p] = True
         n_inserted = 0
 
-    # Reverse current: a sibling is charging an engaged discharging battery. Only when some
-    # other battery sources current; otherwise the charge comes from outside (mode logic).
+    # Reverse cut (embodiment 5): the charge FET is on only while discharge current flows. A
+    # sibling charging an engaged battery by more than i_rev, or by q_rev_as in one episode of
+    # smaller reverse current, opens its charge FET in this period; the battery stays admitted
+    # (the engage rule or R3 closes it again once it would discharge). Only when some other
+    # battery sources current; otherwise the charge comes from outside (mode logic).
+    rev_q_as = st.rev_q_as
+    skip = st.skip
     for k in range(n):
-        demoted[k] = False
+        cut[k] = False
     for k in range(n):
-        if state[p, k] == DISCHARGING and chg_on[p, k] and cur[k] < -prm.i_rev:
-            feeder = False
-            for j in range(n):
-                if j != k and pres[j] and cur[j] > i_det:
-                    feeder = True
-                    break
-            if feeder:
-                r = _set(sw, ev, src, p, k, STANDBY, False, t, REVERSE, R_REVERSE)
-                if r >= 0:
-                    ev.val[r, V_DATA] = cur[k]
-                    ev.val[r, V_DATA + 1] = prm.i_rev
-                conduct_since_s[p, k] = np.nan
-                demoted[k] = True
+        if not (state[p, k] == DISCHARGING and chg_on[p, k] and cur[k] < 0.0):
+            rev_q_as[p, k] = 0.0
+            continue
+        feeder = False
+        for j in range(n):
+            if j != k and pres[j] and cur[j] > i_det:
+                feeder = True
+                break
+        if not feeder:
+            rev_q_as[p, k] = 0.0
+            continue
+        rev_q_as[p, k] += -cur[k] * dt
+        if cur[k] < -prm.i_rev or rev_q_as[p, k] > prm.q_rev_as + 1e-12:
+            rev_q_as[p, k] = 0.0
+            chg_on[p, k] = False
+            conduct_since_s[p, k] = np.nan
+            cut[k] = True
+            r = emit(ev, p, src, REVERSE, k, t)
+            ev.val[r, 0] = cur[k]
+            ev.val[r, 1] = prm.i_rev
+            ev.val[r, 2] = PATH_CHG
+            ev.val[r, 3] = k
+    # Cascade: with the victims open, the remaining siblings would pour the same current into
+    # the next engaged battery in the coming period; open those now (not one that sources).
+    any_cut = False
+    for k in range(n):
+        skip[k] = cur[k] > i_det
+        any_cut = any_cut or cut[k]
+    if any_cut:
+        _open_charged(prm, st, ev, src, p, _load(pres, cur), t)
 
     # Hot insertion (R1 re-applied to the newcomer): a battery v_th above the bus takes over
     # and the batteries v_th below it stand by in the same period, so none is charged.
@@ -982,12 +616,6 @@ def _discharge_tick(
                 ev.val[r, V_DATA] = volt[k]
                 ev.val[r, V_DATA + 1] = v_ref
 
-    # Source isolation [REC]: an isolated battery merges, takes over or is forced back.
-    for k in range(n):
-        if not math.isnan(isolated_since_s[p, k]):
-            _release_isolated(prm, st, ev, src, p, volt, cur, pres, t)
-            break
-
     # Nobody admitted to discharge and no diode conducting: start over with R1.
     any_d = False
     for k in range(n):
@@ -1003,168 +631,39 @@ def _discharge_tick(
         if not diode:
             _r1(prm, st, ev, src, p, volt, pres, t, R_R1_EMPTY)
 
-    # R2: a standby battery v_co above the bus reference joins. Not one demoted for reverse
-    # current this period: its terminal voltage still carries the charging I*R rise.
-    # At rest (no battery carries more than i_det) terminal voltages are open-circuit
-    # voltages, so a joiner v_co above the engaged batteries would push about
-    # (V_k - V_ref) / R_loop into them: it takes over instead, and they stay admitted with
-    # their charge FETs open until the load brings the bus down to them (level rule).
-    v_ref = _v_ref(state, p, volt)
-    idle = True
-    for k in range(n):
-        if pres[k] and not abs(cur[k]) <= i_det:
-            idle = False
-            break
-    if not math.isnan(v_ref):
+    # R2: a standby battery whose fast voltage has met the admitted ones' (within v_co below
+    # the highest, or above it) joins. Fast voltages, not terminal voltages: under load the
+    # discharging battery's terminal voltage sits I*R below its open-circuit voltage, so the
+    # source's terminal-voltage test fires while that battery is still I*R - v_co higher and
+    # co-discharge would start lopsided (issue #15; docs/parallel_discharge.md).
+    e_ref = _e_ref(state, p, ef)
+    if not math.isnan(e_ref):
         m = 0
         for k in range(n):
-            if state[p, k] == STANDBY and math.isnan(isolated_since_s[p, k]):
+            if state[p, k] == STANDBY and pres[k]:
                 order[m] = k
                 m += 1
-        _sort_desc(order, m, volt)
+        _sort_desc(order, m, ef)
         for i in range(m):
             k = order[i]
-            if demoted[k] or volt[k] - v_ref < prm.v_co:
+            if e_ref - ef[k] >= prm.v_co:
                 continue
-            if idle:
-                for j in range(n):
-                    if state[p, j] == DISCHARGING:
-                        chg_on[p, j] = False
-            r = _set(sw, ev, src, p, k, DISCHARGING, idle, t, JOIN_R2, R_R2)
+            r = _set(sw, ev, src, p, k, DISCHARGING, False, t, JOIN_R2, R_R2)
             if r >= 0:
-                ev.val[r, V_DATA] = volt[k]
-                ev.val[r, V_DATA + 1] = v_ref
-                ev.val[r, V_DATA + 2] = volt[k] - v_ref
-                ev.val[r, V_DATA + 3] = 1.0 if idle else 0.0
-            if idle:
-                v_ref = volt[k]
+                ev.val[r, V_DATA] = ef[k]
+                ev.val[r, V_DATA + 1] = e_ref
+                ev.val[r, V_DATA + 2] = ef[k] - e_ref
 
-    # Rest merge [REC]: at rest (every battery at or below i_det for t_rest), a standby or
-    # admitted battery whose voltage is within v_merge = i_merge * r_loop_ohm of every
-    # engaged battery rejoins with its charge FET on, as R1 admits batteries within v_th at
-    # power-up: closing it pushes at most about i_merge between them. Without it a battery
-    # demoted by reverse current when the load stopped can only come back by R2 (it is
-    # lower, so never) or R3 (its diode needs the bus 0.6 V below it, which the remaining
-    # batteries alone may not reach before the load's own under-voltage lock-out cuts it).
-    if idle:
-        if math.isnan(rest_since_s[p]):
-            rest_since_s[p] = t
-    else:
-        rest_since_s[p] = np.nan
-    rest = rest_since_s[p]
-    rested = not math.isnan(rest) and t - rest + EPS_S >= prm.t_rest
-    have_eng = False
-    lo = 0.0
-    hi = 0.0
-    for k in range(n):
-        if state[p, k] == DISCHARGING and chg_on[p, k]:
-            v = volt[k]
-            if not have_eng:
-                lo = v
-                hi = v
-                have_eng = True
-            else:
-                if v < lo:
-                    lo = v
-                if v > hi:
-                    hi = v
-    if rested and have_eng:
-        m = 0
-        for k in range(n):
-            if (
-                not demoted[k]
-                and not chg_on[p, k]
-                and math.isnan(isolated_since_s[p, k])
-                and (state[p, k] == STANDBY or state[p, k] == DISCHARGING)
-            ):
-                order[m] = k
-                m += 1
-        _sort_desc(order, m, volt)
-        for i in range(m):
-            k = order[i]
-            new_lo = volt[k] if volt[k] < lo else lo
-            new_hi = volt[k] if volt[k] > hi else hi
-            if new_hi - new_lo > prm.v_merge:
-                continue
-            r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_REST, R_REST_MERGE)
-            if r >= 0:
-                ev.val[r, V_DATA] = volt[k]
-                ev.val[r, V_DATA + 1] = lo
-                ev.val[r, V_DATA + 2] = hi
-                ev.val[r, V_DATA + 3] = prm.v_merge
-            conduct_since_s[p, k] = np.nan
-            lo = new_lo
-            hi = new_hi
-
-    # Load merge [REC]: under load, a standby (or admitted, not engaged) battery whose fast
-    # voltage matches the engaged ones' (zero-load current into any of them <= i_merge and
-    # none pushed past i_guard) closes its charge FET: it sources at once and the guard
-    # would not open anybody. This is the rest merge with IR-compensated voltages; it brings
-    # back a battery the guard opened as soon as the others have come down to it, before
-    # R2 (v_co above the loaded bus) or R3 (a diode drop below it) would.
-    if not idle and _engaged(state, chg_on, p, grp, -1) > 0:
-        m = 0
-        for k in range(n):
-            if (
-                not demoted[k]
-                and pres[k]
-                and not chg_on[p, k]
-                and math.isnan(isolated_since_s[p, k])
-                and (state[p, k] == STANDBY or state[p, k] == DISCHARGING)
-            ):
-                order[m] = k
-                m += 1
-        _sort_desc(order, m, volt)
-        for i in range(m):
-            k = order[i]
-            m2 = _engaged(state, chg_on, p, grp, k)
-            _zero_load(grp, m2, ef, g, pred)
-            if pred[k] > prm.i_merge or _max_over(grp, m2, pred) > prm.i_guard:
-                continue
-            r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_LOAD, R_LOAD_MERGE)
-            if r >= 0:
-                ev.val[r, V_DATA] = volt[k]
-                ev.val[r, V_DATA + 1] = pred[k]
-                ev.val[r, V_DATA + 2] = prm.i_merge
-            conduct_since_s[p, k] = np.nan
-
-    # Level rule: an admitted battery at or above the engaged batteries cannot be charged by
-    # them *now*, so its charge FET may close directly (this completes an R2 join at once),
-    # provided the cross-current guard agrees: under load a joiner v_co above the loaded
-    # bus may still have a lower fast voltage (V + I*R) than an engaged battery, which would
-    # charge it if the load vanished. Such a joiner stays admitted with its FET open (it
-    # cannot be charged, its diode still lets it feed the bus) until the others have come
-    # down to it. Highest first, each compared with everything engaged so far, so two
-    # batteries joining in the same period cannot close onto each other.
-    have_eng = False
-    v_eng = 0.0
-    for k in range(n):
-        if state[p, k] == DISCHARGING and chg_on[p, k] and (not have_eng or volt[k] > v_eng):
-            v_eng = volt[k]
-            have_eng = True
-    if have_eng:
-        m = 0
-        for k in range(n):
-            if state[p, k] == DISCHARGING and not chg_on[p, k]:
-                order[m] = k
-                m += 1
-        _sort_desc(order, m, volt)
-        for i in range(m):
-            k = order[i]
-            if volt[k] >= v_eng:
-                m2 = _engaged(state, chg_on, p, grp, k)
-                _zero_load(grp, m2, ef, g, pred)
-                if pred[k] <= prm.i_merge:
-                    chg_on[p, k] = True
-                    conduct_since_s[p, k] = np.nan
-                    if volt[k] > v_eng:
-                        v_eng = volt[k]
+    # Engage (R2 switches the joiner's charge FET; also re-closes one the reverse cut opened).
+    _engage(prm, st, p, pres, _load(pres, cur))
 
     # R3: charge diode conducting (charge FET off, discharge FET on, discharge current).
     # Only current measured over a period in which this controller held the charge FET off
-    # and the discharge FET on can have flowed through the diode.
+    # and the discharge FET on can have flowed through the diode. Outranks the engage rule's
+    # charge-limit test: the diode must not carry the current (flagged below if at risk).
+    any_r3 = False
     for k in range(n):
-        keep[k] = False
+        skip[k] = False
     for k in range(n):
         if (state[p, k] != DISCHARGING and state[p, k] != STANDBY) or chg_on[p, k]:
             conduct_since_s[p, k] = np.nan
@@ -1179,15 +678,38 @@ def _discharge_tick(
                 ev.val[r, V_DATA + 1] = cur[k]
         else:
             chg_on[p, k] = True
-        keep[k] = True
-        if guard_opened[p, k]:
-            # The guard opened it and the load made its diode conduct anyway: keep it
-            # engaged at this load instead of opening it every other period.
-            hold_load_a[p, k] = _load(pres, cur)
-            guard_opened[p, k] = False
+        skip[k] = True
+        any_r3 = True
+    # Hand-over: if the batteries R3 closed, now engaged, would charge an engaged sibling by
+    # more than i_rev at the present load, they are the higher ones (embodiment 5: discharge
+    # current means no other battery can charge them) and the sibling's charge FET opens in
+    # the same period, before the current flows; it stays admitted and re-engages by the
+    # engage rule. Never one R3 closed in this period: its diode current says it sources.
+    if any_r3:
+        _open_charged(prm, st, ev, src, p, _load(pres, cur), t)
 
-    _guard(prm, st, ev, src, p, pres, cur, t)
-    v_ref_v[p] = _v_ref(state, p, volt)
+    # Zero-load prediction of the engaged set: an engaged battery that would take more than
+    # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
+    # voltages drifted apart during co-discharge) is flagged once per episode; the reverse cut
+    # (or the plant's comparator) bounds it. Nothing is opened on a prediction.
+    m = _engaged(state, chg_on, p, grp, -1)
+    for k in range(n):
+        pred[k] = 0.0
+    _share(grp, m, ef, g, 0.0, pred)
+    for k in range(n):
+        risk = pred[k] > i_lim[k]
+        if risk and not at_risk[p, k]:
+            r = emit(ev, p, src, RISK, k, t)
+            ev.val[r, 0] = pred[k]
+            ev.val[r, 1] = i_lim[k]
+            ev.val[r, 2] = k
+        at_risk[p, k] = risk
+        zero_load_into_a[p, k] = pred[k]
+    zero_load_valid[p] = True
+    v_ref_v[p] = _e_ref(state, p, ef)
+
+
+# ------------------------------------------------------------------------------ charge mode
 
 
 @kernel_inline
@@ -1200,15 +722,13 @@ def _charge_tick(
     dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
     at_risk = st.at_risk
-    isolated_since_s = st.isolated_since_s
     zero_load_into_a = st.zero_load_into_a
     initialized = st.initialized
     v_ref_v = st.v_ref_v
-    rest_since_s = st.rest_since_s
     zero_load_valid = st.zero_load_valid
     was_c = st.was_c
     was_d = st.was_d
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    sw = Switches(state, chg_on, dsg_on)
     n = state.shape[1]
     i_det = prm.i_det
     if not initialized[p]:
@@ -1246,7 +766,6 @@ def _charge_tick(
         if _diode_rule(prm, state, conduct_since_s, ev, src, p, k, through, t, dt):
             dsg_on[p, k] = True
     v_ref_v[p] = np.nan
-    rest_since_s[p] = np.nan
     zero_load_valid[p] = False
     for k in range(n):
         zero_load_into_a[p, k] = np.nan
@@ -1323,14 +842,12 @@ def _fail_safe(
     dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
     at_risk = st.at_risk
-    isolated_since_s = st.isolated_since_s
     zero_load_into_a = st.zero_load_into_a
     mode = st.mode
     initialized = st.initialized
     v_ref_v = st.v_ref_v
-    rest_since_s = st.rest_since_s
     zero_load_valid = st.zero_load_valid
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    sw = Switches(state, chg_on, dsg_on)
     n = state.shape[1]
     if mode[p] != MODE_FAULT:
         r = emit(ev, p, src, FAULT, -1, t)
@@ -1348,7 +865,6 @@ def _fail_safe(
         conduct_since_s[p, k] = np.nan
     initialized[p] = False
     v_ref_v[p] = np.nan
-    rest_since_s[p] = np.nan
     zero_load_valid[p] = False
     for k in range(n):
         zero_load_into_a[p, k] = np.nan
@@ -1357,16 +873,15 @@ def _fail_safe(
 
 @kernel_inline
 def _update_resistance(
-    prm: SequencingParams, r_ohm: F64, last_v_v: F64, last_i_a: F64, ef: F64, g: F64, gp: F64,
-    p: int, volt: F64, cur: F64, pres: B1,
+    prm: SequencingParams, r_ohm: F64, last_v_v: F64, last_i_a: F64, ef: F64, g: F64, p: int,
+    volt: F64, cur: F64, pres: B1,
 ) -> None:  # fmt: skip
     """Resistance estimate per battery: -dV/dI over the last current step >= ``i_step``.
 
     Voltages are battery-side, so the quotient is the battery's ohmic resistance whatever
     its FETs or diodes did; over one control period OCV and polarisation hardly move. Then
     the per-step values every rule shares: the fast voltage V + I*R (the voltage a battery
-    shows the instant its current drops to zero: OCV minus the polarisation), 1 / R and
-    1 / the pessimistic R (1.25 x the estimate, 2 x the prior before any current step).
+    shows the instant its current drops to zero: OCV minus the polarisation) and 1 / R.
     """
     n = pres.shape[0]
     r_batt = prm.r_batt_ohm
@@ -1387,11 +902,9 @@ def _update_resistance(
         last_i_a[p, k] = cur[k]
     for k in range(n):
         r = r_ohm[p, k]
-        nan_r = math.isnan(r)
-        r_est = r_batt if nan_r else r
+        r_est = r_batt if math.isnan(r) else r
         ef[k] = volt[k] + cur[k] * r_est
         g[k] = 1.0 / r_est
-        gp[k] = 1.0 / ((2.0 if nan_r else 1.25) * r_est)
 
 
 @kernel_inline
@@ -1447,7 +960,6 @@ def _output(
     dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
     at_risk = st.at_risk
-    isolated_since_s = st.isolated_since_s
     zero_load_into_a = st.zero_load_into_a
     mode = st.mode
     last_t_s = st.last_t_s
@@ -1466,8 +978,6 @@ def _output(
         zl = zero_load_into_a[p, k] if zero_load_valid[p] else 0.0
         status[p, k, s0 + ST_ZERO_LOAD] = zl
         status[p, k, s0 + ST_AT_RISK] = 1.0 if at_risk[p, k] else 0.0
-        iso = not math.isnan(isolated_since_s[p, k])
-        status[p, k, s0 + ST_ISOLATED] = 1.0 if iso else 0.0
         since = conduct_since_s[p, k]
         diode_s = 0.0 if math.isnan(since) or math.isnan(last) else last - since
         status[p, k, s0 + ST_DIODE] = diode_s
@@ -1483,12 +993,11 @@ def step_pack(
     chg_on = st.chg_on
     dsg_on = st.dsg_on
     conduct_since_s = st.conduct_since_s
-    isolated_since_s = st.isolated_since_s
     mode = st.mode
     initialized = st.initialized
     last_t_s = st.last_t_s
     mode_evidence_since_s = st.mode_evidence_since_s
-    sw = Switches(state, chg_on, dsg_on, isolated_since_s)
+    sw = Switches(state, chg_on, dsg_on)
     n = state.shape[1]
     t_meas = m.t_s[p]
     bat = m.bat
@@ -1536,9 +1045,12 @@ def step_pack(
             inserted[k] = True
             n_ins += 1
 
-    _update_resistance(
-        prm, st.r_ohm, st.last_v_v, st.last_i_a, st.ef, st.g, st.gp, p, volt, cur, pres
-    )
+    _update_resistance(prm, st.r_ohm, st.last_v_v, st.last_i_a, st.ef, st.g, p, volt, cur, pres)
+    cap = tp.capacity_ah[p]
+    i_lim = st.i_lim
+    for k in range(n):
+        c = cap[k] if k < cap.shape[0] else np.nan
+        i_lim[k] = prm.charge_limit_c * (c if c > 0.0 else prm.default_capacity_ah)
     docked = bool(m.docked[p])
     _update_mode(
         prm, mode, mode_evidence_since_s, initialized, conduct_since_s, ev, src, p, cur, pres,
