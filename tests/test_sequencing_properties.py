@@ -157,6 +157,30 @@ def test_r3_r4_deadline_known_counterexample() -> None:
     _check_deadline((6, 0.2, samples))
 
 
+_V1 = (23.0, 23.362741493785908, 18.0, 18.0, 25.0)
+_V2 = (23.0, 23.262741493785906, 18.0, 18.0, 25.0)
+_P1 = (True, True, False, False, False)
+_P2 = (True, True, False, False, True)
+_Z5 = (0.0,) * 5
+
+
+def test_r3_deadline_when_the_engage_rule_closed_a_conducting_battery() -> None:
+    """Found by the random deadline property after the co-discharge change (dt 0.5 s > t_on):
+    at 12.5 s battery 0's diode carries 3 A; the engage rule closes its charge FET, R3 closes
+    battery 4's, and the hand-over reopened battery 0 on a prediction that battery 4 would
+    charge it: the diode kept conducting past t_on. A battery whose diode carried discharge
+    current over the last period sources, whichever rule closes it (rules.py, R3 loop)."""
+    rows = [Sample(_V1, _Z5, _P1, True)] * 10 + [Sample(_V1, _Z5, _P2, True)] * 5
+    rows += [Sample(_V2, _Z5, _P2, True)] * 4 + [Sample(_V2, _Z5, _P2, False)] * 3
+    rows += [
+        Sample(_V2, (1.0, 0.0, 0.0, 0.0, -1.0), _P2, False),
+        Sample(_V2, (-1.0, 0.0, 0.0, 0.0, 0.0), _P2, False),
+        Sample((22.9, 23.762741493785906, 18.0, 18.0, 25.0), (0.0, 4.0, 0.0, 0.0, 0.0), _P2, False),
+        Sample((23.407873584811522, *_V2[1:]), (3.0, 21.0, 0.0, 0.0, 1.0), _P2, False),
+    ]
+    _check_deadline((5, 0.5, rows))
+
+
 def _check_deadline(case: tuple[int, float, list[Sample]]) -> None:
     n, dt, samples = case
     ctrl = SequencingController(CFG, _pack(n))

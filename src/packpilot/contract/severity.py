@@ -66,13 +66,11 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "LimitDerate": KindRow(Severity.WARNING, "limit", "LimitReset"),
         "CommandRefused": KindRow(Severity.WARNING, "refused"),
         "CrossCurrentRisk": KindRow(Severity.WARNING, "crosscurrent"),
-        "SourceIsolated": KindRow(Severity.WARNING, "isolated"),
         # routine: the controllers doing their job
         "BalancingUpdated": _I,
         "BatteryFull": _I,
         "BatteryJoined": _I,
         "ChargeComplete": _I,
-        "CrossCurrentGuard": _I,
         "DiodeBypassed": _I,
         "FaultCleared": _I,
         "LimitReset": _I,

@@ -82,9 +82,13 @@ def create_app(live: LiveRun, push_interval_s: float = 0.2) -> FastAPI:
                 version = live.version
                 if version != seen_version or backlog:
                     seen_version = version
+                    # The state first, the points after: a run that reads "finished" here has
+                    # recorded its last sample, so this message carries it. (Read the other way
+                    # round, a loaded machine sent "finished" with the last 13 of 600 samples
+                    # still to come, and the page showed a finished run missing its end.)
+                    st = live.status()
                     up = live.update_since(cursor, max_events=MAX_EVENTS_PER_MESSAGE)
                     cursor = up.cursor
-                    st = live.status()
                     msg = {
                         "type": "update",
                         "state": st["state"],

@@ -665,10 +665,17 @@ def _discharge_tick(
     for k in range(n):
         skip[k] = False
     for k in range(n):
-        if (state[p, k] != DISCHARGING and state[p, k] != STANDBY) or chg_on[p, k]:
+        if state[p, k] != DISCHARGING and state[p, k] != STANDBY:
             conduct_since_s[p, k] = np.nan
             continue
         through = (not was_c[k]) and was_d[k] and cur[k] > i_det
+        if chg_on[p, k]:
+            # The engage rule closed it in this period while its diode carried discharge
+            # current: like one R3 closes, it sources, so the hand-over must not reopen it
+            # (it did, and the diode kept conducting past t_on: #18's deadline property).
+            conduct_since_s[p, k] = np.nan
+            skip[k] = through
+            continue
         if not _diode_rule(prm, state, conduct_since_s, ev, src, p, k, through, t, dt):
             continue
         if state[p, k] == STANDBY:
