@@ -299,6 +299,18 @@ class ProtectionConfig(Strict):
         description="Per-axis first-order low-pass time constant (s) applied before the "
         "lookup. Empty = off.",
     )
+    warning_share: float = Field(
+        default=0.5,
+        description="Share of the allowance (sum of t_k / t_max_k) at which a "
+        "ProtectionWarning tells the platform a trip is coming; once per episode, re-armed "
+        "when the share falls back below it (a new discharge cycle). In (0, 1].",
+    )
+    predict_tau_s: float = Field(
+        default=5.0,
+        description="Time constant (s) of the low-pass filter on the check voltage's slope "
+        "that predicts when the voltage reaches the active cut-off (status "
+        "protection_time_to_trip_s).",
+    )
 
     @field_validator("discharge_threshold_a", "charge_threshold_a", "charge_detect_s")
     @classmethod
@@ -306,6 +318,20 @@ class ProtectionConfig(Strict):
         name = info.field_name
         if not (math.isfinite(v) and v >= 0.0):
             raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        return v
+
+    @field_validator("warning_share")
+    @classmethod
+    def _check_share(cls, v: float) -> float:
+        if not (math.isfinite(v) and 0.0 < v <= 1.0):
+            raise ValueError(f"warning_share must be in (0, 1], got {v}")
+        return v
+
+    @field_validator("predict_tau_s")
+    @classmethod
+    def _check_tau(cls, v: float) -> float:
+        if not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"predict_tau_s must be a finite number > 0, got {v}")
         return v
 
     @field_validator("hysteresis")
