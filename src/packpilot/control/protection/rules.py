@@ -506,11 +506,11 @@ def time_to_trip(
     if q < 0 or not (math.isfinite(cur) and st.discharging[p, i]) or math.isnan(v_chk):
         return math.nan
     left = remaining_s(st.acc_num, st.acc_den, p, i, prm.m_ms, prm.weight[q])
-    cut = prm.cutoff_v[q]
+    cut = float(prm.cutoff_v[q])
     below = v_chk <= cut if prm.voltage_le else v_chk < cut
     if below:
         return left
-    slope = st.dvdt[p, i]
+    slope = float(st.dvdt[p, i])
     if not (slope < 0.0):
         return math.nan
     return (v_chk - cut) / -slope + left
@@ -530,7 +530,7 @@ def time_to_empty(m: MeasArrays, p: int, i: int, discharge_threshold_a: float) -
         return math.nan
     if ah <= 0.0:
         return 0.0
-    return ah * 3600.0 / cur
+    return float(ah * 3600.0 / cur)
 
 
 @kernel_inline
