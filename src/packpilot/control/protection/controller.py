@@ -19,7 +19,8 @@ from packpilot.control.protection.rules import B1, F64, ProtectionParams, Protec
 from packpilot.errors import ConfigError
 
 assert AXES[rules.AX_CURRENT] == "current_a" and AXES[rules.AX_TEMP] == "temp_c"
-assert AXES[rules.AX_SOH] == "soh" and len(AXES) == rules.N_AXES
+assert AXES[rules.AX_SOH] == "soh" and AXES[rules.AX_RES] == "resistance_ohm"
+assert AXES[rules.AX_CYCLES] == "cycle_count" and len(AXES) == rules.N_AXES
 
 FIELDS = (*AXES, "min_cell_v")
 """Fields a Fault event names (the axis codes, then the check voltage)."""
@@ -240,6 +241,8 @@ def build(
         reset_on_reinsert=bool(config.reset_on_reinsert),
         warn_share=float(config.warning_share),
         predict_tau_s=float(config.predict_tau_s),
+        res_step_a=float(config.resistance_step_a),
+        res_gain=float(config.resistance_gain),
         name_len=np.array([len(b) for b in names], np.int64),
         name_utf8=np.array(list(b"".join(names)), np.int64),
     )
@@ -261,6 +264,9 @@ def build(
         warned=np.zeros(shape, np.bool_),
         v_prev=np.full(shape, np.nan),
         dvdt=np.full(shape, np.nan),
+        r_est=np.full(shape, np.nan),
+        r_i=np.full(shape, np.nan),
+        r_v=np.full(shape, np.nan),
     )
     return prm, st
 
@@ -325,6 +331,11 @@ class BatteryView:
     @property
     def discharging(self) -> bool:
         return bool(self._ctl.st.discharging[0, self._i])
+
+    @property
+    def resistance_ohm(self) -> float:
+        """Cell-level internal resistance estimated from current steps (NaN before one)."""
+        return float(self._ctl.st.r_est[0, self._i])
 
     @property
     def charge_s(self) -> float:

@@ -50,7 +50,9 @@ B1 = NDArray[np.bool_]
 AX_CURRENT = 0
 AX_TEMP = 1
 AX_SOH = 2
-N_AXES = 3
+AX_RES = 3
+AX_CYCLES = 4
+N_AXES = 5
 FIELD_MIN_CELL = N_AXES
 """Fault fields: the axis codes, then the check voltage."""
 N_FIELDS = N_AXES + 1
@@ -137,6 +139,10 @@ class ProtectionParams(NamedTuple):
     """Share of the allowance at which ``ProtectionWarning`` fires (0 < share <= 1)."""
     predict_tau_s: float
     """Time constant of the check voltage's slope filter (time-to-trip prediction)."""
+    res_step_a: float
+    """Smallest current step that updates the resistance estimate ..."""
+    res_gain: float
+    """... and the weight of a new step in it."""
     name_len: I64
     """(K,) UTF-8 byte length of each parameter name ..."""
     name_utf8: I64
@@ -170,6 +176,12 @@ class ProtectionState(NamedTuple):
     """(P, B) last finite check voltage (NaN before one) ..."""
     dvdt: F64
     """(P, B) ... and its filtered slope in V/s (NaN before two)."""
+    r_est: F64
+    """(P, B) cell-level internal resistance estimated from current steps (NaN before one) ..."""
+    r_i: F64
+    """(P, B) ... the current and ..."""
+    r_v: F64
+    """(P, B) ... check voltage of the last tick with both finite (NaN before one)."""
 
 
 # ------------------------------------------------------------------------- exact fractions
@@ -556,6 +568,9 @@ def step_pack(
             st.charge_s[p, i] = 0.0
             st.v_prev[p, i] = math.nan
             st.dvdt[p, i] = math.nan
+            st.r_est[p, i] = math.nan  # whatever comes back is estimated afresh
+            st.r_i[p, i] = math.nan
+            st.r_v[p, i] = math.nan
         else:
             if st.absent[p, i]:
                 st.absent[p, i] = False
@@ -587,10 +602,14 @@ def step_pack(
                 else:
                     if code == AX_TEMP:
                         x = bat.temp_c[p, i]
+                    elif code == AX_RES:
+                        x = st.r_est[p, i]  # an estimate, not a sensor: unknown is no Fault
+                    elif code == AX_CYCLES:
+                        x = bat.cycle_count[p, i]
                     else:  # AX_SOH: full / nominal capacity; unknown without a nominal value
                         cap = tp.capacity_ah[p, i]
                         x = bat.full_capacity_ah[p, i] / cap if cap > 0.0 else math.nan
-                    if _fault_edge(st.faults, p, i, code, math.isfinite(x)):
+                    if code != AX_RES and _fault_edge(st.faults, p, i, code, math.isfinite(x)):
                         _emit_fault(ev, p, src, FAULT_AXIS, i, t_s, code)
                 if not math.isfinite(x):
                     st.values[p, i, a] = math.nan
@@ -640,6 +659,21 @@ def step_pack(
                 else:
                     code = FAULT_V_NONE
                 _emit_fault(ev, p, src, code, i, t_s, FIELD_MIN_CELL)
+
+            # Internal resistance from current steps: R = -dV / dI of the check voltage between
+            # two ticks whose currents differ by at least res_step_a (the same cell's reading).
+            if cur_ok and source == VS_MIN_CELL:
+                di = cur - st.r_i[p, i]
+                if math.isfinite(di) and abs(di) >= prm.res_step_a:
+                    r_new = -(v_chk - st.r_v[p, i]) / di
+                    if r_new > 0.0 and math.isfinite(r_new):
+                        if math.isnan(st.r_est[p, i]):
+                            st.r_est[p, i] = r_new
+                        else:
+                            r_old = st.r_est[p, i]
+                            st.r_est[p, i] = r_old + prm.res_gain * (r_new - r_old)
+                st.r_i[p, i] = cur
+                st.r_v[p, i] = v_chk
 
             # The check voltage's slope, low-pass filtered (time-to-trip prediction).
             if math.isfinite(v_chk) and dt > 0.0:
