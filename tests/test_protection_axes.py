@@ -118,3 +118,12 @@ def test_resistance_config_validated() -> None:
     for kw in ({"resistance_step_a": 0.0}, {"resistance_gain": 0.0}, {"resistance_gain": 1.5}):
         with pytest.raises(ValueError):
             ProtectionConfig(**kw)  # type: ignore[arg-type]
+
+
+def test_no_estimate_from_a_fallback_voltage() -> None:
+    """Only the min cell voltage (one cell's reading) gives a resistance; the mean cell of a
+    fallback is a different quantity."""
+    d = Driver(R_TABLE)
+    d.step(replace(_bm(5.0, 25.0, 3.60), min_cell_v=math.nan), 1.0)
+    d.step(replace(_bm(25.0, 25.0, 3.50), min_cell_v=math.nan), 1.0)
+    assert math.isnan(d.ctl.battery(0).resistance_ohm)
