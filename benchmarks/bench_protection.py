@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from packpilot.config import ScenarioConfig, load_config
 from packpilot.config.protection import ProtectionConfig
 from packpilot.model.cell import CellParams, load_parameter_set, write_parameter_file
+from packpilot.model.cell.calibrate import calibrate_protection
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -62,7 +63,14 @@ STRATEGIES: dict[str, dict[str, Any] | None] = {
         ]
     },
 }
-MAIN_STRATEGIES = ("method", "fixed_conservative", "fixed_aggressive")
+SOC_FLOOR = 0.02
+"""Floor of ``packpilot calibrate protection --soc-floor`` in the bench (#15 §4)."""
+CALIBRATED_CELL = "uav_5ah"
+STRATEGIES["calibrated"] = calibrate_protection(load_parameter_set(CALIBRATED_CELL), SOC_FLOOR)[
+    0
+].model_dump()
+STRATEGIES["no_trip"] = _fixed(2.0, 86400.0)  # reference: energy available above the floor
+MAIN_STRATEGIES = ("method", "fixed_conservative", "fixed_aggressive", "calibrated")
 
 
 def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[str, Any]:
@@ -87,6 +95,13 @@ def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[s
         None if empty.size == 0 else float(np.sum(np.maximum(v * i, 0.0)[: empty[0]]) * dt / 3600)
     )
     soc, _ = runner.pack.cell_states()
+    soc_tr = res.trace.channel("remaining_ah")[:, 0] / res.trace.channel("full_ah")[:, 0]
+    at_floor = np.flatnonzero(soc_tr <= SOC_FLOOR)
+    energy_to_floor = (
+        None
+        if at_floor.size == 0
+        else float(np.sum(np.maximum(v * i, 0.0)[: at_floor[0]]) * dt / 3600)
+    )
     cell_v = runner.pack.cell_voltage_now()[0]
     rest_s = runner.pack.t_s - (trip.t_s if trip else runner.pack.t_s)
     return {
@@ -101,7 +116,9 @@ def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[s
         "rest_ocv_v": round(float(cell_v.mean()), 4) if rest and trip else None,
         "rest_min_cell_v": round(float(cell_v.min()), 4) if rest and trip else None,
         "soc_left": round(float(soc[0].mean()), 4),
+        "min_cell_soc": round(float(soc[0].min()), 4),
         "below_empty": bool((soc[0] < 0.0).any()),
+        "energy_to_floor_wh": None if energy_to_floor is None else round(energy_to_floor, 3),
         "energy_to_empty_wh": None if energy_to_empty is None else round(energy_to_empty, 2),
     }
 
@@ -115,7 +132,12 @@ def run(
         cfg = load_config(EXAMPLES / fname)
         block = [{"scenario": scenario, **run_case(cfg, s)} for s in strategies]
         ref = next(r for r in block if r["strategy"] == "fixed_conservative")
+        floor_wh = run_case(cfg, "no_trip", rest=False)["energy_to_floor_wh"]
         for r in block:
+            r["energy_above_floor_wh"] = floor_wh
+            r["captured_above_floor_pct"] = (
+                None if not floor_wh else round(100.0 * r["energy_wh"] / floor_wh, 1)
+            )
             r["energy_vs_conservative_pct"] = round(
                 100.0 * (r["energy_wh"] / ref["energy_wh"] - 1.0), 1
             )

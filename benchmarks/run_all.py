@@ -135,9 +135,20 @@ def _protection_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
             (
                 f"protection {sc}: energy vs fixed 3.2 V/5 s",
                 f"{m['energy_vs_conservative_pct']:+.1f} %",
-                ">= +15 %" if sc == "cold_heavy" else "",
+                "",  # the +15 % goal is withdrawn (#15 §4: only +11.3 % exists above empty)
             )
         )
+        for strat in ("fixed_conservative", "fixed_aggressive", "method", "calibrated"):
+            r = _pick(rows, scenario=sc, strategy=strat)
+            if r.get("captured_above_floor_pct") is None:
+                continue
+            out.append(
+                (
+                    f"protection {sc}: {strat} energy captured above 2 % SOC / min cell SOC",
+                    f"{r['captured_above_floor_pct']:.1f} % / {r['min_cell_soc']:.4f}",
+                    ">= 95 % / >= 0" if strat == "calibrated" else "",
+                )
+            )
         out.append(
             (
                 f"protection {sc}: rest OCV vs conservative",

@@ -15,6 +15,8 @@ import pytest
 
 from packpilot.config import load_config
 from packpilot.config.protection import ProtectionConfig
+from packpilot.model.cell import load_parameter_set
+from packpilot.model.cell.calibrate import calibrate_protection
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -29,7 +31,16 @@ BASELINES: dict[str, dict[str, Any] | None] = {
         "parameters": [{"name": "F", "cutoff_v": 2.8, "t_max_s": 15}],
         "table": [{"param": "F"}],
     },
+    # never trips above 2.0 V: the reference for the energy available above the SOC floor
+    "no_trip": {
+        "parameters": [{"name": "F", "cutoff_v": 2.0, "t_max_s": 86400}],
+        "table": [{"param": "F"}],
+    },
 }
+SOC_FLOOR = 0.02
+BASELINES["calibrated"] = calibrate_protection(load_parameter_set("uav_5ah"), SOC_FLOOR)[
+    0
+].model_dump()
 
 
 @cache
@@ -42,17 +53,30 @@ def _run(scenario: str, strategy: str, rest: bool) -> dict[str, Any]:
         update["sim"] = cfg.sim.model_copy(update={"stop_when_unsupplied_s": 1.0})
     runner = Runner(cfg.model_copy(update=update), progress=False)
     res = runner.run()
-    (trip,) = [e for e in res.events if e.kind == "ProtectionTripped"]
+    trips = [e for e in res.events if e.kind == "ProtectionTripped"]
+    trip = trips[0] if trips else None
     t = res.trace.t_s
+    v = res.trace.channel("voltage_v")[:, 0]
+    i = res.trace.channel("current_a")[:, 0]
+    soc_tr = res.trace.channel("remaining_ah")[:, 0] / res.trace.channel("full_ah")[:, 0]
+    floor = np.flatnonzero(soc_tr <= SOC_FLOOR)
+    dt = float(t[1] - t[0])
+    soc, _ = runner.pack.cell_states()
     current = res.trace.channel("current_a")[:, 0]
     dsg = res.trace.channel("dsg_on")[:, 0]
     return {
         "trip": trip,
         "energy_wh": float(res.metrics["energy_out_wh"]),
         "rest_ocv_v": float(runner.pack.cell_voltage_now()[0].mean()),
-        "rest_s": runner.pack.t_s - trip.t_s,
-        "after_trip_a": current[t > trip.t_s + 1.0],
-        "dsg_after": dsg[t > trip.t_s + 1.0],
+        "rest_s": runner.pack.t_s - (trip.t_s if trip else runner.pack.t_s),
+        "after_trip_a": current[t > trip.t_s + 1.0] if trip else current[:0],
+        "dsg_after": dsg[t > trip.t_s + 1.0] if trip else dsg[:0],
+        "energy_to_floor_wh": (
+            None
+            if floor.size == 0
+            else float(np.sum(np.maximum(v * i, 0.0)[: floor[0]]) * dt / 3600)
+        ),
+        "min_cell_soc": float(soc[0].min()),
         "tripped_status": res.trace.status["protection_tripped"],
     }
 
@@ -62,20 +86,6 @@ def test_warm_light_rest_ocv_not_below_conservative_minus_10_mv() -> None:
     cons = _run("warm_light", "conservative", rest=True)
     assert method["rest_s"] >= 1800.0 and cons["rest_s"] >= 1800.0
     assert method["rest_ocv_v"] >= cons["rest_ocv_v"] - 0.010
-
-
-@pytest.mark.xfail(
-    strict=True,
-    reason="measured +13.7 % on uav_5ah: the conservative baseline leaves only ~12 % SOC "
-    "(low cell DCIR, self-heating from -10 degC); delivering until the weakest cell is empty "
-    "would give only +11.3 %, so +15 % needs over-discharge. The cell's Arrhenius law (20 "
-    "kJ/mol) was checked against PyBaMM's physics sets and kept; see "
-    "docs/discharge_protection.md",
-)
-def test_cold_heavy_method_delivers_15_percent_more_energy_than_conservative() -> None:
-    method = _run("cold_heavy", "method", rest=False)
-    cons = _run("cold_heavy", "conservative", rest=False)
-    assert method["energy_wh"] >= 1.15 * cons["energy_wh"]
 
 
 def test_cold_heavy_method_delivers_more_energy_than_conservative() -> None:
@@ -103,3 +113,18 @@ def test_trip_opens_the_discharge_path_and_latches() -> None:
     flags = [row[0] for row in run["tripped_status"]]
     first = flags.index(True)
     assert all(flags[first:]) and not any(flags[:first])
+
+
+# The +15 % target of the earlier protection issue is withdrawn (#15 §4: on uav_5ah only
+# +11.3 % exists above empty); its strict xfail is replaced by the calibrated table's goal.
+
+
+@pytest.mark.parametrize("scenario", ["cold_heavy", "warm_light", "warming_flight"])
+def test_calibrated_table_captures_95_percent_above_the_floor_and_never_below_empty(
+    scenario: str,
+) -> None:
+    ref = _run(scenario, "no_trip", rest=False)["energy_to_floor_wh"]
+    cal = _run(scenario, "calibrated", rest=True)
+    assert ref is not None and cal["trip"] is not None
+    assert cal["energy_wh"] >= 0.95 * ref
+    assert cal["min_cell_soc"] >= 0.0

@@ -41,6 +41,12 @@ replay_app = typer.Typer(
     rich_markup_mode=None,
 )
 app.add_typer(replay_app, name="replay")
+calibrate_app = typer.Typer(
+    no_args_is_help=True,
+    help="Derive a control method's configuration from a cell set.",
+    rich_markup_mode=None,
+)
+app.add_typer(calibrate_app, name="calibrate")
 
 T = TypeVar("T")
 
@@ -68,7 +74,9 @@ def _main(
     version: Annotated[
         bool,
         typer.Option(
-            "--version", help="print the version and exit", callback=_version_callback,
+            "--version",
+            help="print the version and exit",
+            callback=_version_callback,
             is_eager=True,
         ),
     ] = False,
@@ -274,9 +282,7 @@ def _write_outputs(
         _write_report(result, report, cfg, path, db, started)
 
 
-def _summarise(
-    result: Result, cfg: dict[str, Any], as_json: bool, categories: list[str]
-) -> int:
+def _summarise(result: Result, cfg: dict[str, Any], as_json: bool, categories: list[str]) -> int:
     """Print the verdict, the alarms and the metrics; the exit code ``--fail-on`` asks for."""
     from packpilot.sim.verdict import fail_on, run_verdict
 
@@ -413,6 +419,51 @@ def _print_metrics(m: dict[str, Any]) -> None:
     for k, v in m.items():
         table.add_row(k, Text(_metric_text(v)))  # Text: a value is never read as markup
     Console().print(table)
+
+
+@calibrate_app.command("protection")
+def calibrate_protection_cmd(
+    cell: Annotated[
+        str, typer.Option(help="shipped cell set (uav_5ah, ...) or a packpilot-cell/1 JSON file")
+    ],
+    soc_floor: Annotated[
+        float, typer.Option(help="SOC the cells must keep when the allowance is used up")
+    ] = 0.02,
+    parallel: Annotated[int, typer.Option(help="cells in parallel per group")] = 1,
+    min_temp: Annotated[
+        float | None,
+        typer.Option(help="corner of the coldest band, degC (default: the set's lowest)"),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="TOML file to write (default: standard output)")
+    ] = None,
+) -> None:
+    """Cut-off per (current, temperature) cell from the cell set's OCV and resistance tables:
+    OCV at the floor (plus the charge the allowance may draw) minus I x R at the cell's worst
+    corner; writes a [protection] section (docs/discharge_protection.md, "Calibrated table")."""
+
+    def go() -> None:
+        from packpilot.model.cell import load_parameter_file, load_parameter_set
+        from packpilot.model.cell.calibrate import calibrate_protection, to_toml
+        from packpilot.model.cell.params import PARAMETER_SETS
+
+        params = load_parameter_set(cell) if cell in PARAMETER_SETS else load_parameter_file(cell)
+        cfg, cells = calibrate_protection(params, soc_floor, parallel=parallel, min_temp_c=min_temp)
+        header = (
+            f"packpilot calibrate protection --cell {cell} --soc-floor {soc_floor:g} "
+            f"--parallel {parallel}"
+            + ("" if min_temp is None else f" --min-temp {min_temp:g}")
+            + "\ncut-off = OCV(s_c, T) - I (R0 + R1)(T, I, s_c) at each cell's worst corner,"
+            "\ns_c = floor + I t_max / (3600 Q); t_max from the source's table"
+        )
+        text = to_toml(cfg, cells, header)
+        if out is None:
+            typer.echo(text, nl=False)
+        else:
+            out.write_text(text, encoding="utf-8")
+            typer.echo(f"wrote {out} ({len(cells)} cells)")
+
+    _guard(go)
 
 
 @app.command()

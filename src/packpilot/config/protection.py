@@ -33,12 +33,12 @@ CUTOFF_MIN_V = 2.0
 CUTOFF_MAX_V = 4.5
 """Allowed cut-off range: the values are cell-level Li-ion voltages (spec §3)."""
 
-AXES: tuple[str, ...] = ("current_a", "temp_c", "soh")
+AXES: tuple[str, ...] = ("current_a", "temp_c", "soh", "resistance_ohm", "cycle_count")
 """Status parameters a table may use as axes, in their stable order; an axis' index here is
 its code in the compiled rules (``control/protection/rules.py`` reads the value of each code:
 current_a and temp_c as measured, soh = full_capacity_ah / nominal capacity, NaN without a
-nominal capacity). Internal resistance and cycle count (spec §2) need a field in the
-measurement first; then they are one name here and one case in the rules."""
+nominal capacity; resistance_ohm = the cell-level internal resistance estimated online from
+current steps (unknown until the first step); cycle_count as the battery reports it)."""
 
 _INTERVAL_RE = re.compile(r"^\s*([\[(])\s*([^,\s]+)\s*,\s*([^,\s]+)\s*([\])])\s*$")
 
@@ -299,6 +299,28 @@ class ProtectionConfig(Strict):
         description="Per-axis first-order low-pass time constant (s) applied before the "
         "lookup. Empty = off.",
     )
+    warning_share: float = Field(
+        default=0.5,
+        description="Share of the allowance (sum of t_k / t_max_k) at which a "
+        "ProtectionWarning tells the platform a trip is coming; once per episode, re-armed "
+        "when the share falls back below it (a new discharge cycle). In (0, 1].",
+    )
+    resistance_step_a: float = Field(
+        default=2.0,
+        description="Smallest change of the battery current between two ticks that updates the "
+        "internal-resistance estimate (R = -dV_cell / dI; axis resistance_ohm), A.",
+    )
+    resistance_gain: float = Field(
+        default=0.25,
+        description="Weight of a new step's resistance in the estimate (exponential average), "
+        "in (0, 1]; 1 = the last step alone.",
+    )
+    predict_tau_s: float = Field(
+        default=5.0,
+        description="Time constant (s) of the low-pass filter on the check voltage's slope "
+        "that predicts when the voltage reaches the active cut-off (status "
+        "protection_time_to_trip_s).",
+    )
 
     @field_validator("discharge_threshold_a", "charge_threshold_a", "charge_detect_s")
     @classmethod
@@ -306,6 +328,34 @@ class ProtectionConfig(Strict):
         name = info.field_name
         if not (math.isfinite(v) and v >= 0.0):
             raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        return v
+
+    @field_validator("warning_share")
+    @classmethod
+    def _check_share(cls, v: float) -> float:
+        if not (math.isfinite(v) and 0.0 < v <= 1.0):
+            raise ValueError(f"warning_share must be in (0, 1], got {v}")
+        return v
+
+    @field_validator("resistance_step_a")
+    @classmethod
+    def _check_step(cls, v: float) -> float:
+        if not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"resistance_step_a must be a finite number > 0, got {v}")
+        return v
+
+    @field_validator("resistance_gain")
+    @classmethod
+    def _check_gain(cls, v: float) -> float:
+        if not (math.isfinite(v) and 0.0 < v <= 1.0):
+            raise ValueError(f"resistance_gain must be in (0, 1], got {v}")
+        return v
+
+    @field_validator("predict_tau_s")
+    @classmethod
+    def _check_tau(cls, v: float) -> float:
+        if not (math.isfinite(v) and v > 0.0):
+            raise ValueError(f"predict_tau_s must be a finite number > 0, got {v}")
         return v
 
     @field_validator("hysteresis")

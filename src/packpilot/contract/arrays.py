@@ -58,6 +58,8 @@ class BatteryArrays(NamedTuple):
     full_capacity_ah: F64
     remaining_capacity_ah: F64
     sample_age_s: F64
+    cycle_count: F64
+    """Cycles counted by the battery (NaN = not reported)."""
     group_v: F64
     """(P, B, G); NaN beyond ``n_groups``."""
     n_groups: I64
@@ -185,6 +187,7 @@ def battery_arrays(n_packs: int, n_batteries: int, n_groups: int) -> BatteryArra
         full_capacity_ah=nan(),
         remaining_capacity_ah=nan(),
         sample_age_s=nan(),
+        cycle_count=nan(),
         group_v=np.full((*shape, max(n_groups, 1)), np.nan),
         n_groups=np.zeros(shape, np.int64),
         sw_chg=np.zeros(shape, np.bool_),
@@ -309,6 +312,7 @@ def _put_battery(a: BatteryArrays, p: int, i: int, b: BatteryMeasurement | None)
         for arr in (a.max_cell_v, a.soc, a.full_capacity_ah, a.remaining_capacity_ah):
             arr[p, i] = math.nan
         a.sample_age_s[p, i] = math.nan
+        a.cycle_count[p, i] = math.nan
         a.group_v[p, i] = math.nan
         a.n_groups[p, i] = 0
         a.sw_chg[p, i] = a.sw_dsg[p, i] = a.present[p, i] = False
@@ -323,6 +327,7 @@ def _put_battery(a: BatteryArrays, p: int, i: int, b: BatteryMeasurement | None)
     a.full_capacity_ah[p, i] = _num(b.full_capacity_ah)
     a.remaining_capacity_ah[p, i] = _num(b.remaining_capacity_ah)
     a.sample_age_s[p, i] = _num(getattr(b, "sample_age_s", math.nan))
+    a.cycle_count[p, i] = _num(getattr(b, "cycle_count", math.nan))
     g = b.group_voltages_v
     a.n_groups[p, i] = len(g)
     row = a.group_v[p, i]
@@ -378,6 +383,7 @@ def battery_measurement(a: BatteryArrays, p: int, i: int) -> BatteryMeasurement:
         min_temp_c=float(a.min_temp_c[p, i]),
         present=bool(a.present[p, i]),
         sample_age_s=float(a.sample_age_s[p, i]),
+        cycle_count=float(a.cycle_count[p, i]),
     )
 
 

@@ -77,6 +77,9 @@ class BatteryMeasurement:
     sample_age_s: float = math.nan
     """Age of the sample when the monitor reports it (a repeated frame grows old); NaN = not
     reported, which is not the same as stale."""
+    cycle_count: float = math.nan
+    """Charge/discharge cycles the battery has counted (a smart battery's CycleCount); NaN =
+    not reported."""
 
 
 @dataclass(frozen=True, slots=True)

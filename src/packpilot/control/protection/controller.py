@@ -19,7 +19,8 @@ from packpilot.control.protection.rules import B1, F64, ProtectionParams, Protec
 from packpilot.errors import ConfigError
 
 assert AXES[rules.AX_CURRENT] == "current_a" and AXES[rules.AX_TEMP] == "temp_c"
-assert AXES[rules.AX_SOH] == "soh" and len(AXES) == rules.N_AXES
+assert AXES[rules.AX_SOH] == "soh" and AXES[rules.AX_RES] == "resistance_ohm"
+assert AXES[rules.AX_CYCLES] == "cycle_count" and len(AXES) == rules.N_AXES
 
 FIELDS = (*AXES, "min_cell_v")
 """Fields a Fault event names (the axis codes, then the check voltage)."""
@@ -80,8 +81,26 @@ REASONS = (
             "full_capacity_ah",
         ),
     ),
+    Reason(
+        "ProtectionWarning",
+        "discharge protection at {fraction:.0%} of its allowance under {param} "
+        "({cutoff_v:g} V / {t_max_s:g} s): trip in {time_to_trip_s:g} s at or below the cut-off",
+        fields(
+            "param:l:params",
+            "cutoff_v",
+            "t_max_s",
+            "fraction",
+            "share",
+            "time_to_trip_s",
+            "check_v",
+            "current_a",
+            "temp_c",
+            "soc",
+        ),
+    ),
 )
 assert [r.kind for r in REASONS].index("ProtectionReset") == rules.RESET
+assert [r.kind for r in REASONS].index("ProtectionWarning") == rules.WARNING
 assert [r.kind for r in REASONS].index("ProtectionTripped") == rules.TRIPPED
 
 STATUS = (
@@ -90,7 +109,11 @@ STATUS = (
     StatusChannel("protection_tmax_s", "o"),
     StatusChannel("protection_fraction", "f"),
     StatusChannel("protection_tripped", "b"),
+    StatusChannel("protection_time_to_trip_s", "o"),
+    StatusChannel("protection_time_to_empty_s", "o"),
 )
+assert STATUS[rules.ST_TIME_TO_TRIP].name == "protection_time_to_trip_s"
+assert STATUS[rules.ST_TIME_TO_EMPTY].name == "protection_time_to_empty_s"
 
 _ANY = AxisRange()
 
@@ -216,6 +239,10 @@ def build(
         charge_detect_s=float(config.charge_detect_s),
         reset_on_recovery=bool(config.reset_on_recovery),
         reset_on_reinsert=bool(config.reset_on_reinsert),
+        warn_share=float(config.warning_share),
+        predict_tau_s=float(config.predict_tau_s),
+        res_step_a=float(config.resistance_step_a),
+        res_gain=float(config.resistance_gain),
         name_len=np.array([len(b) for b in names], np.int64),
         name_utf8=np.array(list(b"".join(names)), np.int64),
     )
@@ -234,6 +261,12 @@ def build(
         filtered_set=np.zeros((*shape, na), np.bool_),
         faults=np.zeros((*shape, rules.N_FIELDS), np.bool_),
         values=np.full((*shape, na), np.nan),
+        warned=np.zeros(shape, np.bool_),
+        v_prev=np.full(shape, np.nan),
+        dvdt=np.full(shape, np.nan),
+        r_est=np.full(shape, np.nan),
+        r_i=np.full(shape, np.nan),
+        r_v=np.full(shape, np.nan),
     )
     return prm, st
 
@@ -298,6 +331,11 @@ class BatteryView:
     @property
     def discharging(self) -> bool:
         return bool(self._ctl.st.discharging[0, self._i])
+
+    @property
+    def resistance_ohm(self) -> float:
+        """Cell-level internal resistance estimated from current steps (NaN before one)."""
+        return float(self._ctl.st.r_est[0, self._i])
 
     @property
     def charge_s(self) -> float:
@@ -373,6 +411,11 @@ class ProtectionController(CompiledController):
         self.st.acc_num[0, battery] = 0
         self.st.acc_den[0, battery] = 1
         self.st.tripped[0, battery] = False
+        self.st.warned[0, battery] = False
+
+    def time_to_trip(self, battery: int) -> float:
+        """Last published predicted time to trip (s; NaN = none predicted)."""
+        return float(self._status[0, battery, rules.ST_TIME_TO_TRIP])
 
 
 __all__ = [

@@ -50,7 +50,9 @@ B1 = NDArray[np.bool_]
 AX_CURRENT = 0
 AX_TEMP = 1
 AX_SOH = 2
-N_AXES = 3
+AX_RES = 3
+AX_CYCLES = 4
+N_AXES = 5
 FIELD_MIN_CELL = N_AXES
 """Fault fields: the axis codes, then the check voltage."""
 N_FIELDS = N_AXES + 1
@@ -73,8 +75,10 @@ FAULT_V_MEAN = 3
 FAULT_V_NONE = 4
 RESET = 5
 TRIPPED = 6
-EVENTS_PER_BATTERY = 2 + N_FIELDS + 1
-"""At most one reset each for re-insertion and charge, one fault per field, one trip."""
+WARNING = 7
+EVENTS_PER_BATTERY = 2 + N_FIELDS + 2
+"""At most one reset each for re-insertion and charge, one fault per field, one warning, one
+trip."""
 
 # Status channels, in order.
 ST_PARAM = 0
@@ -82,6 +86,8 @@ ST_CUTOFF = 1
 ST_TMAX = 2
 ST_FRACTION = 3
 ST_TRIPPED = 4
+ST_TIME_TO_TRIP = 5
+ST_TIME_TO_EMPTY = 6
 
 LIM = 2**53
 """Largest numerator (and denominator * m) of the weighted sum: exact as a float."""
@@ -129,6 +135,14 @@ class ProtectionParams(NamedTuple):
     charge_detect_s: float
     reset_on_recovery: bool
     reset_on_reinsert: bool
+    warn_share: float
+    """Share of the allowance at which ``ProtectionWarning`` fires (0 < share <= 1)."""
+    predict_tau_s: float
+    """Time constant of the check voltage's slope filter (time-to-trip prediction)."""
+    res_step_a: float
+    """Smallest current step that updates the resistance estimate ..."""
+    res_gain: float
+    """... and the weight of a new step in it."""
     name_len: I64
     """(K,) UTF-8 byte length of each parameter name ..."""
     name_utf8: I64
@@ -156,6 +170,18 @@ class ProtectionState(NamedTuple):
     """(P, B, N_FIELDS) field currently not finite (one Fault event per episode)."""
     values: F64
     """(P, B, A) scratch: this tick's axis values (NaN = unknown)."""
+    warned: B1
+    """(P, B) ProtectionWarning given in this episode (re-armed below the share)."""
+    v_prev: F64
+    """(P, B) last finite check voltage (NaN before one) ..."""
+    dvdt: F64
+    """(P, B) ... and its filtered slope in V/s (NaN before two)."""
+    r_est: F64
+    """(P, B) cell-level internal resistance estimated from current steps (NaN before one) ..."""
+    r_i: F64
+    """(P, B) ... the current and ..."""
+    r_v: F64
+    """(P, B) ... check voltage of the last tick with both finite (NaN before one)."""
 
 
 # ------------------------------------------------------------------------- exact fractions
@@ -449,6 +475,77 @@ def _trip_event(
 
 
 @kernel_inline
+def _warning_event(
+    prm: ProtectionParams, st: ProtectionState, m: MeasArrays, p: int, i: int, q: int,
+    v_chk: float, ev: EventBuf, src: int,
+) -> None:  # fmt: skip
+    k = emit(ev, p, src, WARNING, i, m.t_s[p])
+    val = ev.val[k]
+    val[0] = q
+    val[1] = prm.cutoff_v[q]
+    val[2] = prm.t_max_s[q]
+    val[3] = acc_fraction(st.acc_num, st.acc_den, p, i, prm.m_ms)
+    val[4] = prm.warn_share
+    val[5] = remaining_s(st.acc_num, st.acc_den, p, i, prm.m_ms, prm.weight[q])
+    val[6] = v_chk
+    val[7] = m.bat.current_a[p, i]
+    val[8] = m.bat.temp_c[p, i]
+    val[9] = m.bat.soc[p, i]
+
+
+@kernel_inline
+def remaining_s(num: I64, den: I64, p: int, i: int, m: int, w: int) -> float:
+    """Seconds at or below the cut-off left before the trip if parameter weight ``w`` stays
+    active: ``(m - acc) / w`` weighted ms, as seconds (0 once the sum reached m)."""
+    left = float(m * den[p, i] - num[p, i]) / float(den[p, i])
+    if left <= 0.0:
+        return 0.0
+    return left / float(w) / 1000.0
+
+
+@kernel_inline
+def time_to_trip(
+    prm: ProtectionParams, st: ProtectionState, p: int, i: int, q: int, v_chk: float,
+    cur: float,
+) -> float:  # fmt: skip
+    """Predicted seconds to the trip if the present load and temperature (so the active
+    parameter ``q``) hold: 0 when tripped; NaN when not discharging or the check voltage is
+    unknown; at or below the cut-off the allowance left at ``q``'s weight; above it, the time
+    the voltage needs to reach the cut-off at its filtered slope plus that allowance, NaN if
+    the voltage is not falling."""
+    if st.tripped[p, i]:
+        return 0.0
+    if q < 0 or not (math.isfinite(cur) and st.discharging[p, i]) or math.isnan(v_chk):
+        return math.nan
+    left = remaining_s(st.acc_num, st.acc_den, p, i, prm.m_ms, prm.weight[q])
+    cut = float(prm.cutoff_v[q])
+    below = v_chk <= cut if prm.voltage_le else v_chk < cut
+    if below:
+        return left
+    slope = float(st.dvdt[p, i])
+    if not (slope < 0.0):
+        return math.nan
+    return (v_chk - cut) / -slope + left
+
+
+@kernel_inline
+def time_to_empty(m: MeasArrays, p: int, i: int, discharge_threshold_a: float) -> float:
+    """Seconds until the remaining capacity is used up at the present discharge current (NaN
+    when not discharging or unknown): remaining_capacity_ah, else soc x full_capacity_ah."""
+    cur = m.bat.current_a[p, i]
+    if not (math.isfinite(cur) and cur > discharge_threshold_a and cur > 0.0):
+        return math.nan
+    ah = m.bat.remaining_capacity_ah[p, i]
+    if not math.isfinite(ah):
+        ah = m.bat.soc[p, i] * m.bat.full_capacity_ah[p, i]
+    if not math.isfinite(ah):
+        return math.nan
+    if ah <= 0.0:
+        return 0.0
+    return float(ah * 3600.0 / cur)
+
+
+@kernel_inline
 def step_pack(
     prm: ProtectionParams, st: ProtectionState, tp: PackArrays, m: MeasArrays, p: int,
     dt_s: float, cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
@@ -465,9 +562,15 @@ def step_pack(
     bat = m.bat
     n_axes = prm.axis_code.shape[0]
     for i in range(st.tripped.shape[1]):
+        ttt = math.nan
         if not (bat.reported[p, i] and bat.present[p, i]):
             st.absent[p, i] = True
             st.charge_s[p, i] = 0.0
+            st.v_prev[p, i] = math.nan
+            st.dvdt[p, i] = math.nan
+            st.r_est[p, i] = math.nan  # whatever comes back is estimated afresh
+            st.r_i[p, i] = math.nan
+            st.r_v[p, i] = math.nan
         else:
             if st.absent[p, i]:
                 st.absent[p, i] = False
@@ -499,10 +602,14 @@ def step_pack(
                 else:
                     if code == AX_TEMP:
                         x = bat.temp_c[p, i]
+                    elif code == AX_RES:
+                        x = st.r_est[p, i]  # an estimate, not a sensor: unknown is no Fault
+                    elif code == AX_CYCLES:
+                        x = bat.cycle_count[p, i]
                     else:  # AX_SOH: full / nominal capacity; unknown without a nominal value
                         cap = tp.capacity_ah[p, i]
                         x = bat.full_capacity_ah[p, i] / cap if cap > 0.0 else math.nan
-                    if _fault_edge(st.faults, p, i, code, math.isfinite(x)):
+                    if code != AX_RES and _fault_edge(st.faults, p, i, code, math.isfinite(x)):
                         _emit_fault(ev, p, src, FAULT_AXIS, i, t_s, code)
                 if not math.isfinite(x):
                     st.values[p, i, a] = math.nan
@@ -553,6 +660,34 @@ def step_pack(
                     code = FAULT_V_NONE
                 _emit_fault(ev, p, src, code, i, t_s, FIELD_MIN_CELL)
 
+            # Internal resistance from current steps: R = -dV / dI of the check voltage between
+            # two ticks whose currents differ by at least res_step_a (the same cell's reading).
+            if cur_ok and source == VS_MIN_CELL:
+                di = cur - st.r_i[p, i]
+                if math.isfinite(di) and abs(di) >= prm.res_step_a:
+                    r_new = -(v_chk - st.r_v[p, i]) / di
+                    if r_new > 0.0 and math.isfinite(r_new):
+                        if math.isnan(st.r_est[p, i]):
+                            st.r_est[p, i] = r_new
+                        else:
+                            r_old = st.r_est[p, i]
+                            st.r_est[p, i] = r_old + prm.res_gain * (r_new - r_old)
+                st.r_i[p, i] = cur
+                st.r_v[p, i] = v_chk
+
+            # The check voltage's slope, low-pass filtered (time-to-trip prediction).
+            if math.isfinite(v_chk) and dt > 0.0:
+                if math.isfinite(st.v_prev[p, i]):
+                    raw = (v_chk - st.v_prev[p, i]) / dt
+                    if math.isnan(st.dvdt[p, i]):
+                        st.dvdt[p, i] = raw
+                    else:
+                        prev_s = st.dvdt[p, i]
+                        st.dvdt[p, i] = prev_s + (1.0 - math.exp(-dt / prm.predict_tau_s)) * (
+                            raw - prev_s
+                        )
+                st.v_prev[p, i] = v_chk
+
             if not (st.tripped[p, i] or math.isnan(v_chk)):
                 cut = prm.cutoff_v[q]
                 below = v_chk <= cut if prm.voltage_le else v_chk < cut
@@ -566,6 +701,16 @@ def step_pack(
                 if an > m_den or (prm.trip_ge and an == m_den):
                     st.tripped[p, i] = True
                     _trip_event(prm, st, m, p, i, q, v_chk, source, ev, src)
+                elif not st.warned[p, i] and (
+                    acc_fraction(st.acc_num, st.acc_den, p, i, prm.m_ms) >= prm.warn_share
+                ):
+                    # The platform is told once per episode, before the trip (a tick that
+                    # trips outright reports the trip alone).
+                    st.warned[p, i] = True
+                    _warning_event(prm, st, m, p, i, q, v_chk, ev, src)
+            if acc_fraction(st.acc_num, st.acc_den, p, i, prm.m_ms) < prm.warn_share:
+                st.warned[p, i] = False  # re-armed: the share fell back (a new cycle)
+            ttt = time_to_trip(prm, st, p, i, q, v_chk, cur)
 
         if st.tripped[p, i]:
             put_dsg(cmd, p, i, False)
@@ -583,6 +728,8 @@ def step_pack(
             st.acc_den[p, i] * prm.m_ms
         )
         status[p, i, s0 + ST_TRIPPED] = 1.0 if st.tripped[p, i] else 0.0
+        status[p, i, s0 + ST_TIME_TO_TRIP] = ttt
+        status[p, i, s0 + ST_TIME_TO_EMPTY] = time_to_empty(m, p, i, prm.discharge_threshold_a)
 
 
 @kernel
