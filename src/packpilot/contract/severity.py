@@ -63,6 +63,7 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "LoadUnsupplied": KindRow(Severity.ALARM, "unsupplied", "LoadResupplied"),
         # warnings: close to a limit, or a command the supervisor would not carry out
         "LimitWarning": KindRow(Severity.WARNING, "limit", "LimitReset"),
+        "ProtectionWarning": KindRow(Severity.WARNING, "limit", "ProtectionReset"),
         "LimitDerate": KindRow(Severity.WARNING, "limit", "LimitReset"),
         "CommandRefused": KindRow(Severity.WARNING, "refused"),
         "CrossCurrentRisk": KindRow(Severity.WARNING, "crosscurrent"),
