@@ -148,9 +148,12 @@ def test_s40_threshold_is_delta_v2_exactly(v0: float, hyst: float, first: str) -
 def test_saturation_s30_charges_to_v_sat_through_the_merge() -> None:
     """Issue #15 §3 / spec example 4: in saturation mode stage 2's S30 commands V_sat (120 V)
     and keeps it when its groups merge; no hand-over to S40 (levels mode does hand over)."""
+
+    def six() -> ToyPack:
+        return ToyPack([80.0, 80.0, 90.0, 90.0, 100.0, 100.0])
+
     sat = charging_stages(
-        drive(ToyPack([80.0, 80.0, 90.0, 90.0, 100.0, 100.0]), controller(6, target_mode="saturation"),
-              6 * 3600)  # fmt: skip
+        drive(six(), controller(6, target_mode="saturation"), 6 * 3600)
     )
     names = [s["stage"] for s in sat]
     last_s30 = max(k for k, n in enumerate(names) if n == "S30")
@@ -159,8 +162,7 @@ def test_saturation_s30_charges_to_v_sat_through_the_merge() -> None:
     assert "S40" not in names
     assert names[last_s30 + 1 :] and set(names[last_s30 + 1 :]) == {"top_off"}
     lv = charging_stages(
-        drive(ToyPack([80.0, 80.0, 90.0, 90.0, 100.0, 100.0]), controller(6, target_mode="levels"),
-              6 * 3600)  # fmt: skip
+        drive(six(), controller(6, target_mode="levels"), 6 * 3600)
     )
     assert "S40" in [s["stage"] for s in lv]
 
