@@ -124,3 +124,34 @@ def test_brownout_and_restart_are_logged() -> None:
     pack._bmu_supply(aux_v(pack, 10.6))
     (p, e), = ClosedLoop._bmu_events(loop, 200.0)
     assert e.kind == "BmuRestarted"
+
+
+def test_closed_loop_brownout_opens_every_relay_in_the_step_it_happens() -> None:
+    """evtol_charging, aux at SOC 0, dock gone at 20 s, every traction relay closed at 30 s:
+    the BMU browns out (~45 min later) and the trace row of that very step shows all open."""
+    from packpilot.sim.runner import Runner
+
+    cfg = load_config(EXAMPLE)
+    bats = [
+        b.model_copy(update={"soc0": 0.0}) if b.role == "aux" else b for b in cfg.pack.batteries
+    ]
+    cfg = cfg.model_copy(
+        update={
+            "pack": cfg.pack.model_copy(update={"batteries": bats}),
+            "charger": cfg.charger.model_copy(update={"disconnect_s": 20.0}),
+            "sim": cfg.sim.model_copy(update={"duration_s": 4000.0}),
+        }
+    )
+
+    def close_all(runner: Runner, t: float) -> None:
+        if 30.0 <= t < 32.0:
+            pk = runner.plant.pack
+            pk.set_gates(np.ones_like(pk.chg_on), np.ones_like(pk.dsg_on))
+
+    res = Runner(cfg, progress=False, hooks=[close_all]).run()
+    (e,) = [e for e in res.events if e.kind.startswith("Bmu")]
+    assert e.kind == "BmuBrownOut" and e.data["aux_v"] < 10.0
+    k = int(np.searchsorted(res.trace.t_s, e.t_s))
+    chg, dsg = res.trace.channel("chg_on"), res.trace.channel("dsg_on")
+    assert chg[k - 1, :6].all() and dsg[k - 1, :6].all()  # closed until that step
+    assert not chg[k:].any() and not dsg[k:].any()  # open from its end on, and stay open

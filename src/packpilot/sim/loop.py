@@ -270,7 +270,7 @@ class ClosedLoop:
         pack = self.plant.pack
         bmu: list[tuple[int, Event]] = []
         if pack.bmu_changed.any():
-            bmu = self._bmu_events(t + dt)
+            bmu = self._bmu_events(t)
         supplied = iv.supplied
         if self._all_supplied and supplied.tobytes() == self._all_true:
             return bmu  # supply unchanged: was_supplied all True, unsupplied_s all zero
@@ -288,8 +288,9 @@ class ClosedLoop:
         return out
 
     def _bmu_events(self, t: float) -> list[tuple[int, Event]]:
-        """(pack, event) of every pack whose BMU browned out or restarted at this step (at the
-        end of the period, when the aux voltage was read)."""
+        """(pack, event) of every pack whose BMU browned out or restarted in the step starting
+        at ``t`` (the aux voltage is read at its end; stamped like the load-supply events and
+        the trace row of that step, which already shows the switches open)."""
         pack = self.plant.pack
         a = pack.aux_index
         out: list[tuple[int, Event]] = []
@@ -300,10 +301,10 @@ class ClosedLoop:
             v = float(pack.battery_v_aux()[p])
             data = {"aux_v": v, "cutoff_v": cut}
             if not pack.bmu_on[p]:
-                msg = f"BMU browned out: aux battery {v:.2f} V < {cut:.2f} V, every switch open"
+                msg = f"BMU browned out: aux battery {v:.3f} V < {cut:.3f} V, every switch open"
                 out.append((p, Event(t, LOOP_EVENT_KINDS[2], None, msg, data)))
             else:
-                msg = f"BMU restarted: aux battery {v:.2f} V"
+                msg = f"BMU restarted: aux battery {v:.3f} V"
                 out.append((p, Event(t, LOOP_EVENT_KINDS[3], None, msg, data)))
         return out
 
