@@ -39,6 +39,8 @@ LOAD_NONE = 3
 # Indices into the ``prm`` vector of scalar parameters passed to :func:`pack_electrical`.
 P_BAL_EFF, P_AUX_MIN_V, P_AUX_EFF, P_AUX_BMS_W, P_LOAD_VMIN, P_CH_ROUT, P_CH_TIMEOUT = range(7)
 N_PRM = 7
+# P_AUX_BMS_W stays in the vector (the config's value) but the kernel reads the BMU's power per
+# pack from ``bmu_w`` (0 while that pack's BMU is browned out, Pack.bmu_w).
 _TIMEOUT_FLAG = FLAG_NAMES.index("communication_timeout")
 
 
