@@ -410,11 +410,12 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
         for i in range(n):  # min over the members in index order (Python's frozenset order)
             if st.new_members[p, i]:
                 vp = est[i] if math.isnan(vp) else fmin(vp, est[i])
+        v_at = vp
         if st.stage[p] == S40 and vp >= st.vr2_v[p] - prm.reach_tol:
             # the S40 step just ended by reaching Vr2 (within reach_tol: CV only approaches
-            # it): the batteries are at Vr2, so the S40 test below is exactly ΔV2 from there
-            vp = fmax(vp, st.vr2_v[p])
-        if prm.v_sat - vp > prm.delta_v2 + prm.s40_hysteresis:  # S40 [T]: V_sat − V > ΔV2
+            # it): the batteries are at Vr2 for the S40 test, which is exactly ΔV2 from there
+            v_at = fmax(vp, st.vr2_v[p])
+        if prm.v_sat - v_at > prm.delta_v2 + prm.s40_hysteresis:  # S40 [T]: V_sat − V > ΔV2
             vr2 = fmin(prm.v_sat, vp + prm.delta_v2)
             cmd_v = fmin(prm.v_sat, vr2 + prm.k3)
             _set_plan(st, p, S40, cmd_v, math.nan, math.nan, vr2, WHY_NONE, ev, src, t_s)
