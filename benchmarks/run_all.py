@@ -25,6 +25,7 @@ ORDER = [
     "bench_protection",
     "bench_sequencing",
     "bench_charging",
+    "bench_bmu",
     "bench_equalization",
     "bench_campaign",
 ]

@@ -125,11 +125,54 @@ def test_example5_s40_then_top_off() -> None:
     assert run.kinds("ChargeComplete")
 
 
+@pytest.mark.parametrize(
+    ("v0", "hyst", "first"),
+    [
+        (109.8, 0.0, "S40"),  # 10.2 > ΔV2: S40 (the old ΔV2 + 0.5 V test topped off here)
+        (110.0, 0.0, "top_off"),  # 10.0 is not > ΔV2 (a >= would start S40)
+        (110.2, 0.0, "top_off"),
+        (109.8, 0.5, "top_off"),  # the hysteresis is a separate setting, added to ΔV2
+        (109.4, 0.5, "S40"),
+    ],
+)
+def test_s40_threshold_is_delta_v2_exactly(v0: float, hyst: float, first: str) -> None:
+    """Issue #15 §3: S40 fires at V_sat − V > ΔV2, the hysteresis is ``s40_hysteresis_v``."""
+    toy = ToyPack([v0, v0])
+    ctrl = controller(2, v_sat_v=120.0, delta_v2_v=10.0, s40_hysteresis_v=hyst)
+    st = charging_stages(drive(toy, ctrl, 10))
+    assert st[0]["stage"] == first
+    if first == "S40":
+        assert st[0]["vr2_v"] == pytest.approx(min(120.0, v0 + 10.0))
+
+
+def test_saturation_s30_charges_to_v_sat_through_the_merge() -> None:
+    """Issue #15 §3 / spec example 4: in saturation mode stage 2's S30 commands V_sat (120 V)
+    and keeps it when its groups merge; no hand-over to S40 (levels mode does hand over)."""
+
+    def six() -> ToyPack:
+        return ToyPack([80.0, 80.0, 90.0, 90.0, 100.0, 100.0])
+
+    sat = charging_stages(
+        drive(six(), controller(6, target_mode="saturation"), 6 * 3600)
+    )
+    names = [s["stage"] for s in sat]
+    last_s30 = max(k for k, n in enumerate(names) if n == "S30")
+    assert (sat[last_s30]["vt_v"], sat[last_s30]["cmd_v"]) == (120.0, 120.0)
+    assert sat[last_s30]["closed"] == "0,1,2,3,4,5"
+    assert "S40" not in names
+    assert names[last_s30 + 1 :] and set(names[last_s30 + 1 :]) == {"top_off"}
+    lv = charging_stages(
+        drive(six(), controller(6, target_mode="levels"), 6 * 3600)
+    )
+    assert "S40" in [s["stage"] for s in lv]
+
+
 def test_single_battery_pack_charges() -> None:
     toy = ToyPack([85.0])
     run = drive(toy, controller(1), 4 * 3600)
     st = charging_stages(run)
-    # 85 -> 95, then (exit at Vr2 - reach_tol) 94.5 -> 104.5, 104 -> 114, then top-off
+    # 85 -> 95, then (exit at Vr2 - reach_tol) 94.5 -> 104.5, 104 -> 114, then top-off: the
+    # step that ended within reach_tol of 114 counts as at 114 for the S40 test, 120 - 114 = 6
     assert [s["stage"] for s in st] == ["S40", "S40", "S40", "top_off"]
     assert [s["vr2_v"] for s in st[:3]] == pytest.approx([95.0, 104.5, 114.0], abs=0.05)
     assert run.kinds("ChargeComplete") and toy.ocv[0] > 119.0
@@ -321,14 +364,36 @@ def test_aux_battery_charged_independently() -> None:
     toy.aux_soc = 0.95
     out = ctrl.step(toy.measure(), 1.0)
     assert out.commands.aux_relay_closed is False and out.commands.aux_charge_a == 0.0
-    # undocked: only below the floor
+    # undocked: never by default (the source charges battery 230 from the dock only) ...
     toy.docked = False
-    toy.aux_soc = 0.5
-    assert ctrl.step(toy.measure(), 1.0).commands.aux_charge_a == 0.0
     toy.aux_soc = 0.2
+    out = ctrl.step(toy.measure(), 1.0)
+    assert out.commands.aux_relay_closed is False and out.commands.aux_charge_a == 0.0
+    # ... and an undocking while it charges stops it
+    toy.docked = True
+    assert ctrl.step(toy.measure(), 1.0).commands.aux_relay_closed is True
+    toy.docked = False
+    out = ctrl.step(toy.measure(), 1.0)
+    assert out.commands.aux_relay_closed is False and out.commands.aux_charge_a == 0.0
+
+
+def test_aux_charged_from_the_traction_bus_only_as_an_option() -> None:
+    """``aux_charge_from_bus``: undocked, below the floor only, up to floor + hysteresis."""
+    toy = ToyPack([80.0, 90.0], aux_soc=0.5)
+    cfg = ChargingConfig(aux_charge_from_bus=True)
+    ctrl = ChargingController(cfg, pack_info(2, has_aux=True))
+    toy.docked = False
+    assert ctrl.step(toy.measure(), 1.0).commands.aux_charge_a == 0.0
+    toy.aux_soc = 0.29
     out = ctrl.step(toy.measure(), 1.0)
     assert out.commands.aux_relay_closed is True
     assert (out.commands.aux_charge_a or 0.0) > 0.0
+    toy.aux_soc = 0.34  # below floor + hysteresis (0.35): keeps charging
+    assert ctrl.step(toy.measure(), 1.0).commands.aux_relay_closed is True
+    toy.aux_soc = 0.35
+    assert ctrl.step(toy.measure(), 1.0).commands.aux_relay_closed is False
+    toy.aux_soc = 0.31  # above the floor: does not restart
+    assert ctrl.step(toy.measure(), 1.0).commands.aux_relay_closed is False
 
 
 def test_aux_cv_taper() -> None:

@@ -31,6 +31,7 @@ VOLTAGE_FIELDS: tuple[str, ...] = (
     "reach_tol_v",
     "v_sat_v",
     "overvoltage_margin_v",
+    "s40_hysteresis_v",
 )
 """Settings that scale with the series count when ``voltage_basis = "cell"``."""
 
@@ -74,6 +75,13 @@ class ChargingConfig(Strict):
         gt=0.0,
         description="ΔV2: all batteries equal and V_sat − V > ΔV2 → S40 step to V + ΔV2.",
     )
+    s40_hysteresis_v: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="Hysteresis of the S40 test, added to ΔV2: S40 when V_sat − V > ΔV2 + this. "
+        "Default 0: the source's test exactly (issue #15 §3). A CV step that ended within "
+        "reach_tol of its Vr2 counts as at Vr2, so no extra tiny S40 step follows without it.",
+    )
     eps_eq_v: float = Field(
         default=0.5, gt=0.0, description="Equal-voltage tolerance: widest span of one level."
     )
@@ -81,7 +89,7 @@ class ChargingConfig(Strict):
         default=0.5,
         gt=0.0,
         description="A CV target counts as reached within this (CV approaches it only "
-        "asymptotically); also the S40/top-off hysteresis and the 'at V_sat' band.",
+        "asymptotically); also the 'at V_sat' band.",
     )
     v_sat_v: float = Field(default=120.0, gt=0.0, description="V_sat, saturated battery voltage.")
     overvoltage_margin_v: float = Field(
@@ -166,7 +174,11 @@ class ChargingConfig(Strict):
         description="Charger must report healthy this long after a fault before charging resumes.",
     )
     aux_soc_floor: float = Field(
-        default=0.3, ge=0.0, lt=1.0, description="Aux battery is charged whenever below this."
+        default=0.3,
+        ge=0.0,
+        lt=1.0,
+        description="Aux battery is charged whenever below this (undocked only with "
+        "aux_charge_from_bus).",
     )
     aux_soc_target: float = Field(
         default=0.9, gt=0.0, le=1.0, description="Aux battery is charged to this while docked."
@@ -176,6 +188,12 @@ class ChargingConfig(Strict):
     )
     aux_charge_current_a: float = Field(
         default=5.0, gt=0.0, description="DC/DC current into the aux battery (A)."
+    )
+    aux_charge_from_bus: bool = Field(
+        default=False,
+        description="Also charge the aux battery while undocked, from the traction bus, when "
+        "its SOC is below aux_soc_floor. Off by default: the source charges battery 230 from "
+        "the dock only (through its relay and module 140).",
     )
     aux_cv_v: float = Field(
         default=14.4, gt=0.0, description="CV limit of the aux battery's terminal voltage (V)."

@@ -251,7 +251,25 @@ class AuxConfig(_Strict):
     dcdc_max_a: PosFloat = Field(5.0, le=MAX_CURRENT_A)
     dcdc_efficiency: Annotated[float, Field(gt=0, le=1)] = 0.9
     dcdc_min_input_v: NonNegFloat = Field(20.0, le=MAX_VOLTAGE_V)
-    bms_load_w: NonNegFloat = Field(15.0, le=MAX_POWER_W)
+    bms_load_w: NonNegFloat = Field(
+        15.0,
+        le=MAX_POWER_W,
+        description="Power the battery-pack management unit (BMU) draws from the aux battery "
+        "while it is powered (W)",
+    )
+    bmu_cutoff_v: PosFloat | None = Field(
+        None,
+        le=MAX_VOLTAGE_V,
+        description="Aux battery terminal voltage below which the BMU browns out: every relay "
+        "and FET drops to its unpowered (open) state and the BMU draws nothing; default the "
+        "aux battery's series groups x its cell's v_min_v",
+    )
+    bmu_recover_hysteresis_v: NonNegFloat = Field(
+        0.5,
+        le=MAX_VOLTAGE_V,
+        description="A browned-out BMU restarts when the aux battery is back above "
+        "bmu_cutoff_v + this (V); the switches stay open until commanded again",
+    )
 
 
 class CanConfig(_Strict):

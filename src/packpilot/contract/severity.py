@@ -61,6 +61,7 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "ProtectionTripped": KindRow(Severity.ALARM, "trip", "ProtectionReset"),
         "LimitTripped": KindRow(Severity.ALARM, "trip", "LimitReset"),
         "LoadUnsupplied": KindRow(Severity.ALARM, "unsupplied", "LoadResupplied"),
+        "BmuBrownOut": KindRow(Severity.ALARM, "brownout", "BmuRestarted"),
         # warnings: close to a limit, or a command the supervisor would not carry out
         "LimitWarning": KindRow(Severity.WARNING, "limit", "LimitReset"),
         "ProtectionWarning": KindRow(Severity.WARNING, "limit", "ProtectionReset"),
@@ -76,6 +77,7 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "FaultCleared": _I,
         "LimitReset": _I,
         "LoadResupplied": _I,
+        "BmuRestarted": _I,
         "ModeChanged": _I,
         "ProtectionReset": _I,
         # sequencing saw a battery take charge from a sibling and stood it by: the controller

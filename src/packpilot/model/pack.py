@@ -19,6 +19,7 @@ inputs set by whoever runs it.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -153,6 +154,12 @@ class Pack:
         )
         self.balancer_a = np.zeros((P, self.n_groups))
         self.aux_charge_a = np.zeros(P)
+        self.bmu_on = np.ones(P, dtype=bool)
+        """The BMU is powered (the aux battery above its cut-off); False: browned out."""
+        self.bmu_changed = np.zeros(P, dtype=bool)
+        """The BMU browned out or restarted at the last step."""
+        self.bmu_min_v = np.full(P, np.inf)
+        """Lowest aux terminal voltage seen (V)."""
         self.cell_a = np.zeros((P, self.n_cells))
         self.string_a = np.zeros((P, n_s))
         self.bus_v = np.zeros(P)
@@ -452,7 +459,8 @@ class Pack:
             self.sw_diode_ohm, self.sw_rev_trip_a, self.is_aux, self.present_from_s,
             -1 if self.aux_index is None else self.aux_index, prm, t, h, kind,
             self.chg_on, self.dsg_on, self.welded, self.fet_shorted, self.balancer_a,
-            self.aux_charge_a, self.bus_v, self.group_v_prev, self.e_cell, self.r_cell,
+            self.aux_input(), self.bmu_w(), self.bus_v, self.group_v_prev, self.e_cell,
+            self.r_cell,
             self._charger_on(t), ch.on_req, ch.last_request_s, ch.flags, ch.v_req, ch.i_req,
             demand, connected,
             bus_v, demand_a, load_a, supplied, charger_a, out_v, charger_v, string_a, battery_v,
@@ -483,6 +491,7 @@ class Pack:
         self.t_s = t + h
         self.e_cell = e_cell
         self.r_cell = r_cell
+        self._bmu_supply(battery_v)
         return Interval(
             t_s=t,
             dt_s=dt_s,
@@ -602,6 +611,7 @@ class Pack:
         self.charger.out_a = sol.charger_a
         self.t_s = t + dt_s
         self._refresh_source()
+        self._bmu_supply(battery_v)
         return Interval(
             t_s=t,
             dt_s=dt_s,
@@ -637,10 +647,71 @@ class Pack:
                 1e-3,
             )
             bus_ok = self.bus_v >= aux_cfg.dcdc_min_input_v
-            i_aux_chg = np.where(bus_ok, self.aux_charge_a, 0.0)
+            i_aux_chg = np.where(bus_ok, self.aux_input(), 0.0)
             aux_p_bus = i_aux_chg * v_aux / aux_cfg.dcdc_efficiency
-            x_cell[:, self.cell_string == a] += (aux_cfg.bms_load_w / v_aux - i_aux_chg)[:, None]
+            x_cell[:, self.cell_string == a] += (self.bmu_w() / v_aux - i_aux_chg)[:, None]
         return aux_p_bus
+
+    # ------------------------------------------------------------------ the BMU's supply
+    @property
+    def bmu_cutoff_v(self) -> float:
+        """Aux terminal voltage below which the BMU browns out ([aux] bmu_cutoff_v, default
+        the aux battery's series groups × its cell's v_min_v); inf without an aux battery."""
+        if self.aux_index is None:
+            return math.inf
+        cut = self.cfg.aux.bmu_cutoff_v
+        if cut is not None:
+            return float(cut)
+        a = self.aux_index
+        first = int(np.nonzero(self.cell_string == a)[0][0])
+        params = next(b.params for b in self.banks if np.any(b.idx % self.n_cells == first))
+        bat = self.cfg.pack.batteries[a]
+        return float(bat.series_groups * bat.cells_per_group * params.v_min_v)
+
+    def aux_input(self) -> Array:
+        """DC/DC current into the aux battery (P,): as commanded, but only through its closed
+        relay (the source's module 140 feeds battery 230 through its own relay)."""
+        if self.aux_index is None:
+            return self.aux_charge_a
+        a = self.aux_index
+        closed = (self.chg_on[:, a] & self.dsg_on[:, a]) | self.welded[a]
+        return np.where(closed, self.aux_charge_a, 0.0)
+
+    def bmu_w(self) -> Array:
+        """Power the BMU draws from the aux battery (P,): 0 while browned out."""
+        return np.where(self.bmu_on, self.cfg.aux.bms_load_w, 0.0)
+
+    def _bmu_supply(self, battery_v: Array) -> None:
+        """Brown-out and restart of the BMU from the aux terminal voltage at the end of the
+        period. Browned out, every relay and FET drops to its unpowered (open) state (a welded
+        relay or shorted FET stays as it is) and the aux DC/DC stops; the BMU restarts only
+        above cut-off + hysteresis, with every switch still open."""
+        if self.aux_index is None:
+            return
+        v = battery_v[:, self.aux_index]
+        self._aux_v = v.copy()
+        self.bmu_min_v = np.minimum(self.bmu_min_v, v)
+        cut = self.bmu_cutoff_v
+        out = self.bmu_on & (v < cut)
+        back = ~self.bmu_on & (v >= cut + self.cfg.aux.bmu_recover_hysteresis_v)
+        self.bmu_changed = out | back
+        if not self.bmu_changed.any():
+            return
+        self.bmu_on = (self.bmu_on & ~out) | back
+        self.hold_unpowered()
+
+    def battery_v_aux(self) -> Array:
+        """Aux terminal voltage at the end of the last step (P,); NaN before the first."""
+        v: Array | None = self.__dict__.get("_aux_v")
+        return np.full(self.n_packs, np.nan) if v is None else v
+
+    def hold_unpowered(self) -> None:
+        """Switches of a browned-out BMU stay open whatever was commanded."""
+        off = ~self.bmu_on
+        if off.any():
+            self.chg_on[off] = False
+            self.dsg_on[off] = False
+            self.aux_charge_a = np.where(off, 0.0, self.aux_charge_a)
 
     def _load_sink(self, load_kind: str, demand: Array, aux_p_bus: Array) -> LoadSink:
         """The bus load (step_reference): the demand of ``load_kind`` plus the aux DC/DC."""

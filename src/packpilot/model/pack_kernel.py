@@ -39,6 +39,8 @@ LOAD_NONE = 3
 # Indices into the ``prm`` vector of scalar parameters passed to :func:`pack_electrical`.
 P_BAL_EFF, P_AUX_MIN_V, P_AUX_EFF, P_AUX_BMS_W, P_LOAD_VMIN, P_CH_ROUT, P_CH_TIMEOUT = range(7)
 N_PRM = 7
+# P_AUX_BMS_W stays in the vector (the config's value) but the kernel reads the BMU's power per
+# pack from ``bmu_w`` (0 while that pack's BMU is browned out, Pack.bmu_w).
 _TIMEOUT_FLAG = FLAG_NAMES.index("communication_timeout")
 
 
@@ -84,6 +86,7 @@ def pack_electrical(
     fet_shorted: Any,
     ib: Any,
     aux_charge_a: Any,
+    bmu_w: Any,
     bus_prev: Any,
     gv: Any,
     e_cell: Any,
@@ -157,7 +160,8 @@ def pack_electrical(
             i_draw[s] = p_in_string[p, s] / _npmax(segment_sum(gvp, string_group_starts, s), 1e-3)
         for c in range(C):
             x_cell[c] = i_draw[cell_string[c]] - ib[p, cell_group[c]]
-        # Aux battery: fed by its DC/DC from the bus; powers the BMS.
+        # Aux battery: fed by its DC/DC from the bus (``aux_charge_a``: 0 unless its relay is
+        # closed, Pack.aux_input); powers the BMU (``bmu_w``: 0 while browned out).
         aux_p_bus = 0.0
         if aux_index >= 0:
             g0 = string_group_starts[aux_index]
@@ -165,7 +169,7 @@ def pack_electrical(
             v_aux = _npmax(short_sum(gvp, g0, g1 - g0), 1e-3)
             i_aux = aux_charge_a[p] if bus_prev[p] >= prm[P_AUX_MIN_V] else 0.0
             aux_p_bus = i_aux * v_aux / prm[P_AUX_EFF]
-            extra = prm[P_AUX_BMS_W] / v_aux - i_aux
+            extra = bmu_w[p] / v_aux - i_aux
             for c in range(C):
                 if cell_string[c] == aux_index:
                     x_cell[c] += extra

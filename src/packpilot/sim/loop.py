@@ -46,8 +46,14 @@ from packpilot.sim.plant_io import SimulatedPlant
 Array = NDArray[np.float64]
 
 
-LOOP_EVENT_KINDS: tuple[str, ...] = ("LoadUnsupplied", "LoadResupplied")
-"""The events the loop itself emits (the plant's load supply), beside the core's reason tables:
+LOOP_EVENT_KINDS: tuple[str, ...] = (
+    "LoadUnsupplied",
+    "LoadResupplied",
+    "BmuBrownOut",
+    "BmuRestarted",
+)
+"""The events the loop itself emits (the plant's load supply and the BMU's own supply from the
+aux battery, ``Pack._bmu_supply``), beside the core's reason tables:
 every kind needs a row in :data:`packpilot.contract.severity.EVENT_SEVERITY`."""
 
 
@@ -261,10 +267,14 @@ class ClosedLoop:
 
     def _supply_events(self, t: float, iv: Interval, dt: float) -> list[tuple[int, Event]]:
         """(pack, event) of every pack whose load supply changed at this step."""
+        pack = self.plant.pack
+        bmu: list[tuple[int, Event]] = []
+        if pack.bmu_changed.any():
+            bmu = self._bmu_events(t)
         supplied = iv.supplied
         if self._all_supplied and supplied.tobytes() == self._all_true:
-            return []  # nothing changed: no event, was_supplied all True, unsupplied_s all zero
-        out: list[tuple[int, Event]] = []
+            return bmu  # supply unchanged: was_supplied all True, unsupplied_s all zero
+        out: list[tuple[int, Event]] = bmu
         for p in np.nonzero(supplied != self.was_supplied)[0].tolist():
             if not supplied[p]:
                 data = {"bus_v": float(iv.bus_v[p]), "demand_a": float(iv.load_demand_a[p])}
@@ -275,6 +285,27 @@ class ClosedLoop:
         self.was_supplied = supplied.copy()
         self.unsupplied_s = np.where(supplied, 0.0, self.unsupplied_s + dt)
         self._all_supplied = bool(supplied.all())
+        return out
+
+    def _bmu_events(self, t: float) -> list[tuple[int, Event]]:
+        """(pack, event) of every pack whose BMU browned out or restarted in the step starting
+        at ``t`` (the aux voltage is read at its end; stamped like the load-supply events and
+        the trace row of that step, which already shows the switches open)."""
+        pack = self.plant.pack
+        a = pack.aux_index
+        out: list[tuple[int, Event]] = []
+        if a is None:
+            return out
+        cut = pack.bmu_cutoff_v
+        for p in np.nonzero(pack.bmu_changed)[0].tolist():
+            v = float(pack.battery_v_aux()[p])
+            data = {"aux_v": v, "cutoff_v": cut}
+            if not pack.bmu_on[p]:
+                msg = f"BMU browned out: aux battery {v:.3f} V < {cut:.3f} V, every switch open"
+                out.append((p, Event(t, LOOP_EVENT_KINDS[2], None, msg, data)))
+            else:
+                msg = f"BMU restarted: aux battery {v:.3f} V"
+                out.append((p, Event(t, LOOP_EVENT_KINDS[3], None, msg, data)))
         return out
 
     def close(self) -> None:

@@ -116,6 +116,7 @@ class SimulatedPlant:
             -bal.max_current_a if bal.bidirectional else 0.0, bal.max_current_a,
             cfg.aux.dcdc_max_a,
         )  # fmt: skip
+        pack.hold_unpowered()  # a browned-out BMU drives nothing
 
     # ------------------------------------------------------------------ physics
     def step(self, dt_s: float, demand: Array, kind: str | None = None) -> Interval:

@@ -147,6 +147,7 @@ class Volts:
     reach_tol: float
     v_sat: float
     overvoltage_margin: float
+    s40_hysteresis: float
 
     @classmethod
     def resolve(cls, cfg: ChargingConfig, pack: PackInfo) -> Volts:
@@ -204,6 +205,7 @@ def build(
         aux_charge_current_a=float(config.aux_charge_current_a),
         aux_cv_v=float(config.aux_cv_v),
         aux_cv_band_v=float(config.aux_cv_band_v),
+        aux_charge_from_bus=bool(config.aux_charge_from_bus),
     )
     P, n = len(infos), info.n_batteries
     pb = (P, n)

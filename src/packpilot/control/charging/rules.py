@@ -128,6 +128,8 @@ class ChargingParams(NamedTuple):
     reach_tol: float
     v_sat: float
     overvoltage_margin: float
+    s40_hysteresis: float
+    """Added to ΔV2 in the S40 test (``s40_hysteresis_v``, default 0: the test is exactly ΔV2)."""
     target_saturation: bool
     """``target_mode = "saturation"`` (else "levels")."""
     charger_current_limit_a: float
@@ -156,6 +158,8 @@ class ChargingParams(NamedTuple):
     aux_charge_current_a: float
     aux_cv_v: float
     aux_cv_band_v: float
+    aux_charge_from_bus: bool
+    """Also charge the aux battery undocked (from the traction bus); off by default."""
 
 
 class ChargingState(NamedTuple):
@@ -406,7 +410,12 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
         for i in range(n):  # min over the members in index order (Python's frozenset order)
             if st.new_members[p, i]:
                 vp = est[i] if math.isnan(vp) else fmin(vp, est[i])
-        if prm.v_sat - vp > prm.delta_v2 + prm.reach_tol:
+        v_at = vp
+        if st.stage[p] == S40 and vp >= st.vr2_v[p] - prm.reach_tol:
+            # the S40 step just ended by reaching Vr2 (within reach_tol: CV only approaches
+            # it): the batteries are at Vr2 for the S40 test, which is exactly ΔV2 from there
+            v_at = fmax(vp, st.vr2_v[p])
+        if prm.v_sat - v_at > prm.delta_v2 + prm.s40_hysteresis:  # S40 [T]: V_sat − V > ΔV2
             vr2 = fmin(prm.v_sat, vp + prm.delta_v2)
             cmd_v = fmin(prm.v_sat, vr2 + prm.k3)
             _set_plan(st, p, S40, cmd_v, math.nan, math.nan, vr2, WHY_NONE, ev, src, t_s)
@@ -574,8 +583,9 @@ def step_pack(
         r_use[i] = r_ohm[i] if r_kind[i] == best and best > 0 else fallback
         est[i] = volt[i] + amps[i] * r_use[i] if valid[i] else math.nan
 
-    # -- aux: an independent channel, charged below the floor always, to the target when
-    # docked (relay -1: no opinion)
+    # -- aux: an independent channel, charged from the dock (to the target, and always when
+    # below the floor); undocked only with aux_charge_from_bus (below the floor, from the
+    # traction bus). Relay -1: no opinion
     aux_relay = -1
     aux_a = math.nan
     if tp.has_aux and m.has_aux[p]:
@@ -603,13 +613,18 @@ def step_pack(
             if m.docked[p]:
                 stop_at = prm.aux_soc_target
                 start_below = prm.aux_soc_target - prm.aux_soc_hysteresis
-            else:
+            elif prm.aux_charge_from_bus:
                 stop_at = prm.aux_soc_floor + prm.aux_soc_hysteresis
                 start_below = prm.aux_soc_floor
+            else:  # the source charges battery 230 from the dock only
+                stop_at = -math.inf
+                start_below = -math.inf
             if st.aux_charging[p]:
                 st.aux_charging[p] = soc < stop_at
             else:
-                st.aux_charging[p] = soc < start_below or soc < prm.aux_soc_floor
+                st.aux_charging[p] = soc < start_below or (
+                    soc < prm.aux_soc_floor and start_below > -math.inf
+                )
             if st.aux_charging[p]:
                 taper = fmin(1.0, fmax(0.0, (prm.aux_cv_v - a.voltage_v[p, 0]) / prm.aux_cv_band_v))
                 aux_relay, aux_a = 1, prm.aux_charge_current_a * taper
@@ -737,6 +752,10 @@ def step_pack(
                 elif keep and stage == S30:
                     merged = hi - lo <= prm.eps_eq
                     reached = lo >= st.vt_v[p] - prm.reach_tol
+                    if prm.target_saturation and st.vt_v[p] == prm.v_sat:
+                        # saturation mode (spec example 4): S30 charges G1 ∪ G2 to V_sat
+                        # itself; the merge of the groups is no hand-over to S40
+                        merged = False
                     keep = not (merged or reached)
                 elif keep:
                     keep = lo < st.vr2_v[p] - prm.reach_tol and hi - lo <= prm.delta_v1

@@ -1,0 +1,157 @@
+"""The BMU's own supply from the aux battery (issue #15 §3): brown-out opens every switch within
+the step, restart only above cut-off + hysteresis, the BMU load, the aux relay gates its DC/DC."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from packpilot.config import ScenarioConfig, load_config
+from packpilot.model.pack import Pack
+from packpilot.sim.loop import ClosedLoop
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "evtol_charging.toml"
+
+
+def scenario(**aux: Any) -> ScenarioConfig:
+    cfg = load_config(EXAMPLE)
+    return cfg.model_copy(
+        update={
+            "aux": cfg.aux.model_copy(update=aux),
+            "charger": cfg.charger.model_copy(update={"present": False}),
+        }
+    )
+
+
+def closed_pack(**aux: Any) -> Pack:
+    pack = Pack(scenario(**aux))
+    pack.set_gates(np.ones_like(pack.chg_on), np.ones_like(pack.dsg_on))
+    return pack
+
+
+def aux_v(pack: Pack, v: float) -> np.ndarray:
+    bv = np.zeros((pack.n_packs, pack.n_strings))
+    assert pack.aux_index is not None
+    bv[:, pack.aux_index] = v
+    return bv
+
+
+def test_default_cutoff_is_the_aux_cells_v_min() -> None:
+    pack = Pack(scenario())
+    assert pack.bmu_cutoff_v == pytest.approx(4 * 2.5)  # 4S LFP, 2.5 V per cell
+
+
+def test_brownout_opens_every_switch_within_the_step() -> None:
+    pack = closed_pack(bmu_cutoff_v=14.0)  # above the 4S LFP battery's voltage
+    pack.set_aux_charge(np.array([5.0]))
+    assert pack.chg_on.all() and pack.dsg_on.all()
+    iv = pack.step(2.0, "none", np.zeros(1))
+    assert not pack.bmu_on[0] and pack.bmu_changed[0]
+    assert not pack.chg_on.any() and not pack.dsg_on.any()  # every relay, the aux one too
+    assert pack.aux_charge_a[0] == 0.0
+    # and the next period runs with them open: no traction current, the BMU draws nothing
+    iv = pack.step(2.0, "none", np.zeros(1))
+    assert np.all(iv.string_a[0] == 0.0)
+    assert not pack.bmu_changed[0]
+
+
+def test_a_browned_out_bmu_drives_nothing() -> None:
+    pack = closed_pack(bmu_cutoff_v=14.0)
+    pack.step(2.0, "none", np.zeros(1))
+    pack.set_gates(np.ones_like(pack.chg_on), np.ones_like(pack.dsg_on))  # a command arrives
+    pack.set_aux_charge(np.array([5.0]))
+    pack.hold_unpowered()  # what SimulatedPlant.apply does after the commands
+    assert not pack.chg_on.any() and not pack.dsg_on.any() and pack.aux_charge_a[0] == 0.0
+
+
+def test_restart_only_above_cutoff_plus_hysteresis() -> None:
+    pack = closed_pack()  # cut-off 10 V, hysteresis 0.5 V
+    pack._bmu_supply(aux_v(pack, 10.0))
+    assert pack.bmu_on[0]  # at the cut-off: still powered (below it browns out)
+    pack._bmu_supply(aux_v(pack, 9.99))
+    assert not pack.bmu_on[0] and pack.bmu_changed[0]
+    assert not pack.chg_on.any() and not pack.dsg_on.any()
+    for v in (10.0, 10.3, 10.49):
+        pack._bmu_supply(aux_v(pack, v))
+        assert not pack.bmu_on[0] and not pack.bmu_changed[0], v
+    pack._bmu_supply(aux_v(pack, 10.5))
+    assert pack.bmu_on[0] and pack.bmu_changed[0]
+    assert not pack.chg_on.any()  # restarted with every switch still open
+    pack._bmu_supply(aux_v(pack, 10.2))  # between cut-off and restart: stays powered
+    assert pack.bmu_on[0]
+
+
+def test_the_bmu_load_drains_the_aux_battery_only_while_powered() -> None:
+    pack = closed_pack()
+    a = pack.aux_index
+    assert a is not None
+    iv = pack.step(2.0, "none", np.zeros(1))
+    v = iv.battery_v[0, a]
+    assert iv.string_a[0, a] == pytest.approx(15.0 / v, rel=0.02)  # 15 W BMU, discharge > 0
+    pack.bmu_on[:] = False
+    iv = pack.step(2.0, "none", np.zeros(1))
+    assert iv.string_a[0, a] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_aux_dcdc_charges_only_through_the_aux_relay() -> None:
+    pack = closed_pack()
+    a = pack.aux_index
+    assert a is not None
+    pack.set_aux_charge(np.array([5.0]))
+    pack.chg_on[:, a] = False
+    pack.dsg_on[:, a] = False
+    pack.step(2.0, "none", np.zeros(1))
+    assert pack.aux_input()[0] == 0.0
+    iv = pack.step(2.0, "none", np.zeros(1))
+    assert iv.string_a[0, a] > 0.0  # only the BMU load
+    pack.chg_on[:, a] = True
+    pack.dsg_on[:, a] = True
+    assert pack.aux_input()[0] == 5.0
+    iv = pack.step(2.0, "none", np.zeros(1))
+    assert iv.string_a[0, a] < -3.0  # charged by the DC/DC from the bus
+
+
+def test_brownout_and_restart_are_logged() -> None:
+    pack = closed_pack()
+    loop: Any = SimpleNamespace(plant=SimpleNamespace(pack=pack))
+    pack._bmu_supply(aux_v(pack, 9.9))
+    (p, e), = ClosedLoop._bmu_events(loop, 100.0)
+    assert (p, e.kind, e.data["aux_v"], e.data["cutoff_v"]) == (0, "BmuBrownOut", 9.9, 10.0)
+    pack._bmu_supply(aux_v(pack, 10.6))
+    (p, e), = ClosedLoop._bmu_events(loop, 200.0)
+    assert e.kind == "BmuRestarted"
+
+
+def test_closed_loop_brownout_opens_every_relay_in_the_step_it_happens() -> None:
+    """evtol_charging, aux at SOC 0, dock gone at 20 s, every traction relay closed at 30 s:
+    the BMU browns out (~45 min later) and the trace row of that very step shows all open."""
+    from packpilot.sim.runner import Runner
+
+    cfg = load_config(EXAMPLE)
+    bats = [
+        b.model_copy(update={"soc0": 0.0}) if b.role == "aux" else b for b in cfg.pack.batteries
+    ]
+    cfg = cfg.model_copy(
+        update={
+            "pack": cfg.pack.model_copy(update={"batteries": bats}),
+            "charger": cfg.charger.model_copy(update={"disconnect_s": 20.0}),
+            "sim": cfg.sim.model_copy(update={"duration_s": 4000.0}),
+        }
+    )
+
+    def close_all(runner: Runner, t: float) -> None:
+        if 30.0 <= t < 32.0:
+            pk = runner.plant.pack
+            pk.set_gates(np.ones_like(pk.chg_on), np.ones_like(pk.dsg_on))
+
+    res = Runner(cfg, progress=False, hooks=[close_all]).run()
+    (e,) = [e for e in res.events if e.kind.startswith("Bmu")]
+    assert e.kind == "BmuBrownOut" and e.data["aux_v"] < 10.0
+    k = int(np.searchsorted(res.trace.t_s, e.t_s))
+    chg, dsg = res.trace.channel("chg_on"), res.trace.channel("dsg_on")
+    assert chg[k - 1, :6].all() and dsg[k - 1, :6].all()  # closed until that step
+    assert not chg[k:].any() and not dsg[k:].any()  # open from its end on, and stay open
