@@ -83,7 +83,7 @@ def test_unspread_parameters_stay_nominal() -> None:
     assert 10.5 <= rel.ambient_c <= 14.5
 
 
-@budget(60)
+@budget(200)
 @given(
     seed=st.integers(0, 2**32),
     run=st.integers(0, 10**6),

@@ -282,7 +282,7 @@ SETS["lfp_1node"] = replace(
 )
 
 
-@budget(60)
+@budget(200)
 @given(
     name=st.sampled_from(sorted(SETS)),
     seed=st.integers(0, 2**32 - 1),

@@ -71,7 +71,7 @@ def _assert_same_state(a: CellState, b: CellState) -> None:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
 
 
-@budget(80)
+@budget(200)
 @given(
     name=st.sampled_from(sorted(SETS)),
     seed=st.integers(0, 2**32 - 1),

@@ -121,7 +121,9 @@ def test_balancing_recovers_capacity_on_a_known_string() -> None:
     assert eq[1] > 0.98 * 4.75
 
 
-@budget(8, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
+# ci 24 (was a fixed 8): a closed loop, ~0.5 s per example on the loaded 2-core box, so 200
+# would add ~100 s to `make test`; see docs/safety.md §5. Soak (nightly): 10,000.
+@budget(24, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
 @given(
     caps=st.lists(st.floats(0.9, 1.1), min_size=3, max_size=3),
     socs=st.lists(st.floats(0.6, 1.0), min_size=3, max_size=3),

@@ -222,8 +222,7 @@ def _same_plant(a: Pack, b: Pack, k: int) -> None:
             _close(getattr(ba.state, name), getattr(bb.state, name), f"step {k}: bank {name}")
 
 
-@budget(
-    40,
+@budget(200,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 @given(data=st.data())
@@ -288,7 +287,7 @@ def test_step_rejects_non_positive_dt() -> None:
         pack.step(0.0, "none", np.zeros(1))
 
 
-@budget(60)
+@budget(200)
 @given(
     lengths=st.lists(st.integers(1, 600), min_size=1, max_size=4),
     rows=st.integers(1, 3),

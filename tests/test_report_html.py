@@ -294,7 +294,7 @@ def test_large_run_is_downsampled_and_small() -> None:
     assert "ProtectionTripped" in ev and "Listing 1,000 of 12,001 events" in ev
 
 
-@budget(60)
+@budget(200)
 @given(
     counts=st.dictionaries(
         st.sampled_from(["A", "B", "C", "D", "E"]), st.integers(1, 400), min_size=1

@@ -414,7 +414,7 @@ def test_wide_export_rejects_colliding_names(tmp_path: Path) -> None:
 finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
 
-@budget(40)
+@budget(200)
 @given(
     vals=st.lists(finite, min_size=N_C * 2 + 6 + 4, max_size=N_C * 2 + 6 + 4),
     flush_every=st.integers(1, 5),
@@ -477,7 +477,7 @@ STATUS_STRATEGIES = {
 }
 
 
-@budget(60)
+@budget(200)
 @given(n_steps=st.integers(1, 8), data=st.data())
 def test_any_status_round_trips(n_steps: int, data: st.DataObject) -> None:
     """Channels keep one type each (as controllers do); values of that type survive exactly.

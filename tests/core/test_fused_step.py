@@ -52,7 +52,7 @@ def _core(info: PackInfo) -> Core:
     return Core([info], parts, SupervisorConfig())
 
 
-@budget(40)
+@budget(200)
 @given(data=st.data(), n=st.integers(1, 3), kind=st.sampled_from(list(SwitchKind)))
 def test_fused_and_part_by_part_agree(data: Any, n: int, kind: SwitchKind) -> None:
     info = PackInfo(
