@@ -8,6 +8,8 @@ from typing import Any
 
 import pytest
 
+import tests.budget  # noqa: F401 - registers and loads the Hypothesis profile first
+
 os.environ.setdefault("PYBAMM_DISABLE_TELEMETRY", "true")
 
 ROOT = Path(__file__).resolve().parents[1]

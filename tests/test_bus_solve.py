@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.model.bus import ChargerSource, LoadSink, solve_bus
 from packpilot.model.switches import KIND_MOSFET, KIND_RELAY, switch_branches
+from tests.budget import budget
 
 
 def _setup(e, kinds, chg, dsg, r, load=(0.0, 0.0, 0.0, 0.0), charger=None):  # type: ignore[no-untyped-def]
@@ -29,7 +30,7 @@ def _setup(e, kinds, chg, dsg, r, load=(0.0, 0.0, 0.0, 0.0), charger=None):  # t
     return np.array([e], float), br, ch, ld
 
 
-@settings(max_examples=200, deadline=None)
+@budget(200)
 @given(
     st.lists(st.floats(10.0, 30.0), min_size=1, max_size=6),
     st.data(),
@@ -117,7 +118,7 @@ def test_fleet_of_packs_solves_in_one_call() -> None:
     np.testing.assert_allclose(sol.string_a[:, 0], [50.0, 0.0, -125.0])
 
 
-@settings(max_examples=300, deadline=None)
+@budget(300)
 @given(
     st.lists(st.floats(5.0, 120.0), min_size=1, max_size=7),
     st.data(),

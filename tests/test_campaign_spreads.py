@@ -7,12 +7,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot import campaign as cp
 from packpilot.config import parse_config
 from packpilot.errors import InputError
+from tests.budget import budget
 from tests.conftest import dual_pack
 
 
@@ -82,7 +83,7 @@ def test_unspread_parameters_stay_nominal() -> None:
     assert 10.5 <= rel.ambient_c <= 14.5
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(
     seed=st.integers(0, 2**32),
     run=st.integers(0, 10**6),

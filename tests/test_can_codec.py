@@ -6,7 +6,7 @@ import math
 
 import can
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.charger import ChargerCommand
@@ -22,6 +22,7 @@ from packpilot.io.can import (
     encode_request,
     encode_status,
 )
+from tests.budget import budget
 
 
 def test_golden_request_vectors() -> None:
@@ -126,7 +127,7 @@ def test_bad_request_enumerations(byte: int, value: int, fragment: str) -> None:
         decode_request(msg)
 
 
-@settings(max_examples=200, deadline=None)
+@budget(200)
 @given(
     v=st.integers(min_value=0, max_value=0xFFFF),
     i=st.integers(min_value=0, max_value=0xFFFF),

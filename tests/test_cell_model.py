@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import assume, given
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
@@ -23,6 +23,7 @@ from packpilot.model.cell import (
     thevenin_numpy,
 )
 from packpilot.model.thermal import ThermalParams, step_coefficients
+from tests.budget import budget
 
 F64 = NDArray[np.float64]
 
@@ -281,7 +282,7 @@ SETS["lfp_1node"] = replace(
 )
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(
     name=st.sampled_from(sorted(SETS)),
     seed=st.integers(0, 2**32 - 1),

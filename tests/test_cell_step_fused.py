@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.model.cell import (
@@ -18,6 +18,7 @@ from packpilot.model.cell import (
     step,
     thevenin,
 )
+from tests.budget import budget
 
 
 def _variants() -> dict[str, CellParams]:
@@ -70,7 +71,7 @@ def _assert_same_state(a: CellState, b: CellState) -> None:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
 
 
-@settings(max_examples=80, deadline=None)
+@budget(200)
 @given(
     name=st.sampled_from(sorted(SETS)),
     seed=st.integers(0, 2**32 - 1),

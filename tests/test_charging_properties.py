@@ -5,17 +5,18 @@ from __future__ import annotations
 
 import math
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.bms import BatteryMeasurement, Measurements
 from packpilot.control.charging import ChargingConfig, ChargingController, Stage
+from tests.budget import budget
 from tests.test_charging_helpers import ToyPack, pack_info
 
 volts = st.floats(min_value=80.0, max_value=119.0, allow_nan=False)
 
 
-@settings(max_examples=40, deadline=None)
+@budget(200)
 @given(
     v0=st.lists(volts, min_size=1, max_size=6),
     mode=st.sampled_from(["levels", "saturation"]),
@@ -56,7 +57,7 @@ def test_charges_everything_within_limits(
     assert max(toy.peak_a) <= cfg.charger_current_limit_a + spread / r_ohm
 
 
-@settings(max_examples=30, deadline=None)
+@budget(200)
 @given(
     seq=st.lists(
         st.tuples(

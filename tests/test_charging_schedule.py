@@ -6,11 +6,12 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from packpilot.control.charging import ChargingConfig, ChargingController, Stage, rules
+from tests.budget import budget
 from tests.test_charging_helpers import ToyPack, pack_info
 
 
@@ -64,7 +65,7 @@ def test_constant_law_and_per_battery_limit_unchanged() -> None:
     assert stage_current_a(both, 6, 6) == 100.0
 
 
-@settings(max_examples=300, deadline=None)
+@budget(300)
 @given(
     limit=st.floats(min_value=1.5, max_value=500.0),
     full=st.one_of(st.none(), st.floats(min_value=1.5, max_value=1000.0)),

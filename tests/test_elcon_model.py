@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.config import ScenarioConfig, load_config
@@ -40,6 +40,7 @@ from packpilot.sim.links import ChargerLinks, can_link, modelled
 from packpilot.sim.loop import ClosedLoop, n_steps
 from packpilot.sim.plant_io import SimulatedPlant
 from packpilot.sim.runner import Runner
+from tests.budget import budget
 from tests.conftest import EXAMPLES
 from tests.golden.fingerprint import events_of, trace_arrays
 
@@ -390,13 +391,13 @@ def test_quantization_equals_the_codec_on_hostile_values(x: float) -> None:
 
 
 @given(st.floats(allow_nan=True, allow_infinity=True, width=64))
-@settings(max_examples=500, deadline=None)
+@budget(500)
 def test_quantization_equals_the_codec_on_any_float(x: float) -> None:
     _check_value(x)
 
 
 @given(st.integers(0, 655350).map(lambda n: n / 100.0))
-@settings(max_examples=500, deadline=None)
+@budget(500)
 def test_quantization_on_the_grid_of_halves(x: float) -> None:
     _check_value(x)
 

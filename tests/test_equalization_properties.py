@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
@@ -14,6 +14,7 @@ from packpilot.control.equalization import (
     EqualizationController,
     balancing_time_s,
 )
+from tests.budget import budget
 
 
 def _meas(t: float, gv: tuple[float, ...], cur: float) -> Measurements:
@@ -56,7 +57,7 @@ def runs(draw: st.DrawFn) -> tuple[int, list[tuple[float, tuple[float, ...], flo
     return m, segs
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(cfg=configs, run=runs())
 def test_ah_stays_within_zero_and_n(
     cfg: EqualizationConfig, run: tuple[int, list[tuple[float, tuple[float, ...], float]]]
@@ -75,7 +76,7 @@ def test_ah_stays_within_zero_and_n(
             assert all(0.0 <= a <= cfg.n_ah for a in ctrl.strings[0].owed_ah)
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(cfg=configs, run=runs())
 def test_ledger_charge_equals_time_times_current(
     cfg: EqualizationConfig, run: tuple[int, list[tuple[float, tuple[float, ...], float]]]
@@ -130,7 +131,7 @@ def test_ledger_charge_equals_time_times_current(
         assert all(math.isclose(a, b, abs_tol=1e-9) for a, b in zip(d_net, d_gross, strict=True))
 
 
-@settings(max_examples=40, deadline=None)
+@budget(200)
 @given(
     ah=st.floats(0.0, 1.0),
     cur=st.floats(0.5, 50.0),

@@ -13,11 +13,12 @@ from typing import Any
 import numpy as np
 import pytest
 import tomli_w
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from packpilot.cli import app
+from tests.budget import budget
 from tests.conftest import EXAMPLES
 
 RUNNER = CliRunner()
@@ -71,9 +72,7 @@ def _check(result: Any, *names: str) -> None:
             assert any(n in lines[0] for n in names), (lines[0], names)
 
 
-@settings(
-    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@budget(200, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(path=st.sampled_from(PATHS), value=BAD_VALUES)
 def test_fuzzed_config_values(tmp_path: Path, path: tuple[Any, ...], value: Any) -> None:
     cfg = copy.deepcopy(BASE)
@@ -101,9 +100,7 @@ def test_control_characters_in_a_key_stay_on_one_line(tmp_path: Path, key: str) 
     _check(res, "load", "unknown key")
 
 
-@settings(
-    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@budget(200, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(st.text(max_size=200))
 def test_fuzzed_toml_text(tmp_path: Path, text: str) -> None:
     p = tmp_path / "raw.toml"
@@ -118,9 +115,7 @@ CELL = st.one_of(
 )
 
 
-@settings(
-    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@budget(200, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     method=st.sampled_from(["protection", "sequencing", "equalization"]),
     rows=st.lists(st.lists(CELL, min_size=1, max_size=6), min_size=0, max_size=6),
@@ -157,9 +152,7 @@ SECTIONS = ("equalization", "supervisor", "limits", "plausibility", "soc", "faul
 MISSION_PATHS = [p for p in _paths(MISSION) if p[0] in SECTIONS]
 
 
-@settings(
-    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@budget(200, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(path=st.sampled_from(MISSION_PATHS), value=BAD_VALUES)
 def test_fuzzed_safety_section_values(tmp_path: Path, path: tuple[Any, ...], value: Any) -> None:
     cfg = copy.deepcopy(MISSION)
@@ -177,9 +170,7 @@ def test_fuzzed_safety_section_values(tmp_path: Path, path: tuple[Any, ...], val
 PROFILE_ROW = st.lists(CELL, min_size=0, max_size=3)
 
 
-@settings(
-    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@budget(200, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(rows=st.lists(PROFILE_ROW, min_size=0, max_size=6), raw=st.binary(max_size=16))
 def test_fuzzed_load_profile_rows(tmp_path: Path, rows: list[list[str]], raw: bytes) -> None:
     """A load profile CSV with malformed rows (gaps, text, extra cells, stray bytes)."""
@@ -196,9 +187,7 @@ def test_fuzzed_load_profile_rows(tmp_path: Path, rows: list[list[str]], raw: by
         assert "row" in res.stderr or "header" in res.stderr or "UTF-8" in res.stderr
 
 
-@settings(
-    max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@budget(200, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(raw=st.binary(max_size=64))
 def test_fuzzed_replay_bytes(tmp_path: Path, raw: bytes) -> None:
     """Arbitrary bytes after a valid header (not UTF-8, NUL, stray separators)."""
@@ -250,7 +239,7 @@ def _validated_or_one_line(p: Path) -> Any:
         return None
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=FIXTURE_OK)
+@budget(300, suppress_health_check=FIXTURE_OK)
 @given(
     mutations=st.lists(
         st.tuples(st.sampled_from(SCHEMA_PATHS), SCHEMA_VALUES), min_size=1, max_size=3
@@ -288,7 +277,7 @@ CSV_CELL = st.one_of(
 )
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=FIXTURE_OK)
+@budget(200, suppress_health_check=FIXTURE_OK)
 @given(
     column=st.sampled_from(["current_a", "power_w", "resistance_ohm"]),
     rows=st.lists(st.lists(CSV_CELL, min_size=0, max_size=3), min_size=0, max_size=8),
@@ -311,7 +300,7 @@ def test_fuzzed_profile_csv_is_parsed_or_refused(
     assert np.all(np.isfinite(prof.t_s)) and np.all((lo <= prof.value) & (prof.value <= hi))
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=FIXTURE_OK)
+@budget(200, suppress_health_check=FIXTURE_OK)
 @given(
     method=st.sampled_from(["protection", "sequencing", "equalization"]),
     rows=st.lists(st.lists(CSV_CELL, min_size=4, max_size=5), min_size=1, max_size=5),

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.bms import ControlOutput, Measurements
 from packpilot.contract.charger import CHARGER_OFF
 from packpilot.contract.topology import PackInfo
 from packpilot.control.limits import TIER_EVENT, LimitsConfig, LimitsController
+from tests.budget import budget
 from tests.test_limits_helpers import ANY_FLOAT, Driver, healthy, measurements, pack_infos
 
 LIMIT_EVENTS = {*TIER_EVENT.values(), "LimitReset"}
@@ -36,7 +37,7 @@ def check_output(out: ControlOutput, n: int, ctl: LimitsController) -> None:
         assert isinstance(x, float) and (math.isnan(x) or x >= 0.0)
 
 
-@settings(max_examples=100, deadline=None)
+@budget(200)
 @given(
     info=pack_infos(),
     steps=st.lists(st.tuples(measurements(), ANY_FLOAT), min_size=1, max_size=15),
@@ -52,7 +53,7 @@ def test_arbitrary_measurements_never_raise(
         check_output(ctl.step(meas, dt), info.n_batteries, ctl)
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(
     steps=st.lists(
         st.tuples(

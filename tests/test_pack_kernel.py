@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given
 from hypothesis import strategies as st
 
 from packpilot.config import parse_config
@@ -25,6 +25,7 @@ from packpilot.model.numerics import pairwise_sum as _pairwise
 from packpilot.model.numerics import segment_sum as _segment
 from packpilot.model.pack import Interval, Pack
 from packpilot.model.pack_kernel import segment_sums
+from tests.budget import budget
 from tests.conftest import dual_pack
 
 TOL: dict[str, float] = {"rtol": 1e-9, "atol": 1e-9}
@@ -221,9 +222,7 @@ def _same_plant(a: Pack, b: Pack, k: int) -> None:
             _close(getattr(ba.state, name), getattr(bb.state, name), f"step {k}: bank {name}")
 
 
-@settings(
-    max_examples=40,
-    deadline=None,
+@budget(200,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 @given(data=st.data())
@@ -288,7 +287,7 @@ def test_step_rejects_non_positive_dt() -> None:
         pack.step(0.0, "none", np.zeros(1))
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(
     lengths=st.lists(st.integers(1, 600), min_size=1, max_size=4),
     rows=st.integers(1, 3),

@@ -3,13 +3,14 @@ battery counts, odd dt, arbitrary commands) and always returns a well-formed Con
 
 from __future__ import annotations
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.bms import Commands, ControlOutput, Measurements
 from packpilot.contract.charger import CHARGER_OFF
 from packpilot.contract.topology import PackInfo
 from packpilot.control.plausibility import KINDS, PlausibilityConfig, PlausibilityMonitor
+from tests.budget import budget
 from tests.test_limits_helpers import ANY_FLOAT, measurements, pack_infos
 
 FLAGS = st.lists(st.sampled_from([True, False, None]), max_size=5).map(tuple)
@@ -34,7 +35,7 @@ def check_output(out: ControlOutput, n: int, mon: PlausibilityMonitor) -> None:
             assert cmd.chg_on[i] is None or "relay_stuck_open" in mon.faults(i)
 
 
-@settings(max_examples=100, deadline=None)
+@budget(200)
 @given(
     info=pack_infos(),
     steps=st.lists(

@@ -5,12 +5,13 @@ from __future__ import annotations
 import math
 from fractions import Fraction
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.protection import CompiledTable, ProtectionConfig, ProtectionController
+from tests.budget import budget
 
 PACK = PackInfo(
     n_batteries=1,
@@ -66,14 +67,14 @@ def _reference_param(i: float, t: float) -> str:
     return "P3"
 
 
-@settings(max_examples=300, deadline=None)
+@budget(300)
 @given(i=currents, t=temps)
 def test_lookup_matches_edge_convention(i: float, t: float) -> None:
     row = TABLE.lookup([i, t])
     assert TABLE.params[TABLE.rows[row][0]].name == _reference_param(i, t)
 
 
-@settings(max_examples=150, deadline=None)
+@budget(200)
 @given(
     i=currents,
     t=temps,
@@ -102,7 +103,7 @@ trace_rows = st.tuples(
 )
 
 
-@settings(max_examples=150, deadline=None)
+@budget(200)
 @given(
     rows=st.lists(
         st.tuples(currents, temps, st.floats(min_value=3.2001, max_value=4.3), st.just(1.0)),
@@ -115,7 +116,7 @@ def test_voltage_above_every_cutoff_never_trips(rows: list[Row]) -> None:
     assert _trip_time(rows) is None
 
 
-@settings(max_examples=150, deadline=None)
+@budget(200)
 @given(
     rows=st.lists(trace_rows, min_size=1, max_size=120),
     drops=st.lists(st.floats(min_value=0.0, max_value=1.0), min_size=120, max_size=120),
@@ -128,7 +129,7 @@ def test_lowering_voltage_never_delays_the_trip(rows: list[Row], drops: list[flo
         assert after is not None and after <= before + 1e-9
 
 
-@settings(max_examples=150, deadline=None)
+@budget(200)
 @given(rows=st.lists(trace_rows, min_size=1, max_size=120))
 def test_fraction_is_sum_of_t_over_tmax(rows: list[Row]) -> None:
     """The weighted sum / m equals sum(t_k / t_max_k) over discharging ticks below cut-off."""

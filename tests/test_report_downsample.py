@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -18,12 +18,13 @@ from packpilot.report.downsample import (
     step_indices,
 )
 from packpilot.report.figures import TimeAxis, hold_runs
+from tests.budget import budget
 
 floats = st.one_of(st.floats(-1e6, 1e6), st.just(math.nan))
 series = hnp.arrays(np.float64, st.integers(0, 3000), elements=floats)
 
 
-@settings(max_examples=120, deadline=None)
+@budget(200)
 @given(y=series, max_points=st.integers(8, 400))
 def test_minmax_keeps_extremes_gaps_and_ends(y: np.ndarray, max_points: int) -> None:
     idx = minmax_indices(y, max_points)
@@ -38,7 +39,7 @@ def test_minmax_keeps_extremes_gaps_and_ends(y: np.ndarray, max_points: int) -> 
         assert np.isnan(sel).any()  # a gap in the data stays a gap in the line
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(y=hnp.arrays(np.float64, st.integers(500, 4000), elements=st.floats(-10, 10)))
 def test_minmax_keeps_each_buckets_extremes(y: np.ndarray) -> None:
     """Every bucket keeps a sample at its minimum and one at its maximum."""
@@ -84,7 +85,7 @@ def _same(a: object, b: object) -> bool:
     return a == b
 
 
-@settings(max_examples=120, deadline=None)
+@budget(200)
 @given(
     y=hnp.arrays(
         np.float64, st.integers(0, 400), elements=st.sampled_from([0.0, 1.0, 2.5, math.nan])
@@ -97,7 +98,7 @@ def test_change_points_reproduce_a_step_series(y: np.ndarray) -> None:
     assert all(_same(a, b) for a, b in zip(rebuilt, y.tolist(), strict=True))
 
 
-@settings(max_examples=80, deadline=None)
+@budget(200)
 @given(labels=st.lists(st.sampled_from(["OFF", "ON", "STANDBY", None]), max_size=300))
 def test_change_points_of_labels(labels: list[str | None]) -> None:
     arr = np.empty(len(labels), dtype=object)
@@ -112,7 +113,7 @@ def test_step_indices_fall_back_when_a_flag_flickers() -> None:
     assert len(idx) <= 1000 and set(np.unique(y[idx])) == {0.0, 1.0}
 
 
-@settings(max_examples=100, deadline=None)
+@budget(200)
 @given(on=st.lists(st.booleans(), min_size=1, max_size=200))
 def test_hold_runs_cover_exactly_the_held_time(on: list[bool]) -> None:
     x = np.cumsum(np.r_[0.0, np.full(len(on) - 1, 0.5)])

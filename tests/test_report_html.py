@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.config import load_config
@@ -32,6 +32,7 @@ from packpilot.report.html import (
     select_events,
 )
 from packpilot.sim.runner import Runner
+from tests.budget import budget
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -293,7 +294,7 @@ def test_large_run_is_downsampled_and_small() -> None:
     assert "ProtectionTripped" in ev and "Listing 1,000 of 12,001 events" in ev
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(
     counts=st.dictionaries(
         st.sampled_from(["A", "B", "C", "D", "E"]), st.integers(1, 400), min_size=1

@@ -201,3 +201,25 @@ def test_rest_correction_recovers_a_wrong_start_on_the_plant(tmp_path: Path) -> 
     after = [abs(a - b) for t, a, b in rec.pairs if t > 805.0]
     assert min(before) > 0.29  # the 0.3 start error is carried by coulomb counting
     assert max(after) < 0.01  # OCV after 10 min of rest: within 1 % of the plant's truth
+
+
+def test_a_nan_current_neither_counts_nor_rests() -> None:
+    """Unknown current: the estimate holds and no OCV correction happens (the battery is not
+    known to be resting), however long it lasts."""
+    e = est(soc0=(0.2, 0.2))
+    rest = healthy(current_a=math.nan, min_cell_v=3.95, max_cell_v=3.95)  # OCV: SOC 0.75
+    events = []
+    for k in range(180):
+        _, ev = e.update(meas(k + 1.0, rest, rest), 1.0)
+        events.extend(ev)
+    assert e.soc == (0.2, 0.2)
+    assert not events
+
+
+def test_an_ocv_table_beyond_zero_and_one_is_clamped() -> None:
+    """A fitted OCV table may run past 0..1 at its ends; the estimate never does."""
+    e = est(ocv_soc=(-0.1, 0.5, 1.1))
+    full = healthy(current_a=0.0, min_cell_v=4.2, max_cell_v=4.2)
+    empty = healthy(current_a=0.0, min_cell_v=3.0, max_cell_v=3.0)
+    e.update(meas(1.0, full, empty), 1.0)  # initialised from the OCV
+    assert e.soc == (1.0, 0.0)

@@ -154,3 +154,96 @@ def test_discharge_becomes_idle_after_exactly_idle_after_s_of_quiet() -> None:
         modes.append(sup.mode)
         t += 0.5
     assert modes == [Mode.DISCHARGE, Mode.IDLE, Mode.IDLE, Mode.IDLE]
+
+
+def test_an_empty_bus_seeds_the_largest_group_within_the_limit() -> None:
+    """Nothing closed yet: the largest set of candidates within join_limit_v closes (100 and
+    101 V), not the lowest battery alone (90 V)."""
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(3), methods=[_CloseAll()])
+    meas = Measurements(t_s=0.0, batteries=(_bat(90.0), _bat(100.0), _bat(101.0)), bus_v=0.0)
+    out = sup.step(meas, 0.1)
+    assert out.commands.chg_on == (False, True, True)
+    assert [e.battery for e in out.events if e.kind == "CommandRefused"] == [0]
+
+
+def test_a_reset_after_every_trip_ends_the_shutdown() -> None:
+    """A ProtectionReset un-trips its battery: not every battery is tripped any more, so the
+    supervisor leaves SHUTDOWN and stops forcing the paths open."""
+    from packpilot.contract.bms import Event
+
+    class _TripThenReset:
+        def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+            if meas.t_s < 0.15:
+                ev = tuple(Event(meas.t_s, "ProtectionTripped", i) for i in range(2))
+            elif meas.t_s < 0.25:
+                ev = (Event(meas.t_s, "ProtectionReset", 0),)
+            else:
+                ev = ()
+            return ControlOutput(Commands(), events=ev)
+
+    sup = Supervisor(
+        SupervisorConfig(init_time_s=0.0),
+        _info(2, SwitchKind.MOSFET_PAIR),
+        methods=[_TripThenReset()],
+    )
+    bats = (_bat(22.0), _bat(22.0))
+    sup.step(Measurements(t_s=0.1, batteries=bats, bus_v=22.0), 0.1)
+    assert sup.mode is Mode.SHUTDOWN
+    out = sup.step(Measurements(t_s=0.2, batteries=bats, bus_v=22.0), 0.1)
+    assert sup.mode is not Mode.SHUTDOWN
+    assert out.commands.dsg_on == (None, None)
+
+
+def test_a_battery_of_unknown_voltage_never_joins() -> None:
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(2), methods=[_CloseAll()])
+    meas = Measurements(
+        t_s=0.0, batteries=(_bat(100.0, closed=True), _bat(float("nan"))), bus_v=100.0
+    )
+    out = sup.step(meas, 0.1)
+    assert out.commands.chg_on == (True, False) and out.commands.dsg_on == (True, False)
+
+
+class _ChargerOn:
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        from packpilot.contract.charger import ChargerCommand
+
+        return ControlOutput(Commands(charger=ChargerCommand(25.2, 5.0, enable=True)))
+
+
+def test_the_charger_runs_only_in_charge_mode() -> None:
+    from packpilot.contract.charger import CHARGER_OFF
+
+    cfg = SupervisorConfig(init_time_s=0.0)
+    sup = Supervisor(cfg, _info(1, SwitchKind.MOSFET_PAIR), methods=[_ChargerOn()])
+    flying = Measurements(t_s=0.0, batteries=(_bat(24.0),), bus_v=24.0)
+    out = sup.step(flying, 0.1)
+    assert sup.mode is Mode.IDLE and out.commands.charger == CHARGER_OFF
+    out = sup.step(Measurements(t_s=0.1, batteries=(_bat(24.0),), bus_v=24.0, docked=True), 0.1)
+    assert sup.mode is Mode.CHARGE and out.commands.charger is not None
+    assert out.commands.charger.enable
+
+
+def test_a_fault_holds_fault_mode_for_fault_hold_s() -> None:
+    from packpilot.contract.bms import Event
+
+    class _FaultOnce:
+        def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+            ev = (Event(meas.t_s, "Fault", 0),) if meas.t_s == 0.0 else ()
+            return ControlOutput(Commands(), events=ev)
+
+    cfg = SupervisorConfig(init_time_s=0.0, fault_hold_s=1.0)
+    sup = Supervisor(cfg, _info(1, SwitchKind.MOSFET_PAIR), methods=[_FaultOnce()])
+    modes = []
+    for k in range(15):
+        sup.step(Measurements(t_s=k * 0.1, batteries=(_bat(24.0),), bus_v=24.0), 0.1)
+        modes.append(sup.mode)
+    assert modes[:10] == [Mode.FAULT] * 10 and modes[-1] is Mode.IDLE
+
+
+def test_init_lasts_init_time_s() -> None:
+    sup = Supervisor(SupervisorConfig(init_time_s=1.0), _info(1, SwitchKind.MOSFET_PAIR))
+    modes = []
+    for k in range(15):
+        sup.step(Measurements(t_s=k * 0.1, batteries=(_bat(24.0),), bus_v=24.0), 0.1)
+        modes.append(sup.mode)
+    assert modes[:9] == [Mode.INIT] * 9 and modes[-1] is Mode.IDLE

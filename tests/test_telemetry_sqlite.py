@@ -15,7 +15,7 @@ import numpy as np
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.bms import Event
@@ -29,6 +29,7 @@ from packpilot.io.telemetry import (
     load_run,
     trace_to_csv,
 )
+from tests.budget import budget
 
 NAMES = ["left", "right"]
 N_C = len(BATTERY_CHANNELS)
@@ -413,7 +414,7 @@ def test_wide_export_rejects_colliding_names(tmp_path: Path) -> None:
 finite = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
 
-@settings(max_examples=40, deadline=None)
+@budget(200)
 @given(
     vals=st.lists(finite, min_size=N_C * 2 + 6 + 4, max_size=N_C * 2 + 6 + 4),
     flush_every=st.integers(1, 5),
@@ -476,7 +477,7 @@ STATUS_STRATEGIES = {
 }
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(n_steps=st.integers(1, 8), data=st.data())
 def test_any_status_round_trips(n_steps: int, data: st.DataObject) -> None:
     """Channels keep one type each (as controllers do); values of that type survive exactly.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.config.charging import ChargingConfig
@@ -25,6 +25,7 @@ from packpilot.control.plausibility import METHOD as PLAUSIBILITY
 from packpilot.control.protection import METHOD as PROTECTION
 from packpilot.control.sequencing import METHOD as SEQUENCING
 from packpilot.control.soc import METHOD as SOC
+from tests.budget import budget
 from tests.core.drawn import assert_same_output, sequence
 
 
@@ -51,7 +52,7 @@ def _core(info: PackInfo) -> Core:
     return Core([info], parts, SupervisorConfig())
 
 
-@settings(max_examples=40, deadline=None)
+@budget(200)
 @given(data=st.data(), n=st.integers(1, 3), kind=st.sampled_from(list(SwitchKind)))
 def test_fused_and_part_by_part_agree(data: Any, n: int, kind: SwitchKind) -> None:
     info = PackInfo(

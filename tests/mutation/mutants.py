@@ -1,0 +1,291 @@
+"""Hand-listed single-point mutants of the safety rules (#18 §1).
+
+Each mutant names its module (``src/packpilot/control/<module>/<file>``), a source snippet that
+occurs exactly once in that file, and its replacement: a flipped comparison, a dropped
+condition, a skipped timer or latch, a dropped clamp. Snippets, not line numbers, so that a
+mutant survives edits around it; a snippet that no longer matches exactly once is reported as
+*stale* (the list must follow the code, never silently skip).
+
+``why`` says which rule the mutant breaks: the behavioural test that kills it checks that rule.
+
+TODO(sequencing): no sequencing mutants yet. The sequencer is being rewritten for the
+co-discharge change (#18 §2 names its invariant as changing); its mutants (R1 ``<`` -> ``<=``,
+R2 ignoring a demoted battery, no time-backwards check, ...) come after that lands.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Mutant:
+    module: str
+    name: str
+    old: str
+    new: str
+    why: str
+    file: str = "rules.py"
+
+    @property
+    def path(self) -> str:
+        return f"src/packpilot/control/{self.module}/{self.file}"
+
+
+def _m(module: str, name: str, old: str, new: str, why: str) -> Mutant:
+    return Mutant(module, name, old, new, why)
+
+
+# fmt: off
+LIMITS = [
+    _m("limits", "violated-above-ge", "violating = v > prm.threshold[k]",
+       "violating = v >= prm.threshold[k]", "a value exactly at the threshold violates"),
+    _m("limits", "violated-below-le", "violating = v < prm.threshold[k]",
+       "violating = v <= prm.threshold[k]", "a value exactly at the threshold violates"),
+    _m("limits", "cleared-above-lt", "st.clear_ok[p, i, k] = v <= prm.reset[k]",
+       "st.clear_ok[p, i, k] = v < prm.reset[k]", "exactly at reset does not clear"),
+    _m("limits", "cleared-below-gt", "st.clear_ok[p, i, k] = v >= prm.reset[k]",
+       "st.clear_ok[p, i, k] = v > prm.reset[k]", "exactly at reset does not clear"),
+    _m("limits", "trip-keeps-chg-limit", "            lim_chg = 0.0\n",
+       "            lim_chg = lim_chg\n", "a charge trip does not zero the charge limit"),
+    _m("limits", "trip-keeps-dsg-limit", "            lim_dsg = 0.0\n",
+       "            lim_dsg = lim_dsg\n", "a discharge trip does not zero the discharge limit"),
+    _m("limits", "nan-clears-after-latch", "st.clear_ok[p, i, k] = False  # unknown",
+       "st.clear_ok[p, i, k] = True  # unknown",
+       "a NaN reading clears an active row once latch_s has passed"),
+    _m("limits", "no-delay", "and st.held_s[p, i, k] >= prm.delay_s[k] - EPS",
+       "and st.held_s[p, i, k] >= 0.0", "a row fires without its delay"),
+    _m("limits", "no-latch", "and st.active_s[p, i, k] >= prm.latch_s[k] - EPS",
+       "and st.active_s[p, i, k] >= 0.0", "a row clears before latch_s"),
+    _m("limits", "no-debounce-restart",
+       "                else:\n                    st.seen[p, i, k] = 0\n",
+       "                else:\n                    pass\n",
+       "a good sample does not restart the debounce"),
+    _m("limits", "dsg-trip-keeps-path", "if dsg_trip:\n            put_dsg(cmd, p, i, False)",
+       "if dsg_trip:\n            pass", "a discharge trip does not open the path"),
+    _m("limits", "chg-trip-keeps-path", "if chg_trip:\n            put_chg(cmd, p, i, False)",
+       "if chg_trip:\n            pass", "a charge trip does not open the path"),
+    _m("limits", "charger-off-in-flight", "if docked and any_chg_trip:",
+       "if any_chg_trip:", "the charger is commanded off while not docked"),
+    _m("limits", "charger-stays-on", "if docked and any_chg_trip:",
+       "if False:", "a docked charge trip leaves the charger on"),
+    _m("limits", "cross-charge-not-charging",
+       "st.ctx[p, W_CHARGING] = docked or (math.isfinite(cur) and cur < -band)",
+       "st.ctx[p, W_CHARGING] = docked", "cross-charging by a sibling is not 'charging'"),
+    _m("limits", "derate-ignored", "lim_chg *= prm.derate_fraction",
+       "lim_chg *= 1.0", "a charge derate row does not scale the limit"),
+    _m("limits", "pack-limit-strongest",
+       "min_dsg = lim_dsg if n_dsg == 0 else fmin(min_dsg, lim_dsg)",
+       "min_dsg = lim_dsg if n_dsg == 0 else fmax(min_dsg, lim_dsg)",
+       "the pack discharge limit follows the strongest battery"),
+]
+
+PLAUSIBILITY = [
+    _m("plausibility", "range-edges-exclusive", "not (lo <= x and x <= hi)",
+       "not (lo < x and x < hi)", "a value exactly at a range edge is a fault"),
+    _m("plausibility", "load-nan-unchecked",
+       "    if not math.isfinite(load_a):\n", "    if False:\n",
+       "a NaN load current is never checked"),
+    _m("plausibility", "bus-nan-unchecked",
+       "    if not math.isfinite(bus_v):\n", "    if False:\n",
+       "a NaN bus voltage is never checked"),
+    _m("plausibility", "current-nan-unchecked",
+       "    if not math.isfinite(cur):\n        return (BAD, F_CURRENT, cur, V_SHOW)",
+       "    if False:\n        return (BAD, F_CURRENT, cur, V_SHOW)",
+       "a NaN battery current is never checked"),
+    _m("plausibility", "stuck-without-load",
+       "loaded = math.isfinite(cur) and abs(cur) >= prm.stuck_current_c * scale",
+       "loaded = True", "a relaxed voltage at rest counts as stuck"),
+    _m("plausibility", "stale-ge", "age > prm.max_sample_age_s",
+       "age >= prm.max_sample_age_s", "a sample exactly max_sample_age_s old is stale"),
+    _m("plausibility", "no-persistence", "if not latched and bad_s >= delay - EPS:",
+       "if not latched:", "a fault latches on the first bad sample"),
+    _m("plausibility", "early-clear", "ok_s >= clear_after_s - EPS",
+       "ok_s >= 0.0", "a fault clears on the first good sample"),
+    _m("plausibility", "switch-fault-auto-clears", "k < N_SENSOR_KINDS, dt, prm.clear_after_s,",
+       "True, dt, prm.clear_after_s,", "a switch fault clears by itself"),
+    _m("plausibility", "last-source-isolated",
+       "if docked or _other_source(st, tp, m, p, i):", "if True:",
+       "a faulty last source is isolated in flight (drops the load)"),
+    _m("plausibility", "charger-into-unknown",
+       "if unsafe and can_take_charge and conducts(tp, m, p, i, True):", "if False:",
+       "the charger keeps charging into an unknown battery"),
+    _m("plausibility", "sum-tolerance-unscaled",
+       "abs(diff) > prm.sum_tolerance_v_per_group * groups",
+       "abs(diff) > prm.sum_tolerance_v_per_group",
+       "the voltage-sum tolerance is not scaled by the group count"),
+]
+
+CHARGING = [
+    _m("charging", "s20-keeps-higher", "_set_row(st.new_members, p, st.new_first[p])",
+       "_set_row(st.new_members, p, st.new_second[p])",
+       "S20 connects the higher level instead of the lowest"),
+    _m("charging", "s20-exit-on-highest",
+       "if keep and stage == S20:\n                    keep = lo < st.vr1_v[p]",
+       "if keep and stage == S20:\n                    keep = hi < st.vr1_v[p]",
+       "S20 ends when its highest battery reaches Vr1, leaving the lower ones short"),
+    _m("charging", "regroup-without-tolerance", "est[i] <= hi + prm.eps_eq",
+       "est[i] <= hi", "a battery within eps_eq of the connected level does not regroup"),
+    _m("charging", "cell-limit-gt", "if cell >= prm.cell_v_limit_v:",
+       "if cell > prm.cell_v_limit_v:", "a cell exactly at the limit keeps charging"),
+    _m("charging", "negative-r-accepted", "if 0.0 <= r_step <= prm.r_comp_max_ohm:",
+       "if r_step <= prm.r_comp_max_ohm:", "a negative resistance estimate is accepted"),
+    _m("charging", "undock-keeps-session", "st.done[p].fill(DONE_NONE)  # the session ends",
+       "pass  # the session ends", "undocking keeps the session's full batteries"),
+    _m("charging", "no-overvoltage-stop",
+       "elif v >= prm.v_sat + prm.overvoltage_margin:", "elif False:",
+       "an over-voltage battery keeps charging"),
+    _m("charging", "invalid-kept", "        valid[i] = ok\n", "        valid[i] = here\n",
+       "a battery with a non-finite reading stays in the sort"),
+    _m("charging", "charger-fault-ignored",
+       "            go = False\n        elif st.stage[p] == FAULT:",
+       "            go = True\n        elif st.stage[p] == FAULT:",
+       "a charger fault does not stop charging"),
+    _m("charging", "fault-clears-at-once",
+       "if st.fault_clear_s[p] < prm.charger_fault_clear_s:", "if False:",
+       "charging resumes before the charger reported healthy for fault_clear_s"),
+    _m("charging", "no-dock-rest", "st.rested[p] = st.session_s[p] >= prm.dock_rest_s",
+       "st.rested[p] = True", "charging starts without the dock rest"),
+]
+
+PROTECTION = [
+    _m("protection", "trip-keeps-path",
+       "if st.tripped[p, i]:\n            put_dsg(cmd, p, i, False)",
+       "if st.tripped[p, i]:\n            pass", "a trip does not open the discharge path"),
+    _m("protection", "counts-while-not-discharging", "if below and st.discharging[p, i]:",
+       "if below:", "time below the cut-off counts without discharge"),
+    _m("protection", "le-ignored", "below = v_chk <= cut if prm.voltage_le else v_chk < cut",
+       "below = v_chk < cut", "exactly at the cut-off is not 'below' under voltage_le"),
+    _m("protection", "trip-ge-ignored", "if an > m_den or (prm.trip_ge and an == m_den):",
+       "if an > m_den:", "reaching exactly m does not trip under trip_ge"),
+    _m("protection", "recovery-no-reset", "elif not below and prm.reset_on_recovery:",
+       "elif False:", "recovery does not reset the accumulator"),
+    _m("protection", "charge-no-new-cycle",
+       "_new_cycle(st, p, i, RESET_CHARGE, t_s, ev, src)", "pass",
+       "sustained charging does not start a new cycle"),
+    _m("protection", "unknown-not-conservative", "            if not known:\n",
+       "            if False:\n", "an unknown status does not get the most conservative row"),
+    _m("protection", "conservative-lowest-cut", "cut > best_cut or",
+       "cut < best_cut or", "the 'most conservative' row has the lowest cut-off"),
+    _m("protection", "fallback-strongest-group", "g_min = fmin(g_min, x)",
+       "g_min = fmax(g_min, x)", "the fallback voltage reads the strongest group"),
+    _m("protection", "no-hysteresis", "                prm.use_hysteresis\n",
+       "                False\n", "row changes ignore the hysteresis band"),
+    _m("protection", "reinsert-keeps-cycle", "if prm.reset_on_reinsert:", "if False:",
+       "a re-inserted battery keeps its accumulator"),
+]
+
+SUPERVISOR = [
+    _m("supervisor", "join-limit-ignored", "if math.isfinite(vi) and hi - lo <= limit:",
+       "if math.isfinite(vi):", "a relay closes onto batteries far apart"),
+    _m("supervisor", "join-limit-lt", "if math.isfinite(vi) and hi - lo <= limit:",
+       "if math.isfinite(vi) and hi - lo < limit:", "exactly the limit is refused"),
+    _m("supervisor", "nan-voltage-joins", "if math.isfinite(vi) and hi - lo <= limit:",
+       "if not math.isfinite(vi) or hi - lo <= limit:", "a battery of unknown voltage joins"),
+    _m("supervisor", "seed-ignores-limit",
+       "            if v[p, st.order[p, b]] - lo <= prm.join_limit_v:\n                n += 1",
+       "            if True:\n                n += 1",
+       "the first group on an empty bus ignores the join limit"),
+    _m("supervisor", "charger-on-outside-charge", "if mode != CHARGE:\n        put_charger_off",
+       "if mode == FAULT:\n        put_charger_off", "the charger may run outside CHARGE"),
+    _m("supervisor", "shutdown-keeps-paths", "if mode == SHUTDOWN:\n        for i",
+       "if False:\n        for i", "SHUTDOWN leaves the paths alone"),
+    _m("supervisor", "no-fault-hold", "if st.since_fault_s[p] < prm.fault_hold_s:",
+       "if False:", "a fault does not hold the FAULT mode"),
+    _m("supervisor", "reset-ignored",
+       "if cls & CLS_RESET and 0 <= b < n_b:\n            st.tripped[p, b] = False",
+       "if cls & CLS_RESET and 0 <= b < n_b:\n            st.tripped[p, b] = True",
+       "a reset does not un-trip the battery"),
+    _m("supervisor", "no-init-wait", "if st.t_in_mode_s[p] + dt_s < prm.init_time_s:",
+       "if False:", "INIT ends at once"),
+]
+
+SOC = [
+    _m("soc", "no-clamp",
+       "fmin(1.0, fmax(0.0, st.soc[p, i] - cur * dt / (3600.0 * tp.capacity_ah[p, i])))",
+       "st.soc[p, i] - cur * dt / (3600.0 * tp.capacity_ah[p, i])",
+       "coulomb counting leaves 0..1"),
+    _m("soc", "sign-flipped", "st.soc[p, i] - cur * dt / (3600.0",
+       "st.soc[p, i] + cur * dt / (3600.0", "discharge raises the SOC"),
+    _m("soc", "no-rest-reset", "    if abs(cur) >= prm.rest_current_a:\n",
+       "    if False:\n", "load does not restart the rest clock"),
+    _m("soc", "nan-current-counted",
+       "    if not math.isfinite(cur):\n        st.rest_s[p, i] = 0.0",
+       "    if False:\n        st.rest_s[p, i] = 0.0", "a NaN current is counted"),
+    _m("soc", "no-rest-wait", "if st.rest_s[p, i] < st.next_fix_s[p, i] - EPS:",
+       "if False:", "the OCV correction does not wait for rest_time_s"),
+    _m("soc", "blend-ignored", "(1.0 - prm.blend) * before + prm.blend * ocv_soc",
+       "ocv_soc", "the OCV correction ignores blend"),
+    _m("soc", "ocv-unclamped", "return fmin(1.0, fmax(0.0, s))", "return s",
+       "the OCV lookup leaves 0..1"),
+]
+
+EQUALIZATION = [
+    _m("equalization", "hi-keeps-lo-timer", "hi[p, i, g] += ts_s\n            lo[p, i, g] = 0.0",
+       "hi[p, i, g] += ts_s", "a lagging group keeps its leading timer"),
+    _m("equalization", "t1-halved", "if not hi[p, i, g] >= prm.t1_s - SAMPLE_TOL:",
+       "if not hi[p, i, g] >= 0.5 * prm.t1_s - SAMPLE_TOL:", "formula 1 fires before t1"),
+    _m("equalization", "formula1-no-average", "return (ah + n_ah) / 2.0",
+       "return ah + n_ah", "formula 1 does not average toward N"),
+    _m("equalization", "no-subtract-min", "    if subtracted:\n        low",
+       "    if False:\n        low", "the minimum is not subtracted"),
+    _m("equalization", "bad-input-not-held", "        if not ok:\n            # Hold",
+       "        if False:\n            # Hold", "a bad input does not hold the string"),
+    _m("equalization", "gate-ignores-min-current",
+       "if mag < prm.min_current_a or mag == 0.0:", "if mag == 0.0:",
+       "equalizers run below the minimum string current"),
+    _m("equalization", "owed-overwritten", "            if a > owed[p, i, g]:\n",
+       "            if True:\n", "a new grant lowers what is still owed"),
+    _m("equalization", "last-step-overdelivers", "cur[p, i, g] = q * 3600.0 / dt",
+       "cur[p, i, g] = i_eq", "the last partial step delivers more than owed"),
+    _m("equalization", "zero-voltage-accepted", "if not math.isfinite(v) or v <= 0.0:",
+       "if not math.isfinite(v):", "a zero group voltage is used"),
+]
+
+# fmt: on
+
+MUTANTS: list[Mutant] = [
+    *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION
+]
+
+PENDING = {"sequencing": "after the co-discharge rewrite (another engineer is on it)"}
+"""Modules deliberately without mutants yet, shown in the report as TODO."""
+
+TESTS: dict[str, list[str]] = {
+    "limits": [
+        "tests/test_limits_controller.py",
+        "tests/test_limits_edges.py",
+        "tests/test_limits_derating.py",
+        "tests/test_limits_properties.py",
+    ],
+    "plausibility": [
+        "tests/test_plausibility_monitor.py",
+        "tests/test_plausibility_edges.py",
+        "tests/test_plausibility_properties.py",
+        "tests/test_plausibility_closed_loop.py",
+    ],
+    "charging": [
+        "tests/test_charging_controller.py",
+        "tests/test_charging_rules.py",
+        "tests/test_charging_properties.py",
+        "tests/test_charging_schedule.py",
+    ],
+    "protection": [
+        "tests/test_protection_controller.py",
+        "tests/test_protection_properties.py",
+        "tests/test_protection_replay.py",
+    ],
+    "supervisor": ["tests/test_supervisor.py"],
+    "soc": ["tests/test_soc_estimator.py"],
+    "equalization": [
+        "tests/test_equalization_controller.py",
+        "tests/test_equalization_core.py",
+        "tests/test_equalization_owed.py",
+        "tests/test_equalization_properties.py",
+        "tests/test_equalization_replay.py",
+    ],
+}
+"""Behavioural tests per module, run interpreted (NUMBA_DISABLE_JIT=1). Equivalence tests
+(test_fused_step, test_interpreted, test_golden) are never listed: they compare two copies of
+the same code and would kill every mutant without checking a rule. Slow closed loops (the
+charging closed loop takes ~40 s interpreted) are left out to keep a run in minutes."""

@@ -1,0 +1,110 @@
+"""Staged-charging rules that only mutation testing showed unguarded (#18 §1).
+
+The pack here is *frozen*: the controller's commands are never applied, so every reading is
+exactly what the test says (an exact cell limit, a level exactly eps_eq apart) and each rule is
+seen in isolation from the plant.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+from packpilot.contract.bms import ControlOutput, Measurements
+from packpilot.control.charging import ChargingConfig, ChargingController
+from tests.test_charging_helpers import ToyPack, pack_info
+
+CFG = ChargingConfig()
+
+
+def frozen(v0: list[float], **toy: Any) -> tuple[ToyPack, ChargingController]:
+    return ToyPack(v0, **toy), ChargingController(CFG, pack_info(len(v0)))
+
+
+def patched(m: Measurements, i: int, **kw: Any) -> Measurements:
+    """``m`` with battery ``i``'s readings replaced."""
+    bats = list(m.batteries)
+    bats[i] = replace(bats[i], **kw)
+    return replace(m, batteries=tuple(bats))
+
+
+def run(ctrl: ChargingController, m: Measurements, steps: int) -> list[ControlOutput]:
+    return [ctrl.step(m, 1.0) for _ in range(steps)]
+
+
+def test_a_cell_exactly_at_the_limit_stops_its_battery() -> None:
+    """``cell_v_limit_v`` is reached at equality: the battery is latched out (cell_limit)."""
+    toy, ctrl = frozen([80.0, 90.0])
+    m = patched(toy.measure(), 0, max_cell_v=CFG.cell_v_limit_v)
+    outs = run(ctrl, m, 5)
+    full = [e for o in outs for e in o.events if e.kind == "BatteryFull"]
+    assert [(e.battery, e.data["reason"]) for e in full] == [(0, "cell_limit")]
+    assert outs[-1].commands.chg_on[0] is False
+
+
+def test_a_battery_within_eps_eq_of_the_connected_level_joins_it() -> None:
+    """A battery that becomes eligible at most eps_eq above the connected level regroups:
+    S20 is decided afresh and the battery is connected with the first level."""
+    toy, ctrl = frozen([80.0, 90.0, 80.0 + 0.5 * CFG.eps_eq_v])
+    good = toy.measure()
+    blind = patched(good, 2, voltage_v=math.nan)  # left out of the first decision
+    outs = run(ctrl, blind, 5)
+    assert outs[-1].status["chg_stage"][0] == "S20"
+    assert outs[-1].commands.chg_on == (True, False, False)
+    outs = run(ctrl, good, 2)
+    assert outs[-1].commands.chg_on == (True, False, True)
+
+
+def test_a_negative_resistance_estimate_is_rejected() -> None:
+    """A current step whose voltage moves the wrong way (R < 0) teaches nothing."""
+    toy, ctrl = frozen([80.0, 90.0], docked=False)
+    m0 = toy.measure()
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
+    ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=79.0), 1.0)  # R = -(−1)/(−5) < 0
+    assert ctrl.r_ohm[0] == CFG.r_comp_initial_ohm
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=78.5), 1.0)  # R = 0.1: learned
+    assert abs(ctrl.r_ohm[0] - 0.1) < 1e-9
+
+
+def test_undocking_ends_the_session_and_its_full_batteries() -> None:
+    """A battery latched out in one session charges again in the next one."""
+    toy, ctrl = frozen([80.0, 90.0])
+    over = patched(toy.measure(), 0, max_cell_v=CFG.cell_v_limit_v + 0.1)
+    assert run(ctrl, over, 5)[-1].status["chg_done"][0] == "cell_limit"
+    run(ctrl, replace(over, docked=False, charger=None), 1)
+    outs = run(ctrl, toy.measure(), 5)
+    assert outs[-1].status["chg_done"][0] != "cell_limit"
+    assert outs[-1].commands.chg_on[0] is True
+
+
+def test_a_nonfinite_temperature_leaves_the_battery_out() -> None:
+    """Any non-finite reading (not only the voltage) opens that battery's relay."""
+    toy, ctrl = frozen([80.0, 90.0, 80.0])
+    outs = run(ctrl, patched(toy.measure(), 0, temp_c=math.nan), 5)
+    assert outs[-1].commands.chg_on == (False, False, True)
+    assert [e.battery for o in outs for e in o.events if e.kind == "Fault"] == [0]
+
+
+def test_an_overvoltage_battery_is_latched_out_as_overvoltage() -> None:
+    """Terminal voltage at V_sat + margin (cells below their limit): an over-voltage stop,
+    not a normal 'full'."""
+    toy, ctrl = frozen([CFG.v_sat_v + CFG.overvoltage_margin_v, 90.0])
+    outs = run(ctrl, toy.measure(), 5)
+    ev = [e for o in outs for e in o.events if e.battery == 0 and "reason" in e.data]
+    assert [(e.kind, e.data["reason"]) for e in ev] == [("Fault", "overvoltage")]
+    assert outs[-1].commands.chg_on[0] is False
+
+
+def test_s20_runs_until_its_lowest_battery_reaches_vr1() -> None:
+    """S20 charges the first level up to Vr1 = V2 - d1: it ends when the *lowest* connected
+    battery gets there, not the highest (which would leave the others short of the level)."""
+    toy, ctrl = frozen([80.0, 80.4, 90.0])
+    outs = run(ctrl, toy.measure(), 5)
+    assert outs[-1].status["chg_stage"][0] == "S20"
+    assert outs[-1].commands.chg_on == (True, True, False)
+    vr1 = 90.0 - CFG.d1_v
+    straddle = ToyPack([vr1 + 0.2, vr1 - 0.2, 90.0]).measure()
+    outs = run(ctrl, straddle, 3)
+    assert [o.status["chg_stage"][0] for o in outs] == ["S20"] * 3
+    assert outs[-1].commands.chg_on == (True, True, False)

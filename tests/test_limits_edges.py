@@ -1,0 +1,112 @@
+"""Limits at their exact edges (#18 §1: rules that only mutation testing showed unguarded).
+
+Violation is *strictly* beyond the threshold and clearing is *at or past* the reset value
+(docs/safety.md "Semantics of a row"); a trip zeroes its path's published current limit even
+where the derating tables would allow current; an unknown (NaN) reading never clears a row,
+however long the row has been active.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from packpilot.control.limits import DEFAULT_ROWS, LimitRow
+from tests.test_limits_helpers import CAP, Driver, healthy, with_value
+
+ROWS = list(enumerate(DEFAULT_ROWS))
+IDS = [f"{r.limit}-{r.tier}" for r in DEFAULT_ROWS]
+DELTA = 1e-3
+
+
+def _docked(row: LimitRow) -> bool:
+    return row.when == "charging"
+
+
+def _fire(d: Driver, k: int, row: LimitRow) -> None:
+    beyond = row.threshold + DELTA if row.direction == "above" else row.threshold - DELTA
+    for _ in range(row.debounce + math.ceil(row.delay_s / 0.1) + 1):
+        d.step(with_value(row, beyond), docked=_docked(row))
+    assert d.ctl.is_active(0, k)
+
+
+@pytest.mark.parametrize(("k", "row"), ROWS, ids=IDS)
+def test_a_value_exactly_at_the_threshold_never_fires(k: int, row: LimitRow) -> None:
+    """At the threshold is not a violation, however long it lasts."""
+    d = Driver()
+    for _ in range(row.debounce + math.ceil(row.delay_s / 0.1) + 50):
+        d.step(with_value(row, row.threshold), docked=_docked(row))
+    assert not d.ctl.is_active(0, k)
+
+
+@pytest.mark.parametrize(("k", "row"), ROWS, ids=IDS)
+def test_a_value_exactly_at_reset_clears(k: int, row: LimitRow) -> None:
+    """At the reset value is past it: an auto row clears after its latch, a manual row accepts
+    an explicit reset."""
+    d = Driver()
+    _fire(d, k, row)
+    at_reset = with_value(row, row.reset)
+    if row.latch_s is None:
+        d.step(at_reset, docked=_docked(row))
+        assert d.ctl.reset_trips(0) >= 1
+        assert not d.ctl.is_active(0, k)
+        return
+    for _ in range(math.ceil(row.latch_s / 0.1) + 2):
+        d.step(at_reset, docked=_docked(row))
+    assert not d.ctl.is_active(0, k)
+
+
+@pytest.mark.parametrize(
+    ("limit", "current_a", "channel"),
+    [
+        ("over_current_discharge", 21.0 * CAP, "limit_dsg_a"),
+        ("over_current_charge", -3.1 * CAP, "limit_chg_a"),
+    ],
+)
+def test_a_trip_zeroes_its_published_limit_where_the_tables_allow_current(
+    limit: str, current_a: float, channel: str
+) -> None:
+    """3.7 V, 25 degC, SOC 0.5: the tables allow 2C charge / 15C discharge; the trip says 0."""
+    k = next(k for k, r in ROWS if r.limit == limit and r.tier == "trip")
+    d = Driver()
+    for _ in range(20):
+        out = d.step(healthy(current_a=current_a))
+    assert d.ctl.is_active(0, k)
+    assert out.status[channel] == [0.0]
+    rested = d.step(healthy(current_a=0.0))  # still latched (30 s): the table would give > 0
+    assert d.ctl.is_active(0, k)
+    assert rested.status[channel] == [0.0]
+
+
+def test_nan_never_clears_an_auto_row_after_its_latch() -> None:
+    """A NaN temperature for longer than latch_s (60 s) holds an over-temperature trip; a real
+    safe reading then clears it."""
+    k, row = next((k, r) for k, r in ROWS if r.limit == "over_temp_discharge" and r.tier == "trip")
+    assert row.latch_s is not None
+    d = Driver()
+    _fire(d, k, row)
+    for _ in range(round(row.latch_s) + 30):
+        d.step(healthy(temp_c=math.nan, min_temp_c=math.nan), dt=1.0)
+    assert d.ctl.is_active(0, k), "a NaN reading cleared the trip"
+    d.step(healthy(temp_c=25.0))
+    assert not d.ctl.is_active(0, k)
+
+
+@pytest.mark.parametrize(
+    ("limit", "current_a", "channel", "table_a"),
+    [
+        ("over_current_charge", -2.6 * CAP, "limit_chg_a", 2.0 * CAP),
+        ("over_current_discharge", 19.0 * CAP, "limit_dsg_a", 15.0 * CAP),
+    ],
+)
+def test_a_derate_row_scales_its_published_limit(
+    limit: str, current_a: float, channel: str, table_a: float
+) -> None:
+    """While a derate row of a path is active its limit is the table's x derate_fraction."""
+    k = next(k for k, r in ROWS if r.limit == limit and r.tier == "derate")
+    d = Driver()
+    for _ in range(20):
+        out = d.step(healthy(current_a=current_a))
+    assert d.ctl.is_active(0, k) and d.ctl.active_tier(0, limit) == "derate"
+    assert out.status[channel] == [pytest.approx(0.5 * table_a)]
