@@ -503,6 +503,13 @@ def remaining_s(num: I64, den: I64, p: int, i: int, m: int, w: int) -> float:
     return left / float(w) / 1000.0
 
 
+
+@kernel_inline
+def _below(prm: ProtectionParams, v_chk: float, cut: float) -> bool:
+    """The voltage is below the active cut-off (at it counts as below under ``voltage_le``):
+    one test for the trip rule and the time-to-trip prediction."""
+    return v_chk <= cut if prm.voltage_le else v_chk < cut
+
 @kernel_inline
 def time_to_trip(
     prm: ProtectionParams, st: ProtectionState, p: int, i: int, q: int, v_chk: float,
@@ -519,7 +526,7 @@ def time_to_trip(
         return math.nan
     left = remaining_s(st.acc_num, st.acc_den, p, i, prm.m_ms, prm.weight[q])
     cut = float(prm.cutoff_v[q])
-    below = v_chk <= cut if prm.voltage_le else v_chk < cut
+    below = _below(prm, v_chk, cut)
     if below:
         return left
     slope = float(st.dvdt[p, i])
@@ -690,7 +697,7 @@ def step_pack(
 
             if not (st.tripped[p, i] or math.isnan(v_chk)):
                 cut = prm.cutoff_v[q]
-                below = v_chk <= cut if prm.voltage_le else v_chk < cut
+                below = _below(prm, v_chk, cut)
                 if below and st.discharging[p, i]:
                     acc_add(st.acc_num, st.acc_den, p, i, prm.weight[q], a_ms, b_ms, prm.m_ms)
                 elif not below and prm.reset_on_recovery:
