@@ -39,6 +39,7 @@ Run: ``python benchmarks/bench_sequencing.py``.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -241,19 +242,22 @@ def run(scenarios: tuple[str, ...] = tuple(SCENARIOS)) -> list[dict[str, Any]]:
     return rows
 
 
+GOALS: dict[str, Callable[[float], bool]] = {
+    "co_share": lambda x: x >= 0.90,
+    "sw_per_min": lambda x: x <= 1.0,
+    "peak_share": lambda x: x <= 0.6,
+    "rev_1a_s": lambda x: x <= 0.1 + 1e-9,
+    "cross_mah_h": lambda x: x <= 1.0,
+    "energy_budget_ratio": lambda x: x >= 0.99,
+    "heat_ratio": lambda x: x < 1.0,
+}
+"""Issue #15 §1's goals, per figure (run_all's headlines use the same table)."""
+
+
 def verdicts(row: dict[str, Any]) -> dict[str, str]:
     """Goal -> 'met' / 'MISSED' / '-' for one sequencing row."""
     out: dict[str, str] = {}
-    checks = {
-        "co_share": lambda x: x >= 0.90,
-        "sw_per_min": lambda x: x <= 1.0,
-        "peak_share": lambda x: x <= 0.6,
-        "rev_1a_s": lambda x: x <= 0.1 + 1e-9,
-        "cross_mah_h": lambda x: x <= 1.0,
-        "energy_budget_ratio": lambda x: x >= 0.99,
-        "heat_ratio": lambda x: x < 1.0,
-    }
-    for key, ok in checks.items():
+    for key, ok in GOALS.items():
         x = row.get(key)
         out[key] = "-" if x is None else ("met" if ok(x) else "MISSED")
     return out

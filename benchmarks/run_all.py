@@ -180,15 +180,7 @@ def _sequencing_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
     def num(x: Any, fmt: str) -> str:
         return "-" if x is None else fmt.format(x)
 
-    ok = {
-        "co_share": lambda x: x >= 0.90,
-        "sw_per_min": lambda x: x <= 1.0,
-        "peak_share": lambda x: x <= 0.6,
-        "rev_1a_s": lambda x: x <= 0.1 + 1e-9,
-        "cross_mah_h": lambda x: x <= 1.0,
-        "energy_budget_ratio": lambda x: x >= 0.99,
-        "heat_ratio": lambda x: x < 1.0,
-    }
+    ok = sys.modules["bench_sequencing"].GOALS  # the bench's own table, loaded by run()
 
     def verdict(r: dict[str, Any], key: str) -> str:
         x = r.get(key)

@@ -339,28 +339,16 @@ def _share(grp: I64, m: int, ef: F64, g: F64, load_a: float, out: F64) -> None:
 
 
 @kernel_inline
-def _e_ref(state: I64, p: int, ef: F64) -> float:
-    """Bus reference for R2: highest fast voltage of the DISCHARGING batteries (NaN: none).
-
-    Admitted batteries whose charge FET is still open count too, so a standby battery joins
-    only when it meets every battery already admitted to discharge (joins go in order)."""
+def _max_discharging(state: I64, p: int, x: F64) -> float:
+    """Highest ``x`` over the DISCHARGING batteries (NaN: none). With the fast voltages: the
+    bus reference for R2 (admitted batteries whose charge FET is still open count too, so a
+    standby battery joins only when it meets every battery already admitted to discharge);
+    with the terminal voltages: the reference for hot insertion."""
     have = False
     v = np.nan
     for k in range(state.shape[1]):
-        if state[p, k] == DISCHARGING and (not have or ef[k] > v):
-            v = ef[k]
-            have = True
-    return v
-
-
-@kernel_inline
-def _v_ref(state: I64, p: int, volt: F64) -> float:
-    """Highest terminal voltage of the DISCHARGING batteries (NaN: none): hot insertion."""
-    have = False
-    v = np.nan
-    for k in range(state.shape[1]):
-        if state[p, k] == DISCHARGING and (not have or volt[k] > v):
-            v = volt[k]
+        if state[p, k] == DISCHARGING and (not have or x[k] > v):
+            v = x[k]
             have = True
     return v
 
@@ -605,7 +593,7 @@ def _discharge_tick(
         for k in range(n):
             if not inserted[k]:
                 continue
-            v_ref = _v_ref(state, p, volt)
+            v_ref = _max_discharging(state, p, volt)
             if math.isnan(v_ref) or volt[k] - v_ref < prm.v_th:
                 continue
             for j in range(n):
@@ -636,7 +624,7 @@ def _discharge_tick(
     # discharging battery's terminal voltage sits I*R below its open-circuit voltage, so the
     # source's terminal-voltage test fires while that battery is still I*R - v_co higher and
     # co-discharge would start lopsided (issue #15; docs/parallel_discharge.md).
-    e_ref = _e_ref(state, p, ef)
+    e_ref = _max_discharging(state, p, ef)
     if not math.isnan(e_ref):
         m = 0
         for k in range(n):
@@ -713,7 +701,7 @@ def _discharge_tick(
         at_risk[p, k] = risk
         zero_load_into_a[p, k] = pred[k]
     zero_load_valid[p] = True
-    v_ref_v[p] = _e_ref(state, p, ef)
+    v_ref_v[p] = _max_discharging(state, p, ef)
 
 
 # ------------------------------------------------------------------------------ charge mode
