@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import pytest
 
-from packpilot.contract.bms import BatteryMeasurement, ControlOutput, Measurements, SwitchKind
+from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.equalization import (
     EVENT_RESOLUTION_AH,
     EqualizationConfig,
     EqualizationController,
 )
+from tests.test_equalization_properties import _meas
 
 LAG = (11.0, 13.0)  # with dv_set = 0.5 V: ΔV0 = +1 V > dv_set (group 0 lags)
 HOLD = (12.0, 13.0)  # ΔV0 = +0.5 V = dv_set exactly: no timer runs, AH is not updated
@@ -27,18 +28,8 @@ def pack(groups: int = 2) -> PackInfo:
 
 
 def meas(t: float, gv: tuple[float, ...], current_a: float) -> Measurements:
-    b = BatteryMeasurement(
-        voltage_v=sum(gv),
-        current_a=current_a,
-        temp_c=25.0,
-        min_cell_v=min(gv),
-        max_cell_v=max(gv),
-        soc=0.5,
-        full_capacity_ah=10.0,
-        remaining_capacity_ah=5.0,
-        group_voltages_v=gv,
-    )
-    return Measurements(t_s=t, batteries=(b,), bus_v=b.voltage_v)
+    """One battery of 10 Ah at 25 C with these group voltages (the properties' helper)."""
+    return _meas(t, gv, current_a)
 
 
 def one_grant(n_ah: float, ah0: float, current_a: float) -> EqualizationController:
