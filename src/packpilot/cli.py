@@ -150,7 +150,7 @@ def _json_default(o: Any) -> Any:
 FAIL_ON_HELP = (
     "exit with code 3 when the run had an alarm of one of these categories (comma-separated):"
     " trip, fault, unsupplied, overdischarge, crosscharge, limit, refused, crosscurrent,"
-    " isolated, unknown"
+    " reserve, unknown"
 )
 
 
