@@ -330,7 +330,9 @@ def protection(page: Page) -> str:
         c.bands = bands
         parts.append(page.chart(c))
     frac = ch.get("protection_fraction")
-    if frac is not None:
+    if frac is not None and nominal(frac) is not None:
+        parts.append(f'<p class="note">Allowance used: {esc(nominal(frac))}.</p>')
+    elif frac is not None:
         c = Chart("prot-fraction", "Allowance used (%)", "%", bands=bands, height=150)
         c.series = [
             Series(page.status(frac, b), names[b], battery_color(b), step=True, scale=100.0)
@@ -392,8 +394,11 @@ def charging(page: Page) -> str:
         scale = np.asarray(series, dtype=np.float64) if per_cell else 1.0
         ttf = Q.time_to_full(res, c.v_sat_v * scale, c.termination_current_a, traction,
                              c.reach_tol_v * scale)  # fmt: skip
+    done = next((e.t_s for e in res.events if e.kind == "ChargeComplete"), None)
     kv = [
-        ("time to full", "not reached" if not math.isfinite(ttf) else f"{fmt_num(ttf)} s"
+        ("charge complete (the method's ChargeComplete)", "no" if done is None else
+         f"at {fmt_num(done)} s ({fmt_time(done)})"),
+        ("time to full (the benchmark's criterion)", "not reached" if not math.isfinite(ttf) else f"{fmt_num(ttf)} s"
          f" ({fmt_time(ttf)})"),
         ("peak charge current", ", ".join(f"{k}: {fmt_num(v)} A" for k, v in peak.items())),
         ("time per stage", ", ".join(f"{k}: {fmt_num(v)} s" for k, v in times.items()) or "–"),
@@ -419,11 +424,11 @@ def charging(page: Page) -> str:
     if stage is not None and stage.columns:
         parts.append(page.chart(page.status_chart(stage, "Charging stage")))
         page.shown.add("chg_stage")
-    c = Chart("chg-current", "Charge current into each battery, charger current (A)", "A")
+    chart = Chart("chg-current", "Charge current into each battery, charger current (A)", "A")
     for b in traction:
-        c.series.append(Series(page.bat("current_a", b), names[b], battery_color(b), scale=-1.0))
-    c.series.append(Series(page.pack("charger_a"), "charger", "#6b8e23", dash=True))
-    parts.append(page.chart(c))
+        chart.series.append(Series(page.bat("current_a", b), names[b], battery_color(b), scale=-1.0))
+    chart.series.append(Series(page.pack("charger_a"), "charger", "#6b8e23", dash=True))
+    parts.append(page.chart(chart))
     return "".join(parts)
 
 

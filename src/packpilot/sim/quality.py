@@ -212,10 +212,10 @@ FULL_BAND_V = 0.5
 
 def time_to_full(
     res: Result,
-    v_sat_v: float | Sequence[float],
+    v_sat_v: float | Sequence[float] | F64,
     term_a: float,
     traction: Sequence[int],
-    band_v: float | Sequence[float] = FULL_BAND_V,
+    band_v: float | Sequence[float] | F64 = FULL_BAND_V,
 ) -> float:
     """First time by which every traction battery has been within ``band_v`` of V_sat with its
     charge current down to ``term_a`` (the criterion the method stops on); NaN if never.
@@ -323,7 +323,7 @@ def group_spread_mv(trace: Trace, battery: int) -> F64:
     ok = np.isfinite(g)
     hi = np.where(ok, g, -np.inf).max(axis=1)
     lo = np.where(ok, g, np.inf).min(axis=1)
-    out = (hi - lo) * 1000.0
+    out: F64 = (hi - lo) * 1000.0
     out[~ok.any(axis=1)] = math.nan
     return out
 

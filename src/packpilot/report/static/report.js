@@ -1,6 +1,6 @@
 /* PackPilot report charts: unpack the inline series and draw them with the bundled uPlot.
  *
- * Everything is in the page: the data (<script id="pp-data" type="application/json">), uPlot and
+ * Everything is in the page: the data (the JSON block with id "pp-data"), uPlot and
  * this file. Zoom: drag across a chart, or turn the wheel over it; double-click or "reset zoom"
  * goes back to the whole run. Charts of one group share the cursor (hover shows every value at
  * that time in each chart's legend) and the zoom. For tests: window.ppCharts maps a chart id to
@@ -16,6 +16,8 @@
   var total = 0;
   var syncing = false;
   var SPAN = DATA.span[1] - DATA.span[0];
+  var TIME_INCRS = [0.1, 0.2, 0.5, 1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200,
+    10800, 21600, 43200, 86400];
   window.ppCharts = charts;
 
   function b64bytes(text) {
@@ -145,8 +147,9 @@
     });
     syncing = false;
     var label = document.querySelector('[data-range="' + u.ppGroup + '"]');
-    if (label) {
-      var full = u.scales.x.min <= u.ppX[0] && u.scales.x.max >= u.ppX[1];
+    if (label && u.ppX) {
+      var eps = (u.ppX[1] - u.ppX[0]) * 1e-6;
+      var full = u.scales.x.min <= u.ppX[0] + eps && u.scales.x.max >= u.ppX[1] - eps;
       label.textContent = full ? "whole run" : fmtT(u.scales.x.min) + " – " + fmtT(u.scales.x.max);
     }
   }
@@ -180,7 +183,7 @@
       width: Math.max(320, el.clientWidth),
       height: spec.height,
       scales: { x: { time: false, range: function (u, min, max) { return [min, max]; } }, y: y },
-      axes: [{ values: function (u, vals) { return vals.map(fmtTick); } }, yAxis],
+      axes: [{ incrs: TIME_INCRS, values: function (u, vals) { return vals.map(fmtTick); } }, yAxis],
       series: series,
       cursor: { sync: { key: spec.group }, drag: { x: true, y: false, setScale: true } },
       legend: { live: true },
