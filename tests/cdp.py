@@ -55,10 +55,15 @@ class Cdp:
     def wait(self, expr: str, timeout_s: float = 20.0) -> Any:
         """Poll ``expr`` until it is truthy; its value."""
         deadline = time.monotonic() + timeout_s
-        value = self.eval(expr)
-        while not value and time.monotonic() < deadline:
+        value: Any = None
+        while True:
+            try:  # during navigation the expression may not evaluate yet
+                value = self.eval(expr)
+            except AssertionError:
+                value = None
+            if value or time.monotonic() >= deadline:
+                break
             time.sleep(0.05)
-            value = self.eval(expr)
         assert value, f"never true: {expr}"
         return value
 

@@ -294,7 +294,8 @@ def test_nominal_channels_are_one_line_and_busy_ones_charts() -> None:
 @budget(200)
 @given(
     y=st.lists(
-        st.one_of(st.floats(-1e4, 1e4, allow_nan=False), st.just(math.nan)), min_size=1,
+        st.one_of(st.floats(-1e4, 1e4, allow_nan=False), st.just(math.nan)),
+        min_size=1,
         max_size=300,
     )
 )
