@@ -11,13 +11,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from packpilot.report.charts import spans
 from packpilot.report.downsample import (
     change_indices,
     downsample,
     minmax_indices,
     step_indices,
 )
-from packpilot.report.charts import spans
 from tests.budget import budget
 
 floats = st.one_of(st.floats(-1e6, 1e6), st.just(math.nan))

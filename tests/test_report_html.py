@@ -7,7 +7,6 @@ import json
 import math
 import os
 import re
-import struct
 import subprocess
 import sys
 import time

@@ -398,8 +398,8 @@ def charging(page: Page) -> str:
     kv = [
         ("charge complete (the method's ChargeComplete)", "no" if done is None else
          f"at {fmt_num(done)} s ({fmt_time(done)})"),
-        ("time to full (the benchmark's criterion)", "not reached" if not math.isfinite(ttf) else f"{fmt_num(ttf)} s"
-         f" ({fmt_time(ttf)})"),
+        ("time to full (the benchmark's criterion)", "not reached" if not math.isfinite(ttf)
+         else f"{fmt_num(ttf)} s ({fmt_time(ttf)})"),
         ("peak charge current", ", ".join(f"{k}: {fmt_num(v)} A" for k, v in peak.items())),
         ("time per stage", ", ".join(f"{k}: {fmt_num(v)} s" for k, v in times.items()) or "–"),
     ]  # fmt: skip
@@ -426,7 +426,8 @@ def charging(page: Page) -> str:
         page.shown.add("chg_stage")
     chart = Chart("chg-current", "Charge current into each battery, charger current (A)", "A")
     for b in traction:
-        chart.series.append(Series(page.bat("current_a", b), names[b], battery_color(b), scale=-1.0))
+        key = page.bat("current_a", b)
+        chart.series.append(Series(key, names[b], battery_color(b), scale=-1.0))
     chart.series.append(Series(page.pack("charger_a"), "charger", "#6b8e23", dash=True))
     parts.append(page.chart(chart))
     return "".join(parts)
