@@ -38,8 +38,8 @@ def quantum(y: F64) -> float:
     (four significant digits at the top of its range, finer below)."""
     finite = np.abs(y[np.isfinite(y)])
     top = float(finite.max()) if finite.size else 0.0
-    if top == 0.0:
-        return 1.0
+    if top < 1e-5:  # zero, or denormal dust: nothing finer than 1e-9 is worth carrying
+        return 1.0 if top == 0.0 else 1e-9
     return float(10.0 ** math.floor(math.log10(top * 1e-4)))
 
 
