@@ -130,7 +130,7 @@ class CompiledController:
 
     def events(self) -> list[Event]:
         """The events of the last step."""
-        return render(self._ev, [self._source], 1)[0]
+        return render(self._ev, [self._source], 1, self.pack.names)[0]
 
 
 __all__ = ["CompiledController", "Method", "StatusChannel", "StepPacks", "status_values"]
