@@ -714,7 +714,7 @@ def dashboard(
             is_sqlite(config) or config.suffix.lower() in RECORDING_SUFFIXES
         ):
             recording = config
-        runner, name = None, "no run yet"
+        runner, name, path = None, "no run yet", None
         if config is not None and recording is None:
             path = scenario_path(config)
             cfg = _load(path, duration)
@@ -724,7 +724,8 @@ def dashboard(
             _example_dirs(), runs_dir, [recording] if recording is not None else []
         )
         dash = Dashboard(
-            runner, scenario=name, speed=speed, db=db, host=host, port=port,
+            runner, scenario=name, source=str(path) if path else None, speed=speed, db=db,
+            host=host, port=port,
             recording=recording, run_id=run_id, library=library,
             make_runner=lambda p: _named(p, lambda: _runner(_load(p, duration))),
             write_report=_dashboard_report(report), allow_remote=allow_remote, token=token,

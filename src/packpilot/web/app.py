@@ -372,6 +372,7 @@ class Dashboard:
         runner: Any = None,
         *,
         scenario: str = "",
+        source: str | None = None,
         speed: float = 10.0,
         db: Path | None = None,
         host: str = "127.0.0.1",
@@ -402,6 +403,7 @@ class Dashboard:
             sim = None
             if runner is not None:
                 live = self._live_run(runner, scenario, speed, db, max_points)
+                live.source = source
                 sim = SimThread(runner, live, db)
             else:
                 live = LiveRun(scenario="no run yet", state="idle", max_points=max_points)
@@ -446,7 +448,6 @@ class Dashboard:
             max_points=n,
             battery_names=list(runner.pack.names),
             db=str(db) if db is not None else None,
-            source=scenario,
         )
 
     @property

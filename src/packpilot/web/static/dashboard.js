@@ -164,6 +164,13 @@ function onUpdate(msg) {
 }
 
 function renderLatest() {
+  const L = S.latest;
+  if (L) {
+    $("bus-v").textContent = fmt(L.bus_v, 2, "V");
+    $("load-a").textContent = fmt(L.load_a, 1, "A") + " (" + fmt(L.load_demand_a, 1) + ")";
+    $("charger").textContent = fmt(L.charger_v, 1, "V") + " · " + fmt(L.charger_a, 2, "A");
+    $("mode").textContent = L.mode || "—";
+  }
   renderHeadline(S.headline);
   renderCards();
   renderSchematic();
@@ -512,8 +519,13 @@ function pill(label, on, diode) {
 
 // Per-cell (series group) voltage bars, diyBMS style: the lowest and highest group marked,
 // a group the equalizer is moving charge in/out of marked as balancing.
-function renderCellBars(c, b) {
-  const gv = (b.group_v || []).map((v) => (isNum(v) ? v : null));
+function renderCellBars(c, b, i) {
+  // group_v is padded with NaN up to the pack's largest battery: show this one's groups only
+  const own = S.layout && S.layout.batteries[i] ? S.layout.batteries[i].series_groups : null;
+  let gv = (b.group_v || []).map((v) => (isNum(v) ? v : null));
+  if (isNum(own)) gv = gv.slice(0, own);
+  else while (gv.length && gv[gv.length - 1] === null) gv.pop();
+  c.bars.classList.toggle("dense", gv.length > 16);
   const vals = gv.filter((v) => v !== null);
   const st = b.status || {};
   if (c.bars.childElementCount !== gv.length) {
@@ -531,13 +543,15 @@ function renderCellBars(c, b) {
   const lo = Math.min(...vals), hi = Math.max(...vals);
   const span = Math.max(hi - lo, 0.1);
   const base = lo - 0.25 * span, top = hi + 0.15 * span;
-  const iLo = gv.indexOf(lo), iHi = gv.indexOf(hi);
+  // a spread under 0.1 mV has no lowest or highest group worth pointing at
+  const marked = vals.length > 1 && hi - lo >= 1e-4;
+  const iLo = marked ? gv.indexOf(lo) : -1, iHi = marked ? gv.indexOf(hi) : -1;
   [...c.bars.children].forEach((bar, k) => {
     const v = gv[k];
     const eq = st["eq_i_a_g" + k];
     const bal = isNum(eq) && Math.abs(eq) > BALANCING_A;
-    bar.classList.toggle("min", k === iLo && vals.length > 1);
-    bar.classList.toggle("max", k === iHi && vals.length > 1 && iHi !== iLo);
+    bar.classList.toggle("min", k === iLo);
+    bar.classList.toggle("max", k === iHi);
     bar.classList.toggle("balancing", bal);
     bar.dataset.v = v === null ? "" : v.toFixed(4);
     bar.title = "group " + (k + 1) + ": " + fmt(v, 3, "V") + (bal ? " · balancing " +
@@ -558,7 +572,7 @@ function renderCards() {
     c.cells.soc.textContent = isNum(b.soc) ? (100 * b.soc).toFixed(1) + "%" : "—";
     c.cells.temp_c.textContent = fmt(b.temp_c, 1);
     c.socfill.style.width = isNum(b.soc) ? Math.max(0, Math.min(100, 100 * b.soc)) + "%" : "0";
-    renderCellBars(c, b);
+    renderCellBars(c, b, i);
     c.cellsLine.textContent = "";
     const spread = isNum(b.max_cell_v) && isNum(b.min_cell_v) ?
       " (spread " + (1000 * (b.max_cell_v - b.min_cell_v)).toFixed(0) + " mV)" : "";
