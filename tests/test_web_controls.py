@@ -27,7 +27,7 @@ from packpilot.web.live import (
     name_batteries,
 )
 from packpilot.web.recorded import Recording
-from packpilot.web.session import Library, NotAllowed, Session
+from packpilot.web.session import Library, Session
 from tests.conftest import EXAMPLES
 from tests.test_web_app import WS_URL, start, strict_loads
 from tests.test_web_security import TOKEN, recording
@@ -98,9 +98,7 @@ def test_the_page_starts_a_shipped_example_and_clients_follow() -> None:
         d["sim"].update(duration_s=20.0, progress=False)
         return Runner(parse_config(d), progress=False)
 
-    session = Session(
-        live, sim, library=Library.of_dirs([EXAMPLES], None), make_runner=make_runner
-    )
+    session = Session(live, sim, library=Library.of_dirs([EXAMPLES], None), make_runner=make_runner)
     c = app_client(session)
     try:
         assert "smart_battery" in c.get("/api/catalog").json()["examples"]

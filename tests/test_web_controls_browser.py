@@ -71,9 +71,13 @@ def spread_pack() -> dict[str, Any]:
 def live_server() -> Iterator[Dashboard]:
     runner = Runner(parse_config(spread_pack()), progress=False)
     dash = Dashboard(
-        runner, scenario="controls_test", speed=5.0, port=0,
-        library=Library.of_dirs([EXAMPLES], None), make_runner=short_example,
-    )  # fmt: skip
+        runner,
+        scenario="controls_test",
+        speed=5.0,
+        port=0,
+        library=Library.of_dirs([EXAMPLES], None),
+        make_runner=short_example,
+    )
     thread = serve(dash)
     yield dash
     dash.stop()
@@ -91,8 +95,10 @@ def test_controls_schematic_and_cell_bars_on_a_live_run(
     browser.wait_body(lambda d: int(d.get("samples", 0)) > 0 and d.get("kind") == "live", 30.0)
     live = live_server.live
     # --- the schematic: a bus, a load, two FET pairs drawn with their live state
-    fets = js(browser, "[...document.querySelectorAll('[data-fet]')].map(e =>"
-                       " [e.dataset.fet, e.dataset.state])")  # fmt: skip
+    fets = js(
+        browser,
+        "[...document.querySelectorAll('[data-fet]')].map(e => [e.dataset.fet, e.dataset.state])",
+    )
     assert sorted(f for f, _ in fets) == ["A:CHG", "A:DSG", "B:CHG", "B:DSG"], fets
     assert dict(fets)["A:DSG"] == "on" and dict(fets)["B:DSG"] == "on"  # both fly the load
     assert all(s in ("on", "off", "diode") for _, s in fets)
@@ -100,17 +106,23 @@ def test_controls_schematic_and_cell_bars_on_a_live_run(
     assert js(browser, "document.querySelector('[data-part=charger]')") is None  # none here
     assert js(browser, "document.querySelectorAll('#pack-svg [data-battery]').length") == 2
     # --- per-cell bars: six per battery, one min and one max, in the right places
-    bars = js(browser, "[...document.querySelectorAll('.panel.bat')].map(c =>"
-                       " [...c.querySelectorAll('.cellbar')].map(b =>"
-                       " [Number(b.dataset.v), b.classList.contains('min'),"
-                       " b.classList.contains('max')]))")  # fmt: skip
+    bars = js(
+        browser,
+        "[...document.querySelectorAll('.panel.bat')].map(c =>"
+        " [...c.querySelectorAll('.cellbar')].map(b =>"
+        " [Number(b.dataset.v), b.classList.contains('min'),"
+        " b.classList.contains('max')]))",
+    )
     assert [len(b) for b in bars] == [6, 6], bars
     for card in bars:
         v = [x[0] for x in card]
         assert [x[1] for x in card] == [k == int(np.argmin(v)) for k in range(6)], card
         assert [x[2] for x in card] == [k == int(np.argmax(v)) for k in range(6)], card
-    heights = js(browser, "[...document.querySelectorAll('.panel.bat')[0]"
-                          ".querySelectorAll('.cellbar .fill')].map(f => f.clientHeight)")  # fmt: skip
+    heights = js(
+        browser,
+        "[...document.querySelectorAll('.panel.bat')[0]"
+        ".querySelectorAll('.cellbar .fill')].map(f => f.clientHeight)",
+    )
     lo = int(np.argmin([x[0] for x in bars[0]]))
     assert heights[lo] == min(heights) and max(heights) > heights[lo] + 10  # drawn to scale
     # --- headline: a flight load on both batteries has a time to go
@@ -127,8 +139,11 @@ def test_controls_schematic_and_cell_bars_on_a_live_run(
     assert js(browser, "document.getElementById('run-state').textContent") == "paused"
     shot(browser, "dashboard_paused.png", tmp_path)
     # --- speed from the page
-    js(browser, "(() => { const s = document.getElementById('speed-select'); s.value = '50';"
-                " s.dispatchEvent(new Event('change')); })()")  # fmt: skip
+    js(
+        browser,
+        "(() => { const s = document.getElementById('speed-select'); s.value = '50';"
+        " s.dispatchEvent(new Event('change')); })()",
+    )
     browser.wait_body(lambda d: d.get("speed") == "50", 10.0)
     assert live.speed == 50.0 and live.paused
     js(browser, "document.getElementById('btn-pause').click()")
@@ -139,20 +154,32 @@ def test_controls_schematic_and_cell_bars_on_a_live_run(
     # --- the event filter
     n_all = int(browser.body()["eventsShown"])
     assert n_all > 0
-    js(browser, "(() => { const s = document.getElementById('filter-battery'); s.value = 'B';"
-                " s.dispatchEvent(new Event('change')); })()")  # fmt: skip
-    shown = js(browser, "[...document.querySelectorAll('#events tbody tr')].map(r =>"
-                        " r.cells[2].textContent)")  # fmt: skip
+    js(
+        browser,
+        "(() => { const s = document.getElementById('filter-battery'); s.value = 'B';"
+        " s.dispatchEvent(new Event('change')); })()",
+    )
+    shown = js(
+        browser,
+        "[...document.querySelectorAll('#events tbody tr')].map(r => r.cells[2].textContent)",
+    )
     assert set(shown) <= {"B"}
-    js(browser, "(() => { const s = document.getElementById('filter-battery'); s.value = '*';"
-                " s.dispatchEvent(new Event('change'));"
-                " const v = document.getElementById('filter-severity'); v.value = 'warning';"
-                " v.dispatchEvent(new Event('change')); })()")  # fmt: skip
-    sev = js(browser, "[...document.querySelectorAll('#events tbody tr')].map(r =>"
-                      " r.dataset.severity)")  # fmt: skip
+    js(
+        browser,
+        "(() => { const s = document.getElementById('filter-battery'); s.value = '*';"
+        " s.dispatchEvent(new Event('change'));"
+        " const v = document.getElementById('filter-severity'); v.value = 'warning';"
+        " v.dispatchEvent(new Event('change')); })()",
+    )
+    sev = js(
+        browser, "[...document.querySelectorAll('#events tbody tr')].map(r => r.dataset.severity)"
+    )
     assert set(sev) <= {"warning", "alarm", "fault"} and len(sev) < n_all
-    js(browser, "(() => { const v = document.getElementById('filter-severity'); v.value = 'info';"
-                " v.dispatchEvent(new Event('change')); })()")  # fmt: skip
+    js(
+        browser,
+        "(() => { const v = document.getElementById('filter-severity'); v.value = 'info';"
+        " v.dispatchEvent(new Event('change')); })()",
+    )
     png = shot(browser, "dashboard_controls.png", tmp_path)
     assert len(png) > 60_000
 
@@ -161,26 +188,35 @@ def test_phone_layout_has_no_sideways_scroll(
     browser: wb.Cdp, live_server: Dashboard, tmp_path: Path
 ) -> None:
     browser.call(
-        "Emulation.setDeviceMetricsOverride", width=390, height=1600, deviceScaleFactor=1,
+        "Emulation.setDeviceMetricsOverride",
+        width=390,
+        height=1600,
+        deviceScaleFactor=1,
         mobile=True,
-    )  # fmt: skip
+    )
     try:
         browser.call("Page.navigate", url=live_server.url)
         browser.wait_body(lambda d: int(d.get("samples", 0)) > 0, 30.0)
         time.sleep(0.3)
         width = js(browser, "document.documentElement.scrollWidth")
-        wide = js(browser, "[...document.querySelectorAll('body *')].filter(e =>"
-                           " e.getBoundingClientRect().right > 391).slice(0, 8).map(e =>"
-                           " e.tagName + '#' + e.id + '.' + e.className)")  # fmt: skip
+        wide = js(
+            browser,
+            "[...document.querySelectorAll('body *')].filter(e =>"
+            " e.getBoundingClientRect().right > 391).slice(0, 8).map(e =>"
+            " e.tagName + '#' + e.id + '.' + e.className)",
+        )
         assert width <= 390, (width, wide)
         svg_w = js(browser, "document.getElementById('pack-svg').getBoundingClientRect().width")
         assert 0 < svg_w <= 390
         shot(browser, "dashboard_phone.png", tmp_path)
     finally:
         browser.call(
-            "Emulation.setDeviceMetricsOverride", width=wb.WIDTH, height=wb.HEIGHT,
-            deviceScaleFactor=1, mobile=False,
-        )  # fmt: skip
+            "Emulation.setDeviceMetricsOverride",
+            width=wb.WIDTH,
+            height=wb.HEIGHT,
+            deviceScaleFactor=1,
+            mobile=False,
+        )
 
 
 def test_starting_an_example_from_the_page(
@@ -190,12 +226,17 @@ def test_starting_an_example_from_the_page(
     browser.wait_body(lambda d: int(d.get("samples", 0)) > 0, 30.0)
     opts = js(browser, "[...document.getElementById('example-select').options].map(o => o.value)")
     assert "evtol_charging" in opts and "uav_mission" in opts
-    js(browser, "(() => { document.getElementById('example-select').value = 'evtol_charging';"
-                " document.getElementById('btn-start').click(); })()")  # fmt: skip
+    js(
+        browser,
+        "(() => { document.getElementById('example-select').value = 'evtol_charging';"
+        " document.getElementById('btn-start').click(); })()",
+    )
     deadline = time.monotonic() + 60.0
-    while js(browser, "document.getElementById('source').textContent") != "(example evtol_charging)":
-        assert time.monotonic() < deadline, js(browser, "document.getElementById('control-msg')"
-                                                        ".textContent")  # fmt: skip
+    source = "document.getElementById('source').textContent"
+    while js(browser, source) != "(example evtol_charging)":
+        assert time.monotonic() < deadline, js(
+            browser, "document.getElementById('control-msg').textContent"
+        )
         time.sleep(0.1)
     browser.wait_body(lambda d: int(d.get("samples", 0)) > 0, 30.0)
     assert live_server.live.source == "example evtol_charging"
@@ -235,15 +276,21 @@ def test_a_recording_scrubs_with_balancing_marks(
     assert js(browser, "document.getElementById('btn-pause').hidden") is True
     k = int(np.searchsorted(raw.trace.t_s, 150.0))
     t = float(raw.trace.t_s[k])
-    js(browser, f"(() => {{ const s = document.getElementById('scrub'); s.value = '{t}';"
-                " s.dispatchEvent(new Event('input')); })()")  # fmt: skip
+    js(
+        browser,
+        f"(() => {{ const s = document.getElementById('scrub'); s.value = '{t}';"
+        " s.dispatchEvent(new Event('input')); })()",
+    )
     browser.wait_body(lambda d: d.get("scrubbed") == str(k), 10.0)
     eq = np.array([raw.trace.status[f"eq_i_a_g{g}"][k][0] for g in range(12)], dtype=float)
     want = [bool(abs(x) > 1e-4) for x in eq]
     assert any(want) and not all(want)  # some groups balance at 150 s, some do not
-    bars = js(browser, "[...document.querySelectorAll('.cellbar')].map(b =>"
-                       " [b.classList.contains('balancing'), b.classList.contains('min'),"
-                       " b.classList.contains('max')])")  # fmt: skip
+    bars = js(
+        browser,
+        "[...document.querySelectorAll('.cellbar')].map(b =>"
+        " [b.classList.contains('balancing'), b.classList.contains('min'),"
+        " b.classList.contains('max')])",
+    )
     assert [b[0] for b in bars] == want
     gv = raw.trace.group_v[k, 0]
     assert [b[1] for b in bars].index(True) == int(np.argmin(gv))
@@ -253,12 +300,19 @@ def test_a_recording_scrubs_with_balancing_marks(
     assert shown == sum(1 for e in raw.events if e.t_s <= t) < len(raw.events)
     # moving the scrubber elsewhere changes the bars: nothing balances at 60 s
     k0 = int(np.searchsorted(raw.trace.t_s, 60.0))
-    js(browser, f"(() => {{ const s = document.getElementById('scrub');"
-                f" s.value = '{raw.trace.t_s[k0]}'; s.dispatchEvent(new Event('input')); }})()")  # fmt: skip
+    t0 = raw.trace.t_s[k0]
+    js(
+        browser,
+        f"(() => {{ const s = document.getElementById('scrub'); s.value = '{t0}';"
+        " s.dispatchEvent(new Event('input')); }})()",
+    )
     browser.wait_body(lambda d: d.get("scrubbed") == str(k0), 10.0)
     assert js(browser, "document.querySelectorAll('.cellbar.balancing').length") == 0
-    js(browser, f"(() => {{ const s = document.getElementById('scrub'); s.value = '{t}';"
-                " s.dispatchEvent(new Event('input')); })()")  # fmt: skip
+    js(
+        browser,
+        f"(() => {{ const s = document.getElementById('scrub'); s.value = '{t}';"
+        " s.dispatchEvent(new Event('input')); })()",
+    )
     browser.wait_body(lambda d: d.get("scrubbed") == str(k), 10.0)
     time.sleep(0.3)
     shot(browser, "dashboard_recording.png", tmp_path)

@@ -75,9 +75,8 @@ def test_a_foreign_host_header_is_refused(path: str) -> None:
 
 def test_a_foreign_host_websocket_is_refused() -> None:
     c = client()
-    with pytest.raises(WebSocketDisconnect):
-        with c.websocket_connect("ws://evil.example.com/ws") as ws:
-            ws.receive_text()
+    with pytest.raises(WebSocketDisconnect), c.websocket_connect("ws://evil.example.com/ws") as ws:
+        ws.receive_text()
     with c.websocket_connect(WS_URL) as ws:
         assert strict_loads(ws.receive_text())["type"] == "hello"
 
@@ -124,9 +123,8 @@ def test_websockets_beyond_the_cap_are_refused_and_a_freed_slot_is_reused() -> N
     with c.websocket_connect(WS_URL) as one, c.websocket_connect(WS_URL) as two:
         one.receive_text()
         two.receive_text()
-        with pytest.raises(WebSocketDisconnect) as refused:
-            with c.websocket_connect(WS_URL) as three:
-                three.receive_text()
+        with pytest.raises(WebSocketDisconnect) as refused, c.websocket_connect(WS_URL) as three:
+            three.receive_text()
         assert refused.value.code == 1013  # "try again later"
     with c.websocket_connect(WS_URL) as again:  # both closed: slots free again
         assert strict_loads(again.receive_text())["type"] == "hello"
@@ -174,7 +172,8 @@ def test_remote_mode_needs_the_token_on_every_request() -> None:
     c = client(Guard(token=TOKEN, remote=True), peer="192.0.2.7")
     for path in ("/", "/api/status", "/static/dashboard.js", "/api/catalog"):
         assert c.get(path).status_code == 401, path
-        assert c.get(path, headers={"X-PackPilot-Token": "wrong-token-0123456789"}).status_code == 401
+        wrong = {"X-PackPilot-Token": "wrong-token-0123456789"}
+        assert c.get(path, headers=wrong).status_code == 401
         assert c.get(path, headers={"X-PackPilot-Token": TOKEN}).status_code == 200, path
     page = c.get(f"/?token={TOKEN}")  # the URL the CLI prints
     assert page.status_code == 200
