@@ -304,7 +304,7 @@ def test_a_recording_scrubs_with_balancing_marks(
     js(
         browser,
         f"(() => {{ const s = document.getElementById('scrub'); s.value = '{t0}';"
-        " s.dispatchEvent(new Event('input')); }})()",
+        " s.dispatchEvent(new Event('input')); })()",
     )
     browser.wait_body(lambda d: d.get("scrubbed") == str(k0), 10.0)
     assert js(browser, "document.querySelectorAll('.cellbar.balancing').length") == 0
