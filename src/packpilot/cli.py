@@ -740,8 +740,9 @@ def dashboard(
         with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C / SIGTERM: the normal way out
             dash.serve()
         st = dash.live.status()
-        why = f": {st['error']}" if st["error"] and st["state"] == "error" else ""
-        typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why}", err=True)
+        if st["kind"] == "live" and st["state"] != "idle":
+            why = f": {st['error']}" if st["error"] and st["state"] == "error" else ""
+            typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why}", err=True)
 
     _guard(go)
 

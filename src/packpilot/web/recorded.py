@@ -104,7 +104,9 @@ class Recording:
         """The full-rate sample at or just before ``t_s`` (clamped to the run), with the
         headline numbers then and how many events had happened by then."""
         tr = self.result.trace
-        k = max(0, min(len(tr.t_s) - 1, int(np.searchsorted(tr.t_s, t_s, side="right")) - 1))
+        # 1 µs of slack: a step's time accumulated in floating point (4.999999 for 5.0)
+        found = int(np.searchsorted(tr.t_s, t_s + 1e-6, side="right"))
+        k = max(0, min(len(tr.t_s) - 1, found - 1))
         s = self.sample(k)
         names = list(self.result.battery_names)
         summary = sample_summary(s, names)
