@@ -250,6 +250,11 @@ def test_messages_name_batteries_as_the_page_does() -> None:
     live.on_events([Event(1.0, "SequencingRefused", 1, msg)])
     shown = live.events()[0]
     assert shown["message"].startswith("battery A:") and shown["battery_name"] == "B"
+    # an event's message is also the cause in the alarms table
+    risk = "battery 1: 2.47 A (above its 2.45 A charge limit) would flow into it"
+    live.on_events([Event(2.0, "CrossCurrentRisk", 1, risk)])
+    causes = [a["cause"] for a in live.verdict()["alarms"] if a["kind"] == "CrossCurrentRisk"]
+    assert causes == ["battery B: 2.47 A (above its 2.45 A charge limit) would flow into it"]
 
 
 def test_no_battery_number_reaches_the_page_on_a_sequencing_run() -> None:

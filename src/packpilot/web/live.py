@@ -411,7 +411,12 @@ class LiveRun:
         """The run's verdict and alarms so far (the same checks as the report and the CLI)."""
         with self._lock:
             self._fold()
-            return jsonable_dict(self._watch.verdict().as_dict())
+            out = jsonable_dict(self._watch.verdict().as_dict())
+            topology = self.topology
+        for alarm in out.get("alarms") or ():  # an event's message is the alarm's cause
+            if isinstance(alarm.get("cause"), str):
+                alarm["cause"] = name_batteries(alarm["cause"], topology)
+        return out
 
     @property
     def version(self) -> int:
