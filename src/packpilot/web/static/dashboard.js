@@ -43,8 +43,9 @@ const isNum = (x) => typeof x === "number" && Number.isFinite(x);
 const fmt = (x, d = 2, unit = "") => (isNum(x) ? x.toFixed(d) + (unit ? " " + unit : "") : "—");
 function fmtTime(t) {
   if (!isNum(t)) return "—";
+  t = Math.round(t * 10) / 10; // 3599.96 s is 1:00:00.0, not 59:60.0
   const h = Math.floor(t / 3600), m = Math.floor((t % 3600) / 60), s = t % 60;
-  const ss = s.toFixed(1).padStart(4, "0");
+  const ss = (Math.round(s * 10) / 10).toFixed(1).padStart(4, "0");
   return (h ? h + ":" + String(m).padStart(2, "0") : String(m)) + ":" + ss;
 }
 function fmtDur(t) {
