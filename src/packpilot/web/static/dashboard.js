@@ -118,7 +118,7 @@ function onHello(msg) {
   $("scrub").max = String(Math.max(S.duration, 1e-3));
   $("scrub").value = $("scrub").max;
   $("report-link").hidden = true;
-  showSpeed(S.speed);
+  showSpeed(S.kind === "recorded" ? 10 : S.speed); // a recording plays at 10x by default
   document.querySelector("#events tbody").textContent = "";
   const fb = $("filter-battery");
   const keep = fb.value;
