@@ -12,6 +12,7 @@ import os
 import threading
 import time
 import tomllib
+import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -257,6 +258,7 @@ def recorded_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[
     d["sim"].update(duration_s=300.0, progress=False)
     with SQLiteRecorder(db) as rec:
         Runner(parse_config(d), recorder=rec, progress=False).run()
+    (runs / "eq.html").write_text("<html><body>report of eq</body></html>", encoding="utf-8")
     dash = Dashboard(recording=db, port=0, library=Library.of_dirs([], runs, [db]))
     thread = serve(dash)
     yield dash, db
@@ -274,6 +276,12 @@ def test_a_recording_scrubs_with_balancing_marks(
     assert data["kind"] == "recorded"
     assert js(browser, "document.getElementById('scrub-controls').hidden") is False
     assert js(browser, "document.getElementById('btn-pause').hidden") is True
+    # the report written beside the recording is linked
+    assert js(browser, "document.getElementById('report-link').hidden") is False
+    href = js(browser, "document.getElementById('report-link').href")
+    assert href == dash.url + "report"
+    with urllib.request.urlopen(href, timeout=5) as resp:
+        assert b"report of eq" in resp.read()
     k = int(np.searchsorted(raw.trace.t_s, 150.0))
     t = float(raw.trace.t_s[k])
     js(
