@@ -84,7 +84,10 @@ def samples_in(db: Path) -> int:
 def test_ctrl_c_exits_130_and_marks_the_run_interrupted(tmp_path: Path) -> None:
     db = tmp_path / "run.sqlite"
     proc = subprocess.Popen(
-        [*CLI, "simulate", str(EXAMPLES / "uav_mission.toml"), "--db", str(db), "--no-progress"],
+        # ten missions long: the whole 5,400 s mission runs in ~8 s, short enough that the
+        # signal could arrive after the loop on a loaded machine (it did)
+        [*CLI, "simulate", str(EXAMPLES / "uav_mission.toml"), "--db", str(db), "--no-progress",
+         "--duration", "54000"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
     )  # fmt: skip
     try:

@@ -81,8 +81,9 @@ not a voltage ("aux battery 12.3 V")."""
 def name_batteries(message: str, topology: Topology) -> str:
     """``message`` with each controller battery index replaced by the battery's name.
 
-    The controllers format their messages with indices (the golden hashes pin those texts),
-    so the renaming happens here, where the names are known: "battery 1" → "battery B"."""
+    The core names batteries in its messages since PackInfo carries the names; recordings
+    made before that (and a reason label such as "R1 battery 1 inserted") still carry indices,
+    so they are renamed here, where the names are known: "battery 1" → "battery B"."""
 
     def name(m: re.Match[str]) -> str:
         shown = topology.battery_name(int(m.group(1)))
