@@ -264,8 +264,7 @@ def check_time(path: Path, t: NDArray[np.float64], lines: Sequence[int] | None =
         k = int(bad[0])
         row = lines[k + 1] if lines is not None else k + 3
         raise InputError(
-            f"{path}: row {row}, column t_s: time must increase strictly "
-            f"({t[k]:g} -> {t[k + 1]:g})"
+            f"{path}: row {row}, column t_s: time must increase strictly ({t[k]:g} -> {t[k + 1]:g})"
         )
 
 
@@ -310,3 +309,34 @@ def row_durations(t_s: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.ones(1)
     dt = np.diff(t_s)
     return np.append(dt, dt[-1])
+
+
+MAX_LISTED = 5
+"""Most entries of a list (joins, reverse-current events) the text summary shows."""
+
+
+def _text(v: object) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_text(x)}" for k, x in v.items()) or "none"
+    if isinstance(v, list):
+        shown = ", ".join(_text(x) if not isinstance(x, dict) else f"({_text(x)})"
+                          for x in v[:MAX_LISTED])  # fmt: skip
+        more = f" … ({len(v)} in all)" if len(v) > MAX_LISTED else ""
+        return (shown + more) or "none"
+    return "-" if v is None else str(v)
+
+
+def summary_lines(summary: Mapping[str, object]) -> list[str]:
+    """The summary as short ``key: value`` lines (headlines, assumptions and the log's notes
+    as bullet lists at the end; the config left out);
+    what ``packpilot replay`` prints without ``--json``."""
+    bullets = ("headlines", "assumed", "notes")
+    lines = [f"{k}: {_text(v)}" for k, v in summary.items() if k not in {"config", *bullets}]
+    for key in bullets:
+        items = summary.get(key)
+        if isinstance(items, list) and items:
+            lines.append(f"{key}:")
+            lines += [f"  - {x}" for x in items]
+    return lines

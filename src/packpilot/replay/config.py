@@ -52,13 +52,17 @@ def _read(path: Path) -> dict[str, Any]:
     return data
 
 
-def _section(data: dict[str, Any], method: str, path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+def _section(
+    data: dict[str, Any], method: str, path: Path, other_method_ok: bool
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """(the section, derived values stated beside it): a replay's output has its config under
     ``config`` and the derived values at the top level."""
     if data.get("method") == method and isinstance(data.get("config"), dict):
         stated = {k: data[k] for k in DERIVED.get(method, ((), None))[0] if k in data}
         return dict(data["config"]), stated
     if "method" in data and "config" in data:
+        if other_method_ok:
+            return {}, {}
         raise ConfigError(
             f"{path}: the output of a {data['method']} replay has no [{method}] section"
         )
@@ -80,11 +84,14 @@ def _same(a: Any, b: Any) -> bool:
     return bool(a == b)
 
 
-def load_replay_config(path: Path | None, method: str) -> BaseModel:
-    """The ``[method]`` section of ``path`` (defaults when None), derived keys checked."""
+def load_replay_config(
+    path: Path | None, method: str, *, other_method_ok: bool = False
+) -> BaseModel:
+    """The ``[method]`` section of ``path`` (defaults when None), derived keys checked. The
+    output of another method's replay is an error unless ``other_method_ok`` (then: defaults)."""
     if path is None:
         return load_section(None, method)
-    section, stated = _section(_read(path), method, path)
+    section, stated = _section(_read(path), method, path, other_method_ok)
     cfg = load_section_model(SECTIONS[method], section, method, str(path))
     if stated:
         derived = DERIVED[method][1](cfg)

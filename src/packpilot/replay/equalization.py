@@ -2,7 +2,8 @@
 
 Input: ``t_s`` and one battery's ``current_a, g0_v, …, g{M-1}_v`` (group voltages in V, current
 positive = discharge), unprefixed or as ``<battery>_current_a, <battery>_g0_v, …`` (what
-``simulate --trace-csv`` writes); the older ``current_a, v_0, …, v_{M-1}`` is still read. Each row is held for its duration (until the next row), exactly as the closed loop would step
+``simulate --trace-csv`` writes); the older ``current_a, v_0, …, v_{M-1}`` is still read.
+Each row is held for its duration (until the next row), exactly as the closed loop would step
 the controller. Output per row and group: ΔV (mV), AH, remaining balancing time, commanded
 equalizer current. The summary gives the final AH, the number of updates of each kind and the
 charge the equalizers were commanded to move.
@@ -29,6 +30,12 @@ from packpilot.replay.common import (
     refuse_options,
     row_durations,
 )
+
+HELP = (
+    "Replay t_s and one battery's current_a, g0_v..g{M-1}_v (or <battery>_current_a, "
+    "<battery>_g<k>_v; older v_k too) through Newton-iterated equalization."
+)
+"""The command's help: the column vocabulary it reads."""
 
 MAX_UPDATES_PER_ROW = 100_000
 """Most times one row may apply formula 1 or 2 (its duration / min(T1, T2)). A row held for

@@ -32,6 +32,13 @@ from packpilot.replay.common import (
     row_durations,
 )
 
+HELP = (
+    "Replay t_s and one battery's current_a, temp_c, min_cell_v (or <battery>_current_a, "
+    "... as simulate --trace-csv and packpilot import write them; or a .ulg/.bin/.log "
+    "flight log) through discharge protection."
+)
+"""The command's help: the column vocabulary it reads."""
+
 REQUIRED_COLUMNS = ("t_s", "current_a", "temp_c", "min_cell_v")
 OUTPUT_COLUMNS = ["t_s", "param", "cutoff_v", "weighted_s", "tripped"]
 
@@ -83,7 +90,33 @@ def _inputs(
             f"min_cell_v = voltage_v / {cells} (--cells): the average cell; the log has no cell "
             "voltages, a weak cell would sit lower and trip earlier"
         )
+    held = _pre_switch(log, prefix, out)
+    if held:
+        assumed.append(
+            f"{held} row(s) where the recorded run's own BMS switched the battery ({prefix}dsg_on "
+            "or chg_on changed) show the state after the switch; there the replay reads the "
+            "previous row, the state that BMS decided on"
+        )
     return name, out, assumed
+
+
+def _pre_switch(log: LogTable, prefix: str, cols: dict[str, NDArray[np.float64]]) -> int:
+    """A trace row at which the recorded BMS switched a FET holds the plant *after* the switch
+    (current 0 once the discharge path opened), while that BMS measured the state before it:
+    such rows take the previous row's current, temperature and cell voltage, so that a run's
+    own trace replays to its own decisions. Returns the number of rows so treated."""
+    gates = [log.columns[c] for c in (f"{prefix}dsg_on", f"{prefix}chg_on") if c in log.columns]
+    if not gates or len(log) < 2:
+        return 0
+    switched = np.zeros(len(log), dtype=bool)
+    for g in gates:
+        switched[1:] |= g[1:] != g[:-1]
+    rows = np.nonzero(switched)[0]
+    for name in ("current_a", "temp_c", "min_cell_v"):
+        col = cols[name].copy()
+        col[rows] = col[rows - 1]
+        cols[name] = col
+    return int(rows.size)
 
 
 def _assumed_temp(log: LogTable, options: LogOptions) -> float:

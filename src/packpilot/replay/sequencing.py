@@ -37,6 +37,13 @@ from packpilot.replay.common import (
     row_durations,
 )
 
+HELP = (
+    "Replay t_s and each battery's <name>_voltage_v, <name>_current_a (as simulate --trace-"
+    "csv and packpilot import write them; older v_k, i_k too; or a flight log) through "
+    "parallel discharge sequencing."
+)
+"""The command's help: the column vocabulary it reads."""
+
 F64 = NDArray[np.float64]
 
 

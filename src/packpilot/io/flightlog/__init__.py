@@ -142,16 +142,17 @@ def _table(log: FlightLog, cells: int | None, assume_temp_c: float | None) -> Ta
     return Table(columns=cols, notes=notes, hints=hints)
 
 
-def _series(path: Path, b: BatterySeries, what: str, x: F64, idx: NDArray[np.intp]) -> tuple[F64, str]:
+def _series(
+    path: Path, b: BatterySeries, what: str, x: F64, idx: NDArray[np.intp]
+) -> tuple[F64, str]:
     if not np.isfinite(x).any():
         raise InputError(f"{path}: battery {b.name} ({b.source}): no valid {what} sample")
     held, n_held, lead = hold(x)
     _check_finite(path, f"battery {b.name} {what}", held)
     note = ""
     if n_held or lead:
-        note = (
-            f"{what} missing in {n_held + lead} of {len(x)} samples: the last value held"
-            + (f" ({lead} leading samples take the first value)" if lead else "")
+        note = f"{what} missing in {n_held + lead} of {len(x)} samples: the last value held" + (
+            f" ({lead} leading samples take the first value)" if lead else ""
         )
     return held[idx], note
 
@@ -253,8 +254,7 @@ def need(module: str, package: str, what: str) -> object:
         return importlib.import_module(module)
     except ImportError:
         raise InputError(
-            f"reading {what} needs the optional package {package}: "
-            "pip install 'packpilot[logs]'"
+            f"reading {what} needs the optional package {package}: pip install 'packpilot[logs]'"
         ) from None
 
 

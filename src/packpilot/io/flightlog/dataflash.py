@@ -63,14 +63,20 @@ def _instance(m: Any) -> int:
     return 0
 
 
-def _collect(log: Any, path: Path) -> tuple[dict[tuple[str, int], list[dict[str, float]]], dict[int, list[tuple[float, list[float]]]]]:
+def _collect(
+    log: Any, path: Path
+) -> tuple[
+    dict[tuple[str, int], list[dict[str, float]]], dict[int, list[tuple[float, list[float]]]]
+]:
     bat: dict[tuple[str, int], list[dict[str, float]]] = defaultdict(list)
     bcl: dict[int, list[tuple[float, list[float]]]] = defaultdict(list)
     try:
         while (m := log.recv_match(type=list(TYPES))) is not None:
             kind = m.get_type()
             if kind == "BCL":
-                cells = [float(getattr(m, f"V{k}")) for k in range(1, 13) if f"V{k}" in m._fieldnames]
+                cells = [
+                    float(getattr(m, f"V{k}")) for k in range(1, 13) if f"V{k}" in m._fieldnames
+                ]
                 bcl[_instance(m)].append((_time_s(m), cells))
                 continue
             inst = 1 if kind == "CUR2" else _instance(m)
@@ -128,8 +134,9 @@ def _battery(
     temp = col("temp")
     if temp is None or np.all(temp == 0.0):
         notes.append(
-            "Temp is 0 throughout (ArduPilot's value without a temperature sensor): "
-            "no temperature" if temp is not None else f"{kind} has no temperature field"
+            "Temp is 0 throughout (ArduPilot's value without a temperature sensor): no temperature"
+            if temp is not None
+            else f"{kind} has no temperature field"
         )
         temp = None
     rem = col("rem")
@@ -172,7 +179,11 @@ def _cells(
 
 FORMATS: Mapping[str, tuple[int, str, str]] = {
     "BAT": (130, "QBfffffcfBB", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res,RemPct,H"),
-    "BCL": (131, "QBfHHHHHHHHHHHH", "TimeUS,Instance,Volt," + ",".join(f"V{k}" for k in range(1, 13))),
+    "BCL": (
+        131,
+        "QBfHHHHHHHHHHHH",
+        "TimeUS,Instance,Volt," + ",".join(f"V{k}" for k in range(1, 13)),
+    ),
     "CURR": (132, "QhhhHf", "TimeUS,Throttle,Volt,Curr,Vcc,CurrTot"),
 }
 """Message layouts the writers use: BAT and BCL as ArduPilot 4.x logs them, CURR as 3.x."""

@@ -31,7 +31,9 @@ def _load(path: Path) -> Any:
     try:
         return pyulog.ULog(str(path), [TOPIC])
     except Exception as err:  # the parser raises many kinds on a damaged file
-        raise InputError(f"{path}: not a readable ULog file ({type(err).__name__}: {err})") from None
+        raise InputError(
+            f"{path}: not a readable ULog file ({type(err).__name__}: {err})"
+        ) from None
 
 
 def read_ulog(path: Path) -> FlightLog:
@@ -57,7 +59,9 @@ def _unique_times(path: Path, t_us: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
     return keep
 
 
-def _battery(path: Path, k: int, multi_id: int, data: Mapping[str, Any], t0_us: float) -> BatterySeries:
+def _battery(
+    path: Path, k: int, multi_id: int, data: Mapping[str, Any], t0_us: float
+) -> BatterySeries:
     t_us = np.asarray(data["timestamp"], dtype=np.float64)
     keep = _unique_times(path, t_us)
     col = {name: x[keep] for name in data if (x := _field(data, name)) is not None}
@@ -144,18 +148,25 @@ def _msg(kind: bytes, body: bytes) -> bytes:
 
 
 def write_ulog(
-    path: Path, instances: Sequence[Sequence[Mapping[str, Any]]], *, sys_name: str = "PackPilot"
+    path: Path,
+    instances: Sequence[Sequence[Mapping[str, Any]]],
+    *,
+    sys_name: str = "PackPilot",
+    start_us: int | None = None,
 ) -> None:
     """A minimal ULog (format version 1): header, flag bits, the ``battery_status`` format, an
     info message naming the writer, one subscription per instance, then the data messages in
-    time order. ``instances[k]`` is instance k's samples, each a dict of the fields of
+    time order; the header's start time is ``start_us`` (default: the first sample's).
+    ``instances[k]`` is instance k's samples, each a dict of the fields of
     :data:`BATTERY_STATUS_FIELDS` (``voltage_cell_v`` a sequence of 14 floats). The layout
     follows PX4's ULog file format document; pyulog reads it back (tests do)."""
     fmt = "<" + "".join(_TYPES[t] * max(n, 1) for t, _, n in BATTERY_STATUS_FIELDS)
     spec = "".join(
         f"{t}[{n}] {name};" if n else f"{t} {name};" for t, name, n in BATTERY_STATUS_FIELDS
     )
-    out = bytearray(b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", 0))
+    if start_us is None:
+        start_us = min((int(s["timestamp"]) for inst in instances for s in inst), default=0)
+    out = bytearray(b"ULog\x01\x12\x35" + bytes([1]) + struct.pack("<Q", start_us))
     out += _msg(b"B", bytes(16) + struct.pack("<3Q", 0, 0, 0))
     out += _msg(b"F", f"{TOPIC}:{spec}".encode())
     key = f"char[{len(sys_name)}] sys_name".encode()
