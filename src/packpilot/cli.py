@@ -513,7 +513,8 @@ def _replay(
         assert replay is not None
         if out is not None and str(out) != "-":
             _check_outputs(out=out)
-        result = replay.function()(log, load_replay_config(config, method), options)
+        run: Callable[..., Any] = replay.function()  # (log, config, options)
+        result = run(log, load_replay_config(config, method), options)
         if out is not None and str(out) == "-":
             import csv
 

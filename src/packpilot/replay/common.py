@@ -41,6 +41,7 @@ AUX = "aux"
 """The auxiliary battery's prefix in a trace: not one of the pack's batteries unless asked."""
 
 CellValue = float | int | str | bool | None
+_GROUP_V = re.compile(r"^(?:(.+)_)?g\d+_v$")
 
 
 @dataclass(frozen=True)
@@ -130,6 +131,8 @@ class LogTable:
     source: str = "CSV"
     notes: tuple[str, ...] = ()
     hints: Mapping[str, str] = field(default_factory=dict)
+    assumed: tuple[str, ...] = ()
+    """What the user stated in place of what the log lacks, when the log was imported."""
 
     def __len__(self) -> int:
         if self.n_rows >= 0:
@@ -169,9 +172,12 @@ class LogTable:
 
     def batteries(self) -> list[str]:
         """The batteries the log names (``""`` for an unprefixed one-battery log), in order
-        of first appearance: a name with at least two battery channels."""
+        of first appearance: a name with at least two battery channels (group voltages
+        ``<name>_g<k>_v`` count)."""
         found: dict[str, int] = {}
         for name in self.columns:
+            if (g := _GROUP_V.match(name)) is not None:  # a group voltage counts as a channel
+                found[g.group(1) or ""] = found.get(g.group(1) or "", 0) + 1
             for ch in BATTERY_CHANNELS:
                 if name == ch:
                     found[""] = found.get("", 0) + 1
@@ -284,7 +290,7 @@ def open_log(
         table = flight.table(cells=options.cells, assume_temp_c=options.assume_temp_c)
         return LogTable(
             path=path, columns=table.columns, n_rows=table.n_rows, source=flight.format,
-            notes=tuple(table.notes), hints=table.hints,
+            notes=tuple(table.notes), hints=table.hints, assumed=tuple(table.assumed),
         )  # fmt: skip
     return read_log(path, required, indexed=indexed)
 
@@ -297,10 +303,16 @@ def refuse_options(path: Path, options: LogOptions, method: str, *names: str) ->
             raise InputError(f"{path}: {flag} does not apply to a {method} replay")
 
 
-def log_summary(log: LogTable, **extra: object) -> dict[str, object]:
-    """The summary's account of the log: where it came from and what it lacked."""
-    return {"log": str(log.path), "source": log.source, "rows": len(log), "notes": list(log.notes),
-            **extra}  # fmt: skip
+def log_summary(log: LogTable, assumed: Sequence[str] = ()) -> dict[str, object]:
+    """The summary's account of the log: where it came from, what it lacked and what was
+    assumed in its place (at import and by the replay itself)."""
+    return {
+        "log": str(log.path),
+        "source": log.source,
+        "rows": len(log),
+        "assumed": [*log.assumed, *assumed],
+        "notes": list(log.notes),
+    }
 
 
 def row_durations(t_s: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import html
 import io
+import re
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +40,8 @@ def _svg(fig: Figure) -> str:
     buf = io.StringIO()
     fig.savefig(buf, format="svg", bbox_inches="tight")
     text = buf.getvalue()
-    return text[text.index("<svg") :]
+    # The RDF metadata block (creator, date) names URLs and changes every run: not needed.
+    return re.sub(r"<metadata>.*?</metadata>", "", text[text.index("<svg") :], flags=re.S)
 
 
 def _col(res: ReplayResult, name: str) -> list[object]:

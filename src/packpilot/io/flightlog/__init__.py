@@ -57,6 +57,8 @@ class Table:
     columns: dict[str, F64]
     notes: list[str]
     hints: dict[str, str] = field(default_factory=dict)
+    assumed: list[str] = field(default_factory=list)
+    """What the user stated in place of what the log lacks (``--assume-temp-c``, ``--cells``)."""
 
     @property
     def n_rows(self) -> int:
@@ -132,14 +134,21 @@ def _table(log: FlightLog, cells: int | None, assume_temp_c: float | None) -> Ta
             "battery has reported; each battery's latest value is held between its samples"
         )
     hints: dict[str, str] = {}
+    assumed: list[str] = []
     for b in log.batteries:
         idx = np.searchsorted(b.t_s, t, side="right") - 1
         notes += [f"{b.name}: {n}" for n in b.notes]
         for col, note in _battery_columns(log.path, b, idx, cells, assume_temp_c, hints):
             cols.update(col)
             if note:
-                notes.append(f"{b.name}: {note}")
-    return Table(columns=cols, notes=notes, hints=hints)
+                (assumed if isinstance(note, Assumed) else notes).append(f"{b.name}: {note}")
+    return Table(columns=cols, notes=notes, hints=hints, assumed=assumed)
+
+
+class Assumed(str):
+    """A note that records what the user stated (an option), not what the log says."""
+
+    __slots__ = ()
 
 
 def _series(
@@ -189,7 +198,9 @@ def _temperature(
     elif assume is not None:
         yield (
             {f"{n}_temp_c": np.full(len(idx), assume)},
-            f"temp_c = {assume:g} degC assumed (--assume-temp-c): the log has no temperature",
+            Assumed(
+                f"temp_c = {assume:g} degC assumed (--assume-temp-c): the log has no temperature"
+            ),
         )
     else:
         hints[f"{n}_temp_c"] = (
@@ -214,10 +225,13 @@ def _cells(
     count = b.cell_count or cells
     if count:
         how = "the log's cell count" if b.cell_count else "--cells"
+        text = (
+            f"no per-cell voltages: min_cell_v = max_cell_v = voltage_v / {count} ({how}), the "
+            "average cell; a weak cell sits lower"
+        )
         yield (
             {f"{n}_min_cell_v": v / count, f"{n}_max_cell_v": v / count},
-            f"no per-cell voltages: min_cell_v = max_cell_v = voltage_v / {count} ({how}), the "
-            "average cell; a weak cell sits lower",
+            text if b.cell_count else Assumed(text),
         )
         return
     hints[f"{n}_min_cell_v"] = (

@@ -32,7 +32,7 @@ NO_CELL = (0, 65535)
 
 def _open(path: Path, text: bool) -> Any:
     need("pymavlink", "pymavlink", "an ArduPilot DataFlash log")
-    from pymavlink import DFReader  # type: ignore[import-untyped]
+    from pymavlink import DFReader
 
     try:
         return DFReader.DFReader_text(str(path)) if text else DFReader.DFReader_binary(str(path))
@@ -128,7 +128,8 @@ def _battery(
     def col(key: str) -> F64 | None:
         if not all(key in r for r in rows):
             return None
-        return np.array([r[key] for r in rows])[keep]
+        values: F64 = np.array([r[key] for r in rows], dtype=np.float64)[keep]
+        return values
 
     notes: list[str] = []
     temp = col("temp")
