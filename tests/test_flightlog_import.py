@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given
+from hypothesis import strategies as st
 from pymavlink import DFReader
 from pyulog import ULog
 from typer.testing import CliRunner
@@ -21,6 +23,7 @@ from packpilot.io.flightlog import hold, need, read_flight_log
 from packpilot.io.flightlog.dataflash import write_bin, write_text
 from packpilot.io.flightlog.ulog import write_ulog
 from packpilot.replay.common import read_log
+from tests.budget import budget
 from tests.conftest import EXAMPLES
 
 LOGS = EXAMPLES / "logs"
@@ -243,3 +246,31 @@ def test_missing_parser_names_the_extra() -> None:
         InputError, match=r"needs the optional package pyulog: pip install 'packpilot\[logs\]'"
     ):
         need("packpilot_no_such_parser", "pyulog", "a PX4 ULog")
+
+
+SAMPLES = sorted(p for p in LOGS.iterdir() if p.suffix in (".ulg", ".bin", ".log"))
+
+
+@budget(60, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    sample=st.sampled_from(SAMPLES),
+    cut=st.integers(0, 4000),
+    junk=st.binary(max_size=64),
+    at=st.integers(0, 4000),
+)
+def test_fuzzed_flight_logs_read_or_refuse(
+    tmp_path: Path, sample: Path, cut: int, junk: bytes, at: int
+) -> None:
+    """A sample cut short and with junk bytes spliced in: read, or one clean InputError."""
+    raw = sample.read_bytes()[: max(0, len(sample.read_bytes()) - cut)]
+    body = raw[:at] + junk + raw[at:]
+    p = tmp_path / f"f{sample.suffix}"
+    p.write_bytes(body)
+    try:
+        table = read_flight_log(p).table(cells=6, assume_temp_c=20.0)
+    except InputError as err:
+        assert "\n" not in str(err) and str(err).startswith(str(p))
+        return
+    assert np.all(np.diff(table.columns["t_s"]) > 0)
+    for name, col in table.columns.items():
+        assert np.all(np.isfinite(col)), name

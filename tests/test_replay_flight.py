@@ -165,3 +165,29 @@ def test_protection_without_temperature_is_refused_unless_stated(tmp_path: Path)
     assert s["trip_time_s"] == 5.0 and "25 degC" in s["assumed"][0]
     res = RUNNER.invoke(app, ["replay", "protection", str(log), "--assume-temp-c", "500"])
     assert res.exit_code == 2 and "-60..100" in res.stderr
+
+
+def test_cells_derive_min_cell_v_only_where_missing_and_say_so(tmp_path: Path) -> None:
+    log = tmp_path / "v.csv"
+    log.write_text(
+        "t_s,voltage_v,current_a,temp_c\n" + "".join(f"{k},18.6,10,25\n" for k in range(8))
+    )
+    res = RUNNER.invoke(app, ["replay", "protection", str(log)])
+    assert res.exit_code == 2 and "--cells N" in res.stderr
+    s = json.loads(
+        RUNNER.invoke(app, ["replay", "protection", str(log), "--cells", "6", "--json"]).stdout
+    )
+    assert s["trip_time_s"] == 5.0  # 18.6 V / 6 = 3.1 V < P3's 3.2 V at 10 A
+    assert any("voltage_v / 6 (--cells)" in a for a in s["assumed"])
+    res = RUNNER.invoke(app, ["replay", "protection", str(log), "--cells", "0"])
+    assert res.exit_code == 2 and "--cells 0" in res.stderr
+    # Given where the log has the column, the option is reported unused, not silently ignored.
+    full = tmp_path / "f.csv"
+    full.write_text("t_s,current_a,temp_c,min_cell_v\n0,10,25,3.1\n1,10,25,3.1\n")
+    s = json.loads(RUNNER.invoke(app, ["replay", "protection", str(full), "--cells", "6",
+                                       "--assume-temp-c", "0", "--json"]).stdout)  # fmt: skip
+    assert s["assumed"] == ["--assume-temp-c not used: the log has temp_c",
+                            "--cells not used: the log has min_cell_v"]  # fmt: skip
+    t = _flight(str(LOGS / "px4_one_battery.ulg"), "--cells", "6", "--assume-temp-c", "0")
+    assert any("--cells 6 not used" in n for n in t["notes"])  # type: ignore[attr-defined]
+    assert any("--assume-temp-c 0 not used" in n for n in t["notes"])  # type: ignore[attr-defined]

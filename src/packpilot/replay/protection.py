@@ -74,6 +74,15 @@ def _inputs(
     )
     n = len(log)
     out = {"t_s": log.columns["t_s"], "current_a": log.columns[cols["current_a"]]}
+    unused = [
+        f"{flag} not used: the log has {col}"
+        for flag, given, col in (
+            ("--assume-temp-c", options.assume_temp_c, cols["temp_c"]),
+            ("--cells", options.cells, cols["min_cell_v"]),
+        )
+        if given is not None and col in log.columns and log.source == "CSV"
+    ]
+    assumed += unused
     if cols["temp_c"] in log.columns:
         out["temp_c"] = log.columns[cols["temp_c"]]
     else:
@@ -85,6 +94,8 @@ def _inputs(
     else:
         cells = options.cells
         assert cells is not None
+        if not 1 <= cells <= 1000:
+            raise InputError(f"{log.path}: --cells {cells}: must be 1..1000")
         out["min_cell_v"] = log.columns[f"{prefix}voltage_v"] / cells
         assumed.append(
             f"min_cell_v = voltage_v / {cells} (--cells): the average cell; the log has no cell "

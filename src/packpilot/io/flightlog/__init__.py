@@ -13,7 +13,9 @@ The parsers are optional (``pip install 'packpilot[logs]'``): ``pyulog`` for ULo
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -195,6 +197,8 @@ def _temperature(
     if b.temp_c is not None and np.isfinite(b.temp_c).any():
         temp, note = _series(path, b, "temp_c", b.temp_c, idx)
         yield {f"{n}_temp_c": temp}, note
+        if assume is not None:
+            yield {}, f"--assume-temp-c {assume:g} not used: the log has its temperature"
     elif assume is not None:
         yield (
             {f"{n}_temp_c": np.full(len(idx), assume)},
@@ -215,6 +219,8 @@ def _cells(
     hints: dict[str, str],
 ) -> Iterator[tuple[dict[str, F64], str]]:  # fmt: skip
     n = b.name
+    if cells is not None and (b.cells_v is not None or b.cell_count):
+        yield {}, f"--cells {cells} not used: the log has its own cell voltages or cell count"
     if b.cells_v is not None:
         cv = np.column_stack([hold(b.cells_v[:, k])[0] for k in range(b.cells_v.shape[1])])
         _check_finite(path, f"battery {n} cell voltage", cv)
@@ -260,6 +266,14 @@ def read_flight_log(path: Path) -> FlightLog:
     raise InputError(f"{path}: not a flight log (.ulg, .bin or .log)")
 
 
+@contextlib.contextmanager
+def quiet() -> Iterator[None]:
+    """The parsers' own prints (progress, one line per bad byte) held back: a damaged log
+    is reported once, as one error line."""
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        yield
+
+
 def need(module: str, package: str, what: str) -> object:
     """Import an optional parser, or a one-line error naming the extra that installs it."""
     import importlib
@@ -279,5 +293,6 @@ __all__ = [
     "battery_name",
     "hold",
     "need",
+    "quiet",
     "read_flight_log",
 ]

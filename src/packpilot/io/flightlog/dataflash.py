@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from packpilot.errors import InputError
-from packpilot.io.flightlog import F64, BatterySeries, FlightLog, battery_name, need
+from packpilot.io.flightlog import F64, BatterySeries, FlightLog, battery_name, need, quiet
 
 TYPES = ("BAT", "BCL", "CURR", "CUR2")
 CENTI_FORMATS = "hHiI"
@@ -93,11 +93,12 @@ def _collect(
 
 def read_dataflash(path: Path, *, text: bool) -> FlightLog:
     """Every battery instance of ``BAT`` (or, in a log without BAT, ``CURR``/``CUR2``)."""
-    log = _open(path, text)
-    try:
-        bat, bcl = _collect(log, path)
-    finally:
-        log.close()
+    with quiet():  # DFReader prints "bad header …" per stray byte: our error says it once
+        log = _open(path, text)
+        try:
+            bat, bcl = _collect(log, path)
+        finally:
+            log.close()
     kind = "BAT" if any(k == "BAT" for k, _ in bat) else "CURR"
     instances = sorted(i for k, i in bat if k == kind)
     if not instances:

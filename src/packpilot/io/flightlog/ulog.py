@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from packpilot.errors import InputError
-from packpilot.io.flightlog import F64, BatterySeries, FlightLog, battery_name, need
+from packpilot.io.flightlog import F64, BatterySeries, FlightLog, battery_name, need, quiet
 
 TOPIC = "battery_status"
 FAKE_CELL_TOL_V = 2e-3
@@ -29,7 +29,8 @@ FAKE_CELL_TOL_V = 2e-3
 def _load(path: Path) -> Any:
     pyulog: Any = need("pyulog", "pyulog", "a PX4 ULog")
     try:
-        return pyulog.ULog(str(path), [TOPIC])
+        with quiet():
+            return pyulog.ULog(str(path), [TOPIC])
     except Exception as err:  # the parser raises many kinds on a damaged file
         raise InputError(
             f"{path}: not a readable ULog file ({type(err).__name__}: {err})"
