@@ -203,6 +203,10 @@ def test_import_cli_writes_the_vocabulary_and_states_what_lacks(tmp_path: Path) 
     )
     assert res.exit_code == 0, res.output
     assert "note: A: Temp is 0 throughout" in res.stderr
+    assert (
+        "assumed: A: no per-cell voltages: min_cell_v = max_cell_v = voltage_v / 6 (--cells)"
+        in res.stderr
+    )
     header = out.read_text().splitlines()[0].split(",")
     assert header[:3] == ["t_s", "A_voltage_v", "A_current_a"] and "B_min_cell_v" in header
     assert not [h for h in header if h.endswith("temp_c")]

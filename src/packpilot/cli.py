@@ -638,6 +638,8 @@ def import_cmd(
         table.write_csv(out)
         for note in table.notes:
             typer.echo(f"note: {note}", err=True)
+        for what in table.assumed:
+            typer.echo(f"assumed: {what}", err=True)
         typer.echo(f"wrote {out} ({table.n_rows} rows, columns {', '.join(table.columns)})")
 
     _guard(go)
