@@ -17,6 +17,8 @@ import contextlib
 import csv
 import io
 import math
+import os
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -108,9 +110,9 @@ def hold(x: F64) -> tuple[F64, int, int]:
 
 
 def _check_finite(path: Path, what: str, x: F64) -> None:
-    bad = np.nonzero(np.abs(x) > MAX_ABS)[0]
+    bad = np.flatnonzero(~(np.abs(x) <= MAX_ABS))
     if bad.size:
-        raise InputError(f"{path}: {what}: {x[bad[0]]:g} is beyond +-{MAX_ABS:g}")
+        raise InputError(f"{path}: {what}: {x.flat[bad[0]]:g} is beyond +-{MAX_ABS:g}")
 
 
 def _time_base(log: FlightLog) -> F64:
@@ -221,8 +223,9 @@ def _cells(
     n = b.name
     if cells is not None and (b.cells_v is not None or b.cell_count):
         yield {}, f"--cells {cells} not used: the log has its own cell voltages or cell count"
-    if b.cells_v is not None:
-        cv = np.column_stack([hold(b.cells_v[:, k])[0] for k in range(b.cells_v.shape[1])])
+    measured = None if b.cells_v is None else b.cells_v[:, np.isfinite(b.cells_v).any(axis=0)]
+    if measured is not None and measured.shape[1]:
+        cv = np.column_stack([hold(measured[:, k])[0] for k in range(measured.shape[1])])
         _check_finite(path, f"battery {n} cell voltage", cv)
         cv = cv[idx]
         groups = {f"{n}_g{k}_v": cv[:, k] for k in range(cv.shape[1])}
@@ -268,10 +271,23 @@ def read_flight_log(path: Path) -> FlightLog:
 
 @contextlib.contextmanager
 def quiet() -> Iterator[None]:
-    """The parsers' own prints (progress, one line per bad byte) held back: a damaged log
-    is reported once, as one error line."""
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        yield
+    """The parsers' own prints (progress, one line per bad byte, some from compiled code
+    straight to file descriptors 1 and 2) held back: a damaged log is reported once, as one
+    error line."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 1)
+        os.dup2(null, 2)
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in (*saved, null):
+            os.close(fd)
 
 
 def need(module: str, package: str, what: str) -> object:

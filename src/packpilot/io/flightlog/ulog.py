@@ -49,7 +49,10 @@ def read_ulog(path: Path) -> FlightLog:
 
 
 def _field(data: Mapping[str, Any], name: str) -> F64 | None:
-    return np.asarray(data[name], dtype=np.float64) if name in data else None
+    if name not in data:
+        return None
+    with np.errstate(all="ignore"):  # a damaged record's bytes: checked downstream
+        return np.asarray(data[name], dtype=np.float64)
 
 
 def _unique_times(path: Path, t_us: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
@@ -63,6 +66,8 @@ def _unique_times(path: Path, t_us: F64) -> np.ndarray[Any, np.dtype[np.bool_]]:
 def _battery(
     path: Path, k: int, multi_id: int, data: Mapping[str, Any], t0_us: float
 ) -> BatterySeries:
+    if "timestamp" not in data or "voltage_v" not in data:
+        raise InputError(f"{path}: {TOPIC} instance {multi_id} has no timestamp or voltage_v field")
     t_us = np.asarray(data["timestamp"], dtype=np.float64)
     keep = _unique_times(path, t_us)
     col = {name: x[keep] for name in data if (x := _field(data, name)) is not None}
