@@ -150,7 +150,7 @@ def _json_default(o: Any) -> Any:
 FAIL_ON_HELP = (
     "exit with code 3 when the run had an alarm of one of these categories (comma-separated):"
     " trip, fault, unsupplied, overdischarge, crosscharge, limit, refused, crosscurrent,"
-    " isolated, unknown"
+    " reserve, unknown"
 )
 
 
@@ -474,14 +474,19 @@ def report(
         typer.Option(help="HTML file to write (default: next to DB, run.sqlite -> run.html)"),
     ] = None,
     run_id: Annotated[int | None, typer.Option(help="run to report (default: latest)")] = None,
+    can_log: Annotated[
+        Path | None,
+        typer.Option(help="CAN log (.blf/.asc) for the CAN section (default: the run's can.log)"),
+    ] = None,
 ) -> None:
-    """Write a self-contained HTML report (plots inline, no network) of a recorded run."""
+    """Write a self-contained HTML report (interactive charts inline, no network) of a recorded
+    run."""
 
     def go() -> None:
         from packpilot.report.html import report_from_db
 
         target = out if out is not None else default_report_path(db, run_id)
-        path = report_from_db(db, target, run_id)
+        path = report_from_db(db, target, run_id, can_log)
         typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
 
     _guard(go)

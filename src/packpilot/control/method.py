@@ -79,8 +79,9 @@ class Method:
     max_events: Callable[[PackInfo], int]
     """Most events one pack can emit in one step (sizes the event buffer)."""
     after: Callable[[Any, Any, PackArrays, MeasArrays, CmdArrays], None] | None = None
-    """``after(prm, st, tp, m, cmd)``: sees the step's final, merged commands (plausibility
-    compares switch feedback with what was commanded)."""
+    """``after(prm, st, tp, m, cmd)``: sees the step's final, merged commands, in part order
+    (sequencing may still turn a path off, "off wins": a charge FET whose discharge FET any layer
+    opened; plausibility, after it, compares switch feedback with what was commanded)."""
 
 
 def status_values(
