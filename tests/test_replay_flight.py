@@ -20,8 +20,8 @@ from packpilot.replay.equalization import replay as eq_replay
 from packpilot.replay.flight import replay_flight
 from packpilot.replay.flight_report import flight_html
 from packpilot.replay.sequencing import replay as seq_replay
-from tests.conftest import EXAMPLES
 from tests.cdp import CHROMIUM, chromium, open_page
+from tests.conftest import EXAMPLES
 
 LOGS = EXAMPLES / "logs"
 RUNNER = CliRunner()
