@@ -497,47 +497,157 @@ def default_report_path(db: Path, run_id: int | None) -> Path:
     return db.with_name(db.stem + (f"_{run_id}" if run_id is not None else "") + ".html")
 
 
-def _replay(method: str, log: Path, config: Path | None, out: Path | None, as_json: bool) -> None:
+def _print_summary(summary: dict[str, Any], as_json: bool) -> None:
+    from packpilot.replay.common import summary_lines
+
+    if as_json:
+        typer.echo(json.dumps(summary, default=_json_default))
+    else:
+        for line in summary_lines(summary):
+            typer.echo(line)
+
+
+def _replay(
+    method: str, log: Path, config: Path | None, out: Path | None, as_json: bool,
+    options: Any,
+) -> None:  # fmt: skip
     def go() -> None:
-        from packpilot.config import load_section
+        from packpilot.replay.config import load_replay_config
 
         replay = REGISTRY[method].replay
         assert replay is not None
-        result = replay.function()(log, load_section(config, method))
-        if out is not None:
-            result.write_csv(out)
-        if as_json:
-            typer.echo(json.dumps(result.summary, default=_json_default))
-        elif out is None:
+        if out is not None and str(out) != "-":
+            _check_outputs(out=out)
+        run: Callable[..., Any] = replay.function()  # (log, config, options)
+        result = run(log, load_replay_config(config, method), options)
+        if out is not None and str(out) == "-":
             import csv
 
             writer = csv.writer(sys.stdout)
             writer.writerow(result.columns)
             writer.writerows(result.rows)
+            return
+        if out is not None:
+            result.write_csv(out)
+        _print_summary(result.summary, as_json)
+        if out is not None and not as_json:
+            typer.echo(f"wrote {out} ({len(result.rows)} rows)")
 
     _guard(go)
 
 
-LogArg = Annotated[Path, typer.Argument(help="CSV log to replay")]
-ConfigOpt = Annotated[Path | None, typer.Option(help="TOML file with the method's section")]
-OutOpt = Annotated[Path | None, typer.Option(help="write the output table as CSV")]
+LogArg = Annotated[
+    Path, typer.Argument(help="log: CSV (simulate --trace-csv, packpilot import), .ulg, .bin, .log")
+]
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option(help="TOML with the method's section, or a replay's --json output"),
+]
+OutOpt = Annotated[
+    Path | None, typer.Option(help="write the per-row output table as CSV ('-': to stdout)")
+]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the summary as JSON")]
+BatteryOpt = Annotated[
+    str | None, typer.Option(help="battery of a multi-battery log (its column prefix, e.g. A)")
+]
+AssumeTempOpt = Annotated[
+    float | None,
+    typer.Option(help="temperature (degC) to assume when the log has none; stated in the output"),
+]
+CellsOpt = Annotated[
+    int | None,
+    typer.Option(help="series cells, for a log with neither cell voltages nor a cell count"),
+]
 
 
 def _replay_command(method: str, help_text: str) -> None:
     """``packpilot replay METHOD``: one command per registered replay adapter."""
 
     def command(
-        log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False
-    ) -> None:
-        _replay(method, log, config, out, as_json)
+        log: LogArg, config: ConfigOpt = None, out: OutOpt = None, as_json: JsonOpt = False,
+        battery: BatteryOpt = None, assume_temp_c: AssumeTempOpt = None, cells: CellsOpt = None,
+    ) -> None:  # fmt: skip
+        from packpilot.replay.common import LogOptions
+
+        _replay(method, log, config, out, as_json, LogOptions(battery, assume_temp_c, cells))
 
     replay_app.command(method, help=help_text)(command)
 
 
+def _replay_help(name: str, fallback: str) -> str:
+    """The replay module's own help (its column vocabulary), else the registry's."""
+    import importlib
+
+    module = importlib.import_module(f"packpilot.replay.{name}")
+    return str(getattr(module, "HELP", fallback))
+
+
 for _entry in REGISTRY.values():
     if _entry.replay is not None:
-        _replay_command(_entry.name, _entry.replay.help)
+        _replay_command(_entry.name, _replay_help(_entry.name, _entry.replay.help))
+
+
+@replay_app.command("flight")
+def replay_flight_cmd(
+    log: LogArg,
+    report: Annotated[
+        Path | None, typer.Option(help="write the HTML report 'what PackPilot would have done'")
+    ] = None,
+    config: Annotated[
+        Path | None, typer.Option(help="TOML with [protection] and [sequencing] sections")
+    ] = None,
+    as_json: JsonOpt = False,
+    assume_temp_c: AssumeTempOpt = None,
+    cells: CellsOpt = None,
+) -> None:
+    """What PackPilot would have done on a recorded flight: every battery through discharge
+    protection and, with two or more batteries, the pack through parallel discharge
+    sequencing. What the log lacks is listed, never filled in silently."""
+
+    def go() -> None:
+        from packpilot.replay.common import LogOptions
+        from packpilot.replay.config import load_replay_config
+        from packpilot.replay.flight import replay_flight
+        from packpilot.replay.flight_report import write_flight_report
+
+        if report is not None:
+            _check_outputs(report=report)
+        prot = load_replay_config(config, "protection", other_method_ok=True)
+        seq = load_replay_config(config, "sequencing", other_method_ok=True)
+        fr = replay_flight(log, prot, seq, LogOptions(None, assume_temp_c, cells))  # type: ignore[arg-type]
+        _print_summary(fr.summary, as_json)
+        if report is not None:
+            write_flight_report(fr, report)
+            if not as_json:
+                typer.echo(f"wrote {report}")
+
+    _guard(go)
+
+
+@app.command("import")
+def import_cmd(
+    log: Annotated[Path, typer.Argument(help="flight log: PX4 .ulg, ArduPilot .bin or text .log")],
+    out: Annotated[Path, typer.Option(help="CSV to write (PackPilot's log columns)")],
+    assume_temp_c: AssumeTempOpt = None,
+    cells: CellsOpt = None,
+) -> None:
+    """Convert a flight log's battery data to a CSV that every `packpilot replay` reads: per
+    battery A, B, ... the columns <name>_voltage_v, _current_a, _temp_c, _min_cell_v, ... as
+    `simulate --trace-csv` names them. What the log lacks is printed and left out."""
+
+    def go() -> None:
+        from packpilot.io.flightlog import read_flight_log
+
+        _check_outputs(out=out)
+        table = read_flight_log(log).table(cells=cells, assume_temp_c=assume_temp_c)
+        table.write_csv(out)
+        for note in table.notes:
+            typer.echo(f"note: {note}", err=True)
+        for what in table.assumed:
+            typer.echo(f"assumed: {what}", err=True)
+        typer.echo(f"wrote {out} ({table.n_rows} rows, columns {', '.join(table.columns)})")
+
+    _guard(go)
 
 
 @app.command()

@@ -1,6 +1,8 @@
 """Replay a logged string (time, current, group voltages) through the equalization controller.
 
-Input CSV: ``t_s,current_a,v_0,…,v_{M-1}`` (group voltages in V, current positive = discharge).
+Input: ``t_s`` and one battery's ``current_a, g0_v, …, g{M-1}_v`` (group voltages in V, current
+positive = discharge), unprefixed or as ``<battery>_current_a, <battery>_g0_v, …`` (what
+``simulate --trace-csv`` writes); the older ``current_a, v_0, …, v_{M-1}`` is still read.
 Each row is held for its duration (until the next row), exactly as the closed loop would step
 the controller. Output per row and group: ΔV (mV), AH, remaining balancing time, commanded
 equalizer current. The summary gives the final AH, the number of updates of each kind and the
@@ -18,7 +20,22 @@ from packpilot.contract.bms import BatteryMeasurement, Measurements, SwitchKind
 from packpilot.contract.topology import PackInfo
 from packpilot.control.equalization import EqualizationConfig, EqualizationController
 from packpilot.errors import InputError
-from packpilot.replay.common import CellValue, ReplayResult, read_log, row_durations
+from packpilot.replay.common import (
+    CellValue,
+    LogOptions,
+    LogTable,
+    ReplayResult,
+    log_summary,
+    open_log,
+    refuse_options,
+    row_durations,
+)
+
+HELP = (
+    "Replay t_s and one battery's current_a, g0_v..g{M-1}_v (or <battery>_current_a, "
+    "<battery>_g<k>_v; older v_k too) through Newton-iterated equalization."
+)
+"""The command's help: the column vocabulary it reads."""
 
 MAX_UPDATES_PER_ROW = 100_000
 """Most times one row may apply formula 1 or 2 (its duration / min(T1, T2)). A row held for
@@ -37,16 +54,35 @@ def _check_gaps(path: Path, durations: NDArray[np.float64], config: Equalization
         )
 
 
-def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
+def _columns(log: LogTable, options: LogOptions) -> tuple[str, str, list[str]]:
+    """(battery, current column, group-voltage columns) in either vocabulary."""
+    if "v_0" in log.columns:
+        log.require(["t_s", "current_a"])
+        return "", "current_a", log.indexed("v")
+    prefix, name = log.battery_prefix(options.battery)
+    groups = log.indexed(f"{prefix}g", "_v")
+    log.require(
+        ["t_s", f"{prefix}current_a", *([] if groups else [f"{prefix}g0_v"])],
+        {f"{prefix}g0_v": "no group voltages: the log does not carry them one by one"},
+    )
+    return name, f"{prefix}current_a", groups
+
+
+def replay(
+    log_path: Path | LogTable, config: EqualizationConfig, options: LogOptions | None = None
+) -> ReplayResult:
     """Run :class:`EqualizationController` over a group-voltage log of one string."""
-    log = read_log(log_path, ["t_s", "current_a"], indexed=["v"])
-    v_cols = log.indexed("v")
+    options = options or LogOptions()
+    path = log_path.path if isinstance(log_path, LogTable) else log_path
+    refuse_options(path, options, "equalization", "assume_temp_c", "cells")
+    log = log_path if isinstance(log_path, LogTable) else open_log(log_path, options)
+    battery, cur_col, v_cols = _columns(log, options)
     m = len(v_cols)
     t = log.columns["t_s"]
-    cur = log.columns["current_a"]
+    cur = log.columns[cur_col]
     volts = [log.columns[c] for c in v_cols]
     durations = row_durations(t)
-    _check_gaps(log_path, durations, config)
+    _check_gaps(log.path, durations, config)
     pack = PackInfo(
         n_batteries=1,
         groups_per_battery=(m,),
@@ -90,7 +126,9 @@ def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
         rows.append(row)
     st = ctrl.strings[0]
     summary: dict[str, object] = {
-        "rows": len(log),
+        "method": "equalization",
+        "battery": battery,
+        **log_summary(log),
         "groups": m,
         "final_ah": list(st.ah),
         "updates": dict(st.counts),
@@ -99,6 +137,7 @@ def replay(log_path: Path, config: EqualizationConfig) -> ReplayResult:
         "charge_owed_ah": list(st.owed_ah),
         "charge_commanded_ah": list(st.ledger_net_ah),
         "balancing_time_s": list(st.ledger_time_s),
+        "config": config.model_dump(mode="json"),
     }
     return ReplayResult(columns=columns, rows=rows, summary=summary)
 

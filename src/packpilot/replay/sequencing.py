@@ -1,10 +1,12 @@
 """Replay a logged parallel-battery discharge through the sequencing controller.
 
-Input CSV columns: ``t_s, v_0..v_{N-1}, i_0..i_{N-1}`` (battery-side terminal voltages and
-currents, positive = discharge); optional ``present_0..present_{N-1}`` (1 = inserted, 0 = not)
-and ``docked`` (1 = a charger is connected). Every cell must be a finite number. The output has
-one row per input row with, per battery, the commanded state and FETs (``state_k, chg_k,
-dsg_k``), plus the pack-level ``mode``.
+Input columns, per battery ``<name>_voltage_v, <name>_current_a`` (battery-side terminal
+voltage and current, positive = discharge; what ``simulate --trace-csv`` writes and
+``packpilot import`` produces), optional ``<name>_present`` (1 = inserted, 0 = not) and
+``docked`` (1 = a charger is connected); the older numbered form ``v_0..v_{N-1},
+i_0..i_{N-1}, present_k`` is still read. Every cell read must be a finite number. The output
+has one row per input row with, per battery k (in the log's order), the commanded state and
+FETs (``state_k, chg_k, dsg_k``), plus the pack-level ``mode``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,26 @@ from packpilot.control.sequencing import (
     battery_measurement,
 )
 from packpilot.errors import InputError
-from packpilot.replay.common import CellValue, LogTable, ReplayResult, read_log, row_durations
+from packpilot.replay.common import (
+    AUX,
+    CellValue,
+    LogOptions,
+    LogTable,
+    ReplayResult,
+    log_summary,
+    open_log,
+    refuse_options,
+    row_durations,
+)
+
+HELP = (
+    "Replay t_s and each battery's <name>_voltage_v, <name>_current_a (as simulate --trace-"
+    "csv and packpilot import write them; older v_k, i_k too; or a flight log) through "
+    "parallel discharge sequencing."
+)
+"""The command's help: the column vocabulary it reads."""
+
+F64 = NDArray[np.float64]
 
 
 def _flag_column(log: LogTable, name: str) -> NDArray[np.bool_]:
@@ -65,12 +86,29 @@ def _check_columns(log: LogTable) -> int:
     return n
 
 
-def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
-    """Run :class:`SequencingController` over a log; one output row per input row."""
-    log = read_log(log_path, ["t_s"], indexed=["v", "i"])
+def _named_inputs(log: LogTable) -> tuple[list[str], list[F64], list[F64], list[NDArray[np.bool_]]]:
+    """Names, voltages, currents and presence of the batteries named in the log."""
+    names = [b for b in log.batteries() if b and b != AUX]
+    if not names:
+        log.require(["A_voltage_v", "A_current_a"])  # names the vocabulary in the error
+    log.require(["t_s", *(f"{b}_{c}" for b in names for c in ("voltage_v", "current_a"))])
+    volts = [log.columns[f"{b}_voltage_v"] for b in names]
+    currs = [log.columns[f"{b}_current_a"] for b in names]
+    present = [
+        _flag_column(log, f"{b}_present")
+        if f"{b}_present" in log.columns
+        else np.ones(len(log), dtype=bool)
+        for b in names
+    ]
+    return names, volts, currs, present
+
+
+def _numbered_inputs(
+    log: LogTable,
+) -> tuple[list[str], list[F64], list[F64], list[NDArray[np.bool_]]]:
+    """The older ``v_k, i_k, present_k`` form."""
+    log.require(["t_s"])
     n = _check_columns(log)
-    t = log.columns["t_s"]
-    dts = row_durations(t)
     volts = [log.columns[f"v_{k}"] for k in range(n)]
     currs = [log.columns[f"i_{k}"] for k in range(n)]
     present = (
@@ -78,6 +116,22 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
         if "present_0" in log.columns
         else [np.ones(len(log), dtype=bool) for _ in range(n)]
     )
+    return [str(k) for k in range(n)], volts, currs, present
+
+
+def replay(
+    log_path: Path | LogTable, config: SequencingConfig, options: LogOptions | None = None
+) -> ReplayResult:
+    """Run :class:`SequencingController` over a log; one output row per input row."""
+    options = options or LogOptions()
+    path = log_path.path if isinstance(log_path, LogTable) else log_path
+    refuse_options(path, options, "sequencing", "battery", "assume_temp_c")
+    log = log_path if isinstance(log_path, LogTable) else open_log(log_path, options)
+    numbered = "v_0" in log.columns or "i_0" in log.columns
+    names, volts, currs, present = (_numbered_inputs if numbered else _named_inputs)(log)
+    n = len(names)
+    t = log.columns["t_s"]
+    dts = row_durations(t)
     docked = _flag_column(log, "docked") if "docked" in log.columns else np.zeros(len(log), bool)
 
     # The log carries no cell count or capacity: one "cell" per battery; the charge limit uses
@@ -135,8 +189,8 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
                     max_diode_s = max(max_diode_s, c)
     summary: dict[str, object] = {
         "method": "sequencing",
-        "log": str(log_path),
-        "rows": len(rows),
+        **log_summary(log),
+        "batteries": names,
         "n_batteries": n,
         "transitions": dict(sorted(kinds.items())),
         "joins": joins,
@@ -145,6 +199,7 @@ def replay(log_path: Path, config: SequencingConfig) -> ReplayResult:
         "max_diode_conduction_s": max_diode_s,
         "final_states": [s.value for s in ctrl.states],
         "final_mode": ctrl.mode.value,
+        "config": config.model_dump(mode="json"),
     }
     return ReplayResult(columns=columns, rows=rows, summary=summary)
 
