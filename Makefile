@@ -70,6 +70,7 @@ test: $(TEST_STAMP) browser
 MUTATE_JOBS ?= 2
 mutate: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.mutation.run --jobs $(MUTATE_JOBS) --out $(OUT)
+	$(PY) -m tests.mutation.web  # the dashboard's access rules (#18 §5), about a minute
 
 # Property soak (#18 §2): every Hypothesis property under the `nightly` profile (tests/budget.py:
 # at least 10,000 examples each, CI budget x 50). Hours, not minutes; not part of `make test`.
