@@ -91,7 +91,9 @@ def _get_json(url: str) -> Any:
 
 
 @contextmanager
-def chromium(profile: Path, width: int = 1280, height: int = 900) -> Iterator[Cdp]:
+def chromium(
+    profile: Path, width: int = 1280, height: int = 900, cls: type[Cdp] = Cdp
+) -> Iterator[Cdp]:
     """A headless Chromium without network, its first page driven over the protocol."""
     proc = subprocess.Popen(
         [
@@ -125,7 +127,7 @@ def chromium(profile: Path, width: int = 1280, height: int = 900) -> Iterator[Cd
         port = int(port_file.read_text().split()[0])
         pages = [t for t in _get_json(f"http://127.0.0.1:{port}/json/list") if t["type"] == "page"]
         with connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as ws:
-            cdp = Cdp(ws)
+            cdp = cls(ws)
             cdp.call(
                 "Emulation.setDeviceMetricsOverride",
                 width=width,

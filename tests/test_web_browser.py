@@ -17,7 +17,6 @@ import base64
 import json
 import re
 import struct
-import subprocess
 import threading
 import time
 import urllib.request
@@ -26,13 +25,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from websockets.sync.client import ClientConnection, connect
 
 from packpilot.config import parse_config
 from packpilot.sim.runner import Runner
 from packpilot.web.app import Dashboard
+from tests import cdp
 
-CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM = cdp.CHROMIUM
 
 pytestmark = pytest.mark.skipif(
     not CHROMIUM.exists(),
@@ -64,30 +63,14 @@ def scenario() -> dict[str, Any]:
     }
 
 
-class Cdp:
-    """The few DevTools-protocol calls the test needs, over one page's WebSocket."""
-
-    def __init__(self, ws: ClientConnection) -> None:
-        self.ws = ws
-        self.n = 0
-
-    def call(self, method: str, **params: Any) -> dict[str, Any]:
-        self.n += 1
-        self.ws.send(json.dumps({"id": self.n, "method": method, "params": params}))
-        for _ in range(10_000):  # skip protocol events until our answer
-            msg = json.loads(self.ws.recv(timeout=30))
-            if msg.get("id") == self.n:
-                assert "error" not in msg, msg["error"]
-                result: dict[str, Any] = msg["result"]
-                return result
-        raise AssertionError(f"no answer to {method}")
-
-    def eval(self, expr: str) -> Any:
-        r = self.call("Runtime.evaluate", expression=expr, returnByValue=True)
-        return r["result"].get("value")
+class Cdp(cdp.Cdp):
+    """The shared DevTools client, plus the dashboard's ``data-*`` state on ``<body>``."""
 
     def body(self) -> dict[str, str]:
-        return dict(self.eval("Object.assign({}, document.body.dataset)") or {})
+        try:  # while the page loads there may be no body yet
+            return dict(self.eval("Object.assign({}, document.body.dataset)") or {})
+        except AssertionError:
+            return {}
 
     def wait_body(self, pred: Any, timeout_s: float) -> dict[str, str]:
         deadline = time.monotonic() + timeout_s
@@ -101,55 +84,9 @@ class Cdp:
 
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cdp]:
-    profile = tmp_path_factory.mktemp("chromium")
-    proc = subprocess.Popen(
-        [
-            str(CHROMIUM),
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            "--proxy-server=http://127.0.0.1:9",
-            "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
-            "--remote-debugging-address=127.0.0.1",
-            "--remote-debugging-port=0",
-            f"--window-size={WIDTH},{HEIGHT}",
-            "--hide-scrollbars",
-            f"--user-data-dir={profile}",
-            "about:blank",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        port_file = profile / "DevToolsActivePort"
-        deadline = time.monotonic() + 20.0
-        while not port_file.exists() and time.monotonic() < deadline:
-            assert proc.poll() is None, "chromium exited at start"
-            time.sleep(0.05)
-        port = int(port_file.read_text().split()[0])
-        pages = [t for t in get_json(f"http://127.0.0.1:{port}/json/list") if t["type"] == "page"]
-        with connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as ws:
-            cdp = Cdp(ws)
-            cdp.call(
-                "Emulation.setDeviceMetricsOverride",
-                width=WIDTH,
-                height=HEIGHT,
-                deviceScaleFactor=1,
-                mobile=False,
-            )
-            yield cdp
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
+    with cdp.chromium(tmp_path_factory.mktemp("chromium"), WIDTH, HEIGHT, Cdp) as page:
+        assert isinstance(page, Cdp)
+        yield page
 
 
 def get_json(url: str) -> Any:
