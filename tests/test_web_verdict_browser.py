@@ -79,3 +79,52 @@ def test_dashboard_shows_the_verdict_and_the_alarms(
     shot = base64.b64decode(browser.call("Page.captureScreenshot", format="png")["data"])
     (Path(os.environ.get(ARTIFACTS, tmp_path)) / "dashboard_verdict.png").write_bytes(shot)
     assert len(shot) > 40_000
+
+
+@pytest.fixture(scope="module")
+def sensor_fault() -> Iterator[Dashboard]:
+    """B's temperature sensor reads NaN from 2 s: the plant's B stays at a healthy 25 °C."""
+    data = dual_pack(
+        switch={"kind": "mosfet_pair", "on_ohm": 0.0005}, v_a=24.0, v_b=23.9, duration_s=8.0,
+        dt_s=0.1, load={"kind": "current", "value": 14.0},
+    )  # fmt: skip
+    data["controller"] = ["sequencing", "protection"]
+    data["plausibility"] = {}
+    data["faults"] = [{"kind": "sensor_nan", "at_s": 2.0, "battery": "B", "quantity": "temp_c"}]
+    runner = Runner(parse_config(data), progress=False)
+    dash = Dashboard(runner, scenario="sensor_fault", speed=4.0, host="127.0.0.1", port=0)
+    thread = threading.Thread(target=dash.serve, name="uvicorn-sensor", daemon=True)
+    dash.start()
+    thread.start()
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        try:
+            wb.get_json(dash.url + "api/status")
+            break
+        except OSError:
+            time.sleep(0.05)
+    yield dash
+    dash.stop()
+    thread.join(10.0)
+
+
+def test_a_card_shows_what_the_bms_measured_not_the_plant(
+    browser: wb.Cdp, sensor_fault: Dashboard, tmp_path: Path
+) -> None:
+    """#17 §1: after B's temperature sensor fails, B's card says the BMS has no reading (with
+    the plant's value in its tooltip), A's card shows A's measured temperature."""
+    browser.call("Page.navigate", url=sensor_fault.url)
+    browser.wait_body(lambda d: d.get("state") == "finished", 60.0)
+    cards = browser.eval(
+        "Object.fromEntries([...document.querySelectorAll('.panel.bat')].map(c =>"
+        " [c.dataset.battery, [...c.querySelectorAll('.num .v')].map(v =>"
+        " [v.textContent, v.className, v.title])]))"
+    )
+    temp_b = cards["B"][3]
+    assert temp_b[0] == "no reading" and "sensorbad" in temp_b[1], cards
+    assert "plant has 2" in temp_b[2]  # the plant's ~25 °C, for the post-mortem
+    temp_a = cards["A"][3]
+    assert "sensorbad" not in temp_a[1] and float(temp_a[0]) > 20.0, cards
+    assert all("sensorbad" not in v[1] for v in cards["B"][:3]), cards  # V, A, SOC agree
+    shot = base64.b64decode(browser.call("Page.captureScreenshot", format="png")["data"])
+    (Path(os.environ.get(ARTIFACTS, tmp_path)) / "dashboard_sensor_fault.png").write_bytes(shot)

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.contract.arrays import MeasArrays
 from packpilot.contract.bms import StatusValue
 from packpilot.contract.events import value as field_value
 from packpilot.contract.record import BATTERY_CHANNELS, StepSample, Trace
@@ -119,6 +120,26 @@ def _render_column(col: F64, kind: str, labels: Any) -> list[list[StatusValue]]:
     return [[one(x) for x in row] for row in rows]
 
 
+MEASURED: tuple[tuple[str, str], ...] = (
+    ("bms_voltage_v", "voltage_v"),
+    ("bms_current_a", "current_a"),
+    ("bms_temp_c", "temp_c"),
+    ("bms_soc", "soc"),
+)
+"""Per battery, what the BMS measured (status channel, measurement field): the trace's battery
+rows are the plant's truth, and after a sensor fault the two differ (#17 §1: the dashboard
+card shows what the BMS saw, NaN included)."""
+
+
+class _Measured:
+    """A status-channel stand-in for a measured quantity (float, no labels)."""
+
+    kind = "f"
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+
 class TraceBuffer:
     """The trace of pack ``p`` of a run, in blocks that double as they fill, up to
     ``max_rows`` rows; past that, decimated (:data:`MAX_TRACE_ROWS`). ``stride`` is the step
@@ -142,8 +163,14 @@ class TraceBuffer:
         self._pending = False
         """Row ``n`` holds the latest step, which the stride did not keep (yet)."""
         capacity = max(1, min(capacity, max_rows + 1))  # + 1: the row of the latest step
-        self.channels = list(channels)
-        """(slot, StatusChannel, labels) of every compiled status channel, in output order."""
+        self.n_core = n_status
+        """Status slots the core writes; the :data:`MEASURED` slots follow them."""
+        self.channels = [
+            *channels,
+            *((n_status + j, _Measured(name), {}) for j, (name, _) in enumerate(MEASURED)),
+        ]
+        """(slot, StatusChannel, labels) of every compiled status channel, in output order,
+        then the measured values."""
         S, G = pack.n_strings, pack.max_groups
         n_b = len(topology.traction)
         self.n = 0
@@ -152,7 +179,7 @@ class TraceBuffer:
         self.step = np.zeros(capacity, np.int64)
         self.battery = np.zeros((capacity, S, N_CH))
         self.group_v = np.zeros((capacity, S, G))
-        self.status = np.zeros((capacity, n_b, max(n_status, 1)))
+        self.status = np.zeros((capacity, n_b, n_status + len(MEASURED)))
         self.foreign: list[dict[str, list[StatusValue]]] = []
         """Per step, the status of Python parts (P = 1 only)."""
 
@@ -179,7 +206,12 @@ class TraceBuffer:
         self.stride *= 2
 
     def add(
-        self, k: int, iv: Interval, status: F64, foreign: dict[str, list[StatusValue]] | None
+        self,
+        k: int,
+        iv: Interval,
+        status: F64,
+        foreign: dict[str, list[StatusValue]] | None,
+        m: MeasArrays | None = None,
     ) -> int:
         """Write step ``k`` into the next row and return that row (for :meth:`sample`). The
         row is kept when ``k`` is a multiple of :attr:`stride`; otherwise the next step
@@ -200,6 +232,13 @@ class TraceBuffer:
             iv.dsg_diode_a, iv.balancer_in_w, iv.group_v, status, self.battery, self.group_v,
             self.status,
         )  # fmt: skip
+        measured = self.status[n, :, self.n_core :]
+        if m is None:
+            measured.fill(np.nan)
+        else:
+            bat, p = m.bat, self.p
+            for j, (_, field) in enumerate(MEASURED):
+                measured[:, j] = getattr(bat, field)[p, : measured.shape[0]]
         if foreign is not None:
             del self.foreign[n:]
             self.foreign.append(foreign)

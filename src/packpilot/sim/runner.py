@@ -131,7 +131,7 @@ class Runner:
         try:
             for k in range(total):
                 rec = loop.step(k, dt)
-                row = buf.add(k, rec.iv, core.status, core.python_status())
+                row = buf.add(k, rec.iv, core.status, core.python_status(), core.m)
                 new_events = rec.events[0]
                 if new_events:
                     self.events.extend(new_events)

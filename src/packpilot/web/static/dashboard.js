@@ -562,16 +562,42 @@ function renderCellBars(c, b, i) {
   });
 }
 
+// What the BMS measured (status bms_*) is the card's number; the plant's truth is shown
+// beside it only when the two disagree (a failed, frozen or stale sensor), so a card never
+// shows a healthy 20 °C while the BMS reads NaN (#17 §1).
+const MEASURED = { voltage_v: ["bms_voltage_v", 0.05], current_a: ["bms_current_a", 0.2],
+  soc: ["bms_soc", 0.02], temp_c: ["bms_temp_c", 1.0] };
+function showMeasured(cell, st, b, key, text) {
+  const [mk, tol] = MEASURED[key];
+  cell.classList.remove("sensorbad");
+  cell.title = "";
+  if (!(mk in st)) { cell.textContent = text(b[key]); return; }
+  const m = st[mk];
+  if (!isNum(m)) {
+    cell.textContent = "no reading";
+    cell.classList.add("sensorbad");
+    cell.title = "the BMS reads no valid value; the plant has " + text(b[key]);
+    return;
+  }
+  cell.textContent = text(m);
+  if (isNum(b[key]) && Math.abs(m - b[key]) > tol) {
+    cell.classList.add("sensorbad");
+    cell.append(el("small", "plant", " plant " + text(b[key])));
+    cell.title = "what the BMS measured; the plant's true value differs";
+  }
+}
+
 function renderCards() {
   const L = S.latest;
   if (!L) return;
   L.batteries.forEach((b, i) => {
     const c = S.cards[i];
     if (!c) return;
-    c.cells.voltage_v.textContent = fmt(b.voltage_v, 2);
-    c.cells.current_a.textContent = fmt(b.current_a, 2);
-    c.cells.soc.textContent = isNum(b.soc) ? (100 * b.soc).toFixed(1) + "%" : "—";
-    c.cells.temp_c.textContent = fmt(b.temp_c, 1);
+    const stm = b.status || {};
+    showMeasured(c.cells.voltage_v, stm, b, "voltage_v", (x) => fmt(x, 2));
+    showMeasured(c.cells.current_a, stm, b, "current_a", (x) => fmt(x, 2));
+    showMeasured(c.cells.soc, stm, b, "soc", (x) => isNum(x) ? (100 * x).toFixed(1) + "%" : "—");
+    showMeasured(c.cells.temp_c, stm, b, "temp_c", (x) => fmt(x, 1));
     c.socfill.style.width = isNum(b.soc) ? Math.max(0, Math.min(100, 100 * b.soc)) + "%" : "0";
     renderCellBars(c, b, i);
     c.cellsLine.textContent = "";
