@@ -756,6 +756,7 @@ def hil(
     def go() -> dict[str, Any]:
         from packpilot.errors import ConfigError
         from packpilot.io.can.bus import FrameLog, open_bus
+        from packpilot.runtime.bms import filters
         from packpilot.runtime.hil import Hil, run_realtime
         from packpilot.runtime.lockstep import REQUEST_ONLY
 
@@ -767,7 +768,7 @@ def hil(
         _check_outputs(can_log=can_log)
         bus = open_bus(can_interface, can_channel)
         charger_bus = open_bus(can_interface, charger_channel or can_channel,
-                               can_filters=REQUEST_ONLY)  # fmt: skip
+                               **filters(can_interface, REQUEST_ONLY))  # fmt: skip
         log = FrameLog(can_log) if can_log is not None else None
         twin = Hil(cfg, bus, charger_bus=charger_bus, bms_period_s=bms_period,
                    timeout_periods=timeout_periods, log=log)  # fmt: skip

@@ -46,6 +46,14 @@ STANDARD_ONLY = [{"can_id": 0, "can_mask": 0, "extended": False}]
 CHARGER_ONLY = [{"can_id": STATUS_ID, "can_mask": 0x1FFFFFFF, "extended": True}]
 
 
+def filters(interface: str, which: list[dict[str, Any]]) -> dict[str, Any]:
+    """Receive filters where the interface applies them before ``recv`` (socketcan: in the
+    kernel). python-can's software filtering (``virtual``) gives up a ``recv(timeout=0)`` at
+    the first frame it filters out, which would leave the rest of the queue unread for a
+    period, so there the receivers classify and count every frame themselves."""
+    return {} if interface == "virtual" else {"can_filters": which}
+
+
 @dataclass(frozen=True)
 class RuntimeOptions:
     """How ``run`` talks to the pack (CLI options; the scenario says what the pack is)."""
@@ -104,7 +112,8 @@ class BmsRuntime:
         self.core = build_core(cfg, infos)
         self.log = FrameLog(opts.log_path) if opts.log_path is not None else None
         kw = dict(opts.bus_kwargs)
-        self.bus = open_bus(opts.interface, opts.channel, can_filters=STANDARD_ONLY, **kw)
+        self.bus = open_bus(opts.interface, opts.channel, **filters(opts.interface, STANDARD_ONLY),
+                            **kw)  # fmt: skip
         bats = cfg.pack.batteries
         bmap = battery_map(self.topology.names, self.topology.roles,
                            [b.series_groups for b in bats])  # fmt: skip
@@ -119,7 +128,7 @@ class BmsRuntime:
                 None, interface=opts.interface, channel=opts.charger_channel or opts.channel,
                 heartbeat_timeout_s=cfg.charger.heartbeat_timeout_s,
                 rating=(cfg.charger.rated_v, cfg.charger.rated_a),
-                bus_kwargs={"can_filters": CHARGER_ONLY, **kw},
+                bus_kwargs={**filters(opts.interface, CHARGER_ONLY), **kw},
             )  # fmt: skip
             self.charger.client.log = self.log
             links.append(self.charger)

@@ -62,13 +62,15 @@ class SwitchNode:
         self.timed_out = False
         return True
 
-    def check(self, t: float, timeout_s: float, started_s: float) -> None:
-        """Open both paths once nothing new was heard for ``timeout_s``."""
+    def check(self, t: float, timeout_s: float, started_s: float, keep_dsg: bool = False) -> None:
+        """Open both paths (``keep_dsg``: the charge path only) once nothing new was heard for
+        ``timeout_s``."""
         ref = self.heard_s if self.heard_s is not None else started_s
         if not self.timed_out and t - ref > timeout_s + 1e-9:
             self.timed_out = True
             self.timeouts += 1
-            self.chg = self.dsg = False
+            self.chg = False
+            self.dsg = self.dsg and keep_dsg
             self.balancer_a[:] = 0.0
 
 
@@ -112,9 +114,11 @@ class Hil:
         charger_bus: can.BusABC | None = None,
         bms_period_s: float | None = None,
         timeout_periods: int = 5,
+        timeout_keeps_discharge: bool = False,
         log: FrameLog | None = None,
     ) -> None:
         self.cfg = cfg
+        self.keep_dsg = timeout_keeps_discharge
         self.bus = bus
         self.log = log
         self.plant = SimulatedPlant(cfg, 1)
@@ -152,7 +156,8 @@ class Hil:
         self.counter = 0
         self.started_s = pack.t_s
         self.hooks: list[Callable[[Hil, float], None]] = []
-        """Called with (hil, t) before each period's frames go out (fault injection)."""
+        """Called with (hil, t) after each period's telemetry went out: fault injection (an
+        intruder's frames, silencing a node from the next period on)."""
         self.silent: set[int] = set()
         """CAN indices of battery nodes that do not publish (telemetry loss)."""
         self.last_iv: Interval | None = None
@@ -165,8 +170,6 @@ class Hil:
     def publish(self) -> None:
         """Every battery's telemetry and the platform frame, as the plant is now."""
         t = self.t_s
-        for hook in self.hooks:
-            hook(self, t)
         self.plant.measure(self.arenas, self.m_row)
         m = self.m
         out: list[can.Message] = []
@@ -179,6 +182,8 @@ class Hil:
         self.counter = (self.counter + 1) & 0xFF
         for msg in out:
             self.send(msg, t)
+        for hook in self.hooks:
+            hook(self, t)
 
     def send(self, msg: can.Message, t: float) -> None:
         try:
@@ -196,7 +201,7 @@ class Hil:
         t = self.t_s
         self.receive(t)
         for node in self.switch:
-            node.check(t, self.timeout_s, self.started_s)
+            node.check(t, self.timeout_s, self.started_s, self.keep_dsg)
         if self.aux is not None:
             self.aux.check(t, self.timeout_s, self.started_s)
             if self.aux.timed_out:

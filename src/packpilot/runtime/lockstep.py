@@ -24,6 +24,7 @@ from packpilot.runtime.hil import Hil
 
 _channels = itertools.count()
 REQUEST_ONLY = [{"can_id": REQUEST_ID, "can_mask": 0x1FFFFFFF, "extended": True}]
+"""The charger node's receive filter (where the interface filters before ``recv``)."""
 
 
 @dataclass
@@ -59,12 +60,13 @@ def lockstep(
     recorder: Recorder | None = None,
     timeout_periods: int = 5,
 ) -> Lockstep:
-    """A twin and a BMS on a fresh virtual channel (the BMS period is ``cfg.sim.dt_s``)."""
+    """A twin and a BMS on a fresh virtual channel, the charger on its own (as a TC/Elcon
+    charger at 250 kbit/s would be); the BMS period is ``cfg.sim.dt_s``."""
     channel = f"packpilot-hil-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
-                   period_s=cfg.sim.dt_s)  # fmt: skip
+                   charger_channel=f"{channel}-charger", period_s=cfg.sim.dt_s)  # fmt: skip
     bus = open_bus("virtual", channel)
-    charger_bus = open_bus("virtual", channel, can_filters=REQUEST_ONLY)
+    charger_bus = open_bus("virtual", f"{channel}-charger")
     hil = Hil(cfg, bus, charger_bus=charger_bus, timeout_periods=timeout_periods)
     try:
         bms = BmsRuntime(cfg, opts, recorder)

@@ -11,7 +11,8 @@ last values and its age grows, exactly what the fault injector's ``sensor_dropou
 the plausibility layer's ``stale`` rule (``[plausibility] max_sample_age_s``) treats it as a
 dead sensor and the documented safe state follows. A battery never heard from reads NaN with an
 infinite age. A battery node that sends any of its identifiers more than ``babble_factor``
-times as often as it should within one period is babbling: its sample is not trusted (age
+times as often as it should within one period (once; its group frames once per block) is
+babbling: its sample is not trusted (age
 infinite) while it does. The platform's bus voltage reads NaN once its frame is older than
 ``platform_timeout_s`` (a pack ``nonfinite`` fault).
 
@@ -43,7 +44,7 @@ from packpilot.io.can.battery import (
 from packpilot.io.can.bus import FrameLog
 from packpilot.io.can.client import MAX_FRAMES_PER_POLL, FrameCounters
 from packpilot.io.can.codec import FrameError
-from packpilot.io.can.dbcgen import GROUPS_PER_FRAME, MAX_GROUPS
+from packpilot.io.can.dbcgen import BATTERY_GROUPS, GROUPS_PER_FRAME, MAX_GROUPS
 
 Array = NDArray[np.float64]
 
@@ -146,8 +147,10 @@ class CanPlant:
             self._take(msg, t)
         babbled = False
         for node in self.node.values():
-            limit = self.babble_factor * max(1, len(node.block_rx_s))
-            node.babbling = any(n > limit for n in node.seen_this_period.values())
+            node.babbling = any(
+                n > self.babble_factor * _expected(fid, node)
+                for fid, n in node.seen_this_period.items()
+            )
             babbled |= node.babbling
         self.babbled += babbled
 
@@ -288,6 +291,11 @@ class CanPlant:
         if view is None:
             view = self._view_cache[key] = unpack(cls, *arenas, row)
         return view
+
+
+def _expected(frame_id: int, node: _Latest) -> int:
+    """Frames of ``frame_id`` a healthy node sends per period: one, or one per group block."""
+    return max(1, node.block_rx_s.size) if frame_id & ~0xF == BATTERY_GROUPS else 1
 
 
 def _is_ours(frame_id: int) -> bool:
