@@ -84,7 +84,7 @@ def test_battery_codec_round_trip_and_sentinels() -> None:
     r = bc.BatteryReport(24.51, -3.2, 3.901, 4.1, 25.3, math.nan, 0.55, True, False, True,
                          5.0, 2.75, math.nan, (4.01, 4.02, 4.03, 4.04))  # fmt: skip
     frames = bc.encode_battery(3, r, 7)
-    assert [f.arbitration_id for f in frames] == [0x303, 0x313, 0x323, 0x333, 0x333]
+    assert [f.arbitration_id for f in frames] == [0x303, 0x363, 0x313, 0x323, 0x333, 0x333]
     got: dict[str, float] = {}
     for f in frames:
         kind, i, vals = bc.decode(f)
@@ -97,8 +97,8 @@ def test_battery_codec_round_trip_and_sentinels() -> None:
     assert got["GroupV3"] == pytest.approx(4.04)
     assert (got["ChgOn"], got["DsgOn"], got["Present"]) == (1, 0, 1)
     # out of range stays out of range (clamped one count short of "not available")
-    hot = bc.encode_battery(0, dataclasses.replace(r, max_cell_v=99.0), 0)[0]
-    assert bc.decode(hot)[2]["MaxCellV"] == pytest.approx(65.534)
+    hot = bc.encode_battery(0, dataclasses.replace(r, max_cell_v=99.0), 0)
+    assert bc.decode(hot[1])[2]["MaxCellV"] == pytest.approx(6.5534)
 
 
 @pytest.mark.parametrize(

@@ -30,6 +30,7 @@ from packpilot.io.can.dbcgen import (
     AUX_CMD,
     BALANCER_CMD,
     BATTERY_CAPACITY,
+    BATTERY_CELLS,
     BATTERY_GROUPS,
     BATTERY_MEAS,
     BATTERY_STATE,
@@ -46,6 +47,7 @@ KINDS: dict[int, str] = {
     BATTERY_STATE: "state",
     BATTERY_CAPACITY: "capacity",
     BATTERY_GROUPS: "groups",
+    BATTERY_CELLS: "cells",
     SWITCH_CMD: "switch",
     BALANCER_CMD: "balancer",
 }
@@ -140,11 +142,12 @@ class BatteryReport:
 
 
 def encode_battery(i: int, r: BatteryReport, counter: int, t: float = 0.0) -> list[can.Message]:
-    """Every telemetry frame of battery ``i``: meas, state, capacity, the group blocks."""
+    """Every telemetry frame of battery ``i``: meas, cells, state, capacity, group blocks."""
     ng = min(len(r.group_v), MAX_GROUPS)
     out = [
         _frame(BATTERY_MEAS + i, {"Voltage": r.voltage_v, "Current": r.current_a,
-                                  "MinCellV": r.min_cell_v, "MaxCellV": r.max_cell_v}, t),
+                                  "Counter": counter & 0xFF}, t),
+        _frame(BATTERY_CELLS + i, {"MinCellV": r.min_cell_v, "MaxCellV": r.max_cell_v}, t),
         _frame(BATTERY_STATE + i, {"TempMax": r.temp_c, "TempMin": r.min_temp_c, "SOC": r.soc,
                                    "ChgOn": r.chg_on, "DsgOn": r.dsg_on, "Present": r.present,
                                    "Counter": counter & 0xFF}, t),

@@ -6,7 +6,8 @@ Battery ``i`` (0..15, its position in ``[[pack.batteries]]``) owns its own ident
 and ``tests/test_runtime_frames.py`` checks that the shipped file is what it generates
 (regenerate with ``python -m packpilot.io.can.dbcgen > src/packpilot/io/can/packpilot.dbc``).
 
-Every field is little-endian (Intel, ``@1``): cantools' start bit is then the LSB's position,
+A value that is not available travels as the field's all-ones count (unsigned) or its most
+negative count (signed), in fields of 16 bits or more. Every field is little-endian (Intel, ``@1``): cantools' start bit is then the LSB's position,
 ``byte * 8 + bit``. Battery current is positive when **discharging** (PackPilot's convention).
 """
 
@@ -25,6 +26,7 @@ BATTERY_STATE = 0x310
 BATTERY_CAPACITY = 0x320
 BATTERY_GROUPS = 0x330
 BALANCER_CMD = 0x340
+BATTERY_CELLS = 0x360
 SWITCH_CMD = 0x200
 AUX_CMD = 0x210
 PLATFORM_MEAS = 0x220
@@ -61,7 +63,7 @@ def _group_signals() -> tuple[Sig, ...]:
     for b in range(N_BLOCKS):
         for j in range(GROUPS_PER_FRAME):
             g = b * GROUPS_PER_FRAME + j
-            out.append(Sig(f"GroupV{g}", 8 + 16 * j, 16, factor=0.001, unit="V", mux=b))
+            out.append(Sig(f"GroupV{g}", 8 + 16 * j, 16, factor=0.0001, unit="V", mux=b))
     out.append(Sig("NGroups", 56, 8, comment="series groups the battery reports"))
     return tuple(out)
 
@@ -84,10 +86,14 @@ def battery_messages(i: int) -> list[Msg]:
     return [
         Msg(f"BatteryMeas{i}", BATTERY_MEAS + i, 8, node, "BMS",
             "Fast telemetry, every BMS period.", (
-                Sig("Voltage", 0, 16, factor=0.01, unit="V", comment="terminal voltage"),
-                Sig("Current", 16, 16, True, 0.02, "A", "positive = discharging"),
-                Sig("MinCellV", 32, 16, factor=0.001, unit="V"),
-                Sig("MaxCellV", 48, 16, factor=0.001, unit="V"),
+                Sig("Voltage", 0, 24, factor=0.0001, unit="V", comment="terminal voltage"),
+                Sig("Current", 24, 24, True, 0.001, "A", "positive = discharging"),
+                Sig("Counter", 56, 8, comment="alive counter, +1 per frame"),
+            )),
+        Msg(f"BatteryCells{i}", BATTERY_CELLS + i, 8, node, "BMS",
+            "Lowest and highest cell (group) voltage, every BMS period.", (
+                Sig("MinCellV", 0, 16, factor=0.0001, unit="V"),
+                Sig("MaxCellV", 16, 16, factor=0.0001, unit="V"),
             )),
         Msg(f"BatteryState{i}", BATTERY_STATE + i, 8, node, "BMS",
             "Temperatures, SOC, switch feedback, every BMS period.", (

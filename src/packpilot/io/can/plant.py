@@ -6,7 +6,7 @@ fills the core's measurements with the latest telemetry each battery sent
 only on change. The core, its rules and its safety layers do not know which plant they talk to.
 
 Freshness: every battery's ``sample_age_s`` is the age of the oldest frame kind it must send
-(meas, state, capacity and, when it has groups, its group blocks). A silent battery keeps its
+(meas, cells, state, capacity and, when it has groups, its group blocks). A silent battery keeps its
 last values and its age grows, exactly what the fault injector's ``sensor_dropout`` produces:
 the plausibility layer's ``stale`` rule (``[plausibility] max_sample_age_s``) treats it as a
 dead sensor and the documented safe state follows. A battery never heard from reads NaN with an
@@ -48,7 +48,7 @@ from packpilot.io.can.dbcgen import BATTERY_GROUPS, GROUPS_PER_FRAME, MAX_GROUPS
 
 Array = NDArray[np.float64]
 
-REQUIRED = ("meas", "state", "capacity")
+REQUIRED = ("meas", "cells", "state", "capacity")
 """Frame kinds every battery sends each period (plus its group blocks when it has groups)."""
 
 
@@ -169,7 +169,7 @@ class CanPlant:
             self.platform, self.platform_rx_s = vals, t
             return
         node = self.node.get(i)
-        if node is None or kind not in ("meas", "state", "capacity", "groups"):
+        if node is None or kind not in ("meas", "cells", "state", "capacity", "groups"):
             self.counters.unexpected += 1  # a command echo, another BMS, an unmapped battery
             return
         self.counters.received += 1
