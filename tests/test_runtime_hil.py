@@ -48,13 +48,28 @@ def compare(cfg: ScenarioConfig, **opts: object) -> None:
     tr = list(ls.hil.plant.topology.traction)
     sim_chg = sim.trace.channel("chg_on")[:, tr].astype(bool)
     sim_dsg = sim.trace.channel("dsg_on")[:, tr].astype(bool)
-    assert np.array_equal(np.array(ls.chg).reshape(n, b), sim_chg)
-    assert np.array_equal(np.array(ls.dsg).reshape(n, b), sim_dsg)
+    assert_same_switching(sim_chg, np.array(ls.chg).reshape(n, b))
+    assert_same_switching(sim_dsg, np.array(ls.dsg).reshape(n, b))
     c = ls.bms.plant.counters
     assert c.malformed == c.unexpected == c.send_errors == 0
-    assert ls.hil.counters.received == c.sent  # no command lost
+    assert ls.hil.commands == c.sent  # no command lost
     assert sum(node.timeouts for node in ls.hil.switch) == 0
-    return None
+
+
+def transitions(x: np.ndarray) -> list[tuple[int, int, bool]]:
+    """(period, battery, new state) of every switch transition."""
+    d = np.nonzero(x[1:] != x[:-1])
+    return [(int(k) + 1, int(i), bool(x[k + 1, i])) for k, i in zip(*d, strict=True)]
+
+
+def assert_same_switching(sim: np.ndarray, can: np.ndarray) -> None:
+    """The same transitions of the same switches, each at most one period apart: a decision
+    that rests on the charger's status (one period old and 0.1 A on its CAN link, exact on
+    the simulator's direct link) may come one period later."""
+    a, b = transitions(sim), transitions(can)
+    assert [x[1:] for x in a] == [x[1:] for x in b]
+    assert max((abs(x[0] - y[0]) for x, y in zip(a, b, strict=True)), default=0) <= 1
+    assert np.mean(sim == can) > 0.999
 
 
 def test_uav_mission_flight_matches_simulate() -> None:

@@ -153,6 +153,8 @@ class Hil:
             )  # fmt: skip
         self.inverter = InverterLog()
         self.counters = FrameCounters()
+        self.commands = 0
+        """Command frames (switch, balancer, aux) heard, valid or repeated."""
         self.counter = 0
         self.started_s = pack.t_s
         self.hooks: list[Callable[[Hil, float], None]] = []
@@ -250,6 +252,8 @@ class Hil:
             self.counters.unexpected += 1
             return
         self.counters.received += 1
+        if kind in ("switch", "balancer", "aux"):
+            self.commands += 1
         if kind == "aux" and self.aux is not None:
             if self.aux.command(bool(vals["AuxRelay"]), True, int(vals["Seq"]), t):
                 self.aux_charge_a = _finite0(vals["AuxChargeA"])
