@@ -177,9 +177,9 @@ class Hil:
         out: list[can.Message] = []
         for k, i in enumerate(self.map.traction):
             if i not in self.silent:
-                out += encode_battery(i, _report(m.bat, k), self.counter, t)
+                out += encode_battery(i, report(m.bat, k), self.counter, t)
         if self.map.aux is not None and self.map.aux not in self.silent:
-            out += encode_battery(self.map.aux, _report(m.aux, 0), self.counter, t)
+            out += encode_battery(self.map.aux, report(m.aux, 0), self.counter, t)
         out.append(encode_platform(float(m.bus_v[0]), bool(m.docked[0]), self.counter, t))
         self.counter = (self.counter + 1) & 0xFF
         for msg in out:
@@ -282,7 +282,8 @@ def _finite0(x: float) -> float:
     return x if math.isfinite(x) else 0.0
 
 
-def _report(bat: Any, k: int) -> BatteryReport:
+def report(bat: Any, k: int) -> BatteryReport:
+    """Battery ``k`` of measurement arrays as its node reports it."""
     ng = int(bat.n_groups[0, k])
     return BatteryReport(
         voltage_v=float(bat.voltage_v[0, k]),
@@ -329,4 +330,4 @@ def run_realtime(
         hil.advance(dt_s)
         k += 1
     return k
-__all__ = ["Hil", "InverterLog", "SwitchNode", "run_realtime"]
+__all__ = ["Hil", "InverterLog", "SwitchNode", "report", "run_realtime"]
