@@ -29,6 +29,7 @@ from packpilot.config import ScenarioConfig
 from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Recorder, StepSample
 from packpilot.contract.topology import PackInfo
+from packpilot.control.core_kernel import core_step
 from packpilot.errors import ConfigError
 from packpilot.io.can.bus import FrameLog, open_bus
 from packpilot.io.can.codec import STATUS_ID
@@ -69,6 +70,8 @@ class RuntimeOptions:
     publish: bool = True
     platform_timeout_s: float = 1.0
     babble_factor: int = 4
+    startup_timeout_s: float = 2.0
+    """How long ``run`` waits for every battery's first telemetry before its first period."""
     allow_unmonitored: bool = False
     """Run without ``[plausibility]`` (then stale telemetry is NOT detected): bench use."""
     bus_kwargs: tuple[tuple[str, Any], ...] = ()
@@ -120,6 +123,7 @@ class BmsRuntime:
         self.plant = CanPlant(
             self.bus, bmap, balancers=cfg.balancer.present, log=self.log,
             babble_factor=opts.babble_factor, platform_timeout_s=opts.platform_timeout_s,
+            period_s=opts.period_s,
         )  # fmt: skip
         self.charger: CanChargerLink | None = None
         links: list[Any] = []
@@ -194,6 +198,8 @@ class BmsRuntime:
     ) -> dict[str, Any]:
         """Run on the monotonic clock until ``duration_s`` or ``stop``; returns the metrics."""
         period = self.opts.period_s
+        self.warm_up()
+        self.wait_for_telemetry(self.opts.startup_timeout_s, clock, sleep)
         t0 = clock()
         due = t0
         prev: float | None = None
@@ -222,6 +228,36 @@ class BmsRuntime:
             if self.recorder is not None:
                 self.recorder.finish(metrics, status=status)
         return metrics
+
+    def warm_up(self) -> None:
+        """Pay the one-time costs before the clock starts: loading the compiled core (one step
+        on a *copy* of its arenas: the real state is untouched), DSDL parsing, codec caches
+        (frames built, not sent)."""
+        core = self.core
+        if core.fused:
+            core_step(*(a.copy() for a in core.arenas), core.directory.copy(), self.opts.period_s)
+        self.publisher.frames(0.0)
+        self.publisher.transfer_id = 0
+
+    def wait_for_telemetry(
+        self,
+        timeout_s: float,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> bool:
+        """Read the bus until every battery has reported once or ``timeout_s`` passed, so the
+        first period does not judge batteries that have not had time to speak. Frames read
+        here count as received at t = 0; a battery still silent then starts as never heard
+        (NaN, infinitely old: a fault at once)."""
+        end = clock() + timeout_s
+        self.plant.t_s = 0.0
+        while True:
+            self.plant.poll()
+            if self.plant.complete():
+                return True
+            if clock() >= end:
+                return False
+            sleep(min(0.005, self.opts.period_s))
 
     def metrics(self) -> dict[str, Any]:
         c = self.plant.counters

@@ -319,13 +319,17 @@ def run_realtime(
     at its end, as a real pack's nodes do between two BMS periods."""
     import time
 
-    t0 = time.monotonic()
+    wall_dt = dt_s / speed if speed > 0 else 0.0
+    due = time.monotonic()
     k = 0
     while (stop is None or not stop.is_set()) and (duration_s is None or k * dt_s < duration_s):
         if speed > 0:
-            wait = t0 + k * dt_s / speed - time.monotonic()
-            if wait > 0:
-                time.sleep(wait)
+            now = time.monotonic()
+            if now < due:
+                time.sleep(due - now)
+            elif now > due + wall_dt:
+                due = now  # late: restart the cadence, never burst (a burst looks like babbling)
+            due += wall_dt
         hil.publish()
         hil.advance(dt_s)
         k += 1

@@ -11,8 +11,8 @@ last values and its age grows, exactly what the fault injector's ``sensor_dropou
 the plausibility layer's ``stale`` rule (``[plausibility] max_sample_age_s``) treats it as a
 dead sensor and the documented safe state follows. A battery never heard from reads NaN with an
 infinite age. A battery node that sends any of its identifiers more than ``babble_factor``
-times as often as it should within one period (once; its group frames once per block) is
-babbling: its sample is not trusted (age
+times as often as it should per BMS period (once; its group frames once per block; a backlog
+after a late period counts the periods that passed) is babbling: its sample is not trusted (age
 infinite) while it does. The platform's bus voltage reads NaN once its frame is older than
 ``platform_timeout_s`` (a pack ``nonfinite`` fault).
 
@@ -99,8 +99,12 @@ class CanPlant:
         log: FrameLog | None = None,
         babble_factor: int = 4,
         platform_timeout_s: float = 1.0,
+        period_s: float = 0.1,
     ) -> None:
+        """``period_s``: the BMS period, at which every battery node sends its frames."""
         self.bus = bus
+        self.period_s = period_s
+        self._last_poll_s: float | None = None
         self.map = batteries
         self.balancers = balancers
         self.log = log
@@ -145,10 +149,15 @@ class CanPlant:
             if self.log is not None:
                 self.log.log(msg, t, rx=True)
             self._take(msg, t)
+        # A backlog after a stalled period is not babbling: allow for the periods that passed.
+        periods = 1
+        if self._last_poll_s is not None and self.period_s > 0:
+            periods = max(1, math.ceil((t - self._last_poll_s) / self.period_s - 1e-6))
+        self._last_poll_s = t
         babbled = False
         for node in self.node.values():
             node.babbling = any(
-                n > self.babble_factor * _expected(fid, node)
+                n > self.babble_factor * _expected(fid, node) * periods
                 for fid, n in node.seen_this_period.items()
             )
             babbled |= node.babbling
@@ -192,6 +201,10 @@ class CanPlant:
                 node.group_v[g] = vals.get(f"GroupV{g}", math.nan)
         node.values["NGroupsReported"] = vals["NGroups"]
         node.block_rx_s[b] = t
+
+    def complete(self) -> bool:
+        """Every battery has sent every frame kind it must (start-up)."""
+        return all(math.isfinite(n.age(self.t_s)) for n in self.node.values())
 
     # ------------------------------------------------------------------ the port
     def measure(self, arenas: Arenas, m_row: int) -> None:
