@@ -124,6 +124,7 @@ class BmsRuntime:
             self.bus, bmap, balancers=cfg.balancer.present, log=self.log,
             babble_factor=opts.babble_factor, platform_timeout_s=opts.platform_timeout_s,
             period_s=opts.period_s,
+            stale_s=cfg.plausibility.max_sample_age_s if cfg.plausibility else math.inf,
         )  # fmt: skip
         self.charger: CanChargerLink | None = None
         links: list[Any] = []

@@ -12,7 +12,9 @@ real pack has:
 * the **platform node**: bus voltage and the dock contact;
 * the **charger**: the existing :class:`~packpilot.io.can.emulator.ChargerEmulator` on the
   plant's dock;
-* an **inverter** that decodes and logs every Pylontech frame it is told (``pylon.dbc``).
+* an **inverter** that decodes and logs every Pylontech frame it is told (``pylon.dbc``);
+* an **aircraft** (flight controller) that decodes DroneCAN BatteryInfo with ``dronecan`` and
+  keeps the protection state frame.
 
 A switch node starts in the state the scenario configures, as the simulated switch does.
 """
@@ -30,6 +32,7 @@ import numpy as np
 from packpilot.arena import Arena
 from packpilot.config import ScenarioConfig
 from packpilot.contract.arrays import cmd_arrays, meas_arrays
+from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can import pylon
 from packpilot.io.can.battery import BatteryReport, decode, encode_battery, encode_platform
 from packpilot.io.can.bus import FrameLog
@@ -97,6 +100,43 @@ class InverterLog:
         return True
 
 
+@dataclass
+class AircraftLog:
+    """What the flight controller was told: DroneCAN BatteryInfo by ``battery_id``, decoded by
+    the ``dronecan`` package once a transfer's last frame arrived."""
+
+    last: dict[int, dc.BatteryInfo] = field(default_factory=dict)
+    transfers: int = 0
+    errors: int = 0
+    _parts: dict[tuple[int, int], list[can.Message]] = field(default_factory=dict)
+
+    def take(self, msg: can.Message) -> bool:
+        if not msg.is_extended_id or (msg.arbitration_id >> 8) & 0xFFFF != dc.BATTERY_INFO_ID:
+            return False
+        if not msg.data:
+            self.errors += 1
+            return True
+        tail = msg.data[-1]
+        key = (msg.arbitration_id & 0x7F, tail & 0x1F)
+        if tail & 0x80:  # start of transfer
+            self._parts[key] = []
+        parts = self._parts.get(key)
+        if parts is None:
+            self.errors += 1
+            return True
+        parts.append(msg)
+        if tail & 0x40:  # end of transfer
+            del self._parts[key]
+            try:
+                info = dc.decode(parts)
+            except Exception:  # noqa: BLE001 - dronecan raises several kinds on a bad transfer
+                self.errors += 1
+                return True
+            self.last[info.battery_id] = info
+            self.transfers += 1
+        return True
+
+
 _PYLON_IDS = frozenset(
     (pylon.LIMITS_ID, pylon.SOC_ID, pylon.MEAS_ID, pylon.ALARMS_ID, pylon.REQUEST_ID,
      pylon.NAME_ID)
@@ -152,6 +192,9 @@ class Hil:
                 heartbeat_timeout_s=cfg.charger.heartbeat_timeout_s,
             )  # fmt: skip
         self.inverter = InverterLog()
+        self.aircraft = AircraftLog()
+        self.protection: dict[str, float] = {}
+        """The last ProtectionState frame the platform was sent."""
         self.counters = FrameCounters()
         self.commands = 0
         """Command frames (switch, balancer, aux) heard, valid or repeated."""
@@ -241,7 +284,7 @@ class Hil:
                 return
             if self.log is not None:
                 self.log.log(msg, t, rx=True)
-            if self.inverter.take(msg, t):
+            if self.inverter.take(msg, t) or self.aircraft.take(msg):
                 continue
             self._command(msg, t)
 
@@ -254,6 +297,9 @@ class Hil:
         self.counters.received += 1
         if kind in ("switch", "balancer", "aux"):
             self.commands += 1
+        if kind == "protection":
+            self.protection = vals
+            return
         if kind == "aux" and self.aux is not None:
             if self.aux.command(bool(vals["AuxRelay"]), True, int(vals["Seq"]), t):
                 self.aux_charge_a = _finite0(vals["AuxChargeA"])
@@ -334,4 +380,4 @@ def run_realtime(
         hil.advance(dt_s)
         k += 1
     return k
-__all__ = ["Hil", "InverterLog", "SwitchNode", "report", "run_realtime"]
+__all__ = ["AircraftLog", "Hil", "InverterLog", "SwitchNode", "report", "run_realtime"]

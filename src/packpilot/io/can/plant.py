@@ -14,7 +14,12 @@ infinite age. A battery node that sends any of its identifiers more than ``babbl
 times as often as it should per BMS period (once; its group frames once per block; a backlog
 after a late period counts the periods that passed) is babbling: its sample is not trusted (age
 infinite) while it does. The platform's bus voltage reads NaN once its frame is older than
-``platform_timeout_s`` (a pack ``nonfinite`` fault).
+``platform_timeout_s`` (a pack ``nonfinite`` fault). Once a sample is older than ``stale_s``
+(the plausibility layer's ``max_sample_age_s``) its switch feedback reads *open*: what a
+silent battery's switches do is unknown, and a path not known to conduct must not count as
+connected (the limits layer's pack limits, ``n_conducting × weakest``, would otherwise count
+an isolated battery the inverter can no longer draw from); the plausibility layer does not
+judge the switches of a stale sample.
 
 Switch commands: a controller with no opinion leaves a switch as it is; the port holds the
 state the BMS last asked for, starting from the feedback of the battery's first state frame
@@ -100,9 +105,12 @@ class CanPlant:
         babble_factor: int = 4,
         platform_timeout_s: float = 1.0,
         period_s: float = 0.1,
+        stale_s: float = 2.0,
     ) -> None:
-        """``period_s``: the BMS period, at which every battery node sends its frames."""
+        """``period_s``: the BMS period, at which every battery node sends its frames;
+        ``stale_s``: the plausibility layer's ``max_sample_age_s``."""
         self.bus = bus
+        self.stale_s = stale_s
         self.period_s = period_s
         self._last_poll_s: float | None = None
         self.map = batteries
@@ -248,12 +256,14 @@ class CanPlant:
         bat.group_v[0, k, :ng] = node.group_v[:ng]
         reported = g("NGroupsReported")
         bat.n_groups[0, k] = int(reported) if math.isfinite(reported) else 0
-        bat.sw_chg[0, k] = g("ChgOn") == 1.0
-        bat.sw_dsg[0, k] = g("DsgOn") == 1.0
+        age = math.inf if node.babbling else node.age(t)
+        known = age <= self.stale_s  # a stale sample's switch feedback is not feedback
+        bat.sw_chg[0, k] = known and g("ChgOn") == 1.0
+        bat.sw_dsg[0, k] = known and g("DsgOn") == 1.0
         present = g("Present")
         bat.present[0, k] = present == 1.0 or math.isnan(present)  # never heard: judge it
         bat.reported[0, k] = True
-        bat.sample_age_s[0, k] = math.inf if node.babbling else node.age(t)
+        bat.sample_age_s[0, k] = age
 
     def apply(self, arenas: Arenas, cmd_row: int) -> None:
         """Hold the commands at ``cmd_row`` (no opinion: unchanged) and send them all."""
