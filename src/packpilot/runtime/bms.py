@@ -36,6 +36,7 @@ from packpilot.io.can.codec import STATUS_ID
 from packpilot.io.can.dbcgen import MAX_BATTERIES, MAX_GROUPS
 from packpilot.io.can.link import CanChargerLink
 from packpilot.io.can.plant import CanPlant, battery_map
+from packpilot.io.can.shared import SharedBus
 from packpilot.runtime.publish import Publisher
 from packpilot.runtime.timing import LoopTiming
 from packpilot.sim.links import ChargerLinks
@@ -115,13 +116,20 @@ class BmsRuntime:
         self.core = build_core(cfg, infos)
         self.log = FrameLog(opts.log_path) if opts.log_path is not None else None
         kw = dict(opts.bus_kwargs)
-        self.bus = open_bus(opts.interface, opts.channel, **filters(opts.interface, STANDARD_ONLY),
-                            **kw)  # fmt: skip
+        own = cfg.charger.present and opts.charger_channel not in (None, opts.channel)
+        """The charger on its own bus (else it shares the batteries' bus through a port)."""
+        wanted = STANDARD_ONLY if own or not cfg.charger.present else STANDARD_ONLY + CHARGER_ONLY
+        raw = open_bus(opts.interface, opts.channel, **filters(opts.interface, wanted), **kw)
+        self.shared = SharedBus(raw, self.log)
+        charger_port = None
+        if cfg.charger.present and not own:
+            charger_port = self.shared.port(_is_charger_status)
+        port = self.shared.port()  # everything else: the batteries, the platform, intruders
         bats = cfg.pack.batteries
         bmap = battery_map(self.topology.names, self.topology.roles,
                            [b.series_groups for b in bats])  # fmt: skip
         self.plant = CanPlant(
-            self.bus, bmap, balancers=cfg.balancer.present, log=self.log,
+            port, bmap, balancers=cfg.balancer.present,
             babble_factor=opts.babble_factor, platform_timeout_s=opts.platform_timeout_s,
             period_s=opts.period_s,
             stale_s=cfg.plausibility.max_sample_age_s if cfg.plausibility else math.inf,
@@ -133,12 +141,13 @@ class BmsRuntime:
                 None, interface=opts.interface, channel=opts.charger_channel or opts.channel,
                 heartbeat_timeout_s=cfg.charger.heartbeat_timeout_s,
                 rating=(cfg.charger.rated_v, cfg.charger.rated_a),
-                bus_kwargs={**filters(opts.interface, CHARGER_ONLY), **kw},
+                bus_kwargs={**filters(opts.interface, CHARGER_ONLY), **kw}, bus=charger_port,
             )  # fmt: skip
-            self.charger.client.log = self.log
+            if own:
+                self.charger.client.log = self.log
             links.append(self.charger)
         self.links = ChargerLinks(cfg, links)
-        self.publisher = Publisher(cfg, self.core, infos[0], self.bus, opts.node_id)
+        self.publisher = Publisher(cfg, self.core, infos[0], port, opts.node_id)
         self.timing = LoopTiming(opts.period_s)
         self.events: list[Event] = []
         self.k = 0
@@ -149,13 +158,11 @@ class BmsRuntime:
     # ------------------------------------------------------------------ one period
     def step(self, t: float, dt_s: float) -> list[Event]:
         """One period at time ``t``: the loop's BMS half, the publications, the record."""
-        self.plant.t_s = t
+        self.plant.t_s = self.shared.t_s = t
+        self.shared.pump()
         control(self.core, self.plant, self.links, t, dt_s)
         if self.opts.publish:
-            out = self.publisher.maybe_publish(t)
-            if self.log is not None:
-                for msg in out:
-                    self.log.log(msg, t, rx=False)
+            self.publisher.maybe_publish(t)
         events = self.core.events()[0] if self.core.ev.n[0] else []
         if events:
             self.events.extend(events)
@@ -251,8 +258,9 @@ class BmsRuntime:
         here count as received at t = 0; a battery still silent then starts as never heard
         (NaN, infinitely old: a fault at once)."""
         end = clock() + timeout_s
-        self.plant.t_s = 0.0
+        self.plant.t_s = self.shared.t_s = 0.0
         while True:
+            self.shared.pump()
             self.plant.poll()
             if self.plant.complete():
                 return True
@@ -277,10 +285,14 @@ class BmsRuntime:
     def close(self) -> None:
         if self.charger is not None:
             self.charger.close()
-        self.bus.shutdown()
+        self.shared.shutdown()
         if self.log is not None:
             self.log.close()
             self.log = None
+
+
+def _is_charger_status(msg: Any) -> bool:
+    return bool(msg.is_extended_id and msg.arbitration_id == STATUS_ID)
 
 
 def _row(bat: Any, k: int) -> np.ndarray:
