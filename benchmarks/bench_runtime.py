@@ -33,8 +33,10 @@ def measure(period_s: float, seconds: float) -> dict[str, Any]:
     ch = f"bench-{period_s:g}"
     bus, charger = open_bus("virtual", ch), open_bus("virtual", f"{ch}-charger")
     hil = Hil(cfg, bus, charger_bus=charger, bms_period_s=period_s)
-    bms = BmsRuntime(cfg, RuntimeOptions(interface="virtual", channel=ch,
-                                         charger_channel=f"{ch}-charger", period_s=period_s))  # fmt: skip
+    opts = RuntimeOptions(
+        interface="virtual", channel=ch, charger_channel=f"{ch}-charger", period_s=period_s
+    )
+    bms = BmsRuntime(cfg, opts)
     stop = threading.Event()
     twin = threading.Thread(target=run_realtime, args=(hil, period_s, None, 1.0, stop))
     twin.start()
@@ -59,9 +61,11 @@ def main() -> None:
     args = ap.parse_args()
     for p in args.period:
         m = measure(p, args.seconds)
-        keys = ("steps", "overruns", "missed_periods", "jitter_p50_ms", "jitter_p99_ms",
-                "jitter_max_ms", "step_p50_ms", "step_p99_ms", "step_max_ms",
-                "telemetry_faults", "switch_timeouts", "can_malformed", "can_babbling_periods")  # fmt: skip
+        keys = (
+            "steps", "overruns", "missed_periods", "jitter_p50_ms", "jitter_p99_ms",
+            "jitter_max_ms", "step_p50_ms", "step_p99_ms", "step_max_ms", "telemetry_faults",
+            "switch_timeouts", "can_malformed", "can_babbling_periods",
+        )  # fmt: skip
         print(json.dumps({"period_s": p, **{k: m[k] for k in keys}}), flush=True)
 
 

@@ -87,7 +87,7 @@ def test_battery_codec_round_trip_and_sentinels() -> None:
     assert [f.arbitration_id for f in frames] == [0x303, 0x363, 0x313, 0x323, 0x333, 0x333]
     got: dict[str, float] = {}
     for f in frames:
-        kind, i, vals = bc.decode(f)
+        _kind, i, vals = bc.decode(f)
         assert i == 3
         got.update(vals)
     assert got["Voltage"] == pytest.approx(24.51)
@@ -119,7 +119,8 @@ def test_battery_codec_is_strict(msg: can.Message) -> None:
 def test_dronecan_battery_info_round_trip() -> None:
     info = dc.BatteryInfo(battery_id=2, voltage_v=49.8, current_a=-12.5, temp_c=31.0,
                           soc_pct=64, soh_pct=97, remaining_wh=120.0, full_wh=190.0,
-                          status_flags=dc.IN_USE | dc.CHARGING, model_name="PackPilot-1")  # fmt: skip
+                          status_flags=dc.IN_USE | dc.CHARGING,
+                          model_name="PackPilot-1")  # fmt: skip
     frames = dc.encode(info, node_id=100, transfer_id=5)
     assert len(frames) > 1 and all(f.is_extended_id for f in frames)
     assert all((f.arbitration_id >> 8) & 0xFFFF == dc.BATTERY_INFO_ID for f in frames)

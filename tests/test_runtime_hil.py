@@ -7,7 +7,6 @@ bus, so the comparison with ``simulate`` sees only what the bus adds (the frames
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from packpilot.cli import scenario_path
 from packpilot.config import ScenarioConfig, load_config

@@ -50,7 +50,7 @@ def test_limits_follow_the_batteries_connected(cfg: ScenarioConfig) -> None:
     def silence(h: Hil, bus: can.BusABC, t: float) -> None:
         h.silent = {1} if 100.0 <= t < 120.0 else set()
 
-    ls, frames = run(cfg, 115.0, silence)
+    _ls, frames = run(cfg, 115.0, silence)
     before = limits_at(frames, 95.0, 100.0)
     during = limits_at(frames, 105.0, 115.0)
     assert before and during
@@ -74,7 +74,7 @@ def test_limits_drop_to_zero_on_a_trip(cfg: ScenarioConfig) -> None:
                 r.temp_c = 62.0
                 bus.send(bc.encode_battery(k, r, 0, t)[2])  # the state frame, after the node's
 
-    ls, frames = run(cfg, 110.0, hot)
+    _ls, frames = run(cfg, 110.0, hot)
     before = limits_at(frames, 95.0, 100.0)
     assert before[-1]["DischargeCurrentLimit"] > 0
     after = limits_at(frames, 106.0, 110.0)

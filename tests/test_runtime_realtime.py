@@ -61,7 +61,7 @@ def test_realtime_100ms() -> None:
 
 
 def test_realtime_10ms() -> None:
-    bms, hil, m = realtime(0.01, 3.0, "rt-10")
+    _bms, hil, m = realtime(0.01, 3.0, "rt-10")
     assert m["steps"] >= 250
     assert m["step_p50_ms"] < 10.0
     assert sum(n.timeouts for n in hil.switch) == 0 or m["overruns"] > 0

@@ -243,7 +243,8 @@ class BmsRuntime:
         (frames built, not sent)."""
         core = self.core
         if core.fused:
-            core_step(*(a.copy() for a in core.arenas), core.directory.copy(), self.opts.period_s)
+            f, i, h, c, b, lay = (a.copy() for a in core.arenas)
+            core_step(f, i, h, c, b, lay, core.directory.copy(), self.opts.period_s)
         self.publisher.frames(0.0)
         self.publisher.transfer_id = 0
 

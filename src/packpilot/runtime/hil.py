@@ -91,8 +91,8 @@ class InverterLog:
         db = pylon.database()
         try:
             m = db.get_message_by_frame_id(msg.arbitration_id)
-            vals = dict(m.decode(bytes(msg.data), decode_choices=False))
-        except Exception:  # noqa: BLE001 - cantools raises several kinds; the inverter logs
+            vals: dict[str, Any] = dict(m.decode(bytes(msg.data), decode_choices=False))  # type: ignore[arg-type]
+        except Exception:
             return True
         self.last[m.name] = vals
         if len(self.frames) < self.max_frames:
@@ -129,7 +129,7 @@ class AircraftLog:
             del self._parts[key]
             try:
                 info = dc.decode(parts)
-            except Exception:  # noqa: BLE001 - dronecan raises several kinds on a bad transfer
+            except Exception:
                 self.errors += 1
                 return True
             self.last[info.battery_id] = info

@@ -17,9 +17,9 @@ import can
 import numpy as np
 
 from packpilot.config import ScenarioConfig
+from packpilot.contract.events import value as field_value
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
-from packpilot.contract.events import value as field_value
 from packpilot.control.supervisor.rules import MODES
 from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can import pylon
@@ -221,8 +221,9 @@ class Publisher:
         v = pack.voltage_v
         flags = self._flags(pack.current_a, bool(np.any(m.bat.sw_dsg[0] & here)), tripped)
         full_wh = float(np.nansum(np.where(here, m.bat.full_capacity_ah[0], 0.0))) * _finite0(v)
+        rem_wh = full_wh * pack.soc_pct / 100.0
         out.append(dc.BatteryInfo(0, v, pack.current_a, pack.temp_c, pack.soc_pct, pack.soh_pct,
-                                  full_wh * pack.soc_pct / 100.0, full_wh, flags, "PackPilot"))  # fmt: skip
+                                  rem_wh, full_wh, flags, "PackPilot"))  # fmt: skip
         for i in range(m.bat.reported.shape[1]):
             vi, cur = float(m.bat.voltage_v[0, i]), float(m.bat.current_a[0, i])
             full = float(m.bat.full_capacity_ah[0, i])

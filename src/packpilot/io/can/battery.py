@@ -205,8 +205,10 @@ def encode_protection(p: ProtectionReport, t: float = 0.0) -> can.Message:
     def secs(x: float) -> float:
         return x if math.isfinite(x) and x >= 0 else math.nan  # none / beyond: the sentinel
 
-    vals = {"Mode": p.mode, "ActiveParam": p.active_param, "AllowanceUsed": p.allowance_used,
-            "TimeToTrip": secs(p.time_to_trip_s), "TimeToEmpty": secs(p.time_to_empty_s)}  # fmt: skip
+    vals = {
+        "Mode": p.mode, "ActiveParam": p.active_param, "AllowanceUsed": p.allowance_used,
+        "TimeToTrip": secs(p.time_to_trip_s), "TimeToEmpty": secs(p.time_to_empty_s),
+    }  # fmt: skip
     return _frame(PROTECTION_STATE, vals, t)
 
 

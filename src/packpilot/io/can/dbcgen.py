@@ -7,7 +7,8 @@ and ``tests/test_runtime_frames.py`` checks that the shipped file is what it gen
 (regenerate with ``python -m packpilot.io.can.dbcgen > src/packpilot/io/can/packpilot.dbc``).
 
 A value that is not available travels as the field's all-ones count (unsigned) or its most
-negative count (signed), in fields of 16 bits or more. Every field is little-endian (Intel, ``@1``): cantools' start bit is then the LSB's position,
+negative count (signed), in fields of 16 bits or more. Every field is little-endian (Intel,
+``@1``): cantools' start bit is then the LSB's position,
 ``byte * 8 + bit``. Battery current is positive when **discharging** (PackPilot's convention).
 """
 

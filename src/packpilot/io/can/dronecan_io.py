@@ -111,8 +111,8 @@ def decode(frames: Sequence[can.Message]) -> BatteryInfo:
 
 
 __all__ = [
-    "BATTERY_INFO_ID",
     "BAD_BATTERY",
+    "BATTERY_INFO_ID",
     "BMS_ERROR",
     "CHARGED",
     "CHARGING",

@@ -21,7 +21,7 @@ from packpilot.io.can.bus import FrameLog
 from packpilot.io.can.client import MAX_FRAMES_PER_POLL
 
 
-class Port(can.BusABC):  # type: ignore[misc]
+class Port(can.BusABC):
     """One receiver's share of a :class:`SharedBus`."""
 
     def __init__(self, shared: SharedBus, accept: Callable[[can.Message], bool]) -> None:
