@@ -701,6 +701,10 @@ def run(
     allow_unmonitored: Annotated[
         bool, typer.Option(help="run without [plausibility]: stale telemetry NOT detected")
     ] = False,
+    replay_log: Annotated[
+        Path | None,
+        typer.Option(help="re-run the BMS over the frames received in this .blf/.asc log"),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
 ) -> None:
     """The BMS on a real pack over CAN, until Ctrl-C or --duration (docs/runtime.md)."""
@@ -716,6 +720,15 @@ def run(
             allow_unmonitored=allow_unmonitored,
         )  # fmt: skip
         recorder = _recorder(db)
+        if replay_log is not None:
+            from packpilot.runtime.logreplay import replay_log as replay
+
+            try:
+                done = replay(cfg, replay_log, opts, recorder)
+            finally:
+                if recorder is not None:
+                    recorder.close()
+            return done.metrics()
         bms = BmsRuntime(cfg, opts, recorder)
         typer.echo(
             f"packpilot run: {len(cfg.pack.batteries)} batteries on {can_interface}:"
