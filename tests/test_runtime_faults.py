@@ -21,7 +21,7 @@ from packpilot.contract.bms import Event
 from packpilot.io.can import battery as bc
 from packpilot.io.telemetry import SQLiteRecorder
 from packpilot.runtime.bms import RuntimeOptions
-from packpilot.runtime.hil import Hil, report
+from packpilot.runtime.hil import PLATFORM, Hil, SwitchNode, report
 from packpilot.runtime.lockstep import Lockstep, lockstep
 
 DT = 0.2
@@ -218,3 +218,29 @@ def test_out_of_range_values(cfg: ScenarioConfig) -> None:
 def _report(h: Hil, k: int) -> bc.BatteryReport:
     """What battery ``k`` of the twin reports now."""
     return report(h.m.bat, k)
+
+
+def test_platform_silent_is_a_pack_fault(cfg: ScenarioConfig) -> None:
+    """No bus-voltage frame for longer than platform_timeout_s (1 s): the bus voltage reads
+    NaN, the plausibility layer's pack nonfinite fault follows (0.5 s), and clears."""
+
+    def hook(ls: Lockstep, t: float) -> bool:
+        ls.hil.silent = {PLATFORM} if during(t) else set()
+        return False
+
+    ls = drive(cfg, hook)
+    (f,) = [e for e in faults(ls, "nonfinite") if e.battery is None]
+    assert FAULT_S[0] + 1.0 < f.t_s <= FAULT_S[0] + 1.0 + 0.5 + 2 * DT
+    assert any(e.kind == "FaultCleared" and e.battery is None for e in ls.bms.events)
+
+
+def test_switch_node_ignores_a_repeated_sequence_number() -> None:
+    """A BMS stuck repeating its last frame is as silent as one sending nothing."""
+    node = SwitchNode(chg=True, dsg=True)
+    assert node.command(True, True, 7, t=0.0)
+    for k in range(1, 8):
+        assert not node.command(True, True, 7, t=0.1 * k)  # the same frame again
+        node.check(0.1 * k, timeout_s=0.5, started_s=0.0)
+    assert node.timed_out and (node.chg, node.dsg) == (False, False)
+    assert node.command(True, True, 8, t=0.8)  # a new command: obeyed again
+    assert (node.chg, node.dsg) == (True, True) and not node.timed_out

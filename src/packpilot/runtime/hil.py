@@ -45,6 +45,10 @@ from packpilot.sim.loop import Demand
 from packpilot.sim.plant_io import SimulatedPlant
 
 
+PLATFORM = -1
+"""The platform node in :attr:`Hil.silent`."""
+
+
 @dataclass
 class SwitchNode:
     """One battery's switch node: the last valid command and when it came."""
@@ -204,7 +208,8 @@ class Hil:
         """Called with (hil, t) after each period's telemetry went out: fault injection (an
         intruder's frames, silencing a node from the next period on)."""
         self.silent: set[int] = set()
-        """CAN indices of battery nodes that do not publish (telemetry loss)."""
+        """CAN indices of battery nodes that do not publish (telemetry loss); :data:`PLATFORM`
+        silences the platform node."""
         self.last_iv: Interval | None = None
 
     @property
@@ -223,7 +228,8 @@ class Hil:
                 out += encode_battery(i, report(m.bat, k), self.counter, t)
         if self.map.aux is not None and self.map.aux not in self.silent:
             out += encode_battery(self.map.aux, report(m.aux, 0), self.counter, t)
-        out.append(encode_platform(float(m.bus_v[0]), bool(m.docked[0]), self.counter, t))
+        if PLATFORM not in self.silent:
+            out.append(encode_platform(float(m.bus_v[0]), bool(m.docked[0]), self.counter, t))
         self.counter = (self.counter + 1) & 0xFF
         for msg in out:
             self.send(msg, t)
@@ -380,4 +386,4 @@ def run_realtime(
         hil.advance(dt_s)
         k += 1
     return k
-__all__ = ["AircraftLog", "Hil", "InverterLog", "SwitchNode", "report", "run_realtime"]
+__all__ = ["PLATFORM", "AircraftLog", "Hil", "InverterLog", "SwitchNode", "report", "run_realtime"]
