@@ -64,3 +64,34 @@ def test_hil_alone_steps_and_times_out_its_switches() -> None:
     m = json.loads(proc.stdout)
     assert m["steps"] == 25
     assert m["switch_timeouts"] == 2
+
+
+def test_run_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
+    """A service manager's SIGTERM: the run ends as on Ctrl-C, the record says so."""
+    import signal
+    import time
+
+    db = tmp_path / "run.sqlite"
+    proc = subprocess.Popen([*CLI, "run", str(EXAMPLES / "uav_mission.toml"), "--can-interface",
+                             "virtual", "--can-channel", "term", "--db", str(db), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not (db.exists() and _rows(db) >= 5) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert json.loads(out)["steps"] >= 5
+    with sqlite3.connect(db) as c:
+        assert c.execute("select status from runs").fetchone()[0] == "interrupted"
+
+
+def _rows(db: Path) -> int:
+    try:
+        with sqlite3.connect(db) as c:
+            return int(c.execute("select count(*) from pack_samples").fetchone()[0])
+    except sqlite3.Error:
+        return 0

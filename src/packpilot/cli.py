@@ -730,6 +730,7 @@ def run(
                     recorder.close()
             return done.metrics()
         bms = BmsRuntime(cfg, opts, recorder)
+        _sigterm_interrupts()
         typer.echo(
             f"packpilot run: {len(cfg.pack.batteries)} batteries on {can_interface}:"
             f"{can_channel}, period {period * 1e3:g} ms (Ctrl-C stops)", err=True,
@@ -805,6 +806,17 @@ def hil(
         }  # fmt: skip
 
     _print_runtime(_guard(go), as_json=True)
+
+
+def _sigterm_interrupts() -> None:
+    """SIGTERM (systemd, docker stop) ends `run` as Ctrl-C does: the record is finished and
+    stamped ``interrupted``, the buses shut down, exit 0."""
+    import signal
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
 
 
 def _recorder(db: Path | None) -> Any:
