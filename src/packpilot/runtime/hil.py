@@ -44,7 +44,6 @@ from packpilot.model.pack import Interval
 from packpilot.sim.loop import Demand
 from packpilot.sim.plant_io import SimulatedPlant
 
-
 PLATFORM = -1
 """The platform node in :attr:`Hil.silent`."""
 

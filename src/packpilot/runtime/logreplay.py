@@ -2,16 +2,17 @@
 
 Every frame the BMS *received* in the recording (``is_rx``) goes back onto a private virtual
 bus at its recorded time; the runtime steps every ``period_s`` of the recording's clock, as
-fast as the CPU goes, and reads them as it read them live (a frame belongs to the period whose
-start it is within half a period of: a recording's clock sums its periods and rounds). The BMS's own frames of the
-recording are not replayed: it sends them anew, so a changed configuration (a threshold, a
-method) shows what it would have done with the same telemetry. Frame times are the recording's
+fast as the CPU goes, and reads them as it read them live (a frame belongs to the period
+whose start it is within half a period of: a recording's clock sums its periods and rounds).
+The BMS's own frames of the recording are not replayed: it sends them anew, so a changed
+configuration (a threshold, a method) shows what it would have done with the same telemetry. Frame times are the recording's
 simulation / runtime seconds, written as ``SIM_EPOCH_S + t`` (``docs/can.md``).
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,9 +33,11 @@ def received_frames(path: Path) -> list[tuple[float, can.Message]]:
     if suffix not in LOG_SUFFIXES:
         raise ConfigError(f"--replay-log {path}: unsupported log format {suffix!r}, use .blf/.asc")
     try:
-        reader = (
-            can.ASCReader(path, relative_timestamp=False) if suffix == ".asc" else can.BLFReader(path)
-        )
+        reader: Iterable[can.Message]
+        if suffix == ".asc":
+            reader = can.ASCReader(path, relative_timestamp=False)
+        else:
+            reader = can.BLFReader(path)
         frames = [(m.timestamp - SIM_EPOCH_S, m) for m in reader if m.is_rx]
     except (OSError, ValueError, EOFError) as err:
         raise ConfigError(f"--replay-log {path}: cannot read ({err})") from None

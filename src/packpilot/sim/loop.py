@@ -3,7 +3,8 @@
 One loop serves a single run (P = 1, :class:`~packpilot.sim.runner.Runner`) and a campaign
 batch (P = N): the plant stands behind a narrow port (:class:`~.plant_io.SimulatedPlant`:
 ``measure``, ``apply``, ``step``), so a CAN bus or a replayed log can stand where the
-simulator stands. Per period, for every pack at once::
+simulator stands: :func:`control` is everything up to the physics, and ``packpilot run``
+(:mod:`packpilot.runtime.bms`) runs it against a CAN bus. Per period, for every pack at once::
 
     faults (plant side) → charger status over the links → sensors → faults (sensor side)
     → core.step_batch (every rule, merged, supervised) → plant gates / balancers / aux
