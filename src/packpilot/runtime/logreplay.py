@@ -5,8 +5,9 @@ bus at its recorded time; the runtime steps every ``period_s`` of the recording'
 fast as the CPU goes, and reads them as it read them live (a frame belongs to the period
 whose start it is within half a period of: a recording's clock sums its periods and rounds).
 The BMS's own frames of the recording are not replayed: it sends them anew, so a changed
-configuration (a threshold, a method) shows what it would have done with the same telemetry. Frame times are the recording's
-simulation / runtime seconds, written as ``SIM_EPOCH_S + t`` (``docs/can.md``).
+configuration (a threshold, a method) shows what it would have done with the same telemetry.
+Frame times are the recording's simulation / runtime seconds, written as ``SIM_EPOCH_S + t``
+(``docs/can.md``).
 """
 
 from __future__ import annotations
