@@ -122,3 +122,37 @@ def test_replay_of_a_recorded_frame_log(cfg: ScenarioConfig, tmp_path: Path) -> 
         (round(e.t_s, 6), e.kind, e.battery) for e in ls.bms.events
     ]
     assert again.plant.counters.malformed == 0
+
+
+def test_dronecan_batteries_as_inputs(cfg: ScenarioConfig) -> None:
+    """Both batteries report by DroneCAN BatteryInfo + BatteryInfoAux (decoded by the dronecan
+    package), their switch nodes' SwitchState is the feedback: the flight runs on them (float16
+    telemetry: no fault, load supplied, both batteries joined); a silent DroneCAN battery goes
+    stale and is isolated like any other."""
+    ids = {0: 21, 1: 22}
+
+    def drive(end_s: float, silent_from: float | None = None) -> Lockstep:
+        ls = lockstep(cfg, RuntimeOptions(dronecan_ids=(21, 22)))
+        ls.hil.dronecan_ids = ids
+        try:
+            for _ in range(round(end_s / DT)):
+                if silent_from is not None and ls.hil.t_s >= silent_from - 1e-9:
+                    ls.hil.silent = {1}
+                ls.step(DT)
+        finally:
+            ls.close()
+        return ls
+
+    ls = drive(120.0)
+    c = ls.bms.plant.counters
+    assert c.malformed == 0 and c.received > 0 and ls.bms.plant.assembler.errors == 0
+    assert not [e for e in ls.bms.events if e.kind == "Fault"]
+    assert all(ls.supplied)
+    assert any(e.kind == "BatteryJoined" for e in ls.bms.events)
+    m = ls.bms.core.m
+    assert m.bat.n_groups[0].tolist() == [6, 6]  # the cells from BatteryInfoAux
+    assert abs(float(m.bat.max_cell_v[0, 0]) - 4.0) < 0.3
+    lost = drive(110.0, silent_from=100.0)
+    stale = [e for e in lost.bms.events if e.kind == "Fault" and e.data["kind"] == "stale"]
+    assert [e.battery for e in stale] == [1]
+    assert not lost.chg[-1][1] and not lost.dsg[-1][1]

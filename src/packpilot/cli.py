@@ -681,6 +681,24 @@ def dashboard(
     _guard(go)
 
 
+DRONECAN_HELP = (
+    "batteries reporting by DroneCAN BatteryInfo + BatteryInfoAux: their battery_id in"
+    " [[pack.batteries]] order, -1 for PackPilot frames (e.g. 21,22)"
+)
+
+
+def _ids(text: str | None) -> tuple[int, ...] | None:
+    """``--dronecan-ids 21,22,-1`` as integers (a bad list is a one-line error)."""
+    if text is None:
+        return None
+    from packpilot.errors import ConfigError
+
+    try:
+        return tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--dronecan-ids {text!r}: comma-separated integers") from None
+
+
 CanIface = Annotated[str, typer.Option(help="python-can interface (socketcan, virtual, ...)")]
 CanChan = Annotated[str, typer.Option(help="CAN channel, e.g. can0")]
 
@@ -705,6 +723,7 @@ def run(
         Path | None,
         typer.Option(help="re-run the BMS over the frames received in this .blf/.asc log"),
     ] = None,
+    dronecan_ids: Annotated[str | None, typer.Option(help=DRONECAN_HELP)] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
 ) -> None:
     """The BMS on a real pack over CAN, until Ctrl-C or --duration (docs/runtime.md)."""
@@ -717,7 +736,7 @@ def run(
         opts = RuntimeOptions(
             interface=can_interface, channel=can_channel, charger_channel=charger_channel,
             period_s=period, log_path=can_log, node_id=node_id,
-            allow_unmonitored=allow_unmonitored,
+            allow_unmonitored=allow_unmonitored, dronecan_ids=_ids(dronecan_ids),
         )  # fmt: skip
         recorder = _recorder(db)
         if replay_log is not None:
@@ -764,6 +783,7 @@ def hil(
     ] = 5,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
     can_log: Annotated[Path | None, typer.Option(help="log every frame to .blf or .asc")] = None,
+    dronecan_ids: Annotated[str | None, typer.Option(help=DRONECAN_HELP)] = None,
 ) -> None:
     """The simulated pack as CAN nodes (batteries, switches, charger, inverter) for `run`."""
 
@@ -784,8 +804,10 @@ def hil(
         charger_bus = open_bus(can_interface, charger_channel or can_channel,
                                **filters(can_interface, REQUEST_ONLY))  # fmt: skip
         log = FrameLog(can_log) if can_log is not None else None
+        ids = _ids(dronecan_ids) or ()
         twin = Hil(cfg, bus, charger_bus=charger_bus, bms_period_s=bms_period,
-                   timeout_periods=timeout_periods, log=log)  # fmt: skip
+                   timeout_periods=timeout_periods, log=log,
+                   dronecan_ids={i: b for i, b in enumerate(ids) if b >= 0})  # fmt: skip
         typer.echo(f"packpilot hil: {cfg.pack.name} on {can_interface}:{can_channel} "
                    f"at {speed:g}x (Ctrl-C stops)", err=True)  # fmt: skip
         try:

@@ -71,6 +71,9 @@ class RuntimeOptions:
     publish: bool = True
     platform_timeout_s: float = 1.0
     babble_factor: int = 4
+    dronecan_ids: tuple[int, ...] | None = None
+    """DroneCAN ``battery_id`` of each battery of ``[[pack.batteries]]`` in order that reports
+    by BatteryInfo + BatteryInfoAux (-1: by the PackPilot frames); None: all PackPilot."""
     startup_timeout_s: float = 2.0
     """How long ``run`` waits for every battery's first telemetry before its first period."""
     allow_unmonitored: bool = False
@@ -99,6 +102,14 @@ def check_runtime(cfg: ScenarioConfig, opts: RuntimeOptions) -> None:
             "plausibility: `run` needs a [plausibility] section, which turns stale or lost "
             "telemetry into a fault and a safe state (or pass --allow-unmonitored)"
         )
+    ids = opts.dronecan_ids
+    if ids is not None:
+        used = [b for b in ids if b >= 0]
+        if len(ids) != len(bats) or len(set(used)) != len(used) or any(b > 255 for b in ids):
+            raise ConfigError(
+                f"--dronecan-ids {','.join(map(str, ids))}: one battery_id 0..255 (or -1) per "
+                f"battery of [[pack.batteries]] ({len(bats)}), no id twice"
+            )
     if not (math.isfinite(opts.period_s) and 0.001 <= opts.period_s <= 10.0):
         raise ConfigError(f"--period: {opts.period_s} s, need 0.001 .. 10 s")
 
@@ -133,6 +144,7 @@ class BmsRuntime:
             babble_factor=opts.babble_factor, platform_timeout_s=opts.platform_timeout_s,
             period_s=opts.period_s,
             stale_s=cfg.plausibility.max_sample_age_s if cfg.plausibility else math.inf,
+            dronecan_ids={bid: i for i, bid in enumerate(opts.dronecan_ids or ()) if bid >= 0},
         )  # fmt: skip
         self.charger: CanChargerLink | None = None
         links: list[Any] = []

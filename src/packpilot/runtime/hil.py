@@ -4,10 +4,11 @@
 real pack has:
 
 * a **battery node** per battery publishing ``packpilot.dbc`` telemetry every period — what
-  :meth:`SimulatedPlant.measure` reads (the same ``sense`` kernel the simulator's BMS reads);
-* a **switch node** per battery obeying ``SwitchCmd`` / ``BalancerCmd`` (and the aux node
-  ``AuxCmd``) through :meth:`SimulatedPlant.apply`, with a **command timeout**: a node that has
-  heard no new command (a repeated sequence number is not new) for ``timeout_periods`` BMS
+  :meth:`SimulatedPlant.measure` reads (the same ``sense`` kernel the simulator's BMS reads) —
+  or DroneCAN BatteryInfo + BatteryInfoAux (``dronecan_ids``);
+* a **switch node** per battery reporting what it does (``SwitchState``) and obeying
+  ``SwitchCmd`` / ``BalancerCmd`` (and the aux node ``AuxCmd``) through
+  :meth:`SimulatedPlant.apply`, with a **command timeout**: a node that has heard no new command (a repeated sequence number is not new) for ``timeout_periods`` BMS
   periods opens both paths (balancers 0 A, aux relay open) and stays open until commanded;
 * the **platform node**: bus voltage and the dock contact;
 * the **charger**: the existing :class:`~packpilot.io.can.emulator.ChargerEmulator` on the
@@ -34,7 +35,13 @@ from packpilot.config import ScenarioConfig
 from packpilot.contract.arrays import cmd_arrays, meas_arrays
 from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can import pylon
-from packpilot.io.can.battery import BatteryReport, decode, encode_battery, encode_platform
+from packpilot.io.can.battery import (
+    BatteryReport,
+    decode,
+    encode_battery,
+    encode_platform,
+    encode_switch_state,
+)
 from packpilot.io.can.bus import FrameLog
 from packpilot.io.can.client import MAX_FRAMES_PER_POLL, FrameCounters
 from packpilot.io.can.codec import FrameError
@@ -44,6 +51,8 @@ from packpilot.model.pack import Interval
 from packpilot.sim.loop import Demand
 from packpilot.sim.plant_io import SimulatedPlant
 
+DRONECAN_NODE0 = 10
+"""DroneCAN node id of battery 0's node (battery i: 10 + i)."""
 PLATFORM = -1
 """The platform node in :attr:`Hil.silent`."""
 
@@ -110,31 +119,17 @@ class AircraftLog:
 
     last: dict[int, dc.BatteryInfo] = field(default_factory=dict)
     transfers: int = 0
-    errors: int = 0
-    _parts: dict[tuple[int, int], list[can.Message]] = field(default_factory=dict)
+    assembler: dc.Assembler = field(default_factory=lambda: dc.Assembler((dc.BATTERY_INFO_ID,)))
+
+    @property
+    def errors(self) -> int:
+        return self.assembler.errors
 
     def take(self, msg: can.Message) -> bool:
-        if not msg.is_extended_id or (msg.arbitration_id >> 8) & 0xFFFF != dc.BATTERY_INFO_ID:
+        if not self.assembler.wants(msg):
             return False
-        if not msg.data:
-            self.errors += 1
-            return True
-        tail = msg.data[-1]
-        key = (msg.arbitration_id & 0x7F, tail & 0x1F)
-        if tail & 0x80:  # start of transfer
-            self._parts[key] = []
-        parts = self._parts.get(key)
-        if parts is None:
-            self.errors += 1
-            return True
-        parts.append(msg)
-        if tail & 0x40:  # end of transfer
-            del self._parts[key]
-            try:
-                info = dc.decode(parts)
-            except Exception:
-                self.errors += 1
-                return True
+        info = self.assembler.take(msg)
+        if isinstance(info, dc.BatteryInfo):
             self.last[info.battery_id] = info
             self.transfers += 1
         return True
@@ -159,8 +154,12 @@ class Hil:
         timeout_periods: int = 5,
         timeout_keeps_discharge: bool = False,
         log: FrameLog | None = None,
+        dronecan_ids: dict[int, int] | None = None,
     ) -> None:
+        """``dronecan_ids``: CAN index → DroneCAN ``battery_id`` of the batteries that
+        publish BatteryInfo + BatteryInfoAux instead of the PackPilot frames."""
         self.cfg = cfg
+        self.dronecan_ids = dict(dronecan_ids or {})
         self.keep_dsg = timeout_keeps_discharge
         self.bus = bus
         self.log = log
@@ -224,9 +223,12 @@ class Hil:
         out: list[can.Message] = []
         for k, i in enumerate(self.map.traction):
             if i not in self.silent:
-                out += encode_battery(i, report(m.bat, k), self.counter, t)
+                out += self._battery_frames(i, report(m.bat, k), t)
+            node = self.switch[k]
+            out.append(encode_switch_state(i, bool(m.bat.sw_chg[0, k]), bool(m.bat.sw_dsg[0, k]),
+                                           node.timed_out, node.seq or 0, t))  # fmt: skip
         if self.map.aux is not None and self.map.aux not in self.silent:
-            out += encode_battery(self.map.aux, report(m.aux, 0), self.counter, t)
+            out += self._battery_frames(self.map.aux, report(m.aux, 0), t)
         if PLATFORM not in self.silent:
             out.append(encode_platform(float(m.bus_v[0]), bool(m.docked[0]), self.counter, t))
         self.counter = (self.counter + 1) & 0xFF
@@ -234,6 +236,20 @@ class Hil:
             self.send(msg, t)
         for hook in self.hooks:
             hook(self, t)
+
+    def _battery_frames(self, i: int, r: BatteryReport, t: float) -> list[can.Message]:
+        """Battery ``i``'s telemetry: PackPilot frames, or DroneCAN BatteryInfo and
+        BatteryInfoAux (cell voltages) when it is one of :attr:`dronecan_ids`."""
+        bid = self.dronecan_ids.get(i)
+        if bid is None:
+            return encode_battery(i, r, self.counter, t)
+        tid = self.counter & 0x1F
+        info = dc.BatteryInfo(bid, r.voltage_v, r.current_a, r.temp_c, 100.0 * r.soc,
+                              full_wh=r.full_ah * r.voltage_v,
+                              remaining_wh=r.remaining_ah * r.voltage_v)  # fmt: skip
+        cells = dc.BatteryCells(bid, r.group_v)
+        node = DRONECAN_NODE0 + i
+        return dc.encode(info, node, tid, t=t) + dc.encode_cells(cells, node, tid, t=t)
 
     def send(self, msg: can.Message, t: float) -> None:
         try:

@@ -40,6 +40,7 @@ from packpilot.io.can.dbcgen import (
     PLATFORM_MEAS,
     PROTECTION_STATE,
     SWITCH_CMD,
+    SWITCH_STATE,
 )
 
 KINDS: dict[int, str] = {
@@ -50,6 +51,7 @@ KINDS: dict[int, str] = {
     BATTERY_CELLS: "cells",
     SWITCH_CMD: "switch",
     BALANCER_CMD: "balancer",
+    SWITCH_STATE: "switch_state",
 }
 """Per-battery frame kinds by base identifier (battery ``i`` at ``base + i``)."""
 SENTINEL_BITS = 16
@@ -167,6 +169,13 @@ def encode_switch(i: int, chg_on: bool, dsg_on: bool, seq: int, t: float = 0.0) 
     return _frame(SWITCH_CMD + i, {"ChgOn": chg_on, "DsgOn": dsg_on, "Seq": seq & 0xFF}, t)
 
 
+def encode_switch_state(
+    i: int, chg_on: bool, dsg_on: bool, timed_out: bool, seq: int, t: float = 0.0
+) -> can.Message:
+    vals = {"ChgOn": chg_on, "DsgOn": dsg_on, "TimedOut": timed_out, "Seq": seq & 0xFF}
+    return _frame(SWITCH_STATE + i, vals, t)
+
+
 def encode_balancer(
     i: int, currents_a: tuple[float, ...], seq: int, t: float = 0.0
 ) -> list[can.Message]:
@@ -253,4 +262,5 @@ __all__ = [
     "encode_platform",
     "encode_protection",
     "encode_switch",
+    "encode_switch_state",
 ]

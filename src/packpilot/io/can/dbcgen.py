@@ -28,6 +28,7 @@ BATTERY_CAPACITY = 0x320
 BATTERY_GROUPS = 0x330
 BALANCER_CMD = 0x340
 BATTERY_CELLS = 0x360
+SWITCH_STATE = 0x370
 SWITCH_CMD = 0x200
 AUX_CMD = 0x210
 PLATFORM_MEAS = 0x220
@@ -122,6 +123,14 @@ def battery_messages(i: int) -> list[Msg]:
                 Sig("ChgOn", 0, 1, comment="1 = close the charge path"),
                 Sig("DsgOn", 1, 1, comment="1 = close the discharge path"),
                 Sig("Seq", 8, 8, comment="sequence counter, +1 per period"),
+            )),
+        Msg(f"SwitchState{i}", SWITCH_STATE + i, 2, sw, "BMS",
+            "What the switch node does, every period: the switch feedback of a battery that "
+            "does not report its own (a DroneCAN battery).", (
+                Sig("ChgOn", 0, 1, comment="charge path conducts"),
+                Sig("DsgOn", 1, 1, comment="discharge path conducts"),
+                Sig("TimedOut", 2, 1, comment="opened by the command timeout"),
+                Sig("Seq", 8, 8, comment="sequence number of the last command obeyed"),
             )),
         Msg(f"BalancerCmd{i}", BALANCER_CMD + i, 8, "BMS", sw,
             "Per-group balancer currents, multiplexed by block, every BMS period.",

@@ -29,7 +29,7 @@ state the BMS last asked for, starting from the feedback of the battery's first 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 
 from packpilot.arena import Arenas, unpack
 from packpilot.contract.arrays import NO_OPINION, BatteryArrays, CmdArrays, MeasArrays
+from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can.battery import (
     classify,
     decode,
@@ -55,6 +56,8 @@ Array = NDArray[np.float64]
 
 REQUIRED = ("meas", "cells", "state", "capacity")
 """Frame kinds every battery sends each period (plus its group blocks when it has groups)."""
+DRONECAN_REQUIRED = ("dronecan", "switch_state")
+"""A DroneCAN battery: its BatteryInfo, and its switch node's SwitchState (the feedback)."""
 
 
 @dataclass(frozen=True)
@@ -72,7 +75,11 @@ class BatteryMap:
 class _Latest:
     """The last decoded values of one battery node and when each frame kind arrived."""
 
-    def __init__(self, n_groups: int) -> None:
+    def __init__(self, n_groups: int, dronecan: bool = False) -> None:
+        self.dronecan = dronecan
+        """Fed by DroneCAN BatteryInfo (+ BatteryInfoAux) and its switch node's SwitchState,
+        instead of the PackPilot battery frames."""
+        self.required = DRONECAN_REQUIRED if dronecan else REQUIRED
         self.values: dict[str, float] = {}
         self.group_v = np.full(MAX_GROUPS, np.nan)
         self.n_groups = n_groups
@@ -83,8 +90,10 @@ class _Latest:
 
     def age(self, t: float) -> float:
         """Age of the oldest required frame (inf: never complete)."""
-        oldest = min((self.rx_s.get(k, -math.inf) for k in REQUIRED), default=-math.inf)
-        if self.block_rx_s.size:
+        oldest = min((self.rx_s.get(k, -math.inf) for k in self.required), default=-math.inf)
+        if self.dronecan and "cells" in self.rx_s:  # cells are required once a battery sent them
+            oldest = min(oldest, self.rx_s["cells"])
+        elif self.block_rx_s.size and not self.dronecan:
             oldest = min(oldest, float(self.block_rx_s.min()))
         return t - oldest if math.isfinite(oldest) else math.inf
 
@@ -106,9 +115,11 @@ class CanPlant:
         platform_timeout_s: float = 1.0,
         period_s: float = 0.1,
         stale_s: float = 2.0,
+        dronecan_ids: Mapping[int, int] | None = None,
     ) -> None:
         """``period_s``: the BMS period, at which every battery node sends its frames;
-        ``stale_s``: the plausibility layer's ``max_sample_age_s``."""
+        ``stale_s``: the plausibility layer's ``max_sample_age_s``; ``dronecan_ids``:
+        DroneCAN ``battery_id`` → CAN index of the batteries read from BatteryInfo."""
         self.bus = bus
         self.stale_s = stale_s
         self.period_s = period_s
@@ -123,11 +134,15 @@ class CanPlant:
         self.counters = FrameCounters()
         self.babbled = 0
         """Periods in which some battery node babbled."""
+        self.dronecan_ids = dict(dronecan_ids or {})
+        by_dc = set(self.dronecan_ids.values())
         self.node: dict[int, _Latest] = {
-            i: _Latest(g) for i, g in zip(batteries.traction, batteries.groups, strict=True)
+            i: _Latest(g, i in by_dc)
+            for i, g in zip(batteries.traction, batteries.groups, strict=True)
         }
         if batteries.aux is not None:
-            self.node[batteries.aux] = _Latest(batteries.aux_groups)
+            self.node[batteries.aux] = _Latest(batteries.aux_groups, batteries.aux in by_dc)
+        self.assembler = dc.Assembler()
         self.platform: dict[str, float] = {}
         self.platform_rx_s = -math.inf
         n = len(batteries.traction)
@@ -172,6 +187,9 @@ class CanPlant:
         self.babbled += babbled
 
     def _take(self, msg: can.Message, t: float) -> None:
+        if self.assembler.wants(msg):
+            self._take_dronecan(msg, t)
+            return
         try:
             kind, i, vals = decode(msg)
         except FrameError:
@@ -186,7 +204,7 @@ class CanPlant:
             self.platform, self.platform_rx_s = vals, t
             return
         node = self.node.get(i)
-        if node is None or kind not in ("meas", "cells", "state", "capacity", "groups"):
+        if node is None or kind not in (*node.required, "groups", "cells", "switch_state"):
             self.counters.unexpected += 1  # a command echo, another BMS, an unmapped battery
             return
         self.counters.received += 1
@@ -195,8 +213,47 @@ class CanPlant:
         if kind == "groups":
             self._take_groups(node, vals, t)
             return
+        if kind == "switch_state":  # the feedback of a battery that does not report its own;
+            if node.dronecan:  # a PackPilot battery reports its own (BatteryState)
+                node.values["ChgOn"], node.values["DsgOn"] = vals["ChgOn"], vals["DsgOn"]
+                node.rx_s[kind] = t
+            return
         node.values.update(vals)
         node.rx_s[kind] = t
+
+    def _take_dronecan(self, msg: can.Message, t: float) -> None:
+        """A frame of a DroneCAN transfer; a complete BatteryInfo / BatteryInfoAux of a mapped
+        ``battery_id`` updates its battery."""
+        before = self.assembler.errors
+        done = self.assembler.take(msg)
+        if self.assembler.errors > before:
+            self.counters.malformed += 1
+        if done is None:
+            return
+        i = self.dronecan_ids.get(done.battery_id)
+        node = self.node.get(i) if i is not None else None
+        if node is None or not node.dronecan:
+            self.counters.unexpected += 1  # another battery's, or the BMS's own kind
+            return
+        self.counters.received += 1
+        key = -1 - dc.data_type(msg)
+        node.seen_this_period[key] = node.seen_this_period.get(key, 0) + 1
+        if isinstance(done, dc.BatteryInfo):
+            node.values.update({
+                "Voltage": done.voltage_v, "Current": done.current_a, "TempMax": done.temp_c,
+                "SOC": done.soc_pct / 100.0, "Present": 1.0,
+            })  # fmt: skip
+            node.rx_s["dronecan"] = t
+            return
+        cells = done.cell_v
+        node.values["MinCellV"] = min(cells, default=math.nan)
+        node.values["MaxCellV"] = max(cells, default=math.nan)
+        node.values["CycleCount"] = float(done.cycle_count)
+        n = min(len(cells), MAX_GROUPS)
+        node.group_v[:] = math.nan
+        node.group_v[:n] = cells[:n]
+        node.values["NGroupsReported"] = float(len(cells))
+        node.rx_s["cells"] = t
 
     @staticmethod
     def _take_groups(node: _Latest, vals: dict[str, float], t: float) -> None:
