@@ -8,8 +8,9 @@ real pack has:
   or DroneCAN BatteryInfo + BatteryInfoAux (``dronecan_ids``);
 * a **switch node** per battery reporting what it does (``SwitchState``) and obeying
   ``SwitchCmd`` / ``BalancerCmd`` (and the aux node ``AuxCmd``) through
-  :meth:`SimulatedPlant.apply`, with a **command timeout**: a node that has heard no new command (a repeated sequence number is not new) for ``timeout_periods`` BMS
-  periods opens both paths (balancers 0 A, aux relay open) and stays open until commanded;
+  :meth:`SimulatedPlant.apply`, with a **command timeout**: a node that has heard no new
+  command (a repeated sequence number is not new) for ``timeout_periods`` BMS periods opens
+  both paths (balancers 0 A, aux relay open) and stays open until commanded;
 * the **platform node**: bus voltage and the dock contact;
 * the **charger**: the existing :class:`~packpilot.io.can.emulator.ChargerEmulator` on the
   plant's dock;
