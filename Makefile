@@ -73,8 +73,6 @@ mutate: $(TEST_STAMP)
 
 # Property soak (#18 §2): every Hypothesis property under the `nightly` profile (tests/budget.py:
 # at least 10,000 examples each, CI budget x 50). Hours, not minutes; not part of `make test`.
-# tests/test_sequencing_properties.py and test_sequencing_closed_loop_properties.py still have
-# fixed budgets (being rewritten): see docs/safety.md §5.
 soak: $(TEST_STAMP)
 	HYPOTHESIS_PROFILE=nightly PYBAMM_DISABLE_TELEMETRY=true \
 		$(PY) -m pytest -n 2 -q -p no:cacheprovider -m hypothesis

@@ -49,16 +49,13 @@ import numpy as np
 
 from packpilot.config import ScenarioConfig, load_config
 from packpilot.config.charging import ChargingConfig
-from packpilot.contract.record import Result
 from packpilot.io.can import CanChargerLink
+from packpilot.sim.quality import stage_breakdown, time_to_full
 from packpilot.sim.runner import Runner
 
 SCENARIO = Path(__file__).resolve().parents[1] / "examples" / "evtol_charging.toml"
 DT_S = 2.0
 DURATION_S = 21_600.0
-FULL_BAND_V = 0.5
-"""'At V_sat' band and termination current: the charging controller's reach_tol_v and the
-scenario's termination_current_a."""
 
 STRATEGIES: dict[str, dict[str, Any]] = {
     "baseline": {"controller": []},
@@ -155,20 +152,6 @@ def scenario(strategy: str, dt_s: float = DT_S, duration_s: float = DURATION_S) 
     )
 
 
-def time_to_full(res: Result, v_sat_v: float, term_a: float, traction: list[int]) -> float:
-    """First time by which every traction battery has met the full criterion (NaN if never)."""
-    v = res.trace.channel("voltage_v")[:, traction]
-    i_chg = -res.trace.channel("current_a")[:, traction]
-    full = (v >= v_sat_v - FULL_BAND_V) & (i_chg <= term_a)
-    t_full = []
-    for b in range(full.shape[1]):
-        hits = np.flatnonzero(full[:, b])
-        if hits.size == 0:
-            return float("nan")
-        t_full.append(float(res.trace.t_s[hits[0]] + res.trace.t_s[1] - res.trace.t_s[0]))
-    return max(t_full)
-
-
 def cc_heat_bound_j(stages: list[tuple[float, float, int]], time_s: float) -> float:
     """Least I²R heat of delivering charge ``q`` (C) through ``n`` parallel batteries of
     effective resistance ``r`` (Ω) per stage ``(q, r, n)``, at a constant charger current per
@@ -182,49 +165,6 @@ def cc_heat_bound_j(stages: list[tuple[float, float, int]], time_s: float) -> fl
         return float("inf")
     total = sum(q * math.sqrt(r / n) for q, r, n in stages if q > 0.0 and n > 0)
     return total * total / time_s
-
-
-def stage_breakdown(
-    res: Result, heat_steps_j: np.ndarray, traction: list[int]
-) -> list[dict[str, Any]]:
-    """Consecutive periods of one controller stage (the whole run for the baseline), each
-    with its duration, batteries connected, charge delivered, mean charger current, I²R heat
-    and the effective resistance heat / (q·I/n) that heat implies."""
-    t = res.trace.t_s
-    n_steps = min(len(t), len(heat_steps_j))
-    dt = float(t[1] - t[0]) if len(t) > 1 else DT_S
-    i_chg = np.maximum(-res.trace.channel("current_a")[:n_steps, traction], 0.0)
-    stages = res.trace.status.get("chg_stage")
-    relays = res.trace.status.get("chg_relay")
-    label = [str(s[0]) for s in stages] if stages else ["all relays closed"] * n_steps
-    rows: list[dict[str, Any]] = []
-    k0 = 0
-    for k in range(1, n_steps + 1):
-        if k < n_steps and label[k] == label[k0]:
-            continue
-        sl = slice(k0, k)
-        q_c = float(i_chg[sl].sum()) * dt
-        heat = float(heat_steps_j[sl].sum())
-        i_mean = float(i_chg[sl].sum(axis=1).mean())
-        if relays:
-            n = max(sum(1 for i in traction if relays[j][i]) for j in range(k0, k))
-        else:
-            n = len(traction)
-        r_eff = heat / (q_c * i_mean / n) if q_c > 0.0 and i_mean > 0.0 and n > 0 else math.nan
-        rows.append(
-            {
-                "stage": label[k0],
-                "t0_s": float(t[k0]),
-                "duration_s": (k - k0) * dt,
-                "n": n,
-                "charge_ah": q_c / 3600.0,
-                "mean_a": i_mean,
-                "heat_kj": heat / 1e3,
-                "r_eff_mohm": r_eff * 1e3,
-            }
-        )
-        k0 = k
-    return [r for r in rows if r["charge_ah"] > 0.05 or r["heat_kj"] > 0.05]
 
 
 def run_case(
@@ -277,7 +217,7 @@ def run_case(
         row["can_frames"] = {"sent": c.sent, "received": c.received, "bad": c.malformed}
     if breakdown:
         cum = np.array(heat_snapshots)[:, traction].sum(axis=1)
-        row["stages"] = stage_breakdown(res, np.diff(cum, prepend=0.0), traction)
+        row["stages"] = stage_breakdown(res, traction, np.diff(cum, prepend=0.0))
     return row
 
 

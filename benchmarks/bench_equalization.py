@@ -62,6 +62,7 @@ from packpilot.control.equalization import EqualizationController
 from packpilot.model import cell as cellmod
 from packpilot.model import loads
 from packpilot.model.pack import Pack
+from packpilot.sim.quality import spread_mv
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -224,9 +225,9 @@ class CycleDriver:
         st.max_cell_v = max(st.max_cell_v, float(pack.cell_voltage_now()[0].max()))
         if self._snap is not None:
             ocv, soc = group_ocv_soc(pack)
-            spread_mv = float(ocv.max() - ocv.min()) * 1000.0
+            rest_mv = spread_mv(ocv)
             if self._snap == "bottom":
-                st.rest_spread_bottom_mv = spread_mv
+                st.rest_spread_bottom_mv = rest_mv
                 if isinstance(self.method, EqualizationController):
                     view = self.method.strings[0]
                     st.eq_granted_ah = view.ledger_granted_ah
@@ -237,7 +238,7 @@ class CycleDriver:
                 else:
                     self.stats.append(CycleStats(cycle=st.cycle + 1))
             else:
-                st.rest_spread_top_mv = spread_mv
+                st.rest_spread_top_mv = rest_mv
                 st.soc_spread_top_pct = float(soc.max() - soc.min()) * 100.0
             self._snap = None
 
@@ -383,8 +384,7 @@ def _delivered_vs_granted(s: CycleStats) -> tuple[float, float, float]:
     nothing is dropped)."""
     ratios = [d / g for d, g in zip(s.eq_delivered_ah, s.eq_granted_ah, strict=True) if g > 0]
     lost = [
-        g - d - o
-        for g, d, o in zip(s.eq_granted_ah, s.eq_delivered_ah, s.eq_owed_ah, strict=True)
+        g - d - o for g, d, o in zip(s.eq_granted_ah, s.eq_delivered_ah, s.eq_owed_ah, strict=True)
     ]
     return (
         min(ratios) if ratios else math.nan,

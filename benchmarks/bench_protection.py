@@ -11,6 +11,9 @@ cell voltage after the 30 min rest (the rest OCV) plus the mean cell SOC left. F
 empty a cell (remaining Ah of the weakest cell reaches 0) also the energy delivered up to that
 moment (``energy_to_empty_wh``, terminal V x I integrated from the trace): the most any cut-off
 could deliver on this scenario without driving a cell below 0 % SOC, so a bound on the gain.
+The trip, the parameter at the trip, the most of the allowance used and the least margin between
+the lowest cell and the active cut-off come from :func:`packpilot.sim.quality.protection_figures`,
+as in the HTML report's protection section.
 
 Run: ``python benchmarks/bench_protection.py`` (``--sensitivity`` adds the cold-heavy study,
 including two what-if plants: a steeper Arrhenius DCIR and a heavier cell; neither is shipped).
@@ -31,6 +34,7 @@ from packpilot.config import ScenarioConfig, load_config
 from packpilot.config.protection import ProtectionConfig
 from packpilot.model.cell import CellParams, load_parameter_set, write_parameter_file
 from packpilot.model.cell.calibrate import calibrate_protection
+from packpilot.sim.quality import protection_figures
 from packpilot.sim.runner import Runner
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -85,8 +89,8 @@ def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[s
     update["sim"] = cfg.sim.model_copy(update=sim)
     runner = Runner(cfg.model_copy(update=update), progress=False)
     res = runner.run()
-    trips = [e for e in res.events if e.kind == "ProtectionTripped"]
-    trip = trips[0] if trips else None
+    fig = protection_figures(res, 0, 0)
+    trip_s = fig["trip_s"]
     v = res.trace.channel("voltage_v")[:, 0]
     i = res.trace.channel("current_a")[:, 0]
     dt = float(res.trace.t_s[1] - res.trace.t_s[0])
@@ -103,18 +107,22 @@ def run_case(cfg: ScenarioConfig, strategy: str, *, rest: bool = True) -> dict[s
         else float(np.sum(np.maximum(v * i, 0.0)[: at_floor[0]]) * dt / 3600)
     )
     cell_v = runner.pack.cell_voltage_now()[0]
-    rest_s = runner.pack.t_s - (trip.t_s if trip else runner.pack.t_s)
+    rest_s = runner.pack.t_s - (trip_s if trip_s is not None else runner.pack.t_s)
     return {
         "strategy": strategy,
-        "tripped": trip is not None,
-        "trip_s": None if trip is None else round(trip.t_s, 1),
-        "param_at_trip": None if trip is None else trip.data["param"],
-        "temp_at_trip_c": None if trip is None else round(float(trip.data["temp_c"] or 0.0), 1),
+        "tripped": fig["tripped"],
+        "trip_s": None if trip_s is None else round(trip_s, 1),
+        "param_at_trip": fig["param_at_trip"],
+        "temp_at_trip_c": None if trip_s is None else round(fig["temp_at_trip_c"] or 0.0, 1),
+        "max_allowance_used": None
+        if fig["max_fraction"] is None
+        else round(fig["max_fraction"], 3),
+        "min_margin_v": None if fig["min_margin_v"] is None else round(fig["min_margin_v"], 3),
         "energy_wh": round(float(res.metrics["energy_out_wh"]), 2),
         "min_cell_v": round(float(res.metrics["min_cell_v"]), 3),
         "rest_s": round(rest_s, 1),
-        "rest_ocv_v": round(float(cell_v.mean()), 4) if rest and trip else None,
-        "rest_min_cell_v": round(float(cell_v.min()), 4) if rest and trip else None,
+        "rest_ocv_v": round(float(cell_v.mean()), 4) if rest and fig["tripped"] else None,
+        "rest_min_cell_v": round(float(cell_v.min()), 4) if rest and fig["tripped"] else None,
         "soc_left": round(float(soc[0].mean()), 4),
         "min_cell_soc": round(float(soc[0].min()), 4),
         "below_empty": bool((soc[0] < 0.0).any()),

@@ -26,6 +26,7 @@ ORDER = [
     "bench_sequencing",
     "bench_charging",
     "bench_bmu",
+    "bench_faults",
     "bench_equalization",
     "bench_campaign",
 ]
@@ -345,6 +346,19 @@ def _campaign_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
     return _acceptance_headlines("bench_campaign", rows)
 
 
+def _faults_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
+    """Issue #15 §5: the fault matrix on uav_mission."""
+    faulty = [r for r in rows if r["fault"] != "fault-free"]
+    worst = max(r["unsupplied_with_energy_s"] for r in faulty)
+    low = min(r["energy_vs_fault_free"] for r in faulty)
+    into = max(r["max_into_a"] for r in faulty)
+    return [
+        ("faults: worst load-unsupplied time with energy left", f"{worst:.3g} s", "0 s"),
+        ("faults: lowest flight energy vs fault-free", f"{low:.1%}", "measured"),
+        ("faults: largest current into a battery (undocked)", f"{into:.3g} A", "<= 2.5 A"),
+    ]
+
+
 ACCEPTANCE = ("bench_core", "bench_campaign")
 """Modules whose rows with a ``goal`` are issue #14's acceptance figures."""
 
@@ -370,6 +384,7 @@ _HEADLINES: dict[str, Callable[[list[dict[str, Any]]], list[Headline]]] = {
     "bench_protection": _protection_headlines,
     "bench_sequencing": _sequencing_headlines,
     "bench_charging": _charging_headlines,
+    "bench_faults": _faults_headlines,
     "bench_equalization": _equalization_headlines,
     "bench_core": _core_headlines,
     "bench_campaign": _campaign_headlines,

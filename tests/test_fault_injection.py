@@ -236,3 +236,58 @@ def test_cooling_failure_trips_over_temperature_on_that_battery(tmp_path: Path) 
     assert res.trace.channel("dsg_on")[k, 0] == 0.0  # A isolated
     temp = res.trace.channel("temp_c")
     assert temp[:k, 0].max() > temp[:k, 1].max() + 5.0
+
+
+# ------------------------------------------------------------------ degraded mode (#15 §5)
+
+
+def _reserve_flight(switch: str) -> dict[str, Any]:
+    """B's temperature sensor fails at 2 s while A is connected: B becomes the reserve, A
+    carries the 30 A load alone until a trip opens it. MOSFET pairs: a nearly empty A and a
+    full B (A connected in standby, its charge diode conducting); relays: both nearly empty
+    and equal (a relay connects a battery only while it is admitted)."""
+    d = _flight({"kind": "sensor_nan", "at_s": 2.0, "battery": "B", "quantity": "temp_c"},
+                duration_s=60.0)  # fmt: skip
+    d["pack"]["switch"] = {"kind": switch}
+    socs = (0.04, 0.9) if switch == "mosfet_pair" else (0.06, 0.06)
+    for bat, soc0 in zip(d["pack"]["batteries"], socs, strict=True):
+        del bat["ocv0_v"]
+        bat["soc0"] = soc0
+    return d
+
+
+def _first_trip(result: Result) -> float:
+    """When A's path was opened by a trip (protection's or the safety limits', whichever first)."""
+    return min(_first_or_inf(result, "ProtectionTripped"), _first_or_inf(result, "LimitTripped"))
+
+
+@pytest.mark.parametrize("switch", ["mosfet_pair", "relay"])
+def test_the_reserve_is_brought_in_by_the_step_that_opens_the_last_trusted_source(
+    tmp_path: Path, switch: str
+) -> None:
+    """Make-before-break: the load never goes unsupplied while B still has energy, because
+    plausibility lifts B's isolation in the very step protection opens A (it sees this step's
+    commands, not only last step's feedback); the platform is told by ``ReserveEngaged``."""
+    res = _run(_reserve_flight(switch), tmp_path)
+    trip = _first_trip(res)
+    assert trip < 50.0
+    assert _first(res, "ReserveEngaged", battery=1) == pytest.approx(trip)
+    k, kt = _at(res, 3.0), _at(res, trip)
+    assert res.trace.channel("current_a")[k:kt, 1].max() == pytest.approx(0.0)  # held back
+    assert res.trace.load_a[: kt + 50].min() > 29.9  # never unsupplied through the hand-over
+    assert _first_or_inf(res, "LoadUnsupplied") > trip + 5.0
+
+
+def test_a_tripped_battery_cannot_be_charged_by_the_reserve_that_replaces_it(
+    tmp_path: Path,
+) -> None:
+    """Sequencing opens the charge FET of a battery whose discharge FET another layer opened,
+    in the same step (embodiments 5 and 7): otherwise the full reserve, 2.5 V higher, pushes
+    tens of amperes into the tripped battery through its discharge FET's body diode."""
+    res = _run(_reserve_flight("mosfet_pair"), tmp_path)
+    trip = _first_trip(res)
+    assert trip < 50.0
+    k = _at(res, trip)
+    into_a = -res.trace.channel("current_a")[k:, 0]
+    assert into_a.max() < 0.5  # A's charge limit is 2.5 A (0.5C); nothing may flow at all
+    assert res.trace.channel("chg_on")[k + 1 :, 0].max() == 0.0

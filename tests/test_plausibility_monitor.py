@@ -20,7 +20,9 @@ from packpilot.contract.bms import (
     SwitchState,
 )
 from packpilot.contract.charger import CHARGER_OFF
+from packpilot.control.core import Core, Part
 from packpilot.control.plausibility import PlausibilityConfig, PlausibilityMonitor
+from packpilot.control.plausibility.controller import METHOD
 from packpilot.errors import ConfigError
 from tests.test_limits_helpers import CAP, pack
 
@@ -361,3 +363,45 @@ def test_a_stale_sample_is_not_judged_for_its_switches() -> None:
     assert [e.data["kind"] for e in faults(outs)] == ["stale"]
     outs = d.run(lambda k: (aged(k, 0.1, on), live(k)), 20)  # fresh: now it is judged
     assert "chg_fet_shorted" in {e.data["kind"] for e in faults(outs)}
+
+# -- degraded mode: the reserve (#15 §5) ------------------------------------------------
+
+
+@dataclass
+class _OpensA:
+    """A layer ahead of plausibility that opens battery A's path from step ``at`` on, by one
+    command (the charge command opens a relay as surely as the discharge command)."""
+
+    at: int
+    path: str
+    k: int = 0
+
+    def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+        self.k += 1
+        off = (False, None) if self.k > self.at else (None, None)
+        cmd = Commands(chg_on=off) if self.path == "chg" else Commands(dsg_on=off)
+        return ControlOutput(commands=cmd)
+
+
+@pytest.mark.parametrize(
+    ("kind", "path"),
+    [(SwitchKind.RELAY, "chg"), (SwitchKind.RELAY, "dsg"), (SwitchKind.MOSFET_PAIR, "dsg")],
+)
+def test_the_reserve_is_released_in_the_step_its_last_trusted_source_is_opened(
+    kind: SwitchKind, path: str
+) -> None:
+    """B (failed sensor) is held back while A carries the load; in the step a layer ahead of
+    plausibility opens A, B's isolation is lifted (make-before-break) and ``ReserveEngaged``
+    tells the platform. A's switch feedback still shows it closed in that step."""
+    info = pack(2, kind)
+    core = Core([info], [_OpensA(10, path), Part.build(METHOD, PlausibilityConfig(), [info])])
+    outs = []
+    for k in range(12):
+        m = Measurements(t_s=k * DT, batteries=(live(k), _nan(k)), bus_v=22.2)
+        outs.append(core.step(m, DT))
+    assert outs[9].commands.dsg_on[1] is False  # held back while A carries the load
+    assert outs[9].status["plaus_isolated"] == [False, True]
+    engaged = outs[10]
+    assert engaged.commands.dsg_on[1] is None  # released in the step A is opened
+    assert [e.battery for e in engaged.events if e.kind == "ReserveEngaged"] == [1]
+    assert engaged.status["plaus_isolated"] == [False, False]

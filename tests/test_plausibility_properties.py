@@ -9,7 +9,12 @@ from hypothesis import strategies as st
 from packpilot.contract.bms import Commands, ControlOutput, Measurements
 from packpilot.contract.charger import CHARGER_OFF
 from packpilot.contract.topology import PackInfo
-from packpilot.control.plausibility import KINDS, PlausibilityConfig, PlausibilityMonitor
+from packpilot.control.plausibility import (
+    KINDS,
+    SENSOR_KINDS,
+    PlausibilityConfig,
+    PlausibilityMonitor,
+)
 from tests.budget import budget
 from tests.test_limits_helpers import ANY_FLOAT, measurements, pack_infos
 
@@ -24,9 +29,12 @@ def check_output(out: ControlOutput, n: int, mon: PlausibilityMonitor) -> None:
     assert all(x is None or x is False for x in cmd.chg_on + cmd.dsg_on)
     assert cmd.charger is None or cmd.charger == CHARGER_OFF
     for ev in out.events:
-        assert ev.kind in ("Fault", "FaultCleared")
-        assert ev.data["kind"] in KINDS
+        assert ev.kind in ("Fault", "FaultCleared", "ReserveEngaged")
         assert ev.battery is None or 0 <= ev.battery < n
+        if ev.kind == "ReserveEngaged":  # only a battery with a latched sensor fault
+            assert ev.battery is not None and mon.faults(ev.battery) & set(SENSOR_KINDS)
+            continue
+        assert ev.data["kind"] in KINDS
     for name, vals in out.status.items():
         assert len(vals) == n, name
     for i in range(n):

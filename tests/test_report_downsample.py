@@ -11,13 +11,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from packpilot.report.charts import spans
 from packpilot.report.downsample import (
     change_indices,
     downsample,
     minmax_indices,
     step_indices,
 )
-from packpilot.report.figures import TimeAxis, hold_runs
 from tests.budget import budget
 
 floats = st.one_of(st.floats(-1e6, 1e6), st.just(math.nan))
@@ -115,33 +115,19 @@ def test_step_indices_fall_back_when_a_flag_flickers() -> None:
 
 @budget(200)
 @given(on=st.lists(st.booleans(), min_size=1, max_size=200))
-def test_hold_runs_cover_exactly_the_held_time(on: list[bool]) -> None:
+def test_spans_cover_exactly_the_held_time(on: list[bool]) -> None:
+    """The shaded spans of a flag (a trip, a conducting diode) cover its time, in order."""
     x = np.cumsum(np.r_[0.0, np.full(len(on) - 1, 0.5)])
     flags = np.array(on)
-    runs = hold_runs(x, flags)
+    runs = spans(x, flags, min_frac=0.0)
     held = sum(0.5 for i, f in enumerate(on) if f and i < len(on) - 1)  # last sample: no width
-    assert math.isclose(sum(w for _, w in runs), held, abs_tol=1e-9)
-    starts = [s for s, _ in runs]
-    assert starts == sorted(starts)
-    assert all(s + w <= n for (s, w), (n, _) in itertools.pairwise(runs))
-    assert len(runs) == int(np.sum(np.diff(np.r_[0, flags.astype(int)]) == 1))
+    assert math.isclose(sum(b - a for a, b in runs), held, abs_tol=1e-9)
+    assert all(a <= b for a, b in runs)
+    assert all(b1 < a2 for (_, b1), (a2, _) in itertools.pairwise(runs))
 
 
-def test_hold_runs_merge_a_flicker_and_widen_slivers() -> None:
+def test_spans_widen_slivers_and_merge_a_flicker() -> None:
     x = np.arange(100_000, dtype=float)
-    on = np.arange(100_000) % 3 == 0
-    merged = hold_runs(x, on, max_runs=100)
-    assert len(merged) < 100
-    (s, w), *_ = hold_runs(x[:10], np.array([False] * 4 + [True] + [False] * 5), min_width=3.0)
-    assert s == 4.0 and w == 3.0
-
-
-@pytest.mark.parametrize(
-    ("span_s", "label", "scale"),
-    [(60.0, "time (s)", 1.0), (1800.0, "time (min)", 60.0), (36000.0, "time (h)", 3600.0)],
-)
-def test_time_axis_unit(span_s: float, label: str, scale: float) -> None:
-    axis = TimeAxis.of(np.linspace(0.0, span_s, 50))
-    assert (axis.label, axis.scale) == (label, scale)
-    assert axis.hi == pytest.approx(span_s / scale)
-    assert TimeAxis.of(np.array([])).hi > TimeAxis.of(np.array([])).lo
+    assert len(spans(x, np.arange(100_000) % 3 == 0)) <= 2000
+    (a, b), *_ = spans(x[:10], np.array([False] * 4 + [True] + [False] * 5), min_frac=1 / 3)
+    assert a == 4.0 and b == 7.0

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import base64
+import json
 import math
 import os
 import re
-import struct
 import subprocess
 import sys
 import time
+import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -21,8 +23,8 @@ from packpilot.config import load_config
 from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Result, StepSample, Trace
 from packpilot.io.telemetry import SQLiteRecorder, load_run
-from packpilot.report import figures as F
-from packpilot.report.downsample import MAX_POINTS
+from packpilot.report.channels import nominal, status_channels
+from packpilot.report.charts import FULL_RES_MAX, pack, sample_indices
 from packpilot.report.html import (
     SECTION_IDS,
     RunInfo,
@@ -42,7 +44,9 @@ EXTERNAL = re.compile(
     r"""(?:\b(?:src|href|action|poster)\s*=\s*["']?\s*(?:https?:)?//)|(?:url\(\s*["']?\s*(?:https?:)?//)|@import""",
     re.IGNORECASE,
 )
-DATA_PNG = re.compile(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
+DATA_JSON = re.compile(r'<script type="application/json" id="pp-data">(.*?)</script>', re.S)
+BANNER = "/*! https://github.com/leeoniya/uPlot (v1.6.32) */"
+"""uPlot's own licence banner: a comment, never fetched (the browser test counts requests)."""
 
 RICH_PROTECTION = """
 [protection]
@@ -82,19 +86,30 @@ def section(page: str, sid: str) -> str:
     return m.group(1)
 
 
-def png_sizes(page: str) -> list[tuple[int, int]]:
-    """(width, height) of every inline PNG, read from its IHDR chunk after decoding."""
-    out = []
-    for b64 in DATA_PNG.findall(page):
-        raw = base64.b64decode(b64, validate=True)
-        assert raw[:8] == PNG_MAGIC
-        w, h = struct.unpack(">II", raw[16:24])
-        out.append((w, h))
+def page_data(page: str) -> dict[str, Any]:
+    m = DATA_JSON.search(page)
+    assert m, "no chart data"
+    data: dict[str, Any] = json.loads(m.group(1))
+    return data
+
+
+def unpack(rec: dict[str, Any]) -> np.ndarray:
+    """What report.js does: inflate, cumulative sum, times the quantum, gaps as NaN."""
+    d = np.frombuffer(zlib.decompress(base64.b64decode(rec["z"])), dtype="<i4")
+    out = np.cumsum(d.astype(np.int64)) * rec["q"]
+    for a, b in rec.get("nan", []):
+        out[a:b] = np.nan
     return out
 
 
-def strip_images(text: str) -> str:
-    return DATA_PNG.sub('<img src="data:…"', text)
+def chart_ids(page: str) -> list[str]:
+    return re.findall(r'data-chart="([^"]+)"', page)
+
+
+def no_external(page: str) -> None:
+    text = page.replace(BANNER, "")
+    assert not EXTERNAL.search(text), EXTERNAL.search(text)
+    assert "http://" not in text and "https://" not in text
 
 
 @pytest.fixture(scope="module")
@@ -121,12 +136,11 @@ def test_report_cli_writes_a_self_contained_page(
     page = out.read_text(encoding="utf-8")
     for sid in SECTION_IDS:
         assert f'<section id="{sid}">' in page
-    assert not EXTERNAL.search(page), EXTERNAL.search(page)
-    assert "http://" not in page and "https://" not in page
+    no_external(page)
     assert 20_000 < out.stat().st_size < 3_000_000
-    sizes = png_sizes(page)
-    assert len(sizes) >= 2  # batteries and switches (this run has no events or controllers)
-    assert all(w > 300 and h > 100 for w, h in sizes)
+    ids = chart_ids(page)  # batteries and switches (this run has no events or controllers)
+    assert {"voltage", "current", "soc", "cells", "temp", "switches"} <= set(ids)
+    assert set(ids) == set(page_data(page)["charts"])
     # Facts of this run, in readable form.
     summary = section(page, "summary")
     assert "uav_dual_parallel" in summary
@@ -135,9 +149,9 @@ def test_report_cli_writes_a_self_contained_page(
     assert "<th>A</th>" in summary and "<th>B</th>" in summary
     soc_end = [fmt_num(100 * float(x)) for x in result.trace.channel("soc")[-1]]
     assert all(s in summary for s in soc_end)
-    assert "not recorded" in section(page, "protection")
+    assert '<section id="protection">' not in page  # no method enabled, no method section
     assert "No events" in section(page, "events")
-    assert "<img" in section(page, "batteries") and "<img" in section(page, "switches")
+    assert "data-chart" in section(page, "batteries") and "data-chart" in section(page, "switches")
 
 
 def test_simulate_report_in_one_go(tmp_path: Path) -> None:
@@ -156,16 +170,18 @@ def test_simulate_report_in_one_go(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     assert '"energy_out_wh"' in r.stdout
     page = out.read_text(encoding="utf-8")
-    assert not EXTERNAL.search(page)
+    no_external(page)
     events = section(page, "events")
-    assert "<img" in events and "ProtectionTripped" in events and "StateChanged" in events
+    assert "ProtectionTripped" in events and "StateChanged" in events
     prot = section(page, "protection")
-    assert "not recorded" not in prot and "<img" in prot
+    assert "not recorded" not in prot and "data-chart" in prot
     assert re.search(r"P\d: [\d.]+ s", prot)  # time per parameter
-    ctrl = section(page, "controllers")
-    assert "Parallel discharge sequencing" in ctrl and "<img" in ctrl
-    assert "STANDBY" in ctrl and "DISCHARGING" in ctrl  # the state-change table
-    assert len(png_sizes(page)) >= 5
+    assert re.search(r"<td>at [\d.]+ s \(P\d\)</td>", prot)  # the trip, with its parameter
+    seq = section(page, "sequencing")
+    assert "co-discharge share" in seq and "switch changes" in seq and "cross-charge" in seq
+    data = page_data(page)
+    assert data["charts"]["st-seq_state"]["categories"][:1] and "STANDBY" in str(data["charts"])
+    assert '<section id="charging">' not in page and '<section id="equalization">' not in page
 
 
 def test_report_from_database_equals_report_from_memory(tmp_path: Path) -> None:
@@ -181,9 +197,10 @@ def test_report_from_database_equals_report_from_memory(tmp_path: Path) -> None:
     assert info.status == "ok" and info.config_name == "sequencing_dual_hover"
     a = build_html(mem, info)
     b = build_html(load_run(db, mem.run_id), info)
-    for sid in SECTION_IDS:
-        assert strip_images(section(a, sid)) == strip_images(section(b, sid)), sid
-    assert len(png_sizes(a)) == len(png_sizes(b)) >= 5
+    for sid in (*SECTION_IDS, "sequencing", "protection"):
+        assert section(a, sid) == section(b, sid), sid
+    assert page_data(a) == page_data(b)
+    assert len(chart_ids(a)) >= 8
 
 
 def synthetic(
@@ -211,7 +228,9 @@ def test_untrusted_text_is_escaped() -> None:
     assert "<script>alert(1)</script>" not in page
     assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
     assert "<img src=x" not in page and "&lt;b&gt;pack&lt;/b&gt;" in page
-    assert page.count("<script>") == 1  # only the image-check marker
+    assert page.count("<script") == 3  # uPlot, the chart data, the chart script
+    data = DATA_JSON.search(page)
+    assert data and "<" not in data.group(1)  # a name cannot close the data block
 
 
 def test_status_channels_are_classified_and_aligned() -> None:
@@ -225,7 +244,7 @@ def test_status_channels_are_classified_and_aligned() -> None:
     )
     # A channel that starts late (telemetry keeps channels from their first step on).
     res.trace.status["late_v"] = [(1.0, 2.0)] * 12
-    ch = F.status_channels(res)
+    ch = status_channels(res)
     assert ch["mode"].kind == "label" and ch["mode"].pack_level
     assert ch["seq_state"].kind == "label" and not ch["seq_state"].pack_level
     assert list(ch["mode"].rows) == [0, 10]  # compressed to its changes
@@ -233,21 +252,67 @@ def test_status_channels_are_classified_and_aligned() -> None:
     assert ch["flag"].kind == "bool"
     late = ch["late_v"]
     assert list(late.rows) == [0, n - 12] and late.values[0, 0] is None
-    panels = F.controller_panels(ch, res.trace.t_s, F.TimeAxis.of(res.trace.t_s), ["l", "r"])
-    assert set(panels) == {
-        "Supervisor",
-        "Parallel discharge sequencing",
-        "Equalization",
-        "Other controller channels",
-    }
+    assert nominal(ch["mode"]) is None and nominal(ch["flag"]) is None
     page = build_html(res)
-    assert "charge" in section(page, "controllers") and "not recorded" in section(
-        page, "protection"
+    ctrl = section(page, "controllers")
+    for family in ("Supervisor", "Parallel discharge sequencing", "Equalization", "Other"):
+        assert family in ctrl, family
+    assert '<section id="protection">' not in page
+
+
+def test_nominal_channels_are_one_line_and_busy_ones_charts() -> None:
+    """A limit that stayed ok and a flat setting say so in a line; a limit that warned and a
+    moving value get charts (folded) — the rule is the value set, not the channel name."""
+    n = 40
+    res = synthetic(
+        n,
+        lim_over_voltage=[("ok", "ok")] * n,
+        lim_over_temp=[("ok", "ok")] * 30 + [("warn", "ok")] * 10,
+        limit_dsg_a=[(20.0, 20.0)] * n,
+        soc_est=[(0.8 - 0.001 * k, 0.7) for k in range(n)],
+        eq_fault=[(False, False)] * n,
+        plaus_faults=[("", "")] * 20 + [("stale", "")] * 20,
     )
+    ch = status_channels(res)
+    assert nominal(ch["lim_over_voltage"]) == "ok throughout"
+    assert nominal(ch["limit_dsg_a"]) == "constant 20 A"
+    assert nominal(ch["eq_fault"]) == "no fault throughout"
+    for busy in ("lim_over_temp", "soc_est", "plaus_faults"):
+        assert nominal(ch[busy]) is None, busy
+    page = build_html(res)
+    ctrl = section(page, "controllers")
+    assert "<code>lim_over_voltage</code>: nominal (ok throughout)" in ctrl
+    assert "<code>limit_dsg_a</code>: nominal (constant 20 A)" in ctrl
+    ids = set(chart_ids(page))
+    assert {"st-lim_over_temp", "st-soc_est", "st-plaus_faults"} <= ids
+    assert not {"st-lim_over_voltage", "st-limit_dsg_a", "st-eq_fault"} & ids
+    folded = ctrl[ctrl.index("<details>") :]
+    assert 'data-chart="st-lim_over_temp"' in folded
+
+
+@budget(200)
+@given(
+    y=st.lists(
+        st.one_of(st.floats(-1e4, 1e4, allow_nan=False), st.just(math.nan)),
+        min_size=1,
+        max_size=300,
+    )
+)
+def test_packed_series_unpack_to_the_values(y: list[float]) -> None:
+    """What the page carries decodes (as report.js does) to the series within half a quantum,
+    with every gap where it was."""
+    arr = np.array(y)
+    rec = pack(arr)
+    got = unpack(rec)
+    assert len(got) == len(arr) == rec["n"]
+    assert np.array_equal(np.isnan(got), np.isnan(arr))
+    ok = ~np.isnan(arr)
+    assert np.all(np.abs(got[ok] - arr[ok]) <= rec["q"] / 2 * (1 + 1e-9) + 1e-12 * np.abs(arr[ok]))
 
 
 def test_large_run_is_downsampled_and_small() -> None:
-    """10 h at 0.1 s: every plotted line <= MAX_POINTS, a one-sample spike kept, page < 3 MB."""
+    """10 h at 0.1 s: thinned to about FULL_RES_MAX samples, a one-sample spike kept, the page
+    under 3 MB and built in seconds."""
     n = 360_000
     t = np.arange(n) * 0.1
     bat = np.zeros((n, 2, len(BATTERY_CHANNELS)))
@@ -277,13 +342,8 @@ def test_large_run_is_downsampled_and_small() -> None:
     events = [Event(float(k), "StateChanged", k % 2, "x") for k in range(0, 36_000, 3)]
     events.append(Event(5000.0, "ProtectionTripped", 1, "P2 exhausted"))
     res = Result(["A", "B"], trace, events, {"sim_time_s": 36_000.0})
-    axis = F.TimeAxis.of(t)
-    assert axis.label == "time (h)"
-    fig = F.batteries_figure(res, axis)
-    lines = [ln for ax in fig.axes for ln in ax.get_lines()]
-    assert lines and all(len(ln.get_xdata()) <= MAX_POINTS for ln in lines)
-    current_b = fig.axes[1].get_lines()[1]
-    assert max(current_b.get_ydata()) == 95.0
+    idx = sample_indices(res)
+    assert len(idx) <= 1.2 * FULL_RES_MAX and 123_457 in idx  # thinned, the spike kept
     t0 = time.perf_counter()
     page = build_html(res, RunInfo(config_name="long", status="ok"))
     elapsed = time.perf_counter() - t0
@@ -292,6 +352,8 @@ def test_large_run_is_downsampled_and_small() -> None:
     assert elapsed < 30.0, elapsed
     ev = section(page, "events")
     assert "ProtectionTripped" in ev and "Listing 1,000 of 12,001 events" in ev
+    current_b = unpack(page_data(page)["store"]["current_a/1"])
+    assert np.nanmax(current_b) == pytest.approx(95.0, abs=0.01)
 
 
 @budget(200)
@@ -359,12 +421,12 @@ def test_unfinished_runs_still_report(tmp_path: Path) -> None:
         status = {"seq_state": ("ON", "OFF") if k < 6 else ("ON", "ON")}
         rec.record(StepSample(k, float(k), 24.0, 1, 1, 0, 0, bat, np.ones((2, 1)), status))
     rec.close()
-    for run_id, n_img in ((1, 0), (2, 3)):
+    for run_id, n_charts in ((1, 0), (2, 7)):  # 5 battery, switches, seq_state
         out = report_from_db(db, tmp_path / f"r{run_id}.html", run_id)
         page = out.read_text(encoding="utf-8")
         assert all(f'<section id="{sid}">' in page for sid in SECTION_IDS)
         assert "status <strong>running</strong>" in page and "No metrics recorded" in page
-        assert len(png_sizes(page)) == n_img
+        assert len(chart_ids(page)) == n_charts
     assert "No samples were recorded" in (tmp_path / "r1.html").read_text(encoding="utf-8")
 
 

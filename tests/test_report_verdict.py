@@ -9,8 +9,8 @@ import tomllib
 from matplotlib.colors import to_rgb
 
 from packpilot.config import parse_config
-from packpilot.report.figures import ALARM_COLOR, battery_color
 from packpilot.report.html import SECTION_IDS, RunInfo, build_html
+from packpilot.report.style import ALARM_COLOR, battery_color
 from packpilot.sim.runner import Runner
 from tests.conftest import EXAMPLES, ROOT
 

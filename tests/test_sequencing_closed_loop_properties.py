@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.config import parse_config
@@ -30,6 +30,7 @@ from packpilot.control.sequencing import SequencingConfig
 from packpilot.model import loads
 from packpilot.model.cell import ocv_v
 from packpilot.sim.runner import Runner
+from tests.budget import budget
 
 CFG = SequencingConfig()
 DURATION_S = 60.0
@@ -121,7 +122,7 @@ TRIP_A = 1.0
 """The comparator's default trip current."""
 
 
-@settings(max_examples=50, deadline=None)
+@budget(200)
 @given(cases(), st.booleans())
 def test_closed_loop_invariants(case: Case, comparator: bool) -> None:
     _check_invariants(case, comparator)

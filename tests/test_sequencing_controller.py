@@ -648,6 +648,23 @@ def test_other_bad_samples_fail_safe_without_raising(bad: Measurements) -> None:
     assert any(e.kind == "Fault" for e in out.events)
 
 
+def test_a_sample_older_than_the_last_one_fails_safe() -> None:
+    """A sample whose time went backwards (a replayed or reordered frame) is not used: every
+    charge FET opens (discharge only through the diodes) with one Fault naming both times; a
+    sample at the same time as the last is fine."""
+    ctrl = SequencingController(SequencingConfig(), pack_info(2))
+    v, i = [24.0, 24.0], [10.0, 10.0]
+    for s in range(4):
+        out = ctrl.step(meas(1.0 + 0.1 * s, v, i), 0.1)
+    assert out.commands.chg_on == (True, True)
+    out = ctrl.step(meas(1.3, v, i), 0.1)  # the same time again: not backwards
+    assert not any(e.kind == "Fault" for e in out.events)
+    out = ctrl.step(meas(1.2999, v, i), 0.1)
+    assert out.commands.chg_on == (False, False)
+    assert out.commands.dsg_on == (True, True)
+    assert [e.kind for e in out.events if e.kind == "Fault"] == ["Fault"]
+
+
 def test_bad_period_fails_safe() -> None:
     ctrl = SequencingController(SequencingConfig(), pack_info(2))
     out = ctrl.step(meas(0.0, [24.0, 23.0], [0.0, 0.0]), math.nan)

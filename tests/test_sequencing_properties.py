@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.contract.bms import ControlOutput, Measurements, SwitchKind
@@ -19,6 +19,7 @@ from packpilot.control.sequencing import (
     SequencingController,
     battery_measurement,
 )
+from tests.budget import budget
 
 CFG = SequencingConfig()
 STATES = {"DISCHARGING", "STANDBY", "CHARGING", "OFF"}
@@ -107,7 +108,7 @@ def _check_patterns(out: ControlOutput, s: Sample, n: int) -> None:
             assert state == "OFF" and not c and not d, "an absent battery is OFF"
 
 
-@settings(max_examples=150, deadline=None)
+@budget(200)
 @given(scenarios())
 def test_commanded_states_are_consistent_and_nan_fails_safe(
     case: tuple[int, float, list[Sample]],
@@ -131,7 +132,7 @@ def test_commanded_states_are_consistent_and_nan_fails_safe(
             in_fault = False
 
 
-@settings(max_examples=150, deadline=None)
+@budget(200)
 @given(scenarios(allow_nan=False))
 def test_r3_r4_deadline_is_respected(case: tuple[int, float, list[Sample]]) -> None:
     """Once a FET-off path is seen conducting, the FET is on no later than t_on after."""
@@ -220,7 +221,7 @@ I_LIM = CFG.charge_limit_c * CFG.default_capacity_ah
 """Charge limit of a battery of unknown capacity (the PackInfo here states none): 2.5 A."""
 
 
-@settings(max_examples=150, deadline=None)
+@budget(200)
 @given(scenarios(allow_nan=False))
 def test_charge_fet_follows_the_new_invariant(case: tuple[int, float, list[Sample]]) -> None:
     """Issue #15's invariant, period by period on arbitrary samples:
@@ -266,7 +267,7 @@ def test_charge_fet_follows_the_new_invariant(case: tuple[int, float, list[Sampl
         prev_chg, prev_mode, prev_state = chg, mode, states
 
 
-@settings(max_examples=60, deadline=None)
+@budget(200)
 @given(scenarios(allow_nan=True))
 def test_controller_is_a_pure_function_of_its_inputs(
     case: tuple[int, float, list[Sample]],

@@ -52,6 +52,17 @@ def scenario(duration_s: float = DURATION_S) -> dict[str, Any]:
     }
 
 
+WS_URL = "ws://127.0.0.1/ws"
+"""TestClient joins a relative WebSocket path to ``ws://testserver``: name the host."""
+
+
+def local(app: Any) -> TestClient:
+    """A test client that looks like a script on this machine: ``Host: 127.0.0.1`` (the Host
+    check refuses TestClient's default ``testserver``) and a loopback peer address (a
+    WebSocket without an ``Origin`` is accepted from loopback only)."""
+    return TestClient(app, base_url="http://127.0.0.1", client=("127.0.0.1", 50000))
+
+
 def strict_loads(text: str) -> Any:
     """json.loads that fails on NaN / Infinity tokens instead of accepting them."""
 
@@ -78,7 +89,7 @@ def start(speed: float = SPEED, duration_s: float = DURATION_S) -> tuple[LiveRun
 @pytest.fixture
 def paced() -> Iterator[tuple[LiveRun, SimThread, TestClient]]:
     live, sim = start()
-    with TestClient(create_app(live, push_interval_s=0.05)) as client:
+    with local(create_app(live, push_interval_s=0.05)) as client:
         yield live, sim, client
     sim.stop()
     assert not sim.is_alive()
@@ -123,7 +134,7 @@ def test_events_endpoint_pages() -> None:
     live, sim = start(speed=0.0)  # as fast as possible
     sim.join(20.0)
     assert live.state == "finished"
-    client = TestClient(create_app(live))
+    client = local(create_app(live))
     body = strict_loads(client.get("/api/events").text)
     evs = body["events"]
     assert len(evs) == body["next"] == live.status()["n_events"] >= 3
@@ -141,7 +152,7 @@ def test_ws_streams_samples_and_events(paced: tuple[LiveRun, SimThread, TestClie
     points: list[dict[str, Any]] = []
     events: list[dict[str, Any]] = []
     updates: list[dict[str, Any]] = []
-    with client.websocket_connect("/ws") as ws:
+    with client.websocket_connect(WS_URL) as ws:
         hello = strict_loads(ws.receive_text())
         assert hello["type"] == "hello"
         assert hello["battery_names"] == ["A", "B"]
@@ -172,16 +183,16 @@ def test_ws_streams_samples_and_events(paced: tuple[LiveRun, SimThread, TestClie
 def test_ws_disconnect_does_not_stop_the_run() -> None:
     live, sim = start(speed=20.0)
     try:
-        with TestClient(create_app(live, push_interval_s=0.05)) as client:
+        with local(create_app(live, push_interval_s=0.05)) as client:
             for _ in range(3):  # several browsers come and go mid-run
-                with client.websocket_connect("/ws") as ws:
+                with client.websocket_connect(WS_URL) as ws:
                     assert strict_loads(ws.receive_text())["type"] == "hello"
                     assert strict_loads(ws.receive_text())["type"] == "update"
             t_mid = live.status()["t_s"]
             assert live.state == "running" and t_mid < DURATION_S
             sim.join(20.0)
             assert live.state == "finished"
-            with client.websocket_connect("/ws") as ws:  # a late browser gets the history
+            with client.websocket_connect(WS_URL) as ws:  # a late browser gets the history
                 ws.receive_text()
                 first = strict_loads(ws.receive_text())
                 assert first["state"] == "finished" and first["metrics"] is not None
@@ -243,7 +254,7 @@ def test_nan_and_inf_become_null() -> None:
     )
     live.on_events([Event(0.1, "X", 0, "m", {"v": math.nan, "w": -math.inf})])
     live.on_finish({"min_cell_v": math.nan, "final_soc": [np.float64("nan")]}, "finished")
-    client = TestClient(create_app(live))
+    client = local(create_app(live))
     st = strict_loads(client.get("/api/status").text)
     bat = st["latest"]["batteries"][0]
     assert st["latest"]["bus_v"] is None and bat["temp_c"] is None and bat["current_a"] is None
@@ -251,7 +262,7 @@ def test_nan_and_inf_become_null() -> None:
     assert st["metrics"] == {"min_cell_v": None, "final_soc": [None]}
     ev = strict_loads(client.get("/api/events").text)["events"][0]
     assert ev["data"] == {"v": None, "w": None}
-    with client.websocket_connect("/ws") as ws:
+    with client.websocket_connect(WS_URL) as ws:
         ws.receive_text()
         up = strict_loads(ws.receive_text())
     assert up["points"][0]["temp_c"] == [None]
@@ -259,7 +270,7 @@ def test_nan_and_inf_become_null() -> None:
 
 
 def test_page_and_static_files_are_served() -> None:
-    client = TestClient(create_app(LiveRun()))
+    client = local(create_app(LiveRun()))
     page = client.get("/")
     assert page.status_code == 200 and "text/html" in page.headers["content-type"]
     for ref in ("/static/dashboard.js", "/static/dashboard.css"):
@@ -277,11 +288,11 @@ def test_ws_sends_an_event_backlog_in_full() -> None:
     live.on_start(["A"])
     live.on_events([Event(0.1 * k, "BalancingUpdated", 0, f"#{k}") for k in range(1234)])
     live.on_finish({"steps": 0}, "finished")  # nothing will change any more
-    client = TestClient(create_app(live, push_interval_s=0.05))
+    client = local(create_app(live, push_interval_s=0.05))
     got: list[dict[str, Any]] = []
 
     def read() -> None:
-        with client.websocket_connect("/ws") as ws:
+        with client.websocket_connect(WS_URL) as ws:
             ws.receive_text()
             for _ in range(3):  # 500 + 500 + 234
                 got.extend(strict_loads(ws.receive_text())["events"])

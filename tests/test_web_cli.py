@@ -98,3 +98,78 @@ def test_bad_arguments_are_one_line_errors(tmp_path: Path) -> None:
         assert r.returncode == 2, (args, r.stderr)
         assert r.stderr.startswith("error: ") and needle in r.stderr, (args, r.stderr)
         assert "Traceback" not in r.stderr
+
+
+def serve_and_stop(args: list[str], check: Any) -> str:
+    """Start ``packpilot dashboard ARGS``, call ``check(url)``, Ctrl-C it; its stderr."""
+    proc = cli(*args)
+    try:
+        out = lines(proc)
+        first = out.get(timeout=60)
+        m = re.search(r"on (http://127\.0\.0\.1:\d+/)", first)
+        assert m, first
+        check(m.group(1))
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(15) == 0
+        return first + "".join(out.get(timeout=5) for _ in range(out.qsize()))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+
+
+def test_a_recorded_run_opens_from_the_command_line(tmp_path: Path) -> None:
+    """`packpilot dashboard out/demo.sqlite` used to fail with "not a UTF-8 text file"."""
+    from packpilot.config import parse_config
+    from packpilot.io.telemetry import SQLiteRecorder
+    from packpilot.sim.runner import Runner
+    from tests.test_web_app import scenario
+
+    db = tmp_path / "demo.sqlite"
+    with SQLiteRecorder(db) as rec:
+        Runner(parse_config(scenario(10.0)), recorder=rec, progress=False).run()
+
+    def check(url: str) -> None:
+        st = get_json(url + "api/status")
+        assert st["kind"] == "recorded" and st["state"] == "finished"
+        assert st["battery_names"] == ["A", "B"] and st["source"] == "demo.sqlite, run 1"
+        assert abs(get_json(url + "api/at?t_s=5")["t_s"] - 5.0) < 1e-6
+        assert get_json(url + "api/catalog")["recordings"] == ["demo.sqlite"]
+
+    err = serve_and_stop([str(db), "--port", "0"], check)
+    assert "Traceback" not in err and "dashboard for web_test" in err
+
+
+def test_without_a_scenario_the_page_offers_the_examples(tmp_path: Path) -> None:
+    def check(url: str) -> None:
+        assert get_json(url + "api/status")["state"] == "idle"
+        cat = get_json(url + "api/catalog")
+        assert "uav_mission" in cat["examples"] and cat["recordings"] == []
+        assert cat["runs_dir"] == str(tmp_path.resolve())
+
+    err = serve_and_stop(["--port", "0", "--runs-dir", str(tmp_path)], check)
+    assert "Traceback" not in err and "run idle" not in err
+
+
+def test_unsafe_or_bad_serving_options_are_one_line_errors(tmp_path: Path) -> None:
+    (tmp_path / "text.sqlite").write_text("not a database", encoding="utf-8")
+    for args, needle in (
+        ([str(EXAMPLE), "--host", "0.0.0.0"], "--allow-remote"),
+        ([str(EXAMPLE), "--host", "0.0.0.0", "--allow-remote", "--token", "short"], "--token"),
+        ([str(EXAMPLE), "--allowed-host", "evil.example.com"], "--allowed-host"),
+        ([str(EXAMPLE), "--max-websockets", "0"], "--max-websockets"),
+        ([str(EXAMPLE), "--runs-dir", str(tmp_path / "nope")], "--runs-dir"),
+        ([str(tmp_path / "text.sqlite")], "not a PackPilot telemetry database"),
+        ([str(tmp_path / "missing.sqlite")], "not found"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "-m", "packpilot.cli", "dashboard", *args, "--port", "0"],
+            capture_output=True,
+            text=True,
+            env=ENV,
+            cwd=ROOT,
+            timeout=60,
+        )
+        assert r.returncode == 2, (args, r.stderr)
+        assert r.stderr.startswith("error: ") and needle in r.stderr, (args, r.stderr)
+        assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr

@@ -150,7 +150,7 @@ def _json_default(o: Any) -> Any:
 FAIL_ON_HELP = (
     "exit with code 3 when the run had an alarm of one of these categories (comma-separated):"
     " trip, fault, unsupplied, overdischarge, crosscharge, limit, refused, crosscurrent,"
-    " isolated, unknown"
+    " reserve, unknown"
 )
 
 
@@ -474,14 +474,19 @@ def report(
         typer.Option(help="HTML file to write (default: next to DB, run.sqlite -> run.html)"),
     ] = None,
     run_id: Annotated[int | None, typer.Option(help="run to report (default: latest)")] = None,
+    can_log: Annotated[
+        Path | None,
+        typer.Option(help="CAN log (.blf/.asc) for the CAN section (default: the run's can.log)"),
+    ] = None,
 ) -> None:
-    """Write a self-contained HTML report (plots inline, no network) of a recorded run."""
+    """Write a self-contained HTML report (interactive charts inline, no network) of a recorded
+    run."""
 
     def go() -> None:
         from packpilot.report.html import report_from_db
 
         target = out if out is not None else default_report_path(db, run_id)
-        path = report_from_db(db, target, run_id)
+        path = report_from_db(db, target, run_id, can_log)
         typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
 
     _guard(go)
@@ -641,42 +646,108 @@ def check_campaign_out(out: Path) -> None:
 
 @app.command()
 def dashboard(
-    config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
-    host: Annotated[str, typer.Option(help="address to listen on")] = "127.0.0.1",
+    config: Annotated[
+        Path | None,
+        typer.Argument(
+            help="scenario TOML file or an example's name to run, or a recorded SQLite run to"
+            " open (none: pick on the page)"
+        ),
+    ] = None,
+    host: Annotated[
+        str, typer.Option(help="address to listen on (not loopback: needs --allow-remote)")
+    ] = "127.0.0.1",
     port: Annotated[int, typer.Option(help="TCP port (0: any free port)")] = 8765,
     speed: Annotated[
         float, typer.Option(help="simulated seconds per wall second (0: as fast as possible)")
     ] = 10.0,
     db: Annotated[Path | None, typer.Option(help="also record telemetry to this SQLite")] = None,
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
+    runs_dir: Annotated[
+        Path | None,
+        typer.Option(help="directory whose recorded runs (*.sqlite, *.db) the page may open"),
+    ] = None,
+    run_id: Annotated[
+        int | None, typer.Option(help="run to open in a recording (default: latest)")
+    ] = None,
+    report: Annotated[
+        Path | None,
+        typer.Option(help="write the HTML report of a run that finishes here (page links it)"),
+    ] = None,
+    allow_remote: Annotated[
+        bool,
+        typer.Option(
+            "--allow-remote",
+            help="allow a non-loopback --host; every request then needs the token",
+        ),
+    ] = False,
+    token: Annotated[
+        str | None,
+        typer.Option(
+            envvar="PACKPILOT_DASHBOARD_TOKEN",
+            help="access token (default: a fresh random one, printed with --allow-remote)",
+        ),
+    ] = None,
+    allowed_host: Annotated[
+        list[str] | None,
+        typer.Option(help="another Host name the page is reached by (with --allow-remote)"),
+    ] = None,
+    max_websockets: Annotated[int, typer.Option(help="most live page connections at once")] = 32,
+    max_connections: Annotated[int, typer.Option(help="most open HTTP connections at once")] = 64,
 ) -> None:
-    """Run a scenario and watch it live in a browser (Ctrl-C stops)."""
+    """Run a scenario and watch it live in a browser, or open a recorded run (Ctrl-C stops)."""
 
     def go() -> None:
         import contextlib
 
         from packpilot.errors import ConfigError
-        from packpilot.sim.runner import Runner
         from packpilot.web.app import Dashboard
+        from packpilot.web.recorded import is_sqlite
+        from packpilot.web.session import RECORDING_SUFFIXES, Library
 
         if speed < 0 or speed != speed:
             raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
         if not 0 <= port <= 65535:
             raise ConfigError(f"--port {port}: must be 0..65535")
-        path = scenario_path(config)
-        cfg = _load(path, duration)
+        if runs_dir is not None and not runs_dir.is_dir():
+            raise ConfigError(f"--runs-dir {runs_dir}: not a directory")
         if db is not None:
             _check_outputs(db=db)
-        runner = _named(path, lambda: Runner(cfg, progress=False))
-        name = cfg.pack.name if "name" in cfg.pack.model_fields_set else path.stem
-        dash = Dashboard(runner, scenario=name, speed=speed, db=db, host=host, port=port)
-        typer.echo(f"dashboard for {name} on {dash.url}  (Ctrl-C to stop)", err=True)
+        if report is not None:
+            _check_outputs(report=report)
+        recording = None
+        if config is not None and (
+            is_sqlite(config) or config.suffix.lower() in RECORDING_SUFFIXES
+        ):
+            recording = config
+        runner, name, path = None, "no run yet", None
+        if config is not None and recording is None:
+            path = scenario_path(config)
+            cfg = _load(path, duration)
+            runner = _named(path, lambda: _runner(cfg))
+            name = cfg.pack.name if "name" in cfg.pack.model_fields_set else path.stem
+        library = Library.of_dirs(
+            _example_dirs(), runs_dir, [recording] if recording is not None else []
+        )
+        dash = Dashboard(
+            runner, scenario=name, source=str(path) if path else None, speed=speed, db=db,
+            host=host, port=port,
+            recording=recording, run_id=run_id, library=library,
+            make_runner=lambda p: _named(p, lambda: _runner(_load(p, duration))),
+            write_report=_dashboard_report(report), allow_remote=allow_remote, token=token,
+            allowed_hosts=tuple(allowed_host or ()), max_websockets=max_websockets,
+            max_connections=max_connections,
+        )  # fmt: skip
+        shown = dash.live.scenario
+        typer.echo(f"dashboard for {shown} on {dash.open_url}  (Ctrl-C to stop)", err=True)
+        if dash.guard.remote:
+            typer.echo(f"token: {dash.guard.token}  (every request needs it)", err=True)
         dash.start()
         with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C / SIGTERM: the normal way out
             dash.serve()
         st = dash.live.status()
-        why = f": {st['error']}" if st["error"] and st["state"] == "error" else ""
-        typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why}", err=True)
+        if st["kind"] == "live" and st["state"] != "idle":
+            why = f": {st['error']}" if st["error"] and st["state"] == "error" else ""
+            typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why}", err=True)
 
     _guard(go)
 
@@ -855,6 +926,30 @@ def _print_runtime(metrics: dict[str, Any], as_json: bool) -> None:
         return
     for k, v in metrics.items():
         typer.echo(f"{k:>24}  {_metric_text(v)}")
+
+def _runner(cfg: ScenarioConfig) -> Any:
+    from packpilot.sim.runner import Runner
+
+    return Runner(cfg, progress=False)
+
+
+def _dashboard_report(out: Path | None) -> Callable[[Result, Any], Path | None] | None:
+    """The dashboard's report writer (the web layer may not import the report)."""
+    if out is None:
+        return None
+
+    def write(result: Result, live: Any) -> Path | None:
+        from packpilot.report.html import RunInfo, run_info_from_db, write_report
+
+        if live.db is not None and result.run_id is not None:
+            info = run_info_from_db(Path(live.db), result.run_id)
+        else:
+            now = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
+            cfg = live.config or {}
+            info = RunInfo.from_config(cfg, status="ok", finished_at=now, source=live.source)
+        return write_report(result, out, info)
+
+    return write
 
 
 def main() -> None:

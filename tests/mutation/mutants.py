@@ -8,9 +8,6 @@ mutant survives edits around it; a snippet that no longer matches exactly once i
 
 ``why`` says which rule the mutant breaks: the behavioural test that kills it checks that rule.
 
-TODO(sequencing): no sequencing mutants yet. The sequencer is being rewritten for the
-co-discharge change (#18 §2 names its invariant as changing); its mutants (R1 ``<`` -> ``<=``,
-R2 ignoring a demoted battery, no time-backwards check, ...) come after that lands.
 """
 
 from __future__ import annotations
@@ -108,8 +105,18 @@ PLAUSIBILITY = [
     _m("plausibility", "switch-fault-auto-clears", "k < N_SENSOR_KINDS, dt, prm.clear_after_s,",
        "True, dt, prm.clear_after_s,", "a switch fault clears by itself"),
     _m("plausibility", "last-source-isolated",
-       "if docked or _other_source(st, tp, m, p, i):", "if True:",
+       "if docked or _other_source(st, tp, m, cmd, p, i):", "if True:",
        "a faulty last source is isolated in flight (drops the load)"),
+    _m("plausibility", "reserve-after-the-break",
+       "if conducts(tp, m, p, j, False) and _stays_on(tp, cmd, p, j):",
+       "if conducts(tp, m, p, j, False):",
+       "the reserve is brought in a step after the last trusted source opened (break first)"),
+    _m("plausibility", "reserve-relay-opening-unseen",
+       "return not (tp.relay[j] and cmd.chg_on[p, j] == 0)", "return True",
+       "a relay opened by its charge command still counts as a source"),
+    _m("plausibility", "reserve-untold",
+       "if st.isolated[p, i] and not isolated and sensor_bad and not docked:", "if False:",
+       "the platform is not told that the reserve now supplies the load"),
     _m("plausibility", "charger-into-unknown",
        "if unsafe and can_take_charge and conducts(tp, m, p, i, True):", "if False:",
        "the charger keeps charging into an unknown battery"),
@@ -245,13 +252,70 @@ EQUALIZATION = [
        "if not math.isfinite(v):", "a zero group voltage is used"),
 ]
 
+SEQUENCING = [
+    _m("sequencing", "r1-le", "new = DISCHARGING if v_max - volt[k] < prm.v_th else STANDBY",
+       "new = DISCHARGING if v_max - volt[k] <= prm.v_th else STANDBY",
+       "R1: a battery exactly v_th below the highest is admitted"),
+    _m("sequencing", "r1-admits-all",
+       "new = DISCHARGING if v_max - volt[k] < prm.v_th else STANDBY", "new = DISCHARGING",
+       "R1: a battery far below the highest is admitted (cross-charge)"),
+    _m("sequencing", "r2-never-joins", "            if e_ref - ef[k] >= prm.v_co:\n",
+       "            if True:\n", "R2: a standby battery never joins once the voltages meet"),
+    _m("sequencing", "r2-joins-early", "            if e_ref - ef[k] >= prm.v_co:\n",
+       "            if e_ref - ef[k] >= 10.0 * prm.v_co:\n",
+       "R2: a standby battery joins while still well below the others"),
+    _m("sequencing", "time-backwards-accepted", "elif not math.isnan(last) and t < last:",
+       "elif False:", "a sample older than the last one is used (no fail-safe)"),
+    _m("sequencing", "negative-voltage-accepted", "if not math.isfinite(v) or v < 0.0:",
+       "if not math.isfinite(v):", "a negative battery voltage is used"),
+    _m("sequencing", "reverse-cut-dropped",
+       "if cur[k] < -prm.i_rev or rev_q_as[p, k] > prm.q_rev_as + 1e-12:", "if False:",
+       "reverse current into an engaged battery is never cut (embodiment 5)"),
+    _m("sequencing", "reverse-cut-current-only",
+       "if cur[k] < -prm.i_rev or rev_q_as[p, k] > prm.q_rev_as + 1e-12:",
+       "if cur[k] < -prm.i_rev:", "a small circulating reverse current is never cut"),
+    _m("sequencing", "engage-ignores-zero-load", "            if pred[j] > i_lim[j]:\n",
+       "            if False:\n",
+       "engage closes a charge FET that would take more than its limit if the load vanished"),
+    _m("sequencing", "engage-no-hysteresis", "if j != k and pred[j] > 0.5 * prm.i_rev:",
+       "if False:", "engage closes a charge FET that would charge a sibling (close-cut chatter)"),
+    _m("sequencing", "r3-no-deadline",
+       "due: bool = elapsed + EPS_S >= prm.t_debounce or elapsed + dt > prm.t_on + EPS_S",
+       "due: bool = elapsed + EPS_S >= prm.t_debounce",
+       "R3/R4: waiting one more period may overrun t_on"),
+    _m("sequencing", "r3-counts-own-current",
+       "through = (not was_c[k]) and was_d[k] and cur[k] > i_det",
+       "through = was_d[k] and cur[k] > i_det",
+       "R3: current through a closed charge FET is taken for diode conduction"),
+    _m("sequencing", "no-handover", "    if any_r3:\n        _open_charged",
+       "    if False:\n        _open_charged",
+       "R3 closes the higher battery and the lower sibling stays engaged (it is charged)"),
+    _m("sequencing", "no-cascade", "    if any_cut:\n        _open_charged",
+       "    if False:\n        _open_charged",
+       "after a reverse cut the next engaged battery takes the same current"),
+    _m("sequencing", "hot-insert-no-standby",
+       "if state[p, j] == DISCHARGING and volt[k] - volt[j] >= prm.v_th:", "if False:",
+       "a higher hot-inserted battery charges the admitted lower ones"),
+    _m("sequencing", "charge-mode-no-mirror",
+       "if state[p, k] == CHARGING and dsg_on[p, k] and cur[k] > prm.i_rev:", "if False:",
+       "charge mode: a battery feeding a charging sibling keeps its discharge FET on"),
+    _m("sequencing", "close-out-dropped",
+       "if cmd.dsg_on[p, k] == 0 and not tp.relay[k]:", "if False:",
+       "a tripped battery keeps its charge FET on (a sibling charges it through the diode)"),
+    _m("sequencing", "fail-safe-keeps-fets",
+       "_set(sw, ev, src, p, k, new, False, t, SET, R_FAIL_SAFE)",
+       "_set(sw, ev, src, p, k, DISCHARGING if present else OFF, True, t, SET, R_FAIL_SAFE)",
+       "invalid measurements leave the charge FETs on"),
+]
+
 # fmt: on
 
 MUTANTS: list[Mutant] = [
-    *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION
+    *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
+    *SEQUENCING,
 ]
 
-PENDING = {"sequencing": "after the co-discharge rewrite (another engineer is on it)"}
+PENDING: dict[str, str] = {}
 """Modules deliberately without mutants yet, shown in the report as TODO."""
 
 TESTS: dict[str, list[str]] = {
@@ -266,6 +330,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_plausibility_edges.py",
         "tests/test_plausibility_properties.py",
         "tests/test_plausibility_closed_loop.py",
+        "tests/test_fault_injection.py",
     ],
     "charging": [
         "tests/test_charging_controller.py",
@@ -277,6 +342,14 @@ TESTS: dict[str, list[str]] = {
         "tests/test_protection_controller.py",
         "tests/test_protection_properties.py",
         "tests/test_protection_replay.py",
+    ],
+    "sequencing": [
+        "tests/test_sequencing_controller.py",
+        "tests/test_sequencing_properties.py",
+        "tests/test_sequencing_closed_loop_properties.py",
+        "tests/test_sequencing_replay.py",
+        "tests/test_fault_injection.py::test_a_tripped_battery_cannot_be_charged_by_the_reserve"
+        "_that_replaces_it",
     ],
     "supervisor": ["tests/test_supervisor.py"],
     "soc": ["tests/test_soc_estimator.py"],

@@ -77,14 +77,39 @@ def value(x: float, kind: str, labels: Labels) -> EventValue:
     raise ValueError(f"unknown field kind {kind!r}")
 
 
+BATTERY_FIELDS = frozenset({"battery", "source", "first", "second", "closed"})
+"""Fields that hold a battery index (kinds ``i``/``o``) or a set of them (``m``): the message
+shows the battery's configured name, the data keeps the index (what programs match on)."""
+
+
+def _name(i: int, names: Sequence[str]) -> str:
+    return names[i] if 0 <= i < len(names) else str(i)
+
+
+def _named(v: EventValue, kind: str, names: Sequence[str]) -> EventValue:
+    """A battery index (or ``"0,2"`` set) as the names a user knows the batteries by."""
+    if kind == "m" and isinstance(v, str):
+        return ",".join(_name(int(x), names) for x in v.split(",") if x)
+    if isinstance(v, int) and not isinstance(v, bool):
+        return _name(v, names)
+    return v
+
+
 def render_one(
-    reason: Reason, t_s: float, battery: int, vals: Sequence[float], labels: Labels
+    reason: Reason,
+    t_s: float,
+    battery: int,
+    vals: Sequence[float],
+    labels: Labels,
+    names: Sequence[str] = (),
 ) -> Event:
+    """One event; ``names`` (the pack's battery names, by index) fill the message's battery
+    fields so it reads "battery B", as every table and chart names it."""
     data: dict[str, EventValue] = {}
     fmt: dict[str, Any] = {}
     for f in reason.fields:
         v = value(float(vals[f.slot]), f.kind, labels)
-        fmt[f.name] = v
+        fmt[f.name] = _named(v, f.kind, names) if names and f.name in BATTERY_FIELDS else v
         if f.in_data:
             data[f.name] = v
     return Event(
@@ -104,14 +129,16 @@ class Source:
     labels: Labels
 
 
-def render(buf: EventBuf, sources: Sequence[Source], n_packs: int) -> list[list[Event]]:
+def render(
+    buf: EventBuf, sources: Sequence[Source], n_packs: int, names: Sequence[str] = ()
+) -> list[list[Event]]:
     """The events in ``buf``, per pack, in emission order."""
     out: list[list[Event]] = [[] for _ in range(n_packs)]
     for k in range(int(buf.n[0])):
         src = sources[int(buf.src[k])]
         reason = src.reasons[int(buf.code[k])]
         out[int(buf.pack[k])].append(
-            render_one(reason, buf.t_s[k], int(buf.battery[k]), buf.val[k], src.labels)
+            render_one(reason, buf.t_s[k], int(buf.battery[k]), buf.val[k], src.labels, names)
         )
     return out
 

@@ -68,6 +68,8 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "LimitDerate": KindRow(Severity.WARNING, "limit", "LimitReset"),
         "CommandRefused": KindRow(Severity.WARNING, "refused"),
         "CrossCurrentRisk": KindRow(Severity.WARNING, "crosscurrent"),
+        # a battery with a failed sensor now supplies the load (degraded mode, #15 §5)
+        "ReserveEngaged": KindRow(Severity.WARNING, "reserve"),
         # routine: the controllers doing their job
         "BalancingUpdated": _I,
         "BatteryFull": _I,

@@ -91,6 +91,8 @@ class PackInfo:
     ocv_v: tuple[float, ...] = ()
     """The traction cells' open-circuit voltage curve (SOC -> cell volts, at the reference
     temperature), as a BMS has it in its parameter memory; empty when unknown."""
+    names: tuple[str, ...] = ()
+    """The batteries' configured names (event messages use them); empty: indices."""
 
 
 __all__ = ["PackInfo", "Topology"]

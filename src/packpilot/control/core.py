@@ -310,8 +310,10 @@ class Core:
                 continue
             s = self.sources[src]
             reason = s.reasons[int(ev.code[k])]
-            out[int(ev.pack[k])].append(
-                render_one(reason, ev.t_s[k], int(ev.battery[k]), ev.val[k], s.labels)
+            p = int(ev.pack[k])
+            names = self.infos[p].names if p < len(self.infos) else ()
+            out[p].append(
+                render_one(reason, ev.t_s[k], int(ev.battery[k]), ev.val[k], s.labels, names)
             )
         return out
 

@@ -128,7 +128,13 @@ def core_step(f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, d: Any, dt_s: fl
         )  # fmt: skip
     for j in range(n_parts):
         k = DIR_PARTS + DIR_STRIDE * j
-        if d[k] == PLAUSIBILITY:  # it compares switch feedback with the final commands
+        if d[k] == SEQUENCING:  # a charge FET never stays on without its discharge FET
+            sequencing.close_out_packs(
+                unpack(sequencing.SequencingParams, f, i, h, c, b, lay, d[k + 1]),
+                unpack(sequencing.SequencingState, f, i, h, c, b, lay, d[k + 2]),
+                tp, m, cmd,
+            )  # fmt: skip
+        elif d[k] == PLAUSIBILITY:  # it compares switch feedback with the final commands
             plausibility.note_commands_packs(
                 unpack(plausibility.PlausibilityParams, f, i, h, c, b, lay, d[k + 1]),
                 unpack(plausibility.PlausibilityState, f, i, h, c, b, lay, d[k + 2]),

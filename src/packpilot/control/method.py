@@ -79,8 +79,9 @@ class Method:
     max_events: Callable[[PackInfo], int]
     """Most events one pack can emit in one step (sizes the event buffer)."""
     after: Callable[[Any, Any, PackArrays, MeasArrays, CmdArrays], None] | None = None
-    """``after(prm, st, tp, m, cmd)``: sees the step's final, merged commands (plausibility
-    compares switch feedback with what was commanded)."""
+    """``after(prm, st, tp, m, cmd)``: sees the step's final, merged commands, in part order
+    (sequencing may still turn a path off, "off wins": a charge FET whose discharge FET any layer
+    opened; plausibility, after it, compares switch feedback with what was commanded)."""
 
 
 def status_values(
@@ -129,7 +130,7 @@ class CompiledController:
 
     def events(self) -> list[Event]:
         """The events of the last step."""
-        return render(self._ev, [self._source], 1)[0]
+        return render(self._ev, [self._source], 1, self.pack.names)[0]
 
 
 __all__ = ["CompiledController", "Method", "StatusChannel", "StepPacks", "status_values"]

@@ -1,270 +1,78 @@
-"""The single-file HTML run report: summary, events, batteries, switches, protection, controllers.
+"""The single-file HTML run report: verdict and KPIs first, one section per enabled method with
+the figures the benchmarks judge it by, interactive charts, nominal channels in one line each.
 
-One file that opens anywhere, offline, years later: figures are inline base64 PNGs, the CSS is
-inline, there is no external URL and no script is needed to see anything (one tiny inline
-script only marks, after ``load``, how many images decoded, for the browser test). Built from a
-:class:`Result`, so ``simulate --report`` needs no database and ``report`` reads one with
-``load_run``. Long runs are downsampled for plotting (see ``report/downsample.py``) and the
-event table is capped, so a 10-hour run still makes a small file quickly.
+One file that opens anywhere, offline, years later: the charting library (uPlot, MIT, bundled as
+package data under ``report/static/uplot``), the chart script and the data are inline; there is
+no external URL. The tables (verdict, KPIs, figures, events) need no script; the charts do (any
+current browser). Built from a :class:`Result`, so ``simulate --report`` needs no database and
+``report`` reads one with ``load_run``. The series are packed at full resolution (long runs are
+thinned, see ``report/charts.py``) and the event table is capped, so a 10-hour run still makes a
+small file quickly.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
-import html
 import importlib.metadata
 import json
 import math
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
-from packpilot.config import SUPERVISED
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
-from packpilot.contract.topology import Topology
+from packpilot.contract.severity import Severity, row_of
 from packpilot.errors import InputError
-from packpilot.report import figures as F
-from packpilot.report.plots import figure_png_base64
+from packpilot.report import sections as S
+from packpilot.report.can_log import can_section
+from packpilot.report.fmt import (
+    METRIC_DOC,
+    esc,
+    fmt_data,
+    fmt_date,
+    fmt_num,
+    fmt_time,
+    metric_unit,
+    metric_value,
+    table,
+)
+from packpilot.report.info import RunInfo, run_info_from_db
+from packpilot.report.style import ALARM_COLOR
 from packpilot.sim.verdict import Verdict, run_verdict
 
 SECTION_IDS: tuple[str, ...] = (
     "verdict",
     "summary",
-    "events",
     "batteries",
     "switches",
-    "protection",
+    "events",
     "controllers",
 )
+"""Sections every report has; method sections (:data:`METHOD_SECTIONS`) and ``can`` come
+when the run has them."""
+METHOD_SECTIONS: tuple[str, ...] = tuple(S.METHODS)
 SECTION_TITLES = {
     "verdict": "Verdict",
     "summary": "Summary",
-    "events": "Events",
     "batteries": "Batteries",
     "switches": "Switches",
-    "protection": "Protection",
-    "controllers": "Controllers",
+    "events": "Events",
+    "controllers": "Other channels",
+    "can": "CAN bus",
+    **{k: title for k, (title, _) in S.METHODS.items()},
 }
 MAX_EVENT_ROWS = 1000
 """Events listed in the table at most; rare kinds are kept first (see ``select_events``)."""
-MAX_TRANSITION_ROWS = 300
-DPI = 96
 
 
-# --------------------------------------------------------------------------- run information
-
-
-@dataclass(frozen=True)
-class RunInfo:
-    """What the report says about a run beyond its ``Result``: where it came from, its config."""
-
-    config_name: str | None = None
-    status: str | None = None
-    started_at: str | None = None
-    finished_at: str | None = None
-    source: str | None = None
-    config: Mapping[str, Any] | None = None
-    versions: Mapping[str, str] = field(default_factory=dict)
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any], **kw: Any) -> RunInfo:
-        """From a scenario config as a JSON-able dict (``cfg.model_dump(mode="json")``)."""
-        pack = config.get("pack")
-        name = pack.get("name") if isinstance(pack, Mapping) else None
-        return cls(config_name=kw.pop("config_name", name), config=config, **kw)
-
-    def _batteries(self) -> list[Mapping[str, Any]]:
-        pack = (self.config or {}).get("pack")
-        bats = pack.get("batteries") if isinstance(pack, Mapping) else None
-        return [b for b in bats if isinstance(b, Mapping)] if isinstance(bats, list) else []
-
-    def roles(self, names: Sequence[str]) -> list[str | None]:
-        by_name = {b.get("name"): b.get("role", "traction") for b in self._batteries()}
-        return [by_name.get(n) for n in names]
-
-    def switch_kinds(self, names: Sequence[str]) -> list[str | None]:
-        """Each battery's switch kind (its own ``switch`` or the pack default), None if unknown."""
-        pack = (self.config or {}).get("pack")
-        default = None
-        if isinstance(pack, Mapping):
-            sw = pack.get("switch")
-            default = sw.get("kind", "mosfet_pair") if isinstance(sw, Mapping) else "mosfet_pair"
-        kinds: dict[Any, str | None] = {}
-        for b in self._batteries():
-            sw = b.get("switch")
-            kinds[b.get("name")] = sw.get("kind") if isinstance(sw, Mapping) else default
-        return [kinds.get(n) for n in names]
-
-    def event_batteries(self, names: Sequence[str]) -> list[int]:
-        """Trace index of each ``Event.battery`` value: events count traction batteries only."""
-        return list(Topology.of_config(self.config, names).traction)
-
-    def event_names(self, names: Sequence[str]) -> list[str]:
-        """Names for ``Event.battery`` values (the aux battery has no index of its own)."""
-        return [names[i] for i in self.event_batteries(names)]
-
-    def controllers(self) -> list[str]:
-        cfg = self.config or {}
-        out = [str(c) for c in cfg.get("controller") or []]
-        out += [s for s in SUPERVISED if cfg.get(s) is not None]
-        return out
-
-
-def run_info_from_db(db_path: Path | str, run_id: int | None = None) -> RunInfo:
-    """The ``runs`` row of a telemetry file (latest run when ``run_id`` is None)."""
-    from packpilot.io.telemetry import list_runs
-
-    runs = list_runs(db_path)
-    if not runs:
-        raise InputError(f"{db_path}: telemetry database holds no runs")
-    row = runs[-1] if run_id is None else next((r for r in runs if r["id"] == run_id), None)
-    if row is None:
-        raise InputError(f"{db_path}: no run with id {run_id}")
-    config = row["config"] if isinstance(row["config"], Mapping) else {}
-    return RunInfo.from_config(
-        config,
-        status=row["status"],
-        started_at=row["started_at"],
-        finished_at=row["finished_at"],
-        source=str(db_path),
-        versions=row["versions"] if isinstance(row["versions"], Mapping) else {},
-    )
-
-
-# --------------------------------------------------------------------------- formatting
-
-
-def esc(x: Any) -> str:
-    return html.escape(str(x), quote=True)
-
-
-def fmt_num(v: Any) -> str:
-    """Numbers as a person reads them: 4 significant digits, no exponent for everyday sizes."""
-    if isinstance(v, bool) or v is None:
-        return str(v)
-    if isinstance(v, int | np.integer):
-        return f"{int(v):,}"
-    if isinstance(v, float | np.floating):
-        f = float(v)
-        if math.isnan(f) or math.isinf(f):
-            return str(f)
-        a = abs(f)
-        if a == 0.0:
-            return "0"
-        if a >= 1e7 or a < 1e-3:
-            return f"{f:.3e}"
-        if a >= 1e4:
-            return f"{f:,.0f}"
-        return f"{f:.4g}"
-    return str(v)
-
-
-def fmt_time(t_s: float) -> str:
-    if not math.isfinite(t_s):
-        return "–"
-    sign = "-" if t_s < 0 else ""
-    t = round(abs(t_s), 1)  # 299.99999 s (1500 steps of 0.2 s) reads 0:05:00.0, not 0:04:60.0
-    h, rem = divmod(t, 3600.0)
-    m, s = divmod(rem, 60.0)
-    return f"{sign}{int(h)}:{int(m):02d}:{s:04.1f}"
-
-
-def fmt_date(iso: str | None) -> str:
-    if not iso:
-        return "–"
-    try:
-        d = _dt.datetime.fromisoformat(iso)
-    except ValueError:
-        return iso
-    if d.tzinfo is not None:
-        d = d.astimezone(_dt.UTC)
-        return d.strftime("%Y-%m-%d %H:%M:%S UTC")
-    return d.strftime("%Y-%m-%d %H:%M:%S")
-
-
-def fmt_data(data: Mapping[str, Any]) -> str:
-    parts = []
-    for k, v in data.items():
-        if isinstance(v, float | int) and not isinstance(v, bool):
-            text = fmt_num(v)
-        elif isinstance(v, Mapping | list | tuple):
-            text = json.dumps(v, default=str)
-        else:
-            text = str(v)
-        parts.append(f"{k}={text}")
-    return ", ".join(parts)
-
-
-METRIC_DOC: dict[str, str] = {
-    "sim_time_s": "simulated time",
-    "wall_time_s": "wall-clock time of the simulation",
-    "steps": "control steps",
-    "energy_out_wh": "energy delivered to the load",
-    "energy_in_wh": "energy taken from the charger",
-    "min_cell_v": "lowest cell voltage of any battery",
-    "max_cell_v": "highest cell voltage of any battery",
-    "max_temp_c": "highest cell temperature",
-    "peak_cross_current_a": "largest current one battery pushed into another",
-    "joule_heat_j": "resistive heat in cells and switches",
-    "load_unsupplied_s": "time the load did not get what it asked for",
-    "final_soc": "state of charge at the end",
-    "peak_string_current_a": "largest-magnitude battery current (+ = discharge)",
-    "chg_diode_energy_j": "energy lost in the charge FET's body diode",
-    "dsg_diode_energy_j": "energy lost in the discharge FET's body diode",
-}
-
-
-def metric_unit(key: str) -> str:
-    if "soc" in key:
-        return "%"
-    return F.unit_of(key)
-
-
-def metric_value(key: str, v: Any) -> str:
-    if "soc" in key and isinstance(v, float):
-        return fmt_num(100.0 * v)
-    if isinstance(v, Mapping):
-        return ", ".join(f"{k}: {fmt_num(x)}" for k, x in v.items()) or "none"
-    if isinstance(v, list):
-        return ", ".join(metric_value(key, x) for x in v)
-    return fmt_num(v)
-
-
-def table(
-    header: Sequence[str] | None,
-    rows: Iterable[Sequence[str]],
-    *,
-    cls: str = "",
-    raw: bool = False,
-) -> str:
-    """An HTML table (no head row when ``header`` is None); cells escaped unless ``raw``."""
-    cell = (lambda s: s) if raw else esc
-    head = (
-        "<thead><tr>" + "".join(f"<th>{esc(h)}</th>" for h in header) + "</tr></thead>"
-        if header is not None
-        else ""
-    )
-    body = "".join("<tr>" + "".join(f"<td>{cell(c)}</td>" for c in r) + "</tr>" for r in rows)
-    c = f' class="{cls}"' if cls else ""
-    return f"<table{c}>{head}<tbody>{body}</tbody></table>"
-
-
-def img(fig: Figure, alt: str, caption: str = "") -> str:
-    """A figure as an inline PNG (data URI) with its pixel size, so the layout never jumps."""
-    w, h = (fig.get_size_inches() * DPI).round().astype(int)
-    data = figure_png_base64(fig, dpi=DPI)
-    cap = f"<figcaption>{esc(caption)}</figcaption>" if caption else ""
-    return (
-        f'<figure><img src="data:image/png;base64,{data}" alt="{esc(alt)}" width="{w}"'
-        f' height="{h}">{cap}</figure>'
-    )
+def severity_of(kind: str) -> Severity:
+    return row_of(kind).severity
 
 
 # --------------------------------------------------------------------------- sections
@@ -317,7 +125,46 @@ def _verdict(verdict: Verdict) -> str:
     return head + table(header, rows, cls="alarms", raw=True)
 
 
-def _summary(result: Result, info: RunInfo) -> str:
+def _kpis(result: Result, info: RunInfo, verdict: Verdict) -> str:
+    """The headline numbers, as tiles: what a reader checks before anything else."""
+    m = result.metrics
+    t = result.trace.t_s
+    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    n_alarm = sum(1 for a in verdict.alarms if a.severity >= Severity.ALARM)
+    n_warn = sum(1 for a in verdict.alarms if a.severity == Severity.WARNING)
+    tiles: list[tuple[str, str, str]] = [
+        (verdict.word, "verdict", verdict.word.lower()),
+        (f"{n_alarm} / {n_warn}", "alarms / warnings", "alarm" if n_alarm else
+         ("warning" if n_warn else "ok")),
+        (fmt_time(span), "simulated time", ""),
+    ]  # fmt: skip
+
+    def tile(key: str, label: str, unit: str, scale: float = 1.0) -> None:
+        v = m.get(key)
+        if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(float(v)):
+            tiles.append((f"{fmt_num(float(v) * scale)} {unit}".strip(), label, ""))
+
+    tile("energy_out_wh", "energy to the load", "Wh")
+    tile("energy_in_wh", "energy from the charger", "Wh")
+    tile("min_cell_v", "lowest cell voltage", "V")
+    tile("max_cell_v", "highest cell voltage", "V")
+    tile("max_temp_c", "hottest cell", "°C")
+    tile("peak_cross_current_a", "peak cross current", "A")
+    tile("load_unsupplied_s", "load unsupplied", "s")
+    soc = result.trace.channel("soc")[-1] if len(t) else []
+    for name, x in zip(result.battery_names, soc, strict=False):
+        if math.isfinite(float(x)):
+            tiles.append((f"{fmt_num(100.0 * float(x))} %", f"SOC of {name} at the end", ""))
+    tiles.append((f"{len(result.events):,}", "events", ""))
+    body = "".join(
+        f'<div class="kpi {esc(cls)}"><div class="v">{esc(v)}</div><div class="k">{esc(k)}'
+        "</div></div>"
+        for v, k, cls in tiles
+    )
+    return f'<div class="kpis" id="kpis">{body}</div>'
+
+
+def _summary(result: Result, info: RunInfo, verdict: Verdict) -> str:
     tr = result.trace
     n_s = len(tr.t_s)
     names = result.battery_names
@@ -379,6 +226,7 @@ def _summary(result: Result, info: RunInfo) -> str:
         )
     return (
         warn
+        + _kpis(result, info, verdict)
         + '<div class="cols"><div><h3>Run</h3>'
         + run_tbl
         + "</div><div><h3>Metrics</h3>"
@@ -442,23 +290,20 @@ def _battery_table(result: Result, info: RunInfo, extra: list[tuple[str, list[An
     return table(("", *names), rows, cls="battery")
 
 
-def _events(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
+def _events(result: Result, info: RunInfo) -> str:
     events = result.events
     if not events:
         return '<p class="note">No events were recorded in this run.</p>'
     names = info.event_names(result.battery_names)
     parts: list[str] = []
-    fig = F.events_figure(result, axis, names, info.event_batteries(result.battery_names))
-    if fig is not None:
-        parts.append(img(fig, "events over time by kind", "Each mark is one event."))
     counts = Counter(e.kind for e in events)
     first: dict[str, float] = {}
     for e in events:
         first.setdefault(e.kind, e.t_s)
     parts.append(
         table(
-            ("kind", "count", "first at (s)"),
-            [(k, str(n), fmt_num(first[k])) for k, n in counts.items()],
+            ("kind", "severity", "count", "first at (s)"),
+            [(k, severity_of(k).label, str(n), fmt_num(first[k])) for k, n in counts.items()],
             cls="counts",
         )
     )
@@ -494,165 +339,6 @@ def _events(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
     return "".join(parts)
 
 
-_NO_SAMPLES = '<p class="note">No samples were recorded in this run.</p>'
-
-
-def _batteries(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
-    if len(result.trace.t_s) == 0:
-        return _NO_SAMPLES
-    roles = info.roles(result.battery_names)
-    apart = [b for b, r in enumerate(roles) if r == "aux"]
-    fig = F.batteries_figure(result, axis, apart)
-    return img(
-        fig,
-        "battery voltage, current, SOC, temperature and cell voltage range",
-        "Battery terminal voltage with the bus (dashed)"
-        + ("; the auxiliary battery in its own panel" if apart else "")
-        + "; current, + = discharge, with the load and the charger; SOC; the hottest cell's"
-        " temperature; highest (solid) and lowest (dashed) cell voltage of each battery.",
-    )
-
-
-def _switches(result: Result, axis: F.TimeAxis, info: RunInfo) -> str:
-    tr = result.trace
-    if len(tr.t_s) == 0:
-        return _NO_SAMPLES
-    names = result.battery_names
-    kinds = info.switch_kinds(names) if info.config is not None else None
-    fig = F.switches_figure(result, axis, kinds)
-    parts = [
-        img(
-            fig,
-            "switch states per battery",
-            "Charge (CHG) and discharge (DSG) path of each battery as switched in the plant"
-            " (welded or shorted parts count as on). Orange: current through a body diode.",
-        )
-    ]
-    if len(tr.t_s):
-        rows = []
-        for b, name in enumerate(names):
-            chg, dsg = tr.channel("chg_on")[:, b], tr.channel("dsg_on")[:, b]
-            rows.append(
-                (
-                    name,
-                    fmt_num(100.0 * float(np.nanmean(chg > 0.5))),
-                    fmt_num(100.0 * float(np.nanmean(dsg > 0.5))),
-                    str(int(np.count_nonzero(np.diff(chg) != 0))),
-                    str(int(np.count_nonzero(np.diff(dsg) != 0))),
-                )
-            )
-        parts.append(
-            table(
-                (
-                    "battery",
-                    "CHG on (% of samples)",
-                    "DSG on (% of samples)",
-                    "CHG changes",
-                    "DSG changes",
-                ),
-                rows,
-                cls="counts",
-            )
-        )
-    return "".join(parts)
-
-
-def _protection(result: Result, channels: dict[str, F.StatusChannel], axis: F.TimeAxis) -> str:
-    names = result.battery_names
-    t = result.trace.t_s
-    if not any(k in channels for k in ("protection_param", "protection_fraction")):
-        return (
-            '<p class="note">Active protection parameter: <strong>not recorded</strong>. This run'
-            " has no <code>protection_param</code> / <code>protection_fraction</code> status"
-            ' channels (add "protection" to <code>controller</code> to record them).</p>'
-        )
-    fig = F.protection_figure(channels, t, axis, names)
-    parts = []
-    if fig is not None:
-        parts.append(
-            img(
-                fig,
-                "active protection parameter per battery",
-                "Active discharge-protection parameter (steps, left axis) and the used-up share"
-                " of the allowance, sum(t_k / t_max_k) (dashed, right axis); red: tripped.",
-            )
-        )
-    param = channels.get("protection_param")
-    frac = channels.get("protection_fraction")
-    if param is not None and len(t):
-        t_end = float(t[-1]) + (float(t[-1] - t[-2]) if len(t) > 1 else 0.0)
-        start = t[param.rows]
-        dur = np.diff(np.append(start, t_end))
-        rows = []
-        for b in param.columns:
-            per: dict[str, float] = {}
-            for j, v in enumerate(param.column(b)):
-                if v is not None:
-                    per[str(v)] = per.get(str(v), 0.0) + float(dur[j])
-            used = (
-                fmt_num(100.0 * float(np.nanmax(frac.numeric(b))))
-                if frac is not None and b in frac.columns
-                else "–"
-            )
-            rows.append((names[b], ", ".join(f"{k}: {fmt_num(s)} s" for k, s in per.items()), used))
-        parts.append(
-            table(("battery", "time per parameter", "max allowance used (%)"), rows, cls="counts")
-        )
-    return "".join(parts)
-
-
-def _transitions(
-    channels: Mapping[str, F.StatusChannel], t: NDArray[np.float64], names: Sequence[str]
-) -> tuple[list[tuple[str, ...]], int]:
-    """(time, channel, battery, from, to) of every change of a label channel, first ones."""
-    rows: list[tuple[float, str, str, str, str]] = []
-    for name, ch in channels.items():
-        if ch.kind != "label":
-            continue
-        lanes = [(ch.columns[0], "pack")] if ch.pack_level else [(b, names[b]) for b in ch.columns]
-        for b, who in lanes:
-            col = ch.column(b)
-            for j in range(1, len(col)):
-                if col[j] != col[j - 1]:
-                    rows.append((float(t[ch.rows[j]]), name, who, str(col[j - 1]), str(col[j])))
-    rows.sort(key=lambda r: r[0])
-    shown: list[tuple[str, ...]] = [
-        (fmt_num(r[0]), fmt_time(r[0]), *r[1:]) for r in rows[:MAX_TRANSITION_ROWS]
-    ]
-    return shown, len(rows)
-
-
-def _controllers(result: Result, channels: dict[str, F.StatusChannel], axis: F.TimeAxis) -> str:
-    names = result.battery_names
-    t = result.trace.t_s
-    others = {k: v for k, v in channels.items() if not k.startswith(F.PROTECTION_PREFIX)}
-    if not others:
-        return (
-            '<p class="note">No other controller status channels were recorded (sequencing'
-            " states, charging stage, equalization AH ... appear here when those controllers"
-            " run).</p>"
-        )
-    panels = F.controller_panels(others, t, axis, names)
-    parts = []
-    for family, fam_panels in panels.items():
-        parts.append(f"<h3>{esc(family)}</h3>")
-        for k, fig in enumerate(F.panels_figures(fam_panels, axis)):
-            parts.append(img(fig, f"{family} status channels" + (f" ({k + 1})" if k else "")))
-    trans, total = _transitions(others, t, names)
-    if trans:
-        parts.append("<h3>State changes</h3>")
-        if total > len(trans):
-            parts.append(f'<p class="note">First {len(trans):,} of {total:,} changes.</p>')
-        parts.append(
-            '<div class="scroll">'
-            + table(
-                ("t (s)", "t (h:mm:ss)", "channel", "battery", "from", "to"), trans, cls="events"
-            )
-            + "</div>"
-        )
-    return "".join(parts)
-
-
 # --------------------------------------------------------------------------- page
 
 _CSS = """
@@ -683,9 +369,30 @@ table.events td:last-child { font-family: ui-monospace, "DejaVu Sans Mono", mono
 .scroll { max-height: 28rem; overflow: auto; border: 1px solid var(--line); }
 .scroll table { margin: 0; width: 100%; }
 .cols { display: flex; flex-wrap: wrap; gap: 0 2rem; }
-figure { margin: .6rem 0 1rem; }
-figure img { max-width: 100%; height: auto; display: block; border: 1px solid var(--line); }
-figcaption { color: var(--muted); font-size: .85rem; margin-top: .25rem; }
+.chart { margin: .5rem 0 .9rem; }
+.ctitle { font-weight: 600; font-size: .9rem; margin-bottom: .1rem; }
+.cap { color: var(--muted); font-size: .82rem; margin: .1rem 0 0; }
+.plot .u-legend { font-size: .78rem; text-align: left; }
+.plot .u-legend .u-series { padding: 0 .4rem 0 0; }
+.zoombar { position: sticky; top: 0; z-index: 5; background: #fffffff0; border-bottom: 1px solid
+           var(--line); padding: .3rem 1.5rem; font-size: .85rem; color: var(--muted); }
+.zoombar button { font: inherit; margin-left: .6rem; padding: .05rem .6rem; cursor: pointer; }
+.kpis { display: grid; grid-template-columns: repeat(auto-fill, minmax(150px, 1fr));
+        gap: .5rem; margin: .4rem 0 1rem; }
+.kpi { border: 1px solid var(--line); border-radius: .4rem; padding: .4rem .6rem;
+       background: var(--bg2); }
+.kpi .v { font-size: 1.25rem; font-weight: 700; font-variant-numeric: tabular-nums; }
+.kpi .k { font-size: .78rem; color: var(--muted); }
+.kpi.alarm .v, .kpi.fault .v { color: #b3261e; }
+.kpi.warning .v { color: #8a5a00; }
+.kpi.ok .v { color: #135d27; }
+ul.nominal { margin: .2rem 0 .6rem; padding-left: 1.2rem; font-size: .85rem; color: var(--muted);
+             columns: 2 22rem; }
+details { margin: .3rem 0 .8rem; }
+details > summary { cursor: pointer; color: var(--accent); font-size: .9rem; }
+table.figures td:nth-child(2) { text-align: right; font-variant-numeric: tabular-nums; }
+span.ok { color: #135d27; font-weight: 600; }
+span.bad { color: #b3261e; font-weight: 600; }
 .note { color: var(--muted); font-style: italic; }
 .warn { background: #fdf0d5; border-left: 4px solid #d08a00; padding: .4rem .7rem; }
 .badge { display: inline-block; padding: 0 .45rem; border-radius: .6rem; font-size: .85rem;
@@ -705,18 +412,6 @@ pre { background: var(--bg2); padding: .6rem; overflow: auto; font-size: .78rem;
 footer { color: var(--muted); font-size: .8rem; text-align: center; padding: 1rem; }
 """
 
-# Not needed to read the report: it records, once everything has loaded, how many images
-# decoded (data-images-ok="decoded/total" on <body>), which the headless-browser test checks.
-_SCRIPT = """
-window.addEventListener("load", function () {
-  var imgs = document.images, ok = 0;
-  for (var i = 0; i < imgs.length; i++) {
-    if (imgs[i].complete && imgs[i].naturalWidth > 0) { ok++; }
-  }
-  document.body.setAttribute("data-images-ok", ok + "/" + imgs.length);
-});
-"""
-
 
 def _version() -> str:
     try:
@@ -725,21 +420,61 @@ def _version() -> str:
         return "unknown"
 
 
+def _asset(name: str) -> str:
+    return resources.files("packpilot.report").joinpath("static", name).read_text(encoding="utf-8")
+
+
+def _scripts(page: S.Page) -> str:
+    """uPlot (with its licence), the chart data and the chart script, all inline."""
+    data = {
+        "t": page.tkey,
+        "span": [float(page.t[0]), float(page.t[-1])] if len(page.t) else [0.0, 1.0],
+        "store": page.store.data,
+        "charts": {cid: c.spec() for cid, c in page.charts.items()},
+    }
+    text = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("<", "\\u003c")
+    licence = _asset("uplot/LICENSE").replace("*/", "* /")
+    return (
+        f"<style>{_asset('uplot/uPlot.min.css')}</style>"
+        f"<script>/* uPlot, bundled unmodified. {licence} */\n{_asset('uplot/uPlot.iife.min.js')}"
+        "</script>"
+        f'<script type="application/json" id="pp-data">{text}</script>'
+        f"<script>{_asset('report.js')}</script>"
+    )
+
+
+def _alarm_marks(verdict: Verdict) -> list[tuple[float, str, str]]:
+    return [
+        (a.t_s, ALARM_COLOR if a.severity >= Severity.ALARM else S.WARN_COLOR,
+         f"{a.kind} {a.battery or 'pack'}")
+        for a in verdict.alarms
+        if math.isfinite(a.t_s)
+    ]  # fmt: skip
+
+
+def _sections(result: Result, info: RunInfo, verdict: Verdict, page: S.Page) -> dict[str, str]:
+    """Every section's body, in page order."""
+    page.marks.extend(_alarm_marks(verdict))
+    body = {"verdict": _verdict(verdict), "summary": _summary(result, info, verdict)}
+    for key, (_, build) in S.METHODS.items():
+        if info.enabled(key):
+            body[key] = build(page)
+    body["batteries"] = S.batteries(page)
+    body["switches"] = S.switches(page)
+    body["events"] = _events(result, info)
+    body["controllers"] = S.controllers(page)
+    can_html, can_charts = can_section(info.can_log_path(), page.store)
+    if can_html:
+        body["can"] = can_html + "".join(page.chart(c) for c in can_charts)
+    return body
+
+
 def build_html(result: Result, info: RunInfo | None = None) -> str:
     """The whole report page as one string."""
     info = info or RunInfo()
-    axis = F.TimeAxis.of(result.trace.t_s)
-    channels = F.status_channels(result)
     verdict = run_verdict(result, info.config)
-    body = {
-        "verdict": _verdict(verdict),
-        "summary": _summary(result, info),
-        "events": _events(result, axis, info),
-        "batteries": _batteries(result, axis, info),
-        "switches": _switches(result, axis, info),
-        "protection": _protection(result, channels, axis),
-        "controllers": _controllers(result, channels, axis),
-    }
+    page = S.Page(result, info)
+    body = _sections(result, info, verdict, page)
     name = info.config_name or "run"
     run = f"run {result.run_id}" if result.run_id is not None else "in-memory run"
     status = info.status or "unknown"
@@ -748,10 +483,17 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
     badge += f' <span class="badge verdict-{esc(word.lower())}">{esc(word)}</span>'
     when = fmt_date(info.started_at) if info.started_at else ""
     sub = " · ".join(x for x in (esc(name), esc(run), badge, esc(when)) if x)
-    nav = "".join(f'<a href="#{s}">{esc(SECTION_TITLES[s])}</a>' for s in SECTION_IDS)
+    nav = "".join(f'<a href="#{s}">{esc(SECTION_TITLES[s])}</a>' for s in body)
     sections = "".join(
-        f'<section id="{s}"><h2>{esc(SECTION_TITLES[s])}</h2>{body[s]}</section>'
-        for s in SECTION_IDS
+        f'<section id="{s}"><h2>{esc(SECTION_TITLES[s])}</h2>{html}</section>'
+        for s, html in body.items()
+    )
+    zoom = (
+        '<div class="zoombar">Charts: drag across one to zoom, wheel to zoom around the cursor,'
+        ' double-click to go back; they move together. Showing: <strong data-range="run">whole'
+        ' run</strong><button type="button" data-reset="run">reset zoom</button></div>'
+        if page.charts
+        else ""
     )
     now = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
     return (
@@ -761,10 +503,10 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
         f"<title>PackPilot report: {esc(name)} ({esc(run)})</title>"
         f"<style>{_CSS}</style></head>\n<body>"
         f'<header><h1>PackPilot run report</h1><p class="sub">{sub}</p>'
-        f"<nav>{nav}</nav></header>\n<main>{sections}</main>\n"
-        f"<footer>Generated by PackPilot {esc(_version())} on {now}. Self-contained:"
-        " plots are embedded, nothing is loaded from the network.</footer>"
-        f"<script>{_SCRIPT}</script></body></html>\n"
+        f"<nav>{nav}</nav></header>\n{zoom}<main>{sections}</main>\n"
+        f"<footer>Generated by PackPilot {esc(_version())} on {now}. Self-contained: the charts"
+        " (uPlot, MIT licence) and their data are embedded, nothing is loaded from the"
+        f" network.</footer>{_scripts(page)}</body></html>\n"
     )
 
 
@@ -791,21 +533,35 @@ def write_report(result: Result, out_path: Path | str, info: RunInfo | None = No
     return out
 
 
-def report_from_db(db_path: Path | str, out_path: Path | str, run_id: int | None = None) -> Path:
-    """Write the report of a recorded run (latest by default): ``packpilot report``."""
+def report_from_db(
+    db_path: Path | str,
+    out_path: Path | str,
+    run_id: int | None = None,
+    can_log: Path | str | None = None,
+) -> Path:
+    """Write the report of a recorded run (latest by default): ``packpilot report``; with
+    ``can_log``, its CAN section reads that log (else the one the run's config names)."""
+    import dataclasses
+
     from packpilot.io.telemetry import load_run
 
     check_report_path(out_path)
+    if can_log is not None and not Path(can_log).is_file():
+        raise InputError(f"--can-log {can_log}: no such file")
     result = load_run(db_path, run_id)
     info = run_info_from_db(db_path, result.run_id)
+    if can_log is not None:
+        info = dataclasses.replace(info, can_log=str(can_log))
     return write_report(result, out_path, info)
 
 
 __all__ = [
+    "METHOD_SECTIONS",
     "SECTION_IDS",
     "RunInfo",
     "build_html",
     "check_report_path",
+    "fmt_num",
     "report_from_db",
     "run_info_from_db",
     "select_events",

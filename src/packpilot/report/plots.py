@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
 from packpilot.errors import InputError
-from packpilot.report.figures import battery_color
+from packpilot.report.style import battery_color
 
 _FORMATS = ("png", "svg", "pdf")
 _MAX_EVENT_LABELS = 12

@@ -78,6 +78,7 @@ class SimulatedPlant:
             capacity_ah=tuple(float(pack.capacity_ah[p, pack.cell_string == i].min()) for i in tr),
             ocv_soc=tuple(float(x) for x in params.ocv_soc),
             ocv_v=tuple(float(x) for x in params.ocv_table_v),
+            names=tuple(bats[i].name for i in tr),
         )
 
     def _traction_cell_params(self) -> Any:

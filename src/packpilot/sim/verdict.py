@@ -40,7 +40,7 @@ B1 = NDArray[np.bool_]
 
 CATEGORIES: tuple[str, ...] = (
     "fault", "trip", "unsupplied", "overdischarge", "crosscharge", "limit", "refused",
-    "crosscurrent", "unknown",
+    "crosscurrent", "reserve", "unknown",
 )  # fmt: skip
 """Every category an alarm can have: what ``simulate --fail-on`` accepts."""
 

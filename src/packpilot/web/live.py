@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import re
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -29,12 +30,15 @@ from packpilot.contract.topology import Topology
 from packpilot.errors import PackPilotError
 from packpilot.sim.verdict import RunWatch
 
+MAX_SPEED = 10_000.0
+"""Fastest pace the page may ask for (simulated seconds per wall second); 0 means unpaced."""
+
 CHART_CHANNELS: tuple[str, ...] = ("voltage_v", "current_a", "soc", "temp_c")
 """Per-battery channels kept in the chart history (the four charts of the page)."""
 
 _CHART_COLS = [BATTERY_CHANNELS.index(c) for c in CHART_CHANNELS]
 
-STATES = ("starting", "running", "finished", "stopped", "error")
+STATES = ("idle", "starting", "running", "finished", "stopped", "error")
 
 WATCH_CHUNK = 256
 """Samples the writer holds before it folds them into the physics checks (readers fold what is
@@ -69,9 +73,28 @@ def jsonable_dict(obj: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
+_BATTERY_NO = re.compile(r"\bbattery (\d+)\b(?![.\d])")
+"""A controller's battery index in a message ("battery 0: charge FET off ... from battery 1");
+not a voltage ("aux battery 12.3 V")."""
+
+
+def name_batteries(message: str, topology: Topology) -> str:
+    """``message`` with each controller battery index replaced by the battery's name.
+
+    The controllers format their messages with indices (the golden hashes pin those texts),
+    so the renaming happens here, where the names are known: "battery 1" → "battery B"."""
+
+    def name(m: re.Match[str]) -> str:
+        shown = topology.battery_name(int(m.group(1)))
+        return f"battery {shown}" if shown is not None else m.group(0)
+
+    return _BATTERY_NO.sub(name, message)
+
+
 def event_dict(index: int, e: Event, topology: Topology) -> dict[str, Any]:
     """One event as sent to browsers; ``battery_name`` spares the page an index lookup (an
-    event's battery counts traction batteries only, as in the report)."""
+    event's battery counts traction batteries only, as in the report), and the message names
+    batteries as the page does."""
     b = e.battery
     return jsonable_dict(
         {
@@ -81,10 +104,81 @@ def event_dict(index: int, e: Event, topology: Topology) -> dict[str, Any]:
             "severity": row_of(e.kind).severity.label,
             "battery": b,
             "battery_name": topology.battery_name(b),
-            "message": e.message,
+            "message": name_batteries(e.message, topology),
             "data": dict(e.data),
         }
     )
+
+
+def pack_layout(config: Mapping[str, Any] | None, names: Sequence[str]) -> dict[str, Any]:
+    """What the page's pack schematic draws: each battery's role, switch kind and group count,
+    and whether the pack has a charger, a load and balancers (from the run's config)."""
+    cfg = config or {}
+    pack = cfg.get("pack") if isinstance(cfg.get("pack"), Mapping) else {}
+    assert isinstance(pack, Mapping)
+    default_switch = (pack.get("switch") or {}).get("kind", "mosfet_pair")
+    by_name = {b.get("name"): b for b in pack.get("batteries") or () if isinstance(b, Mapping)}
+    batteries = []
+    for n in names:
+        b = by_name.get(n, {})
+        sw = (b.get("switch") or {}).get("kind", default_switch)
+        batteries.append(
+            {
+                "name": n,
+                "role": b.get("role") or "traction",
+                "switch": sw,
+                "series_groups": b.get("series_groups"),
+            }
+        )
+    load = cfg.get("load") or {}
+    return {
+        "batteries": batteries,
+        "charger": bool((cfg.get("charger") or {}).get("present", False)),
+        "load": (load.get("kind") or "none") != "none",
+        "balancer": bool((cfg.get("balancer") or {}).get("present", False)),
+    }
+
+
+MOVING_A = 0.05
+"""Pack current below which the headline times are not shown (rest: nothing to extrapolate)."""
+
+
+def headline(latest: Mapping[str, Any] | None, roles: Sequence[str]) -> dict[str, Any]:
+    """The three numbers a pilot asks first (Victron style), from a ``sample_summary``:
+
+    - ``time_to_go_s``: traction batteries' remaining Ah at the present discharge current;
+    - ``time_to_cutoff_s``: the soonest protection trip predicted (``protection_time_to_trip_s``
+      of the protection controller; None without it or when no voltage is falling);
+    - ``time_to_full_s``: the Ah still missing at the present charge current (an optimistic
+      bound: the constant-voltage taper makes the real charge longer).
+    """
+    out: dict[str, Any] = {"time_to_go_s": None, "time_to_cutoff_s": None, "time_to_full_s": None}
+    if not latest:
+        return out
+    bats = [
+        b
+        for i, b in enumerate(latest.get("batteries") or ())
+        if (roles[i] if i < len(roles) else "traction") != "aux"
+    ]
+    cur = sum(_num(b.get("current_a")) for b in bats)
+    if cur > MOVING_A:
+        left = sum(max(0.0, _num(b.get("remaining_ah"))) for b in bats)
+        out["time_to_go_s"] = left * 3600.0 / cur
+    elif cur < -MOVING_A:
+        missing = sum(max(0.0, _num(b.get("full_ah")) - _num(b.get("remaining_ah"))) for b in bats)
+        out["time_to_full_s"] = missing * 3600.0 / -cur
+    trips = [
+        t
+        for b in bats
+        if isinstance(t := (b.get("status") or {}).get("protection_time_to_trip_s"), int | float)
+        and math.isfinite(t)
+    ]
+    out["time_to_cutoff_s"] = min(trips) if trips else None
+    return out
+
+
+def _num(x: Any) -> float:
+    return float(x) if isinstance(x, int | float) and math.isfinite(x) else 0.0
 
 
 def sample_summary(s: StepSample, names: Sequence[str]) -> dict[str, Any]:
@@ -161,11 +255,26 @@ class LiveRun:
     run_id: int | None = None
     db: str | None = None
     stop_requested: threading.Event = field(default_factory=threading.Event)
+    kind: str = "live"
+    """``live`` (a run going on here) or ``recorded`` (a run read from a telemetry file)."""
+    source: str | None = None
+    """Where the run comes from: the scenario file, or the telemetry file and run id."""
+    report: str | None = None
+    """URL path of the run's HTML report once one exists (shown as a link at the end)."""
+    notice: str | None = None
+    """A remark for the page that is not the run's error (e.g. why no report was written)."""
 
     def __post_init__(self) -> None:
         if self.max_points < 4:
             raise ValueError(f"max_points must be >= 4, got {self.max_points}")
+        if not (self.speed >= 0 and math.isfinite(self.speed)):
+            raise ValueError(f"speed must be finite and >= 0, got {self.speed}")
         self._lock = threading.Lock()
+        self._control = threading.Condition()
+        self._paused = False
+        self._epoch = 0  # bumps on every pause / resume / speed change / stop request
+        self.layout: dict[str, Any] = pack_layout(None, self.battery_names)
+        self.config: Mapping[str, Any] | None = None
         self._latest: StepSample | None = None
         self._version = 0  # bumps on every write; readers compare to skip idle pushes
         self._points: list[dict[str, Any]] = []
@@ -185,6 +294,8 @@ class LiveRun:
         with self._lock:
             self.battery_names = list(battery_names)
             self.topology = Topology.of_config(config, battery_names)
+            self.layout = pack_layout(config, battery_names)
+            self.config = config
             self._watch = RunWatch(config, battery_names)
             self._pending = []
             self.state = "running"
@@ -244,12 +355,68 @@ class LiveRun:
         self._watch.physics.feed_samples(self._pending)
         self._pending = []
 
+    def set_report(self, url: str) -> None:
+        with self._lock:
+            self.report = url
+            self._version += 1
+
+    def note(self, text: str) -> None:
+        with self._lock:
+            self.notice = text
+            self._version += 1
+
+    # ------------------------------------------------------------------ controls
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    def pace(self) -> tuple[int, float, bool]:
+        """(epoch, speed, paused) as the pacing hook reads them, consistently."""
+        with self._control:
+            return self._epoch, self.speed, self._paused
+
+    def _changed(self) -> None:
+        """Wake the pacing hook and the readers (holding ``_control``)."""
+        self._epoch += 1
+        self._control.notify_all()
+        self._version += 1
+
+    def set_paused(self, paused: bool) -> None:
+        with self._control:
+            if self._paused != paused:
+                self._paused = paused
+                self._changed()
+
+    def set_speed(self, speed: float) -> None:
+        if not (0 <= speed <= MAX_SPEED):
+            raise ValueError(f"speed must be 0..{MAX_SPEED:g} (0: as fast as possible)")
+        with self._control:
+            self.speed = float(speed)
+            self._changed()
+
+    def request_stop(self) -> None:
+        with self._control:
+            self.stop_requested.set()
+            self._changed()
+
+    def wait_control(self, epoch: int, timeout_s: float | None) -> bool:
+        """Sleep until a control changes (True) or ``timeout_s`` passes (False)."""
+        with self._control:
+            return self._control.wait_for(
+                lambda: self._epoch != epoch or self.stop_requested.is_set(), timeout_s
+            )
+
     # ------------------------------------------------------------------ reader side
     def verdict(self) -> dict[str, Any]:
         """The run's verdict and alarms so far (the same checks as the report and the CLI)."""
         with self._lock:
             self._fold()
-            return jsonable_dict(self._watch.verdict().as_dict())
+            out = jsonable_dict(self._watch.verdict().as_dict())
+            topology = self.topology
+        for alarm in out.get("alarms") or ():  # an event's message is the alarm's cause
+            if isinstance(alarm.get("cause"), str):
+                alarm["cause"] = name_batteries(alarm["cause"], topology)
+        return out
 
     @property
     def version(self) -> int:
@@ -268,6 +435,7 @@ class LiveRun:
             names = list(self.battery_names)
         verdict = self.verdict()
         t_s = latest.t_s if latest is not None else 0.0
+        summary = None if latest is None else sample_summary(latest, names)
         return jsonable_dict(
             {
                 "state": state,
@@ -279,9 +447,15 @@ class LiveRun:
                 "dt_s": self.dt_s,
                 "progress": _progress(state, t_s, self.duration_s),
                 "speed": self.speed,
+                "paused": self._paused,
+                "kind": self.kind,
+                "source": self.source,
+                "report": self.report,
+                "notice": self.notice,
+                "headline": headline(summary, self.topology.roles),
                 "n_events": n_events,
                 "verdict": verdict,
-                "latest": None if latest is None else sample_summary(latest, names),
+                "latest": summary,
                 "metrics": metrics,
                 "error": error,
                 "run_id": self.run_id,
@@ -353,26 +527,35 @@ class DashboardRecorder:
             self.live.on_finish(metrics, state)
 
 
-def pacing_hook(live: LiveRun, speed: float) -> Callable[[Any, float], None]:
-    """Runner hook: hold simulated time to ``speed`` × wall time; raise when asked to stop.
+def pacing_hook(live: LiveRun) -> Callable[[Any, float], None]:
+    """Runner hook: hold simulated time to ``live.speed`` × wall time, hold still while
+    paused, raise when asked to stop.
 
-    ``speed <= 0`` runs as fast as possible. Sleeping happens only when more than 2 ms ahead,
-    so fast paces cost no sleep call per step; the stop flag doubles as the sleep so a stop
-    request is seen at once.
+    Speed and pause are read at every step, so the page's controls act within one step (a
+    sleep wakes at once on a change). ``speed <= 0`` runs as fast as possible. Sleeping
+    happens only when more than 2 ms ahead, so fast paces cost no sleep call per step. After
+    a change the pace restarts from the present step, so a resume does not race to catch up.
     """
-    origin: list[float] = []
+    origin: list[float] = []  # wall time, simulated time, epoch
+    stopped = "stopped by the dashboard at t = {:.1f} s"
 
     def hook(runner: Any, t_s: float) -> None:
-        if live.stop_requested.is_set():
-            raise RunStopped(f"stopped by the dashboard at t = {t_s:.1f} s")
+        while True:
+            if live.stop_requested.is_set():
+                raise RunStopped(stopped.format(t_s))
+            epoch, speed, paused = live.pace()
+            if not paused:
+                break
+            live.wait_control(epoch, None)
         if speed <= 0:
+            origin.clear()
             return
         now = time.perf_counter()
-        if not origin:
-            origin.extend((now, t_s))
+        if not origin or origin[2] != epoch:
+            origin[:] = [now, t_s, epoch]
         ahead = origin[0] + (t_s - origin[1]) / speed - now
-        if ahead > 0.002 and live.stop_requested.wait(ahead):
-            raise RunStopped(f"stopped by the dashboard at t = {t_s:.1f} s")
+        if ahead > 0.002 and live.wait_control(epoch, ahead) and live.stop_requested.is_set():
+            raise RunStopped(stopped.format(t_s))
 
     return hook
 
@@ -388,7 +571,9 @@ class SimThread(threading.Thread):
         self.runner = runner
         self.live = live
         self.db = db
-        runner.hooks = (*runner.hooks, pacing_hook(live, live.speed))
+        self.on_result: Callable[[LiveRun, Any], None] | None = None
+        """Called with the ``Result`` of a run that finished (e.g. to write its report)."""
+        runner.hooks = (*runner.hooks, pacing_hook(live))
 
     def run(self) -> None:
         try:
@@ -397,10 +582,12 @@ class SimThread(threading.Thread):
 
                 with SQLiteRecorder(self.db) as rec:
                     self.runner.recorder = DashboardRecorder(self.live, rec)
-                    self.runner.run()
+                    result = self.runner.run()
             else:
                 self.runner.recorder = DashboardRecorder(self.live)
-                self.runner.run()
+                result = self.runner.run()
+            if self.on_result is not None:
+                self.on_result(self.live, result)
         except RunStopped as err:
             self.live.fail(str(err))
         except PackPilotError as err:
@@ -409,6 +596,6 @@ class SimThread(threading.Thread):
             self.live.fail(f"{type(err).__name__}: {err}")
 
     def stop(self, timeout_s: float = 10.0) -> None:
-        self.live.stop_requested.set()
+        self.live.request_stop()
         if self.is_alive():
             self.join(timeout_s)

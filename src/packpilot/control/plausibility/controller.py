@@ -55,6 +55,11 @@ REASONS = (
     _cleared("battery:i", True),  # CLEARED_MANUAL
     _cleared("battery:o", False),  # PACK_CLEARED
     _cleared("battery:o", True),  # PACK_CLEARED_MANUAL
+    Reason(  # RESERVE_ENGAGED
+        "ReserveEngaged",
+        "reserve brought in (no trusted battery supplies the load; charge path stays off)",
+        fields("battery:i"),
+    ),
 )
 STATUS = (StatusChannel("plaus_faults", "l:faultsets"), StatusChannel("plaus_isolated", "b"))
 
@@ -156,7 +161,7 @@ def allocate(n_packs: int, n_batteries: int, n_groups: int) -> PlausibilityState
 
 def _max_events(info: PackInfo) -> int:
     # every detector may latch or clear once per step, plus the service resets queued before it
-    return 2 * (info.n_batteries * N_KINDS + 1)
+    return 2 * (info.n_batteries * N_KINDS + 1) + info.n_batteries  # + ReserveEngaged
 
 
 METHOD = Method(

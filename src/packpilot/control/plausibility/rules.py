@@ -139,7 +139,7 @@ BAD = 1
 REACTIONS: tuple[str, ...] = (
     "charger_off",
     "charger_off (welded relay: cannot isolate)",
-    "isolate",
+    "isolate (kept as reserve)",
     "isolate + charger_off until open",
     "keep_supplying (last source in flight)",
     "open_charge_path, keep_supplying (last source in flight)",
@@ -171,6 +171,7 @@ CLEARED = 5
 CLEARED_MANUAL = 6
 PACK_CLEARED = 7
 PACK_CLEARED_MANUAL = 8
+RESERVE_ENGAGED = 9
 
 # Event value slots.
 SLOT_BATTERY = 0
@@ -460,20 +461,38 @@ def _sensor_bad(latched: B1, p: int, i: int) -> bool:
 
 
 @kernel_inline
-def _other_source(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int) -> bool:
-    """Another battery with trusted sensors can carry the load now (switch feedback)."""
+def _stays_on(tp: PackArrays, cmd: CmdArrays, p: int, j: int) -> bool:
+    """No layer before this one opened battery ``j``'s discharge path in this step (a relay
+    opens when either of its commands is off)."""
+    if cmd.dsg_on[p, j] == 0:
+        return False
+    return not (tp.relay[j] and cmd.chg_on[p, j] == 0)
+
+
+@kernel_inline
+def _other_source(
+    st: PlausibilityState, tp: PackArrays, m: MeasArrays, cmd: CmdArrays, p: int, i: int
+) -> bool:  # fmt: skip
+    """Another battery with trusted sensors carries the load now (switch feedback) and keeps
+    carrying it after this step (no layer opened it this step).
+
+    The second half is what makes the hand-over to a reserve make-before-break: this layer runs
+    after the methods and the limits, so when protection trips the last trusted source in this
+    step, the reserve's isolation is lifted in the same step its path opens."""
     for j in range(st.cmd_chg.shape[1]):
         if j == i or not (m.bat.reported[p, j] and m.bat.present[p, j]):
             continue
         if _sensor_bad(st.latched, p, j):
             continue
-        if conducts(tp, m, p, j, False):
+        if conducts(tp, m, p, j, False) and _stays_on(tp, cmd, p, j):
             return True
     return False
 
 
 @kernel_inline
-def _reaction(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int) -> int:
+def _reaction(
+    st: PlausibilityState, tp: PackArrays, m: MeasArrays, cmd: CmdArrays, p: int, i: int, k: int
+) -> int:  # fmt: skip
     """What the commands will do about a new fault (for the event; see ``_output``)."""
     if i < 0:
         return R_CHARGER_OFF
@@ -482,7 +501,7 @@ def _reaction(st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: i
             return R_WELDED_NO_ISOLATE
         if m.docked[p]:
             return R_ISOLATE_DOCKED
-        if _other_source(st, tp, m, p, i):
+        if _other_source(st, tp, m, cmd, p, i):
             return R_ISOLATE
         if tp.relay[i]:
             return R_KEEP_SUPPLYING
@@ -537,10 +556,10 @@ def _nonfinite_code(x: float) -> float:
 
 @kernel_inline
 def _emit_fault(
-    st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, i: int, k: int,
-    f: Finding, ev: EventBuf, src: int,
+    st: PlausibilityState, tp: PackArrays, m: MeasArrays, cmd: CmdArrays, p: int, i: int,
+    k: int, f: Finding, ev: EventBuf, src: int,
 ) -> None:  # fmt: skip
-    reaction = _reaction(st, tp, m, p, i, k)
+    reaction = _reaction(st, tp, m, cmd, p, i, k)
     value, vk = f[2], f[3]
     if i < 0:
         code = PACK_FAULT
@@ -588,8 +607,8 @@ def _reset(st: PlausibilityState, p: int, row: int, k: int) -> None:
 
 @kernel_inline
 def _act(
-    st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, row: int, k: int,
-    f: Finding, action: int, ev: EventBuf, src: int,
+    st: PlausibilityState, tp: PackArrays, m: MeasArrays, cmd: CmdArrays, p: int, row: int,
+    k: int, f: Finding, action: int, ev: EventBuf, src: int,
 ) -> None:  # fmt: skip
     """Latch detector ``k`` of battery ``row`` (B: the pack) with a ``Fault`` event, or clear it
     with a ``FaultCleared`` event (the rare path, kept out of the per-detector loop)."""
@@ -597,7 +616,7 @@ def _act(
     if action == LATCH:
         st.latched[p, row, k] = True
         st.field[p, row, k] = f[1]
-        _emit_fault(st, tp, m, p, i, k, f, ev, src)
+        _emit_fault(st, tp, m, cmd, p, i, k, f, ev, src)
     else:
         _emit_cleared(ev, p, src, i, k, int(st.field[p, row, k]), False, m.t_s[p])
         _reset(st, p, row, k)
@@ -615,9 +634,14 @@ def _flush_resets(st: PlausibilityState, p: int, ev: EventBuf, src: int) -> None
 @kernel_inline
 def _output(
     st: PlausibilityState, tp: PackArrays, m: MeasArrays, p: int, cmd: CmdArrays, status: F64,
-    s0: int,
+    s0: int, ev: EventBuf, src: int,
 ) -> None:  # fmt: skip
-    """The fail-safe commands of every latched fault, and the status channels."""
+    """The fail-safe commands of every latched fault, and the status channels.
+
+    Degraded mode in flight (docs/fault_injection.md): a battery with a failed sensor is a
+    *reserve*, isolated while a trusted battery carries the load and brought in (charge path
+    still off: nothing may charge a battery we cannot see) in the step the last trusted source
+    stops, with a ``ReserveEngaged`` event that tells the platform."""
     n = st.cmd_chg.shape[1]
     lat = st.latched
     charger_off = bool(lat[p, n, K_NONFINITE])
@@ -635,7 +659,7 @@ def _output(
             dsg_off = True
         sensor_bad = _sensor_bad(lat, p, i)
         if sensor_bad and not welded:
-            if docked or _other_source(st, tp, m, p, i):
+            if docked or _other_source(st, tp, m, cmd, p, i):
                 chg_off = dsg_off = True
                 isolated = True
             elif not tp.relay[i]:
@@ -648,6 +672,9 @@ def _output(
             put_chg(cmd, p, i, False)
         if dsg_off:
             put_dsg(cmd, p, i, False)
+        if st.isolated[p, i] and not isolated and sensor_bad and not docked:
+            e = emit(ev, p, src, RESERVE_ENGAGED, i, m.t_s[p])
+            ev.val[e, SLOT_BATTERY] = float(i)
         st.isolated[p, i] = isolated
         mask = 0
         for k in range(N_KINDS):
@@ -729,7 +756,7 @@ def step_pack(
             st.ok_s[p, i, k] = ok_s
             st.was_bad[p, i, k] = was_bad
             if action != HOLD:
-                _act(st, tp, m, p, i, k, f, action, ev, src)
+                _act(st, tp, m, cmd, p, i, k, f, action, ev, src)
     f = _pack_finding(m.bus_v[p], m.load_current_a[p])
     action, bad_s, ok_s, was_bad = _advance(
         f[0], st.bad_s[p, n, K_NONFINITE], st.ok_s[p, n, K_NONFINITE],
@@ -740,8 +767,8 @@ def step_pack(
     st.ok_s[p, n, K_NONFINITE] = ok_s
     st.was_bad[p, n, K_NONFINITE] = was_bad
     if action != HOLD:
-        _act(st, tp, m, p, n, K_NONFINITE, f, action, ev, src)
-    _output(st, tp, m, p, cmd, status, s0)
+        _act(st, tp, m, cmd, p, n, K_NONFINITE, f, action, ev, src)
+    _output(st, tp, m, p, cmd, status, s0, ev, src)
 
 
 @kernel

@@ -290,6 +290,7 @@ METHOD = Method(
     status=STATUS,
     labels=labels,
     max_events=lambda info: rules.max_events(info.n_batteries),
+    after=rules.close_out_packs,
 )
 
 

@@ -1067,6 +1067,31 @@ def step_packs(
         step_pack(prm, st, tp, m, p, dt_s, cmd, ev, src, status, s0)
 
 
+@kernel_inline
+def close_out_pack(st: SequencingState, tp: PackArrays, p: int, cmd: CmdArrays) -> None:
+    """Out of charge mode, a battery whose discharge path any layer opened in this step gets
+    its charge FET opened in the same step.
+
+    Embodiments 5 and 7 (the charge FET is on only while the battery discharges), made exact at
+    the command level: with its discharge FET off the battery cannot discharge, and a charge FET
+    left on would let a sibling charge it through the discharge FET's body diode (a protection
+    trip of the lower battery while a higher one takes over pushed 46 A into it for one period
+    before the reverse cut). Runs after every layer and the supervisor (``Method.after``)."""
+    if st.mode[p] == MODE_CHARGE:
+        return
+    for k in range(st.state.shape[1]):
+        if cmd.dsg_on[p, k] == 0 and not tp.relay[k]:
+            put_chg(cmd, p, k, False)
+
+
+@kernel
+def close_out_packs(
+    prm: SequencingParams, st: SequencingState, tp: PackArrays, m: MeasArrays, cmd: CmdArrays
+) -> None:  # fmt: skip
+    for p in range(m.t_s.shape[0]):
+        close_out_pack(st, tp, p, cmd)
+
+
 def max_events(n: int) -> int:
     """Upper bound of the events one pack can emit in one step (N batteries)."""
     return n * n + 16 * n + 8

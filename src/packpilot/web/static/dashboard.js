@@ -1,6 +1,8 @@
-// PackPilot live dashboard: one WebSocket, plain <canvas> charts, no external resources.
-// Protocol (see docs/dashboard.md): a "hello" message (scenario, battery names), then "update"
-// messages with new chart points, new events, the latest sample and, at the end, the metrics.
+// PackPilot dashboard: one WebSocket, plain <canvas> charts, an inline-SVG pack schematic, no
+// external resources. Protocol (see docs/dashboard.md): a "hello" message (scenario, battery
+// names, pack layout), then "update" messages with new chart points, new events, the latest
+// sample and, at the end, the metrics. A new "hello" means the server switched to another run.
+// Controls POST to /api/* with the page's token in the X-PackPilot-Token header.
 "use strict";
 
 // Battery colours: none of them is the alarm red (ALARM), so "battery B" never reads as an alarm.
@@ -15,13 +17,19 @@ const CHARTS = [
 ];
 // Each event carries its severity from the one table (contract/severity.py); routine events
 // that change a mode or stage are still marked, in blue.
+const SEVERITY = { info: 0, warning: 1, alarm: 2, fault: 3 };
 const isBad = (e) => e.severity === "alarm" || e.severity === "fault";
 const INFO_KINDS = /Mode|Stage|Joined|Reset|Resupplied/i;
 const MAX_EVENT_ROWS = 1000;
+const BALANCING_A = 1e-4; // an equalizer current above this marks its group as balancing
+const TOKEN = (document.querySelector('meta[name="packpilot-token"]') || {}).content || "";
+const SVG = "http://www.w3.org/2000/svg";
 
 const S = {
   names: [], points: [], events: [], latest: null, maxPoints: 2000, duration: 0, speed: 0,
   received: 0, updates: 0, state: "connecting", metrics: null, cards: [], dirty: false,
+  kind: "live", layout: null, paused: false, cursorT: null, playing: null, sch: null,
+  finalLatest: null, headline: null,
 };
 
 const $ = (id) => document.getElementById(id);
@@ -35,9 +43,16 @@ const isNum = (x) => typeof x === "number" && Number.isFinite(x);
 const fmt = (x, d = 2, unit = "") => (isNum(x) ? x.toFixed(d) + (unit ? " " + unit : "") : "—");
 function fmtTime(t) {
   if (!isNum(t)) return "—";
+  t = Math.round(t * 10) / 10; // 3599.96 s is 1:00:00.0, not 59:60.0
   const h = Math.floor(t / 3600), m = Math.floor((t % 3600) / 60), s = t % 60;
-  const ss = s.toFixed(1).padStart(4, "0");
+  const ss = (Math.round(s * 10) / 10).toFixed(1).padStart(4, "0");
   return (h ? h + ":" + String(m).padStart(2, "0") : String(m)) + ":" + ss;
+}
+function fmtDur(t) {
+  if (!isNum(t)) return "—";
+  if (t >= 3600) return Math.floor(t / 3600) + " h " + String(Math.floor((t % 3600) / 60)).padStart(2, "0") + " min";
+  if (t >= 60) return Math.floor(t / 60) + " min " + String(Math.floor(t % 60)).padStart(2, "0") + " s";
+  return t.toFixed(0) + " s";
 }
 function fmtAny(v) {
   if (v === null || v === undefined) return "—";
@@ -46,6 +61,12 @@ function fmtAny(v) {
   if (Array.isArray(v)) return v.map(fmtAny).join(", ");
   if (typeof v === "object") return Object.entries(v).map(([k, x]) => k + ": " + fmtAny(x)).join(", ");
   return String(v);
+}
+function svg(tag, attrs, text) {
+  const e = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs || {})) e.setAttribute(k, v);
+  if (text !== undefined) e.textContent = text;
+  return e;
 }
 
 // ------------------------------------------------------------------ connection
@@ -72,21 +93,43 @@ function setConn(on) {
 }
 
 function onHello(msg) {
-  // A (re)connection replays the whole history: start from scratch.
+  // A (re)connection or a switch to another run replays the whole history: start from scratch.
+  stopPlay();
   S.names = msg.battery_names || [];
   S.points = [];
   S.events = [];
   S.latest = null;
+  S.finalLatest = null;
   S.received = 0;
   S.updates = 0;
+  S.cursorT = null;
   S.maxPoints = msg.max_points || 2000;
   S.duration = msg.duration_s || 0;
   S.speed = msg.speed || 0;
+  S.kind = msg.kind || "live";
+  S.layout = msg.layout || null;
   $("scenario").textContent = msg.scenario;
-  document.title = "PackPilot live — " + msg.scenario;
-  $("speed").textContent = S.speed > 0 ? S.speed + "× real time" : "as fast as possible";
+  $("kind").textContent = S.kind === "recorded" ? "recording" : "live";
+  $("source").textContent = msg.source ? "(" + msg.source + ")" : "";
+  document.title = "PackPilot " + (S.kind === "recorded" ? "recording" : "live") + " — " + msg.scenario;
+  $("pace-controls").hidden = false;
+  $("btn-pause").hidden = S.kind !== "live";
+  $("scrub-controls").hidden = S.kind !== "recorded";
+  $("scrub").max = String(Math.max(S.duration, 1e-3));
+  $("scrub").value = $("scrub").max;
+  $("report-link").hidden = true;
+  showSpeed(S.kind === "recorded" ? 10 : S.speed); // a recording plays at 10x by default
   document.querySelector("#events tbody").textContent = "";
+  const fb = $("filter-battery");
+  const keep = fb.value;
+  fb.length = 2;
+  for (const n of S.names) fb.append(new Option(n, n));
+  fb.value = [...fb.options].some((o) => o.value === keep) ? keep : "*";
+  document.body.dataset.kind = S.kind;
+  document.body.dataset.scrub = "";
   buildCards();
+  buildSchematic();
+  loadCatalog();
 }
 
 function onUpdate(msg) {
@@ -97,42 +140,201 @@ function onUpdate(msg) {
     while (S.points.length > S.maxPoints) S.points = S.points.filter((_, i) => i % 2 === 0);
   }
   if (msg.events && msg.events.length) addEvents(msg.events);
-  if (msg.latest) S.latest = msg.latest;
+  if (msg.latest) S.finalLatest = msg.latest;
+  if (S.cursorT === null) { // a scrubbed recording shows the moment chosen, not the end
+    S.latest = S.finalLatest;
+    S.headline = msg.headline;
+  }
   S.state = msg.state;
   S.metrics = msg.metrics;
+  S.paused = !!msg.paused;
+  if (isNum(msg.speed) && S.kind === "live") S.speed = msg.speed;
   renderStatus(msg);
+  renderControls(msg);
   if (msg.verdict) renderVerdict(msg.verdict);
-  renderCards();
+  renderLatest();
   if (msg.metrics) renderMetrics(msg.metrics);
   const b = document.body.dataset;
   b.samples = String(S.received);
   b.updates = String(S.updates);
   b.events = String(S.events.length);
   b.state = S.state;
+  b.paused = String(S.paused);
+  b.speed = String(S.speed);
   requestDraw();
 }
 
-// ------------------------------------------------------------------ pack status
-function renderStatus(msg) {
-  const badge = $("run-state");
-  badge.textContent = msg.state;
-  badge.className = "badge state-" + msg.state;
+function renderLatest() {
   const L = S.latest;
-  $("t-s").textContent = fmtTime(msg.t_s) + (S.duration ? " / " + fmtTime(S.duration) : "");
-  const done = msg.state === "finished";
-  $("progress-bar").style.width = (done ? 100 : 100 * (msg.progress || 0)).toFixed(1) + "%";
   if (L) {
     $("bus-v").textContent = fmt(L.bus_v, 2, "V");
     $("load-a").textContent = fmt(L.load_a, 1, "A") + " (" + fmt(L.load_demand_a, 1) + ")";
     $("charger").textContent = fmt(L.charger_v, 1, "V") + " · " + fmt(L.charger_a, 2, "A");
     $("mode").textContent = L.mode || "—";
   }
+  renderHeadline(S.headline);
+  renderCards();
+  renderSchematic();
+}
+
+// ------------------------------------------------------------------ controls
+async function post(path, body) {
+  const r = await fetch(path, {
+    method: "POST",
+    headers: { "Content-Type": "application/json", "X-PackPilot-Token": TOKEN },
+    body: JSON.stringify(body || {}),
+  });
+  let j = {};
+  try { j = await r.json(); } catch (_) { /* an empty or non-JSON answer */ }
+  if (!r.ok) throw new Error(j.error || (j.detail && JSON.stringify(j.detail)) || "HTTP " + r.status);
+  return j;
+}
+
+function say(text, bad) {
+  const m = $("control-msg");
+  m.textContent = text || "";
+  m.className = "ctl-msg" + (bad ? " bad" : "");
+}
+
+async function act(path, body, what) {
+  try {
+    say(what + "…");
+    const r = await post(path, body);
+    say("");
+    return r;
+  } catch (err) {
+    say(what + " refused: " + err.message, true);
+    return null;
+  }
+}
+
+function showSpeed(speed) {
+  const sel = $("speed-select");
+  const v = String(speed);
+  if (![...sel.options].some((o) => o.value === v)) sel.append(new Option(speed + "×", v));
+  sel.value = v;
+  $("speed").textContent = S.kind === "recorded" ? "recorded"
+    : speed > 0 ? speed + "× real time" : "as fast as possible";
+}
+
+function renderControls(msg) {
+  const btn = $("btn-pause");
+  const running = msg.state === "running" || msg.state === "starting";
+  btn.textContent = S.paused ? "resume" : "pause";
+  btn.disabled = S.kind !== "live" || !running;
+  btn.classList.toggle("paused", S.paused);
+  if (S.kind === "live" && document.activeElement !== $("speed-select")) showSpeed(S.speed);
+  const link = $("report-link");
+  link.hidden = !msg.report;
+  if (msg.report) link.href = msg.report;
+  const note = $("notice");
+  note.hidden = !msg.notice;
+  note.textContent = msg.notice || "";
+}
+
+async function loadCatalog() {
+  let cat;
+  try {
+    const r = await fetch("/api/catalog");
+    if (!r.ok) return;
+    cat = await r.json();
+  } catch (_) { return; }
+  fillSelect($("example-select"), cat.examples || []);
+  $("example-pick").hidden = $("btn-start").hidden = !(cat.examples || []).length;
+  fillSelect($("recording-select"), cat.recordings || []);
+  $("recording-pick").hidden = $("btn-open").hidden = !(cat.recordings || []).length;
+}
+
+function fillSelect(sel, names) {
+  const keep = sel.value;
+  sel.textContent = "";
+  for (const n of names) sel.append(new Option(n, n));
+  if (names.includes(keep)) sel.value = keep;
+}
+
+$("btn-pause").addEventListener("click", () => {
+  act(S.paused ? "/api/resume" : "/api/pause", {}, S.paused ? "resume" : "pause");
+});
+$("speed-select").addEventListener("change", () => {
+  const v = Number($("speed-select").value);
+  if (S.kind === "live") act("/api/speed", { speed: v }, "speed");
+});
+$("btn-start").addEventListener("click", () => {
+  const ex = $("example-select").value;
+  if (ex) act("/api/start", { example: ex, speed: Number($("speed-select").value) || 0 }, "start " + ex);
+});
+$("btn-open").addEventListener("click", () => {
+  const rec = $("recording-select").value;
+  if (rec) act("/api/open", { recording: rec }, "open " + rec);
+});
+
+// ------------------------------------------------------------------ scrubbing a recording
+let atSeq = 0;
+async function scrubTo(t) {
+  S.cursorT = t;
+  document.body.dataset.scrub = String(t);
+  $("scrub-t").textContent = fmtTime(t) + " / " + fmtTime(S.duration);
+  const seq = ++atSeq;
+  let r;
+  try {
+    const resp = await fetch("/api/at?t_s=" + encodeURIComponent(t));
+    if (!resp.ok) return;
+    r = await resp.json();
+  } catch (_) { return; }
+  if (seq !== atSeq) return; // a later position was asked for meanwhile
+  S.latest = r.latest;
+  S.headline = r.headline;
+  $("t-s").textContent = fmtTime(r.t_s) + (S.duration ? " / " + fmtTime(S.duration) : "");
+  renderLatest();
+  renderEvents();
+  requestDraw();
+  document.body.dataset.scrubbed = String(r.index);
+}
+
+function stopPlay() {
+  if (S.playing) clearInterval(S.playing);
+  S.playing = null;
+  $("btn-play").textContent = "play";
+}
+
+$("scrub").addEventListener("input", () => { stopPlay(); scrubTo(Number($("scrub").value)); });
+$("btn-play").addEventListener("click", () => {
+  if (S.playing) { stopPlay(); return; }
+  const rate = Number($("speed-select").value) || 100;
+  let t = S.cursorT === null || S.cursorT >= S.duration ? 0 : S.cursorT;
+  $("btn-play").textContent = "stop";
+  S.playing = setInterval(() => {
+    t = Math.min(S.duration, t + rate * 0.2);
+    $("scrub").value = String(t);
+    scrubTo(t);
+    if (t >= S.duration) stopPlay();
+  }, 200);
+});
+
+// ------------------------------------------------------------------ pack status
+function renderStatus(msg) {
+  const badge = $("run-state");
+  const shown = S.paused && msg.state === "running" ? "paused" : msg.state;
+  badge.textContent = shown;
+  badge.className = "badge state-" + shown;
+  if (S.cursorT === null)
+    $("t-s").textContent = fmtTime(msg.t_s) + (S.duration ? " / " + fmtTime(S.duration) : "");
+  const done = msg.state === "finished";
+  $("progress-bar").style.width = (done ? 100 : 100 * (msg.progress || 0)).toFixed(1) + "%";
   $("n-events").textContent = String(S.events.length);
   const err = $("error");
   if (msg.error) {
     err.hidden = false;
     err.textContent = (msg.state === "stopped" ? "stopped: " : "error: ") + msg.error;
   } else err.hidden = true;
+}
+
+function renderHeadline(h) {
+  h = h || {};
+  $("hl-go").textContent = fmtDur(h.time_to_go_s);
+  $("hl-cutoff").textContent = h.time_to_cutoff_s === 0 ? "tripped" : fmtDur(h.time_to_cutoff_s);
+  $("hl-cutoff").classList.toggle("bad", isNum(h.time_to_cutoff_s) && h.time_to_cutoff_s < 60);
+  $("hl-full").textContent = fmtDur(h.time_to_full_s);
 }
 
 // ------------------------------------------------------------------ verdict + alarms
@@ -157,12 +359,128 @@ function renderVerdict(v) {
   }
 }
 
+// ------------------------------------------------------------------ pack schematic
+function switchState(on, diodeA) {
+  return on ? "on" : Math.abs(diodeA || 0) > 0.01 ? "diode" : "off";
+}
+
+function buildSchematic() {
+  const root = $("schematic");
+  root.textContent = "";
+  S.sch = null;
+  const L = S.layout;
+  if (!L || !L.batteries || !L.batteries.length) return;
+  const n = L.batteries.length;
+  const colW = 150, left = L.charger ? 150 : 40, right = L.load ? 150 : 40;
+  const W = left + n * colW + right, H = 250, busY = 34;
+  const g = svg("svg", { viewBox: "0 0 " + W + " " + H, width: W, height: H, role: "img",
+    "aria-label": "pack schematic", id: "pack-svg" });
+  g.append(svg("line", { x1: 20, y1: busY, x2: W - 20, y2: busY, class: "bus" }));
+  const busV = svg("text", { x: 24, y: busY - 10, class: "lbl" }, "bus");
+  g.append(busV);
+  const parts = { busV, bats: [] };
+  if (L.charger) {
+    g.append(svg("line", { x1: 75, y1: busY, x2: 75, y2: 90, class: "wire" }));
+    const box = svg("rect", { x: 25, y: 90, width: 100, height: 46, rx: 6, class: "part",
+      "data-part": "charger", "data-state": "off" });
+    g.append(box, svg("text", { x: 75, y: 108, class: "lbl mid" }, "charger"));
+    const txt = svg("text", { x: 75, y: 126, class: "val mid" }, "—");
+    g.append(txt);
+    parts.charger = { box, txt };
+  }
+  if (L.load) {
+    const x = W - 75;
+    g.append(svg("line", { x1: x, y1: busY, x2: x, y2: 90, class: "wire" }));
+    const box = svg("rect", { x: x - 50, y: 90, width: 100, height: 46, rx: 6, class: "part",
+      "data-part": "load", "data-state": "off" });
+    g.append(box, svg("text", { x, y: 108, class: "lbl mid" }, "load"));
+    const txt = svg("text", { x, y: 126, class: "val mid" }, "—");
+    g.append(txt);
+    parts.load = { box, txt };
+  }
+  L.batteries.forEach((b, i) => {
+    const cx = left + i * colW + colW / 2;
+    const aux = b.role === "aux";
+    g.append(svg("line", { x1: cx, y1: busY, x2: cx, y2: 150, class: "wire" }));
+    const p = { name: b.name, fets: {} };
+    if (aux) g.append(svg("text", { x: cx + 8, y: busY + 16, class: "lbl" }, "DC/DC ↓"));
+    if (b.switch === "relay") {
+      const box = svg("rect", { x: cx - 34, y: 70, width: 68, height: 50, rx: 4, class: "fet",
+        "data-relay": b.name, "data-state": "open" });
+      const blade = svg("line", { x1: cx - 14, y1: 104, x2: cx + 14, y2: 86, class: "blade" });
+      g.append(box, blade, svg("text", { x: cx, y: 116, class: "lbl mid small" }, "relay"));
+      p.relay = { box, blade, cx };
+    } else {
+      for (const [k, y] of [["DSG", 62], ["CHG", 100]]) {
+        const box = svg("rect", { x: cx - 30, y, width: 60, height: 30, rx: 4, class: "fet",
+          "data-fet": b.name + ":" + k, "data-state": "off" });
+        g.append(box, svg("text", { x: cx, y: y + 20, class: "lbl mid small" }, k));
+        p.fets[k] = box;
+      }
+    }
+    const cell = svg("rect", { x: cx - 45, y: 150, width: 90, height: 78, rx: 6, class: "bat",
+      "data-battery": b.name });
+    cell.style.stroke = COLORS[i % COLORS.length];
+    const fill = svg("rect", { x: cx - 41, y: 224, width: 82, height: 0, class: "socfill" });
+    g.append(cell, fill,
+      svg("rect", { x: cx - 12, y: 144, width: 24, height: 6, class: "terminal" }),
+      svg("text", { x: cx, y: 170, class: "lbl mid strong" }, b.name + (aux ? " (aux)" : "")));
+    const v = svg("text", { x: cx, y: 190, class: "val mid" }, "—");
+    const a = svg("text", { x: cx, y: 208, class: "val mid" }, "—");
+    g.append(v, a);
+    Object.assign(p, { fill, v, a, cx });
+    parts.bats.push(p);
+  });
+  root.append(g);
+  S.sch = parts;
+  renderSchematic();
+}
+
+function setState(node, state) {
+  node.setAttribute("data-state", state);
+  node.setAttribute("class", node.getAttribute("class").replace(/ st-\w+/g, "") + " st-" + state);
+}
+
+function renderSchematic() {
+  const P = S.sch, L = S.latest;
+  if (!P || !L) return;
+  P.busV.textContent = "bus " + fmt(L.bus_v, 2, "V");
+  if (P.charger) {
+    setState(P.charger.box, Math.abs(L.charger_a || 0) > 0.01 ? "on" : "off");
+    P.charger.txt.textContent = fmt(L.charger_v, 1, "V") + " · " + fmt(L.charger_a, 1, "A");
+  }
+  if (P.load) {
+    setState(P.load.box, (L.load_a || 0) > 0.01 ? "on" : "off");
+    P.load.txt.textContent = fmt(L.load_a, 1, "A");
+  }
+  P.bats.forEach((p, i) => {
+    const b = L.batteries[i];
+    if (!b) return;
+    if (p.relay) {
+      const closed = b.chg_on > 0.5 && b.dsg_on > 0.5;
+      setState(p.relay.box, closed ? "closed" : "open");
+      p.relay.blade.setAttribute("y2", closed ? "104" : "86");
+    } else {
+      setState(p.fets.DSG, switchState(b.dsg_on > 0.5, b.dsg_diode_a));
+      setState(p.fets.CHG, switchState(b.chg_on > 0.5, b.chg_diode_a));
+    }
+    const soc = isNum(b.soc) ? Math.max(0, Math.min(1, b.soc)) : 0;
+    p.fill.setAttribute("height", String(70 * soc));
+    p.fill.setAttribute("y", String(224 - 70 * soc));
+    p.v.textContent = fmt(b.voltage_v, 2, "V");
+    const cur = b.current_a;
+    p.a.textContent = isNum(cur) ? (cur > 0.05 ? "↑ " : cur < -0.05 ? "↓ " : "") +
+      Math.abs(cur).toFixed(1) + " A" : "—";
+  });
+}
+
 // ------------------------------------------------------------------ battery cards
 function buildCards() {
   const root = $("batteries");
   root.textContent = "";
   S.cards = S.names.map((name, i) => {
     const card = el("div", "panel bat");
+    card.dataset.battery = name;
     const h = el("h3");
     const sw = el("span", "swatch");
     sw.style.background = COLORS[i % COLORS.length];
@@ -179,6 +497,7 @@ function buildCards() {
     const socbar = el("div", "socbar");
     const socfill = el("div");
     socbar.append(socfill);
+    const bars = el("div", "cellbars");
     const cellsLine = el("div", "line");
     const switches = el("div", "line");
     const prot = el("div", "line");
@@ -187,9 +506,9 @@ function buildCards() {
     details.append(el("summary", null, "all controller status"));
     const table = el("table");
     details.append(table);
-    card.append(h, nums, socbar, cellsLine, switches, prot, extra, details);
+    card.append(h, nums, socbar, bars, cellsLine, switches, prot, extra, details);
     root.append(card);
-    return { cells, socfill, cellsLine, switches, prot, extra, table, details };
+    return { cells, socfill, bars, cellsLine, switches, prot, extra, table, details };
   });
 }
 
@@ -197,6 +516,50 @@ function pill(label, on, diode) {
   const p = el("span", "sw " + (on ? "on" : diode ? "diode" : "off"));
   p.textContent = label + " " + (on ? "on" : diode ? "diode" : "off");
   return p;
+}
+
+// Per-cell (series group) voltage bars, diyBMS style: the lowest and highest group marked,
+// a group the equalizer is moving charge in/out of marked as balancing.
+function renderCellBars(c, b, i) {
+  // group_v is padded with NaN up to the pack's largest battery: show this one's groups only
+  const own = S.layout && S.layout.batteries[i] ? S.layout.batteries[i].series_groups : null;
+  let gv = (b.group_v || []).map((v) => (isNum(v) ? v : null));
+  if (isNum(own)) gv = gv.slice(0, own);
+  else while (gv.length && gv[gv.length - 1] === null) gv.pop();
+  c.bars.classList.toggle("dense", gv.length > 16);
+  const vals = gv.filter((v) => v !== null);
+  const st = b.status || {};
+  if (c.bars.childElementCount !== gv.length) {
+    c.bars.textContent = "";
+    gv.forEach((_, k) => {
+      const bar = el("div", "cellbar");
+      bar.dataset.cell = String(k);
+      const fill = el("div", "fill");
+      const lab = el("span", "lab");
+      bar.append(fill, lab, el("span", "no", String(k + 1)));
+      c.bars.append(bar);
+    });
+  }
+  if (!vals.length) return;
+  const lo = Math.min(...vals), hi = Math.max(...vals);
+  const span = Math.max(hi - lo, 0.1);
+  const base = lo - 0.25 * span, top = hi + 0.15 * span;
+  // a spread under 0.1 mV has no lowest or highest group worth pointing at
+  const marked = vals.length > 1 && hi - lo >= 1e-4;
+  const iLo = marked ? gv.indexOf(lo) : -1, iHi = marked ? gv.indexOf(hi) : -1;
+  [...c.bars.children].forEach((bar, k) => {
+    const v = gv[k];
+    const eq = st["eq_i_a_g" + k];
+    const bal = isNum(eq) && Math.abs(eq) > BALANCING_A;
+    bar.classList.toggle("min", k === iLo);
+    bar.classList.toggle("max", k === iHi);
+    bar.classList.toggle("balancing", bal);
+    bar.dataset.v = v === null ? "" : v.toFixed(4);
+    bar.title = "group " + (k + 1) + ": " + fmt(v, 3, "V") + (bal ? " · balancing " +
+      (eq * 1000).toFixed(0) + " mA" : "");
+    bar.children[0].style.height = v === null ? "0" : (100 * (v - base) / (top - base)).toFixed(1) + "%";
+    bar.children[1].textContent = v === null ? "—" : v.toFixed(3);
+  });
 }
 
 function renderCards() {
@@ -210,9 +573,12 @@ function renderCards() {
     c.cells.soc.textContent = isNum(b.soc) ? (100 * b.soc).toFixed(1) + "%" : "—";
     c.cells.temp_c.textContent = fmt(b.temp_c, 1);
     c.socfill.style.width = isNum(b.soc) ? Math.max(0, Math.min(100, 100 * b.soc)) + "%" : "0";
-    c.cellsLine.innerHTML = "";
+    renderCellBars(c, b, i);
+    c.cellsLine.textContent = "";
+    const spread = isNum(b.max_cell_v) && isNum(b.min_cell_v) ?
+      " (spread " + (1000 * (b.max_cell_v - b.min_cell_v)).toFixed(0) + " mV)" : "";
     c.cellsLine.append(el("span", "k", "cells"),
-      el("span", null, fmt(b.min_cell_v, 3) + " … " + fmt(b.max_cell_v, 3) + " V"),
+      el("span", null, fmt(b.min_cell_v, 3) + " … " + fmt(b.max_cell_v, 3) + " V" + spread),
       el("span", "k", " · remaining"), el("span", null, fmt(b.remaining_ah, 2, "Ah")));
     c.switches.textContent = "";
     c.switches.append(el("span", "k", "switches"),
@@ -248,20 +614,55 @@ function renderCards() {
 }
 
 // ------------------------------------------------------------------ events + metrics
+function passes(e) {
+  const min = SEVERITY[$("filter-severity").value] || 0;
+  if ((SEVERITY[e.severity] || 0) < min) return false;
+  const fb = $("filter-battery").value;
+  if (fb === "-" && e.battery_name) return false;
+  if (fb !== "*" && fb !== "-" && e.battery_name !== fb) return false;
+  if (S.cursorT !== null && isNum(e.t_s) && e.t_s > S.cursorT) return false;
+  return true;
+}
+
+function eventRow(e) {
+  const tr = el("tr");
+  const cls = isBad(e) ? "kind-bad" : e.severity === "warning" ? "kind-warn"
+    : INFO_KINDS.test(e.kind) ? "kind-info" : "kind-other";
+  tr.dataset.severity = e.severity;
+  tr.append(el("td", null, fmtTime(e.t_s)), el("td", cls, e.kind),
+    el("td", null, e.battery_name || ""), el("td", null, e.message || ""));
+  return tr;
+}
+
 function addEvents(evs) {
   const tbody = document.querySelector("#events tbody");
   for (const e of evs) {
     S.events.push(e);
-    const tr = el("tr");
-    const cls = isBad(e) ? "kind-bad" : e.severity === "warning" ? "kind-warn"
-      : INFO_KINDS.test(e.kind) ? "kind-info" : "kind-other";
-    tr.append(el("td", null, fmtTime(e.t_s)), el("td", cls, e.kind),
-      el("td", null, e.battery_name || ""), el("td", null, e.message || ""));
-    tbody.insertBefore(tr, tbody.firstChild); // newest on top
+    if (passes(e)) tbody.insertBefore(eventRow(e), tbody.firstChild); // newest on top
   }
   while (tbody.rows.length > MAX_EVENT_ROWS) tbody.deleteRow(tbody.rows.length - 1);
-  $("events-count").textContent = "(" + S.events.length + ", newest first)";
+  countEvents();
 }
+
+function renderEvents() {
+  const tbody = document.querySelector("#events tbody");
+  tbody.textContent = "";
+  const shown = [];
+  for (let k = S.events.length - 1; k >= 0 && shown.length < MAX_EVENT_ROWS; k--)
+    if (passes(S.events[k])) shown.push(eventRow(S.events[k]));
+  tbody.append(...shown);
+  countEvents();
+}
+
+function countEvents() {
+  const n = document.querySelector("#events tbody").rows.length;
+  document.body.dataset.eventsShown = String(n);
+  $("events-count").textContent = "(" + (n === S.events.length ? n : n + " of " + S.events.length) +
+    ", newest first)";
+}
+
+$("filter-severity").addEventListener("change", renderEvents);
+$("filter-battery").addEventListener("change", renderEvents);
 
 function renderMetrics(m) {
   const tbody = document.querySelector("#metrics tbody");
@@ -383,6 +784,15 @@ function drawChart(spec) {
     g.stroke();
   }
   g.restore();
+
+  // the scrubbed moment of a recording
+  if (S.cursorT !== null && S.cursorT >= t0 && S.cursorT <= t1) {
+    g.strokeStyle = "#1d2430";
+    g.setLineDash([4, 3]);
+    const x = Math.round(X(S.cursorT)) + 0.5;
+    g.beginPath(); g.moveTo(x, pad.t); g.lineTo(x, pad.t + ph); g.stroke();
+    g.setLineDash([]);
+  }
 
   // legend
   g.textAlign = "left";
