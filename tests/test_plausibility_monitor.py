@@ -347,6 +347,23 @@ def test_config_validation() -> None:
     assert PlausibilityConfig.load({"stuck_temp_time_s": None}).stuck_temp_time_s is None
 
 
+def test_a_stale_sample_is_not_judged_for_its_switches() -> None:
+    """A stale sample's feedback is as old as the sample: a battery whose telemetry stopped
+    and that the BMS then isolated must not latch a "FET shorted" fault (only a service action
+    clears those); once fresh again, its switches are judged as before."""
+
+    def aged(k: int, age: float, fb: SwitchState) -> AgedMeasurement:
+        m = live(k, switch=fb)
+        return AgedMeasurement(**{f: getattr(m, f) for f in _FIELDS}, sample_age_s=age)
+
+    on = SwitchState(chg_on=True, dsg_on=True)
+    d = PDriver()
+    d.mon.note_commands(_cmd((False, True), (False, True)))  # battery 0 commanded open
+    outs = d.run(lambda k: (aged(k, 3.0, on), live(k)), 20)  # stale, feedback still "on"
+    assert [e.data["kind"] for e in faults(outs)] == ["stale"]
+    outs = d.run(lambda k: (aged(k, 0.1, on), live(k)), 20)  # fresh: now it is judged
+    assert "chg_fet_shorted" in {e.data["kind"] for e in faults(outs)}
+
 # -- degraded mode: the reserve (#15 §5) ------------------------------------------------
 
 

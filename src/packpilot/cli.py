@@ -862,6 +862,181 @@ def dashboard(
     _guard(go)
 
 
+DRONECAN_HELP = (
+    "batteries reporting by DroneCAN BatteryInfo + BatteryInfoAux: their battery_id in"
+    " [[pack.batteries]] order, -1 for PackPilot frames (e.g. 21,22)"
+)
+
+
+def _ids(text: str | None) -> tuple[int, ...] | None:
+    """``--dronecan-ids 21,22,-1`` as integers (a bad list is a one-line error)."""
+    if text is None:
+        return None
+    from packpilot.errors import ConfigError
+
+    try:
+        return tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--dronecan-ids {text!r}: comma-separated integers") from None
+
+
+CanIface = Annotated[str, typer.Option(help="python-can interface (socketcan, virtual, ...)")]
+CanChan = Annotated[str, typer.Option(help="CAN channel, e.g. can0")]
+
+
+@app.command()
+def run(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file describing the pack")],
+    can_interface: CanIface = "socketcan",
+    can_channel: CanChan = "can0",
+    charger_channel: Annotated[
+        str | None, typer.Option(help="the charger's CAN channel, if not the batteries'")
+    ] = None,
+    period: Annotated[float, typer.Option(help="BMS period, s (monotonic clock)")] = 0.1,
+    duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
+    db: Annotated[Path | None, typer.Option(help="record telemetry to this SQLite file")] = None,
+    can_log: Annotated[Path | None, typer.Option(help="log every frame to .blf or .asc")] = None,
+    node_id: Annotated[int, typer.Option(help="DroneCAN node id of the BMS")] = 100,
+    allow_unmonitored: Annotated[
+        bool, typer.Option(help="run without [plausibility]: stale telemetry NOT detected")
+    ] = False,
+    replay_log: Annotated[
+        Path | None,
+        typer.Option(help="re-run the BMS over the frames received in this .blf/.asc log"),
+    ] = None,
+    dronecan_ids: Annotated[str | None, typer.Option(help=DRONECAN_HELP)] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
+) -> None:
+    """The BMS on a real pack over CAN, until Ctrl-C or --duration (docs/runtime.md)."""
+
+    def go() -> dict[str, Any]:
+        from packpilot.runtime.bms import BmsRuntime, RuntimeOptions
+
+        cfg = _load(scenario_path(config), None)
+        _check_outputs(db=db, can_log=can_log)
+        opts = RuntimeOptions(
+            interface=can_interface, channel=can_channel, charger_channel=charger_channel,
+            period_s=period, log_path=can_log, node_id=node_id,
+            allow_unmonitored=allow_unmonitored, dronecan_ids=_ids(dronecan_ids),
+        )  # fmt: skip
+        recorder = _recorder(db)
+        if replay_log is not None:
+            from packpilot.runtime.logreplay import replay_log as replay
+
+            try:
+                done = replay(cfg, replay_log, opts, recorder)
+            finally:
+                if recorder is not None:
+                    recorder.close()
+            return done.metrics()
+        bms = BmsRuntime(cfg, opts, recorder)
+        _sigterm_interrupts()
+        typer.echo(
+            f"packpilot run: {len(cfg.pack.batteries)} batteries on {can_interface}:"
+            f"{can_channel}, period {period * 1e3:g} ms (Ctrl-C stops)", err=True,
+        )  # fmt: skip
+        try:
+            return bms.run(duration)
+        except KeyboardInterrupt:
+            return bms.metrics()
+        finally:
+            bms.close()
+            if recorder is not None:
+                recorder.close()
+
+    _print_runtime(_guard(go), as_json)
+
+
+@app.command()
+def hil(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
+    can_interface: CanIface = "socketcan",
+    can_channel: CanChan = "vcan0",
+    charger_channel: Annotated[
+        str | None, typer.Option(help="the charger's CAN channel, if not the batteries'")
+    ] = None,
+    speed: Annotated[
+        float, typer.Option(help="simulated seconds per wall second (0: as fast as possible)")
+    ] = 1.0,
+    bms_period: Annotated[float, typer.Option(help="the BMS's period, s (switch timeout)")] = 0.1,
+    timeout_periods: Annotated[
+        int, typer.Option(help="a switch node opens after this many BMS periods unheard")
+    ] = 5,
+    duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
+    can_log: Annotated[Path | None, typer.Option(help="log every frame to .blf or .asc")] = None,
+    dronecan_ids: Annotated[str | None, typer.Option(help=DRONECAN_HELP)] = None,
+) -> None:
+    """The simulated pack as CAN nodes (batteries, switches, charger, inverter) for `run`."""
+
+    def go() -> dict[str, Any]:
+        from packpilot.errors import ConfigError
+        from packpilot.io.can.bus import FrameLog, open_bus
+        from packpilot.runtime.bms import filters
+        from packpilot.runtime.hil import Hil, run_realtime
+        from packpilot.runtime.lockstep import REQUEST_ONLY
+
+        if not speed >= 0:
+            raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
+        if not (bms_period > 0 and 1 <= timeout_periods <= 1000):
+            raise ConfigError("--bms-period must be > 0 and --timeout-periods 1..1000")
+        cfg = _load(scenario_path(config), duration)
+        _check_outputs(can_log=can_log)
+        bus = open_bus(can_interface, can_channel)
+        charger_bus = open_bus(can_interface, charger_channel or can_channel,
+                               **filters(can_interface, REQUEST_ONLY))  # fmt: skip
+        log = FrameLog(can_log) if can_log is not None else None
+        ids = _ids(dronecan_ids) or ()
+        twin = Hil(cfg, bus, charger_bus=charger_bus, bms_period_s=bms_period,
+                   timeout_periods=timeout_periods, log=log,
+                   dronecan_ids={i: b for i, b in enumerate(ids) if b >= 0})  # fmt: skip
+        typer.echo(f"packpilot hil: {cfg.pack.name} on {can_interface}:{can_channel} "
+                   f"at {speed:g}x (Ctrl-C stops)", err=True)  # fmt: skip
+        try:
+            steps = run_realtime(twin, cfg.sim.dt_s, cfg.sim.duration_s, speed)
+        except KeyboardInterrupt:
+            steps = -1
+        finally:
+            bus.shutdown()
+            charger_bus.shutdown()
+            if log is not None:
+                log.close()
+        inv = twin.inverter.last
+        return {
+            "steps": steps, "t_s": twin.t_s,
+            "switch_timeouts": sum(n.timeouts for n in twin.switch),
+            "frames_sent": twin.counters.sent, "frames_received": twin.counters.received,
+            "inverter_limits": inv.get("Pylon_Limits"), "inverter_soc": inv.get("Pylon_SocSoh"),
+        }  # fmt: skip
+
+    _print_runtime(_guard(go), as_json=True)
+
+
+def _sigterm_interrupts() -> None:
+    """SIGTERM (systemd, docker stop) ends `run` as Ctrl-C does: the record is finished and
+    stamped ``interrupted``, the buses shut down, exit 0."""
+    import signal
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+
+
+def _recorder(db: Path | None) -> Any:
+    if db is None:
+        return None
+    from packpilot.io.telemetry import SQLiteRecorder
+
+    return SQLiteRecorder(db, flush_every=50)
+
+
+def _print_runtime(metrics: dict[str, Any], as_json: bool) -> None:
+    if as_json:
+        typer.echo(json.dumps(metrics, default=_json_default, indent=2))
+        return
+    for k, v in metrics.items():
+        typer.echo(f"{k:>24}  {_metric_text(v)}")
+
 def _runner(cfg: ScenarioConfig) -> Any:
     from packpilot.sim.runner import Runner
 

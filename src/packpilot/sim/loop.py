@@ -3,7 +3,8 @@
 One loop serves a single run (P = 1, :class:`~packpilot.sim.runner.Runner`) and a campaign
 batch (P = N): the plant stands behind a narrow port (:class:`~.plant_io.SimulatedPlant`:
 ``measure``, ``apply``, ``step``), so a CAN bus or a replayed log can stand where the
-simulator stands. Per period, for every pack at once::
+simulator stands: :func:`control` is everything up to the physics, and ``packpilot run``
+(:mod:`packpilot.runtime.bms`) runs it against a CAN bus. Per period, for every pack at once::
 
     faults (plant side) → charger status over the links → sensors → faults (sensor side)
     → core.step_batch (every rule, merged, supervised) → plant gates / balancers / aux
@@ -20,11 +21,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.arena import Arenas
 from packpilot.config import ScenarioConfig
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.contract.arrays import MeasArrays
@@ -104,11 +106,75 @@ def _hold_interval(
     return (profile, lo, hi, value)
 
 
+class Demand:
+    """The load demand of a scenario at time ``t_s``: 0 before ``[load] start_s``, then its
+    profile (set :attr:`profile` to change what is drawn from the next lookup on). One
+    definition for the closed loop and the hardware-in-the-loop twin."""
+
+    def __init__(self, cfg: ScenarioConfig) -> None:
+        self.start_s = cfg.load.start_s
+        self.profile = load_profile(cfg)
+        self._held: tuple[loads.LoadProfile, float, float, float] | None = None
+        """(profile, lo, hi, value): ``profile.at(x) == value`` for every ``lo <= x < hi``."""
+
+    def at(self, t_s: float) -> float:
+        start = self.start_s
+        if not t_s >= start:
+            return 0.0
+        x = t_s - start
+        held = self._held
+        if held is not None and held[0] is self.profile and held[1] <= x < held[2]:
+            return held[3]  # still inside the hold interval of the last lookup
+        value = self.profile.at(x)
+        self._held = _hold_interval(self.profile, x, value)
+        return value
+
+
 def n_steps(cfg: ScenarioConfig) -> int:
     return math.ceil(cfg.sim.duration_s / cfg.sim.dt_s - 1e-9)
 
 
 Hook = Callable[[float], None]
+
+
+class PlantPort(Protocol):
+    """What the BMS half of the loop needs of a plant: sensors to read into a core's
+    measurements and actuators to take its commands. The simulator
+    (:class:`~.plant_io.SimulatedPlant`) is one; a CAN bus
+    (:class:`~packpilot.io.can.plant.CanPlant`) is another."""
+
+    def measure(self, arenas: Arenas, m_row: int) -> None: ...
+
+    def apply(self, arenas: Arenas, cmd_row: int) -> None: ...
+
+
+def control(
+    core: Core,
+    plant: PlantPort,
+    links: PackLinks,
+    t: float,
+    dt_s: float,
+    faults: FaultInjector | None = None,
+    hooks: Sequence[Hook] = (),
+) -> None:
+    """The BMS half of one period, whatever stands behind the port: hooks and plant-side
+    faults, charger status over the links, sensors, sensor faults, the supervised core, the
+    actuators, charger setpoints over the links. :meth:`ClosedLoop.step` runs it before the
+    plant's physics; the runtime (:mod:`packpilot.runtime`) runs it against a CAN bus."""
+    m = core.m
+    for hook in hooks:
+        hook(t)
+    if faults is not None:
+        faults.before_step(t)
+    if links:
+        links.poll(t, m)
+    plant.measure(core.arenas, int(core.directory[DIR_M]))
+    if faults is not None:
+        faults.filter(m)
+    core.step_batch(m, dt_s)
+    plant.apply(core.arenas, int(core.directory[DIR_CMD]))
+    if links:
+        links.send(t, core.cmd)
 
 
 def with_supply(
@@ -183,9 +249,7 @@ class ClosedLoop:
         self._all_supplied = True
         """Every pack was supplied at the last step (so ``unsupplied_s`` is all zero)."""
         self._all_true = np.ones(P, np.bool_).tobytes()
-        self._held: tuple[loads.LoadProfile, float, float, float] | None = None
-        """(profile, lo, hi, value): ``profile.at(x) == value`` for every ``lo <= x < hi``."""
-        self.profile = load_profile(self.cfg)
+        self._demand = Demand(self.cfg)
         self.metrics = Metrics(P, self.plant.pack.n_strings, self.cfg.sim.dt_s)
         self._traction = np.array(self.plant.topology.traction, np.int64)
 
@@ -222,34 +286,21 @@ class ClosedLoop:
         return cls(cfg, plant, core, chargers, faults, hooks)
 
     def demand(self, t_s: float) -> float:
-        start = self.cfg.load.start_s
-        if not t_s >= start:
-            return 0.0
-        x = t_s - start
-        held = self._held
-        if held is not None and held[0] is self.profile and held[1] <= x < held[2]:
-            return held[3]  # still inside the hold interval of the last lookup
-        value = self.profile.at(x)
-        self._held = _hold_interval(self.profile, x, value)
-        return value
+        return self._demand.at(t_s)
+
+    @property
+    def profile(self) -> loads.LoadProfile:
+        return self._demand.profile
+
+    @profile.setter
+    def profile(self, value: loads.LoadProfile) -> None:
+        self._demand.profile = value
 
     def step(self, k: int, dt_s: float) -> StepRecord:
         """One period of every pack."""
-        plant, m, core = self.plant, self.m, self.core
+        plant, core = self.plant, self.core
         t = plant.t_s
-        for hook in self.hooks:
-            hook(t)
-        if self.faults is not None:
-            self.faults.before_step(t)
-        if self.links:
-            self.links.poll(t, m)
-        plant.measure(core.arenas, int(core.directory[DIR_M]))
-        if self.faults is not None:
-            self.faults.filter(m)
-        core.step_batch(m, dt_s)
-        plant.apply(core.arenas, int(core.directory[DIR_CMD]))
-        if self.links:
-            self.links.send(t, core.cmd)
+        control(core, plant, self.links, t, dt_s, self.faults, self.hooks)
         iv = plant.step(dt_s, np.full(plant.n_packs, self.demand(t)), self.profile.kind)
         self.n_stepped += 1
         kinds = core.event_kinds() if core.ev.n[0] else None
@@ -363,8 +414,11 @@ def wall() -> float:
 __all__ = [
     "LOOP_EVENT_KINDS",
     "ClosedLoop",
+    "Demand",
+    "PlantPort",
     "StepRecord",
     "build_core",
+    "control",
     "load_profile",
     "n_steps",
     "sample",

@@ -51,15 +51,17 @@ class CanChargerLink:
         heartbeat_timeout_s: float = 5.0,
         bus_kwargs: dict[str, Any] | None = None,
         rating: tuple[float, float] = (math.inf, math.inf),
+        bus: can.BusABC | None = None,
     ) -> None:
         """``channel=None`` picks a fresh in-process channel, so parallel runs never share a
-        virtual bus."""
+        virtual bus. ``bus``: the client's bus, opened (and shut down) by the caller, e.g. a
+        :class:`~packpilot.io.can.shared.Port` of a bus shared with the batteries."""
         if channel is None:
             channel = f"packpilot-link-{next(_auto_channel)}"
         kw = bus_kwargs or {}
         self._buses: list[can.BusABC] = []
         self.log = FrameLog(log_path) if log_path is not None else None
-        self.bms_bus = self._open(interface, channel, kw)
+        self.bms_bus = bus if bus is not None else self._open(interface, channel, kw)
         self.client = ChargerClient(
             self.bms_bus, status_timeout_s=status_timeout_s, log=self.log, rating=rating
         )

@@ -1,0 +1,397 @@
+"""The plant port over CAN: a real pack where the simulator stands.
+
+:class:`CanPlant` is what :func:`packpilot.sim.loop.control` needs of a plant: ``measure``
+fills the core's measurements with the latest telemetry each battery sent
+(``packpilot.dbc``), ``apply`` sends the switch, balancer and aux commands, every period, not
+only on change. The core, its rules and its safety layers do not know which plant they talk to.
+
+Freshness: every battery's ``sample_age_s`` is the age of the oldest frame kind it must send
+(meas, cells, state, capacity and, when it has groups, its group blocks). A silent battery keeps its
+last values and its age grows, exactly what the fault injector's ``sensor_dropout`` produces:
+the plausibility layer's ``stale`` rule (``[plausibility] max_sample_age_s``) treats it as a
+dead sensor and the documented safe state follows. A battery never heard from reads NaN with an
+infinite age. A battery node that sends any of its identifiers more than ``babble_factor``
+times as often as it should per BMS period (once; its group frames once per block; a backlog
+after a late period counts the periods that passed) is babbling: its sample is not trusted (age
+infinite) while it does. The platform's bus voltage reads NaN once its frame is older than
+``platform_timeout_s`` (a pack ``nonfinite`` fault). Once a sample is older than ``stale_s``
+(the plausibility layer's ``max_sample_age_s``) its switch feedback reads *open*: what a
+silent battery's switches do is unknown, and a path not known to conduct must not count as
+connected (the limits layer's pack limits, ``n_conducting × weakest``, would otherwise count
+an isolated battery the inverter can no longer draw from); the plausibility layer does not
+judge the switches of a stale sample.
+
+Switch commands: a controller with no opinion leaves a switch as it is; the port holds the
+state the BMS last asked for, starting from the feedback of the battery's first state frame
+(open if it never reported), and sends it every period with a sequence counter.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.arena import Arenas, unpack
+from packpilot.contract.arrays import NO_OPINION, BatteryArrays, CmdArrays, MeasArrays
+from packpilot.io.can import dronecan_io as dc
+from packpilot.io.can.battery import (
+    classify,
+    decode,
+    encode_aux,
+    encode_balancer,
+    encode_switch,
+)
+from packpilot.io.can.bus import FrameLog
+from packpilot.io.can.client import MAX_FRAMES_PER_POLL, FrameCounters
+from packpilot.io.can.codec import FrameError
+from packpilot.io.can.dbcgen import BATTERY_GROUPS, GROUPS_PER_FRAME, MAX_GROUPS
+
+Array = NDArray[np.float64]
+
+REQUIRED = ("meas", "cells", "state", "capacity")
+"""Frame kinds every battery sends each period (plus its group blocks when it has groups)."""
+DRONECAN_REQUIRED = ("dronecan", "switch_state")
+"""A DroneCAN battery: its BatteryInfo, and its switch node's SwitchState (the feedback)."""
+
+
+@dataclass(frozen=True)
+class BatteryMap:
+    """Which CAN index (``base + index`` identifiers) each configured battery uses."""
+
+    traction: tuple[int, ...]
+    """CAN index of traction battery ``k`` (the core's battery order)."""
+    groups: tuple[int, ...]
+    """Series groups of traction battery ``k``."""
+    aux: int | None = None
+    aux_groups: int = 0
+
+
+class _Latest:
+    """The last decoded values of one battery node and when each frame kind arrived."""
+
+    def __init__(self, n_groups: int, dronecan: bool = False) -> None:
+        self.dronecan = dronecan
+        """Fed by DroneCAN BatteryInfo (+ BatteryInfoAux) and its switch node's SwitchState,
+        instead of the PackPilot battery frames."""
+        self.required = DRONECAN_REQUIRED if dronecan else REQUIRED
+        self.values: dict[str, float] = {}
+        self.group_v = np.full(MAX_GROUPS, np.nan)
+        self.n_groups = n_groups
+        self.rx_s: dict[str, float] = {}
+        self.block_rx_s = np.full(-(-n_groups // GROUPS_PER_FRAME), -math.inf)
+        self.babbling = False
+        self.seen_this_period: dict[int, int] = {}
+
+    def age(self, t: float) -> float:
+        """Age of the oldest required frame (inf: never complete)."""
+        oldest = min((self.rx_s.get(k, -math.inf) for k in self.required), default=-math.inf)
+        if self.dronecan and "cells" in self.rx_s:  # cells are required once a battery sent them
+            oldest = min(oldest, self.rx_s["cells"])
+        elif self.block_rx_s.size and not self.dronecan:
+            oldest = min(oldest, float(self.block_rx_s.min()))
+        return t - oldest if math.isfinite(oldest) else math.inf
+
+    def get(self, name: str) -> float:
+        return self.values.get(name, math.nan)
+
+
+class CanPlant:
+    """Per-battery telemetry in, switch commands out, over one python-can bus."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        batteries: BatteryMap,
+        *,
+        balancers: bool = False,
+        log: FrameLog | None = None,
+        babble_factor: int = 4,
+        platform_timeout_s: float = 1.0,
+        period_s: float = 0.1,
+        stale_s: float = 2.0,
+        dronecan_ids: Mapping[int, int] | None = None,
+    ) -> None:
+        """``period_s``: the BMS period, at which every battery node sends its frames;
+        ``stale_s``: the plausibility layer's ``max_sample_age_s``; ``dronecan_ids``:
+        DroneCAN ``battery_id`` → CAN index of the batteries read from BatteryInfo."""
+        self.bus = bus
+        self.stale_s = stale_s
+        self.period_s = period_s
+        self._last_poll_s: float | None = None
+        self.map = batteries
+        self.balancers = balancers
+        self.log = log
+        self.babble_factor = babble_factor
+        self.platform_timeout_s = platform_timeout_s
+        self.t_s = 0.0
+        """Set by the runtime before each period (the time every sample is aged against)."""
+        self.counters = FrameCounters()
+        self.babbled = 0
+        """Periods in which some battery node babbled."""
+        self.dronecan_ids = dict(dronecan_ids or {})
+        by_dc = set(self.dronecan_ids.values())
+        self.node: dict[int, _Latest] = {
+            i: _Latest(g, i in by_dc)
+            for i, g in zip(batteries.traction, batteries.groups, strict=True)
+        }
+        if batteries.aux is not None:
+            self.node[batteries.aux] = _Latest(batteries.aux_groups, batteries.aux in by_dc)
+        self.assembler = dc.Assembler()
+        self.platform: dict[str, float] = {}
+        self.platform_rx_s = -math.inf
+        n = len(batteries.traction)
+        self.held_chg = np.zeros(n, np.bool_)
+        self.held_dsg = np.zeros(n, np.bool_)
+        self._held_known = np.zeros(n, np.bool_)
+        self.held_balancer = np.zeros((n, max(max(batteries.groups, default=1), 1)))
+        self.held_aux_relay: bool | None = None
+        self.held_aux_charge_a = 0.0
+        self.seq = 0
+        self._view_cache: dict[tuple[int, int, type], Any] = {}
+
+    # ------------------------------------------------------------------ receive
+    def poll(self) -> None:
+        """Drain the bus (at most :data:`MAX_FRAMES_PER_POLL` frames) into the latest values."""
+        t = self.t_s
+        for node in self.node.values():
+            node.seen_this_period.clear()
+        for _ in range(MAX_FRAMES_PER_POLL):
+            try:
+                msg = self.bus.recv(timeout=0.0)
+            except can.CanError:
+                self.counters.recv_errors += 1
+                break
+            if msg is None:
+                break
+            if self.log is not None:
+                self.log.log(msg, t, rx=True)
+            self._take(msg, t)
+        # A backlog after a stalled period is not babbling: allow for the periods that passed.
+        periods = 1
+        if self._last_poll_s is not None and self.period_s > 0:
+            periods = max(1, math.ceil((t - self._last_poll_s) / self.period_s - 1e-6))
+        self._last_poll_s = t
+        babbled = False
+        for node in self.node.values():
+            node.babbling = any(
+                n > self.babble_factor * _expected(fid, node) * periods
+                for fid, n in node.seen_this_period.items()
+            )
+            babbled |= node.babbling
+        self.babbled += babbled
+
+    def _take(self, msg: can.Message, t: float) -> None:
+        if self.assembler.wants(msg):
+            self._take_dronecan(msg, t)
+            return
+        try:
+            kind, i, vals = decode(msg)
+        except FrameError:
+            known = not msg.is_extended_id and not msg.is_error_frame and not msg.is_remote_frame
+            if known and _is_ours(msg.arbitration_id):
+                self.counters.malformed += 1
+            else:
+                self.counters.unexpected += 1
+            return
+        if kind == "platform":
+            self.counters.received += 1
+            self.platform, self.platform_rx_s = vals, t
+            return
+        node = self.node.get(i)
+        if node is None or kind not in (*node.required, "groups", "cells", "switch_state"):
+            self.counters.unexpected += 1  # a command echo, another BMS, an unmapped battery
+            return
+        self.counters.received += 1
+        fid = msg.arbitration_id
+        node.seen_this_period[fid] = node.seen_this_period.get(fid, 0) + 1
+        if kind == "groups":
+            self._take_groups(node, vals, t)
+            return
+        if kind == "switch_state":  # the feedback of a battery that does not report its own;
+            if node.dronecan:  # a PackPilot battery reports its own (BatteryState)
+                node.values["ChgOn"], node.values["DsgOn"] = vals["ChgOn"], vals["DsgOn"]
+                node.rx_s[kind] = t
+            return
+        node.values.update(vals)
+        node.rx_s[kind] = t
+
+    def _take_dronecan(self, msg: can.Message, t: float) -> None:
+        """A frame of a DroneCAN transfer; a complete BatteryInfo / BatteryInfoAux of a mapped
+        ``battery_id`` updates its battery."""
+        before = self.assembler.errors
+        done = self.assembler.take(msg)
+        if self.assembler.errors > before:
+            self.counters.malformed += 1
+        if done is None:
+            return
+        i = self.dronecan_ids.get(done.battery_id)
+        node = self.node.get(i) if i is not None else None
+        if node is None or not node.dronecan:
+            self.counters.unexpected += 1  # another battery's, or the BMS's own kind
+            return
+        self.counters.received += 1
+        key = -1 - dc.data_type(msg)
+        node.seen_this_period[key] = node.seen_this_period.get(key, 0) + 1
+        if isinstance(done, dc.BatteryInfo):
+            node.values.update({
+                "Voltage": done.voltage_v, "Current": done.current_a, "TempMax": done.temp_c,
+                "SOC": done.soc_pct / 100.0, "Present": 1.0,
+            })  # fmt: skip
+            node.rx_s["dronecan"] = t
+            return
+        cells = done.cell_v
+        node.values["MinCellV"] = min(cells, default=math.nan)
+        node.values["MaxCellV"] = max(cells, default=math.nan)
+        node.values["CycleCount"] = float(done.cycle_count)
+        n = min(len(cells), MAX_GROUPS)
+        node.group_v[:] = math.nan
+        node.group_v[:n] = cells[:n]
+        node.values["NGroupsReported"] = float(len(cells))
+        node.rx_s["cells"] = t
+
+    @staticmethod
+    def _take_groups(node: _Latest, vals: dict[str, float], t: float) -> None:
+        b = int(vals["Block"])
+        if not 0 <= b < node.block_rx_s.size:
+            return
+        for j in range(GROUPS_PER_FRAME):
+            g = b * GROUPS_PER_FRAME + j
+            if g < MAX_GROUPS:
+                node.group_v[g] = vals.get(f"GroupV{g}", math.nan)
+        node.values["NGroupsReported"] = vals["NGroups"]
+        node.block_rx_s[b] = t
+
+    def complete(self) -> bool:
+        """Every battery has sent every frame kind it must (start-up)."""
+        return all(math.isfinite(n.age(self.t_s)) for n in self.node.values())
+
+    # ------------------------------------------------------------------ the port
+    def measure(self, arenas: Arenas, m_row: int) -> None:
+        """Read the bus and fill the measurements at ``m_row`` of a core's arenas (pack 0)."""
+        self.poll()
+        m: MeasArrays = self._view(MeasArrays, arenas, m_row)
+        t = self.t_s
+        m.t_s[0] = t
+        for k, i in enumerate(self.map.traction):
+            self._fill(m.bat, k, self.node[i], t)
+            if not self._held_known[k] and "ChgOn" in self.node[i].values:
+                self.held_chg[k] = m.bat.sw_chg[0, k]
+                self.held_dsg[k] = m.bat.sw_dsg[0, k]
+                self._held_known[k] = True
+        aux = self.map.aux
+        m.has_aux[0] = aux is not None
+        if aux is not None:
+            self._fill(m.aux, 0, self.node[aux], t)
+            if self.held_aux_relay is None and "ChgOn" in self.node[aux].values:
+                self.held_aux_relay = bool(m.aux.sw_chg[0, 0] and m.aux.sw_dsg[0, 0])
+        fresh = t - self.platform_rx_s <= self.platform_timeout_s
+        m.bus_v[0] = self.platform.get("BusV", math.nan) if fresh else math.nan
+        m.docked[0] = bool(self.platform.get("Docked", 0.0))
+        currents = m.bat.current_a[0]
+        m.load_current_a[0] = float(np.sum(currents)) if currents.size else 0.0
+
+    def _fill(self, bat: BatteryArrays, k: int, node: _Latest, t: float) -> None:
+        g = node.get
+        bat.voltage_v[0, k] = g("Voltage")
+        bat.current_a[0, k] = g("Current")
+        bat.min_cell_v[0, k] = g("MinCellV")
+        bat.max_cell_v[0, k] = g("MaxCellV")
+        bat.temp_c[0, k] = g("TempMax")
+        bat.min_temp_c[0, k] = g("TempMin")
+        bat.soc[0, k] = g("SOC")
+        bat.full_capacity_ah[0, k] = g("FullAh")
+        bat.remaining_capacity_ah[0, k] = g("RemainingAh")
+        bat.cycle_count[0, k] = g("CycleCount")
+        ng = min(node.n_groups, bat.group_v.shape[2])
+        bat.group_v[0, k, :] = np.nan
+        bat.group_v[0, k, :ng] = node.group_v[:ng]
+        reported = g("NGroupsReported")
+        bat.n_groups[0, k] = int(reported) if math.isfinite(reported) else 0
+        age = math.inf if node.babbling else node.age(t)
+        known = age <= self.stale_s  # a stale sample's switch feedback is not feedback
+        bat.sw_chg[0, k] = known and g("ChgOn") == 1.0
+        bat.sw_dsg[0, k] = known and g("DsgOn") == 1.0
+        present = g("Present")
+        bat.present[0, k] = present == 1.0 or math.isnan(present)  # never heard: judge it
+        bat.reported[0, k] = True
+        bat.sample_age_s[0, k] = age
+
+    def apply(self, arenas: Arenas, cmd_row: int) -> None:
+        """Hold the commands at ``cmd_row`` (no opinion: unchanged) and send them all."""
+        cmd: CmdArrays = self._view(CmdArrays, arenas, cmd_row)
+        for k in range(self.held_chg.size):
+            if cmd.chg_on[0, k] != NO_OPINION:
+                self.held_chg[k] = cmd.chg_on[0, k] == 1
+            if cmd.dsg_on[0, k] != NO_OPINION:
+                self.held_dsg[k] = cmd.dsg_on[0, k] == 1
+        if cmd.balancer_set[0]:
+            g = self.held_balancer.shape[1]
+            self.held_balancer[:] = np.nan_to_num(cmd.balancer_a[0, :, :g])
+        if cmd.aux_relay[0] != NO_OPINION:
+            self.held_aux_relay = cmd.aux_relay[0] == 1
+        if cmd.aux_charge_set[0]:
+            self.held_aux_charge_a = float(np.nan_to_num(cmd.aux_charge_a[0]))
+        self.send_commands()
+
+    def send_commands(self) -> None:
+        """The held commands, one frame set per period."""
+        t, seq = self.t_s, self.seq
+        out: list[can.Message] = []
+        for k, i in enumerate(self.map.traction):
+            out.append(encode_switch(i, bool(self.held_chg[k]), bool(self.held_dsg[k]), seq, t))
+            if self.balancers and self.map.groups[k]:
+                cur = tuple(float(x) for x in self.held_balancer[k, : self.map.groups[k]])
+                out += encode_balancer(i, cur, seq, t)
+        if self.map.aux is not None:
+            out.append(encode_aux(bool(self.held_aux_relay), self.held_aux_charge_a, seq, t))
+        self.seq = (seq + 1) & 0xFF
+        for msg in out:
+            self._send(msg, t)
+
+    def _send(self, msg: can.Message, t: float) -> None:
+        try:
+            self.bus.send(msg)
+        except can.CanError:
+            self.counters.send_errors += 1
+            return
+        self.counters.sent += 1
+        if self.log is not None:
+            self.log.log(msg, t, rx=False)
+
+    def _view(self, cls: type, arenas: Arenas, row: int) -> Any:
+        """The named tuple at ``row`` of a core's arenas, as views (built once)."""
+        key = (id(arenas.f), row, cls)
+        view = self._view_cache.get(key)
+        if view is None:
+            view = self._view_cache[key] = unpack(cls, *arenas, row)
+        return view
+
+
+def _expected(frame_id: int, node: _Latest) -> int:
+    """Frames of ``frame_id`` a healthy node sends per period: one, or one per group block."""
+    return max(1, node.block_rx_s.size) if frame_id & ~0xF == BATTERY_GROUPS else 1
+
+
+def _is_ours(frame_id: int) -> bool:
+    return classify(frame_id) is not None
+
+
+def battery_map(names: Sequence[str], roles: Sequence[str], groups: Sequence[int]) -> BatteryMap:
+    """CAN index = position in ``[[pack.batteries]]``; the aux battery is the one of role aux."""
+    traction = tuple(i for i, r in enumerate(roles) if r != "aux")
+    aux = next((i for i, r in enumerate(roles) if r == "aux"), None)
+    return BatteryMap(
+        traction=traction,
+        groups=tuple(groups[i] for i in traction),
+        aux=aux,
+        aux_groups=groups[aux] if aux is not None else 0,
+    )
+
+
+__all__ = ["REQUIRED", "BatteryMap", "CanPlant", "battery_map"]

@@ -1,0 +1,86 @@
+"""Re-run the BMS over a recorded frame log (BLF / ASC written by ``run`` or ``hil``).
+
+Every frame the BMS *received* in the recording (``is_rx``) goes back onto a private virtual
+bus at its recorded time; the runtime steps every ``period_s`` of the recording's clock, as
+fast as the CPU goes, and reads them as it read them live (a frame belongs to the period
+whose start it is within half a period of: a recording's clock sums its periods and rounds).
+The BMS's own frames of the recording are not replayed: it sends them anew, so a changed
+configuration (a threshold, a method) shows what it would have done with the same telemetry.
+Frame times are the recording's simulation / runtime seconds, written as ``SIM_EPOCH_S + t``
+(``docs/can.md``).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterable
+from dataclasses import replace
+from pathlib import Path
+
+import can
+
+from packpilot.config import ScenarioConfig
+from packpilot.contract.record import Recorder
+from packpilot.errors import ConfigError
+from packpilot.io.can.bus import LOG_SUFFIXES, SIM_EPOCH_S, open_bus
+from packpilot.runtime.bms import BmsRuntime, RuntimeOptions
+
+_channels = itertools.count()
+
+
+def received_frames(path: Path) -> list[tuple[float, can.Message]]:
+    """(t_s, frame) of every received frame of a log, in time order."""
+    suffix = path.suffix.lower()
+    if suffix not in LOG_SUFFIXES:
+        raise ConfigError(f"--replay-log {path}: unsupported log format {suffix!r}, use .blf/.asc")
+    try:
+        reader: Iterable[can.Message]
+        if suffix == ".asc":
+            reader = can.ASCReader(path, relative_timestamp=False)
+        else:
+            reader = can.BLFReader(path)
+        frames = [(m.timestamp - SIM_EPOCH_S, m) for m in reader if m.is_rx]
+    except (OSError, ValueError, EOFError) as err:
+        raise ConfigError(f"--replay-log {path}: cannot read ({err})") from None
+    frames.sort(key=lambda x: x[0])
+    return frames
+
+
+def replay_log(
+    cfg: ScenarioConfig,
+    path: Path,
+    opts: RuntimeOptions | None = None,
+    recorder: Recorder | None = None,
+) -> BmsRuntime:
+    """The BMS of ``cfg`` over the received frames of ``path``; returns the (closed) runtime
+    with its events and metrics."""
+    frames = received_frames(path)
+    channel = f"packpilot-replay-{next(_channels)}"
+    opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
+                   charger_channel=None, log_path=None)  # fmt: skip
+    feeder = open_bus("virtual", channel)
+    bms = BmsRuntime(cfg, opts, recorder)
+    period = opts.period_s
+    try:
+        if not frames:
+            return bms
+        t_end = frames[-1][0]
+        j, k = 0, 0
+        while True:
+            t = k * period
+            if t > t_end + period / 2:
+                break
+            while j < len(frames) and frames[j][0] <= t + period / 2:  # a clock's rounding
+                feeder.send(frames[j][1])
+                j += 1
+            bms.step(t, period)
+            k += 1
+        if recorder is not None:
+            recorder.finish(bms.metrics())
+    finally:
+        bms.close()
+        feeder.shutdown()
+    return bms
+
+
+__all__ = ["received_frames", "replay_log"]

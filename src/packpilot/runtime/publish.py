@@ -1,0 +1,259 @@
+"""The pack as one battery: what the inverter and the aircraft are told, once a second.
+
+Everything here is read from the core after its step — the measurements it saw, the limits
+layer's pack limits (which already follow derating, trips and the batteries actually
+connected: ``n_conducting × weakest``), the limits ladders' tiers, the supervisor's mode and the
+protection's platform interface. Nothing is decided here: a trip in the core is a 0 A limit
+here because the limits layer says 0 A, and a supervisor in ``fault`` or ``shutdown`` zeroes
+both limits because that mode opens every path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import can
+import numpy as np
+
+from packpilot.config import ScenarioConfig
+from packpilot.contract.events import value as field_value
+from packpilot.contract.topology import PackInfo
+from packpilot.control.core import Core
+from packpilot.control.supervisor.rules import MODES
+from packpilot.io.can import dronecan_io as dc
+from packpilot.io.can import pylon
+from packpilot.io.can.battery import ProtectionReport, encode_protection
+
+PERIOD_S = 1.0
+TRIPPED_MODES = ("fault", "shutdown")
+
+PYLON_BITS: dict[str, int] = {
+    "cell_v_max": pylon.OVER_VOLTAGE,
+    "cell_v_min": pylon.UNDER_VOLTAGE,
+    "temp_max_c": pylon.OVER_TEMP,
+    "temp_min_c": pylon.UNDER_TEMP,
+    "dsg_c_rate": pylon.DISCHARGE_OVER_CURRENT,
+    "chg_c_rate": pylon.CHARGE_OVER_CURRENT,
+}
+"""Limits quantity → the 0x359 bit its ladder raises (warn / derate: warning; trip:
+protection)."""
+
+
+class Channels:
+    """Raw status numbers of a core by channel name (slot lookups done once)."""
+
+    def __init__(self, core: Core) -> None:
+        self.core = core
+        self.slot = {ch.name: slot for slot, ch, _ in core.status_channels()}
+        self.labels = {ch.name: labels for _, ch, labels in core.status_channels()}
+        self.kind = {ch.name: ch.kind for _, ch, _ in core.status_channels()}
+
+    def value(self, name: str, i: int = 0) -> float:
+        s = self.slot.get(name)
+        return math.nan if s is None else float(self.core.status[0, i, s])
+
+    def label(self, name: str, i: int = 0) -> str | None:
+        """The label of a label channel (``l:<set>``), None if absent or unset."""
+        s = self.slot.get(name)
+        if s is None:
+            return None
+        value = field_value(self.value(name, i), self.kind[name], self.labels[name])
+        return value if isinstance(value, str) else None
+
+
+def mode(ch: Channels) -> str | None:
+    x = ch.value("mode")
+    return MODES[int(x)] if math.isfinite(x) and 0 <= int(x) < len(MODES) else None
+
+
+def _voltage_limits(cfg: ScenarioConfig, groups: Sequence[int]) -> tuple[float, float]:
+    """(charge voltage limit, discharge voltage limit) of the pack: the charging method's
+    saturation voltage, else the limits table's cell thresholds × series groups."""
+    n = max(groups, default=0)
+    cvl = dvl = math.nan
+    if cfg.limits is not None:
+        rows = cfg.limits.rows
+        hi = [r.threshold for r in rows if r.quantity == "cell_v_max"]
+        lo = [r.threshold for r in rows if r.quantity == "cell_v_min"]
+        cvl = min(hi) * n if hi else math.nan
+        dvl = max(lo) * n if lo else math.nan
+    ch = cfg.charging
+    if ch is not None:
+        cvl = ch.v_sat_v * (n if ch.voltage_basis == "cell" else 1)
+    return cvl, dvl
+
+
+class Publisher:
+    """Pylontech frames, the protection state and DroneCAN BatteryInfo, every second."""
+
+    def __init__(
+        self,
+        cfg: ScenarioConfig,
+        core: Core,
+        info: PackInfo,
+        bus: can.BusABC,
+        node_id: int = 100,
+        name: str = pylon.DEFAULT_NAME,
+    ) -> None:
+        self.cfg, self.core, self.info, self.bus = cfg, core, info, bus
+        self.ch = Channels(core)
+        self.node_id = node_id
+        self.name = name
+        self.next_s: float | None = None
+        self.transfer_id = 0
+        self.sent = 0
+        self.send_errors = 0
+        self.cvl_v, self.dvl_v = _voltage_limits(cfg, info.groups_per_battery)
+        self.quantity = {r.limit: r.quantity for r in cfg.limits.rows} if cfg.limits else {}
+        self.last: pylon.PackAsBattery | None = None
+
+    def due(self, t: float) -> bool:
+        return self.next_s is None or t >= self.next_s - 1e-9
+
+    def maybe_publish(self, t: float) -> list[can.Message]:
+        """Send every frame when a second has passed; returns what went out."""
+        if not self.due(t):
+            return []
+        self.next_s = (t if self.next_s is None else max(self.next_s, t - PERIOD_S)) + PERIOD_S
+        out = self.frames(t)
+        for msg in out:
+            try:
+                self.bus.send(msg)
+                self.sent += 1
+            except can.CanError:
+                self.send_errors += 1
+        return out
+
+    def frames(self, t: float) -> list[can.Message]:
+        out: list[can.Message] = []
+        if self.cfg.limits is not None:
+            self.last = self.pack_as_battery()
+            out += pylon.encode_all(self.last, t)
+        out.append(encode_protection(self.protection(), t))
+        for info in self.battery_infos():
+            out += dc.encode(info, self.node_id, self.transfer_id, t=t)
+        self.transfer_id = (self.transfer_id + 1) & 0x1F
+        return out
+
+    # ------------------------------------------------------------------ the one battery
+    def _present(self) -> np.ndarray:
+        m = self.core.m
+        return np.asarray(m.bat.reported[0] & m.bat.present[0])
+
+    def pack_as_battery(self) -> pylon.PackAsBattery:
+        m, ch = self.core.m, self.ch
+        here = self._present()
+        tripped = mode(ch) in TRIPPED_MODES
+        ccl = 0.0 if tripped else _finite0(ch.value("pack_limit_chg_a"))
+        dcl = 0.0 if tripped else _finite0(ch.value("pack_limit_dsg_a"))
+        full = np.where(here, m.bat.full_capacity_ah[0], 0.0)
+        rem = np.where(here, m.bat.remaining_capacity_ah[0], 0.0)
+        nominal = np.where(here, np.asarray(self.info.capacity_ah), 0.0)
+        soc = 100.0 * _ratio(float(np.nansum(rem)), float(np.nansum(full)))
+        soh = 100.0 * _ratio(float(np.nansum(full)), float(np.nansum(nominal)))
+        prot, warn = self._alarms(tripped)
+        return pylon.PackAsBattery(
+            charge_voltage_v=_finite0(self.cvl_v),
+            charge_current_a=ccl,
+            discharge_current_a=dcl,
+            discharge_voltage_v=_finite0(self.dvl_v),
+            soc_pct=soc,
+            soh_pct=min(soh, 100.0),
+            voltage_v=self._voltage(here),
+            current_a=float(np.nansum(np.where(here, m.bat.current_a[0], 0.0))),
+            temp_c=_nanmax(m.bat.temp_c[0][here]),
+            protection=prot,
+            warning=warn,
+            modules=int(here.sum()),
+            name=self.name,
+        )
+
+    def _voltage(self, here: np.ndarray) -> float:
+        bus = float(self.core.m.bus_v[0])
+        if math.isfinite(bus):
+            return bus
+        v = self.core.m.bat.voltage_v[0][here]
+        return float(np.nanmean(v)) if v.size and np.isfinite(v).any() else math.nan
+
+    def _alarms(self, tripped: bool) -> tuple[int, int]:
+        prot = pylon.SYSTEM_ERROR if tripped else 0
+        warn = 0
+        n = self.core.m.bat.reported.shape[1]
+        for limit, quantity in self.quantity.items():
+            bit = PYLON_BITS.get(quantity, 0)
+            for i in range(n):
+                tier = self.ch.label(f"lim_{limit}", i)
+                if tier == "trip":
+                    prot |= bit
+                elif tier in ("warn", "derate"):
+                    warn |= bit
+        return prot, warn
+
+    # ------------------------------------------------------------------ the aircraft
+    def protection(self) -> ProtectionReport:
+        """The most-used battery's protection interface (255 / NaN: no protection)."""
+        ch, n = self.ch, self.core.m.bat.reported.shape[1]
+        fr = [ch.value("protection_fraction", i) for i in range(n)]
+        finite = [i for i in range(n) if math.isfinite(fr[i])]
+        m = mode(ch)
+        mode_ix = MODES.index(m) if m is not None else 255
+        if not finite:
+            return ProtectionReport(mode_ix, 255, math.nan, math.nan, math.nan)
+        i = max(finite, key=lambda j: fr[j])
+        param = ch.value("protection_param", i)
+        tte = [ch.value("protection_time_to_empty_s", j) for j in range(n)]
+        return ProtectionReport(
+            mode=mode_ix,
+            active_param=int(param) if math.isfinite(param) else 255,
+            allowance_used=fr[i],
+            time_to_trip_s=min(ch.value("protection_time_to_trip_s", j) for j in finite),
+            time_to_empty_s=max((x for x in tte if math.isfinite(x)), default=math.nan),
+        )
+
+    def battery_infos(self) -> list[dc.BatteryInfo]:
+        """BatteryInfo of the pack (battery_id 0) and of each battery (1..B)."""
+        m = self.core.m
+        here = self._present()
+        tripped = mode(self.ch) in TRIPPED_MODES
+        out = []
+        pack = self.last or self.pack_as_battery()
+        v = pack.voltage_v
+        flags = self._flags(pack.current_a, bool(np.any(m.bat.sw_dsg[0] & here)), tripped)
+        full_wh = float(np.nansum(np.where(here, m.bat.full_capacity_ah[0], 0.0))) * _finite0(v)
+        rem_wh = full_wh * pack.soc_pct / 100.0
+        out.append(dc.BatteryInfo(0, v, pack.current_a, pack.temp_c, pack.soc_pct, pack.soh_pct,
+                                  rem_wh, full_wh, flags, "PackPilot"))  # fmt: skip
+        for i in range(m.bat.reported.shape[1]):
+            vi, cur = float(m.bat.voltage_v[0, i]), float(m.bat.current_a[0, i])
+            full = float(m.bat.full_capacity_ah[0, i])
+            rem = float(m.bat.remaining_capacity_ah[0, i])
+            fl = self._flags(cur, bool(m.bat.sw_dsg[0, i]), tripped or not here[i])
+            out.append(dc.BatteryInfo(i + 1, vi, cur, float(m.bat.temp_c[0, i]),
+                                      100.0 * float(m.bat.soc[0, i]), math.nan,
+                                      rem * vi, full * vi, fl, f"PackPilot-{i}"))  # fmt: skip
+        return out
+
+    @staticmethod
+    def _flags(current_a: float, in_use: bool, bad: bool) -> int:
+        f = dc.IN_USE if in_use else 0
+        if current_a < 0:
+            f |= dc.CHARGING
+        if bad:
+            f |= dc.BMS_ERROR
+        return f
+
+
+def _finite0(x: float) -> float:
+    return x if math.isfinite(x) else 0.0
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b > 0 and math.isfinite(a) else math.nan
+
+
+def _nanmax(x: np.ndarray) -> float:
+    return float(np.nanmax(x)) if x.size and np.isfinite(x).any() else math.nan
+
+
+__all__ = ["PERIOD_S", "PYLON_BITS", "Channels", "Publisher"]
