@@ -193,11 +193,27 @@ SWEEP_7C = Case(
 )
 
 
+# Found by the nightly soak (10,000 examples, 2026-11-25): with dt 0.5 s (> t_on) R3 closes
+# five standby batteries in the step that first sees their diodes conduct under 18 A, flags
+# the zero-load risk (2.79 A predicted) in that same step, and the load drops to 0 in the
+# period after it: 2.57 A flows into each for one period, then the reverse cut opens them. The
+# behaviour is the documented R3 exception; the property was wrong to demand the flag one
+# period *before* the closing step (it now accepts the flag raised by that step).
+SOAK_1 = Case(
+    ocv0_v=(21.5, 21.0, 21.0, 21.0, 21.0, 21.0),
+    r_ohm=(0.03125,) * 6,
+    dt_s=0.5,
+    load_t_s=(0.0, 1.0, 1.5),
+    load_a=(0.0, 18.0, 0.0),
+    insert=None,
+)
+
+
 @pytest.mark.parametrize("comparator", [False, True])
 @pytest.mark.parametrize(
     "case",
-    [KNOWN_18, KNOWN_18B, SWEEP_7, SWEEP_7B, SWEEP_7C],
-    ids=["step11", "step181", "sweep7", "sweep7b", "sweep7c"],
+    [KNOWN_18, KNOWN_18B, SWEEP_7, SWEEP_7B, SWEEP_7C, SOAK_1],
+    ids=["step11", "step181", "sweep7", "sweep7b", "sweep7c", "soak1"],
 )
 def test_closed_loop_invariants_known_counterexample(case: Case, comparator: bool) -> None:
     res = _check_invariants(case, comparator)
@@ -242,8 +258,9 @@ def _check_invariants(case: Case, comparator: bool = False) -> Result:
                 assert into[k, j] <= TRIP_A + 1e-9, (k, j, into[k, j])
             elif into[k, j] > I_LIM:
                 # Above the charge limit only where R3 had to close it and the controller
-                # flagged the risk in the period before.
-                assert k > 0 and risk[k - 1, j], (k, j, into[k, j])
+                # flagged the risk before the current flowed: in the step that closed it (row
+                # k is a decision and the period after it) or in the period before.
+                assert risk[k, j] or (k > 0 and risk[k - 1, j]), (k, j, into[k, j])
 
     # R3 deadline on the plant: a charge diode never conducts for longer than t_on plus one
     # control period in a row.
