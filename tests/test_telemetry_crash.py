@@ -154,3 +154,30 @@ def test_a_read_only_directory_is_refused_before_the_run(
     monkeypatch.setattr(tempfile, "mkstemp", read_only)
     with pytest.raises(InputError, match=r"--db .*cannot write in .*Read-only file system"):
         check_output(tmp_path / "x.sqlite", "--db")
+
+
+def test_ctrl_c_inside_record_loses_at_most_that_row_and_no_traceback(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A KeyboardInterrupt can land between any two statements of ``record``. It used to leave
+    a step counted in one buffer and not in another, and the final flush raised "zip() argument
+    2 is shorter than argument 1" instead of the run ending "interrupted" (found by the Ctrl-C
+    test once status recording grew). Now the row is complete or not there."""
+    db = tmp_path / "t.sqlite"
+    rec = SQLiteRecorder(db, flush_every=10_000, commit_every_s=60.0)
+    rec.start({}, NAMES)
+    samples = make_samples(3)
+    rec.record(samples[0])
+    rec.record(samples[1])
+
+    def interrupted(*args: object, **kw: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rec, "_record_status", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        rec.record(samples[2])  # interrupted after its row, inside its status bookkeeping
+    rec._steps.append(99)  # and a next row interrupted after its step, before it was counted
+    rec.finish({}, status="interrupted")
+    rec.close()
+    assert _rows(db) == 3
+    assert load_run(db).metrics == {}

@@ -226,13 +226,17 @@ class SQLiteRecorder:
         )
         self._bat_buf[k] = sample.battery
         self._grp_buf[k] = sample.group_v
-        self._steps.append(step)  # only now: a mis-shaped sample above leaves no partial row
         if sample.aux is not None:
             self._aux_buf[k] = sample.aux
+        # Only now, and together: a mis-shaped sample above leaves no partial row, and a
+        # Ctrl-C (KeyboardInterrupt between any two statements) at worst drops this row
+        # (_sample_rows reads exactly _pending rows) instead of a traceback at the final flush.
+        self._steps.append(step)
+        if sample.aux is not None:
             self._aux_steps.append(k)
+        self._pending = k + 1
         if sample.status:
             self._record_status(run_id, step, sample.status)
-        self._pending = k + 1
         if (
             self._pending >= self.flush_every
             or time.monotonic() - self._last_commit >= self.commit_every_s
@@ -300,7 +304,7 @@ class SQLiteRecorder:
             return [], [], []
         assert self._pack_buf is not None and self._grp_buf is not None
         assert self._aux_buf is not None
-        steps = self._steps
+        steps = self._steps[:k]  # a row interrupted before _pending counted it is dropped
         pack = [
             (run_id, st, *row) for st, row in zip(steps, self._pack_buf[:k].tolist(), strict=True)
         ]
@@ -314,7 +318,7 @@ class SQLiteRecorder:
             (run_id, steps[j // n_b], j % n_b, *row, g)
             for j, (row, g) in enumerate(zip(flat_b, gblob, strict=True))
         ]
-        aux = [(run_id, steps[j], *self._aux_buf[j].tolist()) for j in self._aux_steps]
+        aux = [(run_id, steps[j], *self._aux_buf[j].tolist()) for j in self._aux_steps if j < k]
         return pack, bat, aux
 
     def flush(self) -> None:
