@@ -121,9 +121,9 @@ def _render_column(col: F64, kind: str, labels: Any) -> list[list[StatusValue]]:
 
 
 MEASURED: tuple[tuple[str, str], ...] = (
-    ("bms_voltage_v", "voltage_v"),
-    ("bms_current_a", "current_a"),
-    ("bms_temp_c", "temp_c"),
+    ("bms_v", "voltage_v"),
+    ("bms_a", "current_a"),
+    ("bms_degc", "temp_c"),
     ("bms_soc", "soc"),
 )
 """Per battery, what the BMS measured (status channel, measurement field): the trace's battery

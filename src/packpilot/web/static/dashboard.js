@@ -565,8 +565,8 @@ function renderCellBars(c, b, i) {
 // What the BMS measured (status bms_*) is the card's number; the plant's truth is shown
 // beside it only when the two disagree (a failed, frozen or stale sensor), so a card never
 // shows a healthy 20 °C while the BMS reads NaN (#17 §1).
-const MEASURED = { voltage_v: ["bms_voltage_v", 0.05], current_a: ["bms_current_a", 0.2],
-  soc: ["bms_soc", 0.02], temp_c: ["bms_temp_c", 1.0] };
+const MEASURED = { voltage_v: ["bms_v", 0.05], current_a: ["bms_a", 0.2],
+  soc: ["bms_soc", 0.02], temp_c: ["bms_degc", 1.0] };
 function showMeasured(cell, st, b, key, text) {
   const [mk, tol] = MEASURED[key];
   cell.classList.remove("sensorbad");
