@@ -559,12 +559,14 @@ def _discharge_tick(
         if not (state[p, k] == DISCHARGING and chg_on[p, k] and cur[k] < 0.0):
             rev_q_as[p, k] = 0.0
             continue
-        feeder = False
+        # Fed by siblings when together they source more than i_det: five siblings at 0.2 A
+        # each, none above i_det alone, kept 1 A flowing into a sixth with no cut at all
+        # (found by the nightly soak).
+        fed = 0.0
         for j in range(n):
-            if j != k and pres[j] and cur[j] > i_det:
-                feeder = True
-                break
-        if not feeder:
+            if j != k and pres[j] and cur[j] > 0.0:
+                fed += cur[j]
+        if fed <= i_det:
             rev_q_as[p, k] = 0.0
             continue
         rev_q_as[p, k] += -cur[k] * dt
