@@ -29,16 +29,11 @@ ARTIFACTS = "PACKPILOT_ARTIFACTS"
 """Set to a directory to keep the screenshot for a look (default: the test's tmp_path)."""
 
 
-@pytest.fixture(scope="module")
-def cross_charge() -> Iterator[Dashboard]:
-    """Two batteries 2 V apart, no controller, a hover load: A charges B far above 2C."""
-    data = dual_pack(
-        switch={"kind": "mosfet_pair", "on_ohm": 0.0005}, duration_s=20.0, dt_s=0.1,
-        load={"kind": "current", "value": 14.0},
-    )  # fmt: skip
+def _serve(data: dict[str, object], scenario: str) -> Iterator[Dashboard]:
+    """A dashboard of ``data`` at 4x real time on a loopback port, until the fixture ends."""
     runner = Runner(parse_config(data), progress=False)
-    dash = Dashboard(runner, scenario="cross_charge", speed=4.0, host="127.0.0.1", port=0)
-    thread = threading.Thread(target=dash.serve, name="uvicorn-verdict", daemon=True)
+    dash = Dashboard(runner, scenario=scenario, speed=4.0, host="127.0.0.1", port=0)
+    thread = threading.Thread(target=dash.serve, name=f"uvicorn-{scenario}", daemon=True)
     dash.start()
     thread.start()
     deadline = time.monotonic() + 10.0
@@ -51,6 +46,16 @@ def cross_charge() -> Iterator[Dashboard]:
     yield dash
     dash.stop()
     thread.join(10.0)
+
+
+@pytest.fixture(scope="module")
+def cross_charge() -> Iterator[Dashboard]:
+    """Two batteries 2 V apart, no controller, a hover load: A charges B far above 2C."""
+    data = dual_pack(
+        switch={"kind": "mosfet_pair", "on_ohm": 0.0005}, duration_s=20.0, dt_s=0.1,
+        load={"kind": "current", "value": 14.0},
+    )  # fmt: skip
+    yield from _serve(data, "cross_charge")
 
 
 def test_dashboard_shows_the_verdict_and_the_alarms(
@@ -91,21 +96,7 @@ def sensor_fault() -> Iterator[Dashboard]:
     data["controller"] = ["sequencing", "protection"]
     data["plausibility"] = {}
     data["faults"] = [{"kind": "sensor_nan", "at_s": 2.0, "battery": "B", "quantity": "temp_c"}]
-    runner = Runner(parse_config(data), progress=False)
-    dash = Dashboard(runner, scenario="sensor_fault", speed=4.0, host="127.0.0.1", port=0)
-    thread = threading.Thread(target=dash.serve, name="uvicorn-sensor", daemon=True)
-    dash.start()
-    thread.start()
-    deadline = time.monotonic() + 10.0
-    while time.monotonic() < deadline:
-        try:
-            wb.get_json(dash.url + "api/status")
-            break
-        except OSError:
-            time.sleep(0.05)
-    yield dash
-    dash.stop()
-    thread.join(10.0)
+    yield from _serve(data, "sensor_fault")
 
 
 def test_a_card_shows_what_the_bms_measured_not_the_plant(
