@@ -44,7 +44,7 @@ from packpilot.io.can.battery import (
     encode_switch_state,
 )
 from packpilot.io.can.bus import FrameLog
-from packpilot.io.can.client import MAX_FRAMES_PER_POLL, FrameCounters
+from packpilot.io.can.client import FrameCounters, received
 from packpilot.io.can.codec import FrameError
 from packpilot.io.can.emulator import ChargerEmulator
 from packpilot.io.can.plant import battery_map
@@ -296,16 +296,7 @@ class Hil:
         self.plant.apply(self.arenas, self.cmd_row)
 
     def receive(self, t: float) -> None:
-        for _ in range(MAX_FRAMES_PER_POLL):
-            try:
-                msg = self.bus.recv(timeout=0.0)
-            except can.CanError:
-                self.counters.recv_errors += 1
-                return
-            if msg is None:
-                return
-            if self.log is not None:
-                self.log.log(msg, t, rx=True)
+        for msg in received(self.bus, self.counters, self.log, t):
             if self.inverter.take(msg, t) or self.aircraft.take(msg):
                 continue
             self._command(msg, t)

@@ -12,6 +12,7 @@ or error frames, or content that does not decode are counted and ignored.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import can
@@ -52,6 +53,25 @@ class FrameCounters:
     recv_errors: int = 0
     implausible: int = 0
     """Status frames that decoded but reported more than the charger can deliver (ignored)."""
+
+
+def received(
+    bus: can.BusABC, counters: FrameCounters, log: FrameLog | None, t_s: float
+) -> Iterator[can.Message]:
+    """The frames waiting on ``bus`` now (at most :data:`MAX_FRAMES_PER_POLL`, never
+    blocking), each logged as received at ``t_s``; a receive error is counted and ends the
+    drain. Every node that polls a bus drains it this one way."""
+    for _ in range(MAX_FRAMES_PER_POLL):
+        try:
+            msg = bus.recv(timeout=0.0)
+        except can.CanError:
+            counters.recv_errors += 1
+            return
+        if msg is None:
+            return
+        if log is not None:
+            log.log(msg, t_s, rx=True)
+        yield msg
 
 
 class ChargerClient:
@@ -129,16 +149,7 @@ class ChargerClient:
             self.log.log(msg, t_s, rx=False)
 
     def _drain(self, t_s: float) -> None:
-        for _ in range(MAX_FRAMES_PER_POLL):
-            try:
-                msg = self.bus.recv(timeout=0.0)
-            except can.CanError:
-                self.counters.recv_errors += 1
-                return
-            if msg is None:
-                return
-            if self.log is not None:
-                self.log.log(msg, t_s, rx=True)
+        for msg in received(self.bus, self.counters, self.log, t_s):
             if (
                 msg.arbitration_id != STATUS_ID
                 or not msg.is_extended_id
@@ -160,4 +171,4 @@ class ChargerClient:
             self._last_status_t = t_s
 
 
-__all__ = ["MAX_FRAMES_PER_POLL", "ChargerClient", "FrameCounters"]
+__all__ = ["MAX_FRAMES_PER_POLL", "ChargerClient", "FrameCounters", "received"]

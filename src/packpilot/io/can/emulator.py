@@ -17,7 +17,7 @@ from typing import Protocol
 import can
 
 from packpilot.io.can.bus import FrameLog
-from packpilot.io.can.client import MAX_FRAMES_PER_POLL, FrameCounters
+from packpilot.io.can.client import FrameCounters, received
 from packpilot.io.can.codec import (
     PERIOD_S,
     REQUEST_ID,
@@ -93,16 +93,7 @@ class ChargerEmulator:
             self._next_tx_t = nxt if nxt > t_s else t_s + self.period_s
 
     def _drain(self, t_s: float) -> None:
-        for _ in range(MAX_FRAMES_PER_POLL):
-            try:
-                msg = self.bus.recv(timeout=0.0)
-            except can.CanError:
-                self.counters.recv_errors += 1
-                return
-            if msg is None:
-                return
-            if self.log is not None:
-                self.log.log(msg, t_s, rx=True)
+        for msg in received(self.bus, self.counters, self.log, t_s):
             if (
                 msg.arbitration_id != REQUEST_ID
                 or not msg.is_extended_id

@@ -48,7 +48,7 @@ from packpilot.io.can.battery import (
     encode_switch,
 )
 from packpilot.io.can.bus import FrameLog
-from packpilot.io.can.client import MAX_FRAMES_PER_POLL, FrameCounters
+from packpilot.io.can.client import FrameCounters, received
 from packpilot.io.can.codec import FrameError
 from packpilot.io.can.dbcgen import BATTERY_GROUPS, GROUPS_PER_FRAME, MAX_GROUPS
 
@@ -161,16 +161,7 @@ class CanPlant:
         t = self.t_s
         for node in self.node.values():
             node.seen_this_period.clear()
-        for _ in range(MAX_FRAMES_PER_POLL):
-            try:
-                msg = self.bus.recv(timeout=0.0)
-            except can.CanError:
-                self.counters.recv_errors += 1
-                break
-            if msg is None:
-                break
-            if self.log is not None:
-                self.log.log(msg, t, rx=True)
+        for msg in received(self.bus, self.counters, self.log, t):
             self._take(msg, t)
         # A backlog after a stalled period is not babbling: allow for the periods that passed.
         periods = 1
