@@ -44,7 +44,7 @@ from packpilot.io.can.battery import (
     encode_switch_state,
 )
 from packpilot.io.can.bus import FrameLog
-from packpilot.io.can.client import FrameCounters, received
+from packpilot.io.can.client import FrameCounters, received, transmit
 from packpilot.io.can.codec import FrameError
 from packpilot.io.can.emulator import ChargerEmulator
 from packpilot.io.can.plant import battery_map
@@ -253,14 +253,7 @@ class Hil:
         return dc.encode(info, node, tid, t=t) + dc.encode_cells(cells, node, tid, t=t)
 
     def send(self, msg: can.Message, t: float) -> None:
-        try:
-            self.bus.send(msg)
-        except can.CanError:
-            self.counters.send_errors += 1
-            return
-        self.counters.sent += 1
-        if self.log is not None:
-            self.log.log(msg, t, rx=False)
+        transmit(self.bus, self.counters, self.log, msg, t)
 
     # ------------------------------------------------------------------ commands in, physics
     def advance(self, dt_s: float) -> Interval:

@@ -74,6 +74,22 @@ def received(
         yield msg
 
 
+def transmit(
+    bus: can.BusABC, counters: FrameCounters, log: FrameLog | None, msg: can.Message, t_s: float
+) -> bool:
+    """Send ``msg``, counted and logged as sent at ``t_s``; a send error is counted, never
+    raised (a full or absent bus must not stop the loop). Returns whether it went out."""
+    try:
+        bus.send(msg)
+    except can.CanError:
+        counters.send_errors += 1
+        return False
+    counters.sent += 1
+    if log is not None:
+        log.log(msg, t_s, rx=False)
+    return True
+
+
 class ChargerClient:
     """The BMS end of the TC/Elcon protocol."""
 
@@ -139,14 +155,7 @@ class ChargerClient:
 
     def _send(self, t_s: float) -> None:
         msg = encode_request(self.request, timestamp=t_s)
-        try:
-            self.bus.send(msg)
-        except can.CanError:
-            self.counters.send_errors += 1
-            return
-        self.counters.sent += 1
-        if self.log is not None:
-            self.log.log(msg, t_s, rx=False)
+        transmit(self.bus, self.counters, self.log, msg, t_s)
 
     def _drain(self, t_s: float) -> None:
         for msg in received(self.bus, self.counters, self.log, t_s):
@@ -171,4 +180,4 @@ class ChargerClient:
             self._last_status_t = t_s
 
 
-__all__ = ["MAX_FRAMES_PER_POLL", "ChargerClient", "FrameCounters", "received"]
+__all__ = ["MAX_FRAMES_PER_POLL", "ChargerClient", "FrameCounters", "received", "transmit"]

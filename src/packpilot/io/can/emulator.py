@@ -17,7 +17,7 @@ from typing import Protocol
 import can
 
 from packpilot.io.can.bus import FrameLog
-from packpilot.io.can.client import FrameCounters, received
+from packpilot.io.can.client import FrameCounters, received, transmit
 from packpilot.io.can.codec import (
     PERIOD_S,
     REQUEST_ID,
@@ -126,14 +126,7 @@ class ChargerEmulator:
                 communication_timeout=True,
             )
         msg = encode_status(out_v, out_a, flags, timestamp=t_s)
-        try:
-            self.bus.send(msg)
-        except can.CanError:
-            self.counters.send_errors += 1
-            return
-        self.counters.sent += 1
-        if self.log is not None:
-            self.log.log(msg, t_s, rx=False)
+        transmit(self.bus, self.counters, self.log, msg, t_s)
 
 
 __all__ = ["ChargerEmulator", "ChargerPlant"]

@@ -48,7 +48,7 @@ from packpilot.io.can.battery import (
     encode_switch,
 )
 from packpilot.io.can.bus import FrameLog
-from packpilot.io.can.client import FrameCounters, received
+from packpilot.io.can.client import FrameCounters, received, transmit
 from packpilot.io.can.codec import FrameError
 from packpilot.io.can.dbcgen import BATTERY_GROUPS, GROUPS_PER_FRAME, MAX_GROUPS
 
@@ -346,14 +346,7 @@ class CanPlant:
             self._send(msg, t)
 
     def _send(self, msg: can.Message, t: float) -> None:
-        try:
-            self.bus.send(msg)
-        except can.CanError:
-            self.counters.send_errors += 1
-            return
-        self.counters.sent += 1
-        if self.log is not None:
-            self.log.log(msg, t, rx=False)
+        transmit(self.bus, self.counters, self.log, msg, t)
 
     def _view(self, cls: type, arenas: Arenas, row: int) -> Any:
         """The named tuple at ``row`` of a core's arenas, as views (built once)."""
