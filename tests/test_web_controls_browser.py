@@ -27,8 +27,11 @@ from packpilot.web.app import Dashboard
 from packpilot.web.session import Library
 from tests import test_web_browser as wb
 from tests.conftest import EXAMPLES
+from tests.test_web_security import recording
 
 pytestmark = wb.pytestmark
+
+__all__ = ["recording"]  # a module-scoped fixture of test_web_security, shared
 
 browser = wb.browser
 """The module-scoped headless Chromium of the dashboard browser test (a fixture)."""
@@ -324,3 +327,44 @@ def test_a_recording_scrubs_with_balancing_marks(
     browser.wait_body(lambda d: d.get("scrubbed") == str(k), 10.0)
     time.sleep(0.3)
     shot(browser, "dashboard_recording.png", tmp_path)
+
+
+def test_the_page_follows_a_run_another_process_writes(
+    browser: wb.Cdp, recording: Path, tmp_path: Path
+) -> None:
+    """`packpilot dashboard FILE` on a run still being written: the page says it is attached
+    and read-only (no pace controls, no scrubber), grows with the file, and turns into the
+    scrubbable recording when the writer finishes."""
+    from tests.test_web_follow import PacedWriter
+
+    writer = PacedWriter(recording, tmp_path / "growing.sqlite", holds=(50,))
+    writer.start()
+    dash = None
+    thread = None
+    try:
+        assert writer.reached[50].wait(30.0)
+        dash = Dashboard(recording=writer.dst, port=0)
+        thread = serve(dash)
+        browser.call("Page.navigate", url=dash.url)
+        browser.wait_body(lambda d: d.get("kind") == "attached", 30.0)
+        assert js(browser, "document.getElementById('kind').textContent") == (
+            "attached (read-only)"
+        )
+        assert js(browser, "document.getElementById('pace-controls').hidden") is True
+        assert js(browser, "document.getElementById('scrub-controls').hidden") is True
+        assert js(browser, "document.getElementById('run-state').textContent") == "running"
+        writer.go[50].set()
+        browser.wait_body(lambda d: d.get("kind") == "recorded" and d.get("state") == "finished",
+                          30.0)  # fmt: skip
+        assert js(browser, "document.getElementById('kind').textContent") == "recording"
+        assert js(browser, "document.getElementById('scrub-controls').hidden") is False
+        n_events = js(browser, "document.querySelectorAll('#events tbody tr').length")
+        assert n_events == len(writer.raw.events) > 0
+    finally:
+        writer.go[50].set()
+        writer.join(30.0)
+        if dash is not None:
+            dash.stop()
+        if thread is not None:
+            thread.join(10.0)
+    assert writer.error is None

@@ -257,7 +257,8 @@ class LiveRun:
     db: str | None = None
     stop_requested: threading.Event = field(default_factory=threading.Event)
     kind: str = "live"
-    """``live`` (a run going on here) or ``recorded`` (a run read from a telemetry file)."""
+    """``live`` (a run going on here), ``recorded`` (a run read from a telemetry file) or
+    ``attached`` (a run another process is still writing, followed read-only)."""
     source: str | None = None
     """Where the run comes from: the scenario file, or the telemetry file and run id."""
     report: str | None = None

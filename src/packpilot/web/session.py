@@ -19,7 +19,7 @@ from typing import Any
 from packpilot.contract.record import Result
 from packpilot.errors import InputError
 from packpilot.web.live import LiveRun, SimThread
-from packpilot.web.recorded import Recording, is_sqlite
+from packpilot.web.recorded import Follower, Recording, is_sqlite
 
 RECORDING_SUFFIXES = (".sqlite", ".sqlite3", ".db")
 MAX_LISTED = 500
@@ -131,6 +131,7 @@ class Session:
         self.write_report = write_report
         self.max_points = max_points
         self.recording: Recording | None = None
+        self.follower: Follower | None = None
         self.report_path: Path | None = None
         self.generation = 0
         self._lock = threading.Lock()
@@ -140,14 +141,25 @@ class Session:
             sim.on_result = self._on_result
 
     # ---------------------------------------------------------------- switching
-    def _switch(self, live: LiveRun, sim: SimThread | None, rec: Recording | None) -> None:
+    def _switch(
+        self,
+        live: LiveRun,
+        sim: SimThread | None,
+        rec: Recording | None,
+        follower: Follower | None = None,
+    ) -> None:
         with self._lock:
-            old = self.sim
+            old, old_follower = self.sim, self.follower
             self.live, self.sim, self.recording = live, sim, rec
+            self.follower = follower
             self.report_path = None
             self.generation += 1
         if old is not None:
             old.stop(timeout_s=5.0)
+        if old_follower is not None:
+            old_follower.stop()
+        if follower is not None:
+            follower.start()
 
     def start(self) -> None:
         if self.sim is not None and not self.sim.is_alive() and self.sim.ident is None:
@@ -156,6 +168,8 @@ class Session:
     def stop(self) -> None:
         if self.sim is not None:
             self.sim.stop()
+        if self.follower is not None:
+            self.follower.stop()
 
     def start_example(self, name: str, speed: float) -> LiveRun:
         """Start the shipped example ``name`` (blocking: the runner is built here)."""
@@ -188,13 +202,26 @@ class Session:
         return self.open_path(path, run_id)
 
     def open_path(self, path: Path, run_id: int | None = None) -> LiveRun:
-        """Show a recording the user named (the command line, or resolved by the library)."""
+        """Show a recording the user named (the command line, or resolved by the library). A
+        run still being written is followed, read-only, until its writer finishes."""
         rec = Recording(path, run_id, self.max_points)
-        self._switch(rec.live, None, rec)
+        follower = Follower(rec, self._followed_end) if rec.following else None
+        self._switch(rec.live, None, rec, follower)
         report = existing_report(path, rec.run_id)
         if report is not None:
             self._set_report(rec.live, report)
         return rec.live
+
+    def _followed_end(self, rec: Recording) -> None:
+        """A followed run has ended (in the follower's thread): if it is still on show, reopen
+        it as a plain recording, so the page gets the scrubber and the report link."""
+        with self._lock:
+            if rec is not self.recording:
+                return
+        try:
+            self.open_path(rec.path, rec.run_id)
+        except InputError as err:  # keep showing what was followed, and say why
+            rec.live.note(f"the finished run could not be reopened: {err}")
 
     # ---------------------------------------------------------------- reports
     def _on_result(self, live: LiveRun, result: Result) -> None:

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from packpilot.contract.bms import StatusValue
 from packpilot.contract.record import BATTERY_CHANNELS, Result
 from packpilot.errors import InputError
-from packpilot.io.telemetry.reader import _load
+from packpilot.io.telemetry.reader import RunTail
 from packpilot.io.telemetry.schema import _dumps
 
 
@@ -115,9 +115,19 @@ def trace_to_csv(result: Result, out_path: Path | str) -> None:
     _write_csv(wide_columns(result), out_path)
 
 
+def _whole(db_path: Path | str, run_id: int | None) -> tuple[Result, NDArray[np.int64]]:
+    """A run and its recorded step numbers (the Trace has no step column)."""
+    tail = RunTail(db_path, run_id)
+    try:
+        chunk = tail.read()
+    finally:
+        tail.close()
+    return chunk.result, chunk.steps
+
+
 def export_csv(db_path: Path | str, out_path: Path | str, run_id: int | None = None) -> None:
     """Export one run (latest by default) as a wide CSV."""
-    result, steps = _load(db_path, run_id)
+    result, steps = _whole(db_path, run_id)
     _write_csv(wide_columns(result, steps, status_runs_to_end=True), out_path)
 
 
@@ -126,7 +136,7 @@ def export_parquet(db_path: Path | str, out_path: Path | str, run_id: int | None
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    result, steps = _load(db_path, run_id)
+    result, steps = _whole(db_path, run_id)
     arrays: dict[str, Any] = {}
     for name, col in wide_columns(result, steps, status_runs_to_end=True).items():
         if isinstance(col, np.ndarray):

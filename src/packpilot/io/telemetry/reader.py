@@ -9,6 +9,7 @@ import json
 import math
 import sqlite3
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,28 +23,31 @@ from packpilot.io.telemetry.liveness import shown_status, writer_columns
 from packpilot.io.telemetry.schema import PACK_COLUMNS, _check_schema
 
 
-def _open_ro(path: Path | str) -> sqlite3.Connection:
+def _open_ro(path: Path | str, any_thread: bool = False) -> sqlite3.Connection:
     """Open a telemetry file for reading only. A WAL file needs its ``-shm`` beside it, which
     read-only media cannot hold: then the file is opened ``immutable`` (no locks, no WAL), which
-    reads every committed row of a run that finished (its WAL was checkpointed on close)."""
+    reads every committed row of a run that finished (its WAL was checkpointed on close).
+    ``any_thread``: the connection may be used from a thread other than this one (one at a
+    time: the caller serializes)."""
     p = Path(path)
     if not p.is_file():
         raise InputError(f"{p}: telemetry database not found")
     try:
-        return _connect_checked(p, "mode=ro")
+        return _connect_checked(p, "mode=ro", any_thread)
     except sqlite3.OperationalError:
         pass  # read-only media: no -shm can be created next to the file
     except sqlite3.DatabaseError as err:
         raise InputError(f"{p}: not a PackPilot telemetry database ({err})") from None
     try:
-        return _connect_checked(p, "immutable=1")
+        return _connect_checked(p, "immutable=1", any_thread)
     except sqlite3.DatabaseError as err:
         raise InputError(f"{p}: not a PackPilot telemetry database ({err})") from None
 
 
-def _connect_checked(p: Path, query: str) -> sqlite3.Connection:
+def _connect_checked(p: Path, query: str, any_thread: bool = False) -> sqlite3.Connection:
     """A connection by URI (``query``) whose file holds a readable PackPilot schema."""
-    conn = sqlite3.connect(f"{p.resolve().as_uri()}?{query}", uri=True)
+    uri = f"{p.resolve().as_uri()}?{query}"
+    conn = sqlite3.connect(uri, uri=True, check_same_thread=not any_thread)
     try:
         conn.execute("SELECT 1 FROM runs LIMIT 1").fetchall()
         _check_schema(conn, p)
@@ -87,8 +91,12 @@ def _forward_fill_status(
     rows: list[tuple[str, int, int, Any]],
     steps: NDArray[np.int64],
     kinds: dict[str, set[str]],
+    state: dict[str, list[StatusValue]],
 ) -> dict[str, list[Sequence[StatusValue]]]:
-    """Rebuild one tuple per step per channel from change-only rows, from its first step on."""
+    """Rebuild one tuple per step per channel from change-only rows, from its first step on.
+
+    ``state`` holds each started channel's values after the previous block of steps (empty
+    for a whole run) and is updated, so a run read in pieces fills exactly as read at once."""
     by_channel: dict[str, dict[int, list[tuple[int, StatusValue]]]] = {}
     for channel, step, b, value in rows:
         restored = _restore_status(value, kinds.get(channel, set()))
@@ -96,14 +104,16 @@ def _forward_fill_status(
     step_list = steps.tolist()
     out: dict[str, list[Sequence[StatusValue]]] = {}
     # The recorder's channel order (first seen), as Trace.from_samples keeps it.
-    for channel in [*kinds, *sorted(set(by_channel) - set(kinds))]:
-        changes = by_channel.get(channel)
-        if not changes:
+    others = sorted((set(by_channel) | set(state)) - set(kinds))
+    for channel in [*kinds, *others]:
+        changes = by_channel.get(channel, {})
+        current = state.get(channel)
+        if current is None and not changes:
             continue
-        first = min(changes)
-        current: list[StatusValue] = []
+        first = min(changes) if current is None else -1
+        current = [] if current is None else current
         seqs: list[Sequence[StatusValue]] = []
-        last: tuple[StatusValue, ...] = ()
+        last: tuple[StatusValue, ...] = tuple(current)
         for st in step_list:
             if st < first:
                 continue
@@ -115,6 +125,7 @@ def _forward_fill_status(
                     current[b] = v
                 last = tuple(current)
             seqs.append(last)
+        state[channel] = current
         out[channel] = seqs
     return out
 
@@ -127,113 +138,181 @@ def load_run(path: Path | str, run_id: int | None = None) -> Result:
     from the first step that carried it to the end of the run, and a per-step sequence never
     shrinks (a battery index once seen keeps its last value).
     """
-    return _load(path, run_id)[0]
-
-
-def _load(path: Path | str, run_id: int | None) -> tuple[Result, NDArray[np.int64]]:
-    """``load_run`` plus the recorded step numbers (the Trace has no step column)."""
-    conn = _open_ro(path)
+    tail = RunTail(path, run_id)
     try:
-        rid = _resolve_run(conn, path, run_id)
-        names_j, metrics_j, kinds_j, channels_j = conn.execute(
-            "SELECT battery_names, metrics, status_kinds, channels FROM runs WHERE id = ?", (rid,)
+        return tail.read().result
+    finally:
+        tail.close()
+
+
+@dataclass
+class Chunk:
+    """What one :meth:`RunTail.read` found: the rows committed since the previous read."""
+
+    result: Result
+    """The new samples (a Trace of just them), the new events, the run's metrics so far."""
+    steps: NDArray[np.int64]
+    """The recorded step number of each new sample."""
+    status: str
+    """The run's status as :func:`list_runs` shows it: ``running`` while its writer lives."""
+
+
+class RunTail:
+    """A run read while it is written: each :meth:`read` returns what was committed since the
+    previous one (the first, the whole run so far); :func:`load_run` is one read.
+
+    The writer commits a block of samples, their status changes and events and the run's row
+    in one transaction, and each read is one read transaction, so a read sees whole steps
+    only. Forward-filled status carries over from one read to the next. This is how the
+    dashboard follows ``packpilot run`` (or ``simulate --db``) in another process.
+    """
+
+    def __init__(self, path: Path | str, run_id: int | None = None) -> None:
+        self.path = path
+        conn = _open_ro(path, any_thread=True)  # the dashboard follows a run from its own thread
+        conn.isolation_level = None  # reads open their own transaction: one snapshot each
+        try:
+            self.run_id = _resolve_run(conn, path, run_id)
+            names_j, channels_j, config_j = conn.execute(
+                "SELECT battery_names, channels, config FROM runs WHERE id = ?", (self.run_id,)
+            ).fetchone()
+            if json.loads(channels_j) != list(BATTERY_CHANNELS):
+                raise InputError(
+                    f"{path}: run {self.run_id} was recorded with battery channels"
+                    f" {json.loads(channels_j)}, this version expects {list(BATTERY_CHANNELS)}"
+                )
+        except BaseException:
+            conn.close()
+            raise
+        self._conn = conn
+        self.names: list[str] = json.loads(names_j)
+        config = json.loads(config_j)
+        self.config: dict[str, Any] = config if isinstance(config, dict) else {}
+        """The run's configuration as recorded (the scenario, resolved)."""
+        self._after_step = -1
+        self._after_event = 0
+        self._status_state: dict[str, list[StatusValue]] = {}
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def read(self) -> Chunk:
+        """The rows committed since the previous read."""
+        conn = self._conn
+        conn.execute("BEGIN")
+        try:
+            chunk = self._read(conn)
+        finally:
+            conn.execute("COMMIT")
+        if len(chunk.steps):
+            self._after_step = int(chunk.steps[-1])
+        return chunk
+
+    def _read(self, conn: sqlite3.Connection) -> Chunk:
+        rid, after = self.run_id, self._after_step
+        metrics_j, kinds_j = conn.execute(
+            "SELECT metrics, status_kinds FROM runs WHERE id = ?", (rid,)
         ).fetchone()
-        names: list[str] = json.loads(names_j)
-        if json.loads(channels_j) != list(BATTERY_CHANNELS):
-            raise InputError(
-                f"{path}: run {rid} was recorded with battery channels {json.loads(channels_j)},"
-                f" this version expects {list(BATTERY_CHANNELS)}"
-            )
-        n_b = len(names)
-        n_c = len(BATTERY_CHANNELS)
-        pack = conn.execute(
-            f"SELECT step, {', '.join(PACK_COLUMNS)} FROM pack_samples WHERE run_id = ?"
-            " ORDER BY step",
-            (rid,),
-        ).fetchall()
-        pm = _float_matrix(pack, 1 + len(PACK_COLUMNS))
-        steps = np.array([r[0] for r in pack], dtype=np.int64)
-        n_s = len(steps)
-
-        bat_rows = conn.execute(
-            f"SELECT step, battery, {', '.join(BATTERY_CHANNELS)}, group_v FROM battery_samples"
-            " WHERE run_id = ? ORDER BY step, battery",
-            (rid,),
-        ).fetchall()
-        battery = np.full((n_s, n_b, n_c), np.nan)
-        max_groups = max((len(r[-1]) // 8 for r in bat_rows), default=0)
-        group_v = np.full((n_s, n_b, max_groups), np.nan)
-        if bat_rows:
-            si = np.searchsorted(steps, np.array([r[0] for r in bat_rows], dtype=np.int64))
-            bi = np.array([r[1] for r in bat_rows], dtype=np.int64)
-            battery[si, bi, :] = _float_matrix([r[2:-1] for r in bat_rows], n_c)
-            blobs = [r[-1] for r in bat_rows]
-            if all(len(b) == 8 * max_groups for b in blobs):
-                gm = np.frombuffer(b"".join(blobs), dtype="<f8").reshape(len(blobs), max_groups)
-                group_v[si, bi, :] = gm
-            else:
-                for j, blob in enumerate(blobs):
-                    g = np.frombuffer(blob, dtype="<f8")
-                    group_v[si[j], bi[j], : len(g)] = g
-
-        aux_rows = conn.execute(
-            f"SELECT step, {', '.join(BATTERY_CHANNELS)} FROM aux_samples WHERE run_id = ?"
-            " ORDER BY step",
-            (rid,),
-        ).fetchall()
-        aux: NDArray[np.float64] | None = None
-        if aux_rows:
-            aux = np.full((n_s, n_c), np.nan)
-            ai = np.searchsorted(steps, np.array([r[0] for r in aux_rows], dtype=np.int64))
-            aux[ai, :] = _float_matrix([r[1:] for r in aux_rows], n_c)
-
+        steps, pm, battery, group_v, aux = _samples(conn, rid, len(self.names), after)
         kinds = {k: set(v) for k, v in json.loads(kinds_j or "{}").items()}
         status = _forward_fill_status(
             conn.execute(
                 "SELECT channel, step, battery, value FROM status_samples WHERE run_id = ?"
-                " ORDER BY channel, step, battery",
-                (rid,),
+                " AND step > ? ORDER BY channel, step, battery",
+                (rid, after),
             ).fetchall(),
             steps,
             kinds,
+            self._status_state,
         )
+        events = []
+        for event_id, t_s, kind, b, message, data in conn.execute(
+            "SELECT id, t_s, kind, battery, message, data FROM events WHERE run_id = ?"
+            " AND id > ? ORDER BY id",
+            (rid, self._after_event),
+        ):
+            self._after_event = event_id
+            t = t_s if t_s is not None else math.nan
+            events.append(Event(t, kind, b, message, json.loads(data)))
+        trace = Trace(
+            t_s=pm[:, 1].copy(),
+            bus_v=pm[:, 2].copy(),
+            load_demand_a=pm[:, 3].copy(),
+            load_a=pm[:, 4].copy(),
+            charger_v=pm[:, 5].copy(),
+            charger_a=pm[:, 6].copy(),
+            battery=battery,
+            group_v=group_v,
+            status=status,
+            aux=aux,
+        )
+        metrics = json.loads(metrics_j) if metrics_j else {}
+        result = Result(list(self.names), trace, events, metrics, run_id=rid)
+        return Chunk(result, steps, _run_status(conn, rid))
 
-        events = [
-            Event(
-                t_s=t_s if t_s is not None else math.nan,
-                kind=kind,
-                battery=b,
-                message=message,
-                data=json.loads(data),
-            )
-            for t_s, kind, b, message, data in conn.execute(
-                "SELECT t_s, kind, battery, message, data FROM events WHERE run_id = ? ORDER BY id",
-                (rid,),
-            )
-        ]
-    finally:
-        conn.close()
 
-    trace = Trace(
-        t_s=pm[:, 1].copy(),
-        bus_v=pm[:, 2].copy(),
-        load_demand_a=pm[:, 3].copy(),
-        load_a=pm[:, 4].copy(),
-        charger_v=pm[:, 5].copy(),
-        charger_a=pm[:, 6].copy(),
-        battery=battery,
-        group_v=group_v,
-        status=status,
-        aux=aux,
-    )
-    result = Result(
-        battery_names=names,
-        trace=trace,
-        events=events,
-        metrics=json.loads(metrics_j) if metrics_j else {},
-        run_id=rid,
-    )
-    return result, steps
+def _run_status(conn: sqlite3.Connection, rid: int) -> str:
+    """The run's status as shown: a ``running`` run whose writer is gone reads ``aborted``."""
+    cols = "writer_pid, writer_host, heartbeat_at" if writer_columns(conn) else "NULL, NULL, NULL"
+    status, pid, host, beat = conn.execute(
+        f"SELECT status, {cols} FROM runs WHERE id = ?", (rid,)
+    ).fetchone()
+    return shown_status(status, pid, host, beat)
+
+
+Samples = tuple[
+    NDArray[np.int64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.float64] | None,
+]
+
+
+def _samples(conn: sqlite3.Connection, rid: int, n_b: int, after: int) -> Samples:
+    """Steps, pack matrix, battery and group arrays and aux of the samples after ``after``."""
+    n_c = len(BATTERY_CHANNELS)
+    pack = conn.execute(
+        f"SELECT step, {', '.join(PACK_COLUMNS)} FROM pack_samples WHERE run_id = ?"
+        " AND step > ? ORDER BY step",
+        (rid, after),
+    ).fetchall()
+    pm = _float_matrix(pack, 1 + len(PACK_COLUMNS))
+    steps = np.array([r[0] for r in pack], dtype=np.int64)
+    n_s = len(steps)
+
+    bat_rows = conn.execute(
+        f"SELECT step, battery, {', '.join(BATTERY_CHANNELS)}, group_v FROM battery_samples"
+        " WHERE run_id = ? AND step > ? ORDER BY step, battery",
+        (rid, after),
+    ).fetchall()
+    battery = np.full((n_s, n_b, n_c), np.nan)
+    max_groups = max((len(r[-1]) // 8 for r in bat_rows), default=0)
+    group_v = np.full((n_s, n_b, max_groups), np.nan)
+    if bat_rows:
+        si = np.searchsorted(steps, np.array([r[0] for r in bat_rows], dtype=np.int64))
+        bi = np.array([r[1] for r in bat_rows], dtype=np.int64)
+        battery[si, bi, :] = _float_matrix([r[2:-1] for r in bat_rows], n_c)
+        blobs = [r[-1] for r in bat_rows]
+        if all(len(b) == 8 * max_groups for b in blobs):
+            gm = np.frombuffer(b"".join(blobs), dtype="<f8").reshape(len(blobs), max_groups)
+            group_v[si, bi, :] = gm
+        else:
+            for j, blob in enumerate(blobs):
+                g = np.frombuffer(blob, dtype="<f8")
+                group_v[si[j], bi[j], : len(g)] = g
+
+    aux_rows = conn.execute(
+        f"SELECT step, {', '.join(BATTERY_CHANNELS)} FROM aux_samples WHERE run_id = ?"
+        " AND step > ? ORDER BY step",
+        (rid, after),
+    ).fetchall()
+    aux: NDArray[np.float64] | None = None
+    if aux_rows:
+        aux = np.full((n_s, n_c), np.nan)
+        ai = np.searchsorted(steps, np.array([r[0] for r in aux_rows], dtype=np.int64))
+        aux[ai, :] = _float_matrix([r[1:] for r in aux_rows], n_c)
+    return steps, pm, battery, group_v, aux
 
 
 def list_runs(path: Path | str) -> list[dict[str, Any]]:

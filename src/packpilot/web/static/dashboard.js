@@ -109,10 +109,12 @@ function onHello(msg) {
   S.kind = msg.kind || "live";
   S.layout = msg.layout || null;
   $("scenario").textContent = msg.scenario;
-  $("kind").textContent = S.kind === "recorded" ? "recording" : "live";
+  // "attached": a run another process is writing, followed read-only from its telemetry file
+  const kindLabel = { recorded: "recording", attached: "attached (read-only)" }[S.kind] || "live";
+  $("kind").textContent = kindLabel;
   $("source").textContent = msg.source ? "(" + msg.source + ")" : "";
-  document.title = "PackPilot " + (S.kind === "recorded" ? "recording" : "live") + " — " + msg.scenario;
-  $("pace-controls").hidden = false;
+  document.title = "PackPilot " + kindLabel + " — " + msg.scenario;
+  $("pace-controls").hidden = S.kind === "attached"; // nothing here paces a run it only reads
   $("btn-pause").hidden = S.kind !== "live";
   $("scrub-controls").hidden = S.kind !== "recorded";
   $("scrub").max = String(Math.max(S.duration, 1e-3));
@@ -214,6 +216,7 @@ function showSpeed(speed) {
   if (![...sel.options].some((o) => o.value === v)) sel.append(new Option(speed + "×", v));
   sel.value = v;
   $("speed").textContent = S.kind === "recorded" ? "recorded"
+    : S.kind === "attached" ? "following its telemetry file"
     : speed > 0 ? speed + "× real time" : "as fast as possible";
 }
 
