@@ -271,3 +271,40 @@ def test_a_writer_that_dies_shows_as_aborted(tmp_path: Path) -> None:
     finally:
         proc.kill()
         session.stop()
+
+
+def test_the_dashboard_follows_the_bms_runtime_recording(tmp_path: Path) -> None:
+    """The writer is the BMS runtime itself (`packpilot run --db`, here in lock-step with the
+    twin on a virtual bus): the session attaches mid-flight, sees the periods recorded so far
+    and then the later ones, and ends with exactly what the runtime recorded."""
+    from packpilot.cli import scenario_path
+    from packpilot.config import load_config
+    from packpilot.runtime.lockstep import Lockstep, run_lockstep
+
+    cfg = load_config(scenario_path(Path("uav_mission")))
+    db = tmp_path / "run.sqlite"
+    session = Session(LiveRun())
+    seen: dict[int, int] = {}
+
+    def hook(ls: Lockstep, k: int) -> None:
+        if k == 100:
+            live = session.open_path(db)
+            assert live.kind == "attached" and live.state == "running"
+        if k in (100, 200):
+            rec = session.recording
+            assert rec is not None
+            wait_for(lambda: rec.n_samples == k, what=f"{k} periods read")
+            seen[k] = rec.n_samples
+
+    try:
+        with SQLiteRecorder(db, flush_every=25) as recorder:
+            ls = run_lockstep(cfg, 300, recorder=recorder, hook=hook)
+            recorder.finish(ls.bms.metrics())
+        assert seen == {100: 100, 200: 200}
+        wait_for(lambda: session.live.kind == "recorded", what="the reopened recording")
+        assert session.live.state == "finished"
+        assert session.recording is not None and session.recording.n_samples == 300
+        assert [e["kind"] for e in session.live.events()] == [e.kind for e in ls.bms.events]
+        assert ls.bms.events  # the flight's joins and stage changes were there to carry
+    finally:
+        session.stop()
