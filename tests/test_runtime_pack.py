@@ -124,6 +124,53 @@ def test_replay_of_a_recorded_frame_log(cfg: ScenarioConfig, tmp_path: Path) -> 
     assert again.plant.counters.malformed == 0
 
 
+def test_replay_can_on_the_command_line(cfg: ScenarioConfig, tmp_path: Path) -> None:
+    """`packpilot replay can LOG CONFIG` (and `run --replay-log`, the same code) re-runs the
+    BMS over a frame log from the command line: the events of the recorded run, recorded to
+    SQLite; a missing, empty or foreign log is one line and exit code 2."""
+    import json
+    import sqlite3
+    import subprocess
+    import sys
+
+    log = tmp_path / "run.asc"
+    ls = lockstep(cfg, RuntimeOptions(log_path=log))
+    try:
+        for _ in range(round(60.0 / DT)):
+            ls.step(DT)
+    finally:
+        ls.close()
+    cli = [sys.executable, "-m", "packpilot.cli"]
+    db = tmp_path / "again.sqlite"
+    proc = subprocess.run([*cli, "replay", "can", str(log), "uav_mission", "--period", str(DT),
+                           "--db", str(db), "--json"],
+                          capture_output=True, text=True, timeout=300, check=False)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads(proc.stdout)
+    assert m["steps"] == round(60.0 / DT) and m["can_malformed"] == 0
+    with sqlite3.connect(db) as c:
+        kinds = [r[0] for r in c.execute("select kind from events order by id")]
+        status = c.execute("select status from runs").fetchone()[0]
+    assert kinds == [e.kind for e in ls.bms.events] and kinds
+    assert status == "ok"
+    same = subprocess.run([*cli, "run", "uav_mission", "--replay-log", str(log), "--period",
+                           str(DT), "--json"],
+                          capture_output=True, text=True, timeout=300, check=False)  # fmt: skip
+    assert same.returncode == 0, same.stderr
+    assert json.loads(same.stdout)["steps"] == m["steps"]
+
+    empty = tmp_path / "empty.asc"
+    can.ASCWriter(empty).stop()
+    for bad, why in ((tmp_path / "none.blf", "cannot read the frame log"),
+                     (empty, "no frame the BMS received"),
+                     (tmp_path / "x.csv", "unsupported frame log format")):  # fmt: skip
+        argv = [*cli, "replay", "can", str(bad), "uav_mission"]
+        bad_proc = subprocess.run(argv, capture_output=True, text=True, timeout=300, check=False)
+        assert bad_proc.returncode == 2, (bad, bad_proc.stderr)
+        lines = bad_proc.stderr.strip().splitlines()
+        assert len(lines) == 1 and why in lines[0], lines
+
+
 def test_dronecan_batteries_as_inputs(cfg: ScenarioConfig) -> None:
     """Both batteries report by DroneCAN BatteryInfo + BatteryInfoAux (decoded by the dronecan
     package), their switch nodes' SwitchState is the feedback: the flight runs on them (float16

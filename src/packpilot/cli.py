@@ -37,7 +37,8 @@ app = typer.Typer(
 )
 replay_app = typer.Typer(
     no_args_is_help=True,
-    help="Replay a CSV log through a control method.",
+    help="Replay a log: a CSV or flight log through a control method (protection, sequencing,"
+    " equalization, flight), or a CAN frame log through the whole BMS (can).",
     rich_markup_mode=None,
 )
 app.add_typer(replay_app, name="replay")
@@ -919,16 +920,9 @@ def run(
             period_s=period, log_path=can_log, node_id=node_id,
             allow_unmonitored=allow_unmonitored, dronecan_ids=_ids(dronecan_ids),
         )  # fmt: skip
-        recorder = _recorder(db)
         if replay_log is not None:
-            from packpilot.runtime.logreplay import replay_log as replay
-
-            try:
-                done = replay(cfg, replay_log, opts, recorder)
-            finally:
-                if recorder is not None:
-                    recorder.close()
-            return done.metrics()
+            return _replay_frames(cfg, replay_log, opts, db)
+        recorder = _recorder(db)
         bms = BmsRuntime(cfg, opts, recorder)
         _sigterm_interrupts()
         typer.echo(
@@ -945,6 +939,21 @@ def run(
                 recorder.close()
 
     _print_runtime(_guard(go), as_json)
+
+
+def _replay_frames(cfg: ScenarioConfig, log: Path, opts: Any, db: Path | None) -> dict[str, Any]:
+    """The BMS of ``cfg`` over the frames received in ``log`` (``replay can``, ``run
+    --replay-log``); its metrics."""
+    from packpilot.runtime.logreplay import replay_log
+
+    recorder = _recorder(db)
+    try:
+        done = replay_log(cfg, log, opts, recorder)
+    finally:
+        if recorder is not None:
+            recorder.close()
+    metrics: dict[str, Any] = done.metrics()
+    return metrics
 
 
 @app.command()
@@ -1028,6 +1037,40 @@ def _recorder(db: Path | None) -> Any:
     from packpilot.io.telemetry import SQLiteRecorder
 
     return SQLiteRecorder(db, flush_every=50)
+
+
+@replay_app.command("can")
+def replay_can_cmd(
+    log: Annotated[
+        Path, typer.Argument(help="CAN frame log (.blf/.asc) written by run or hil --can-log")
+    ],
+    config: Annotated[Path, typer.Argument(help="scenario TOML describing the pack, as for run")],
+    period: Annotated[float, typer.Option(help="BMS period, s (as the recorded run's)")] = 0.1,
+    db: Annotated[Path | None, typer.Option(help="record telemetry to this SQLite file")] = None,
+    dronecan_ids: Annotated[str | None, typer.Option(help=DRONECAN_HELP)] = None,
+    allow_unmonitored: Annotated[
+        bool, typer.Option(help="run without [plausibility]: stale telemetry NOT detected")
+    ] = False,
+    as_json: JsonOpt = False,
+) -> None:
+    """Re-run the whole BMS over the frames a `packpilot run` received (its --can-log): the
+    telemetry goes back onto a private bus at its recorded times and the BMS decides anew, so
+    a changed CONFIG shows what it would have done with the same batteries (docs/runtime.md).
+    Same as `packpilot run CONFIG --replay-log LOG`."""
+
+    def go() -> dict[str, Any]:
+        from packpilot.errors import ConfigError
+        from packpilot.runtime.bms import RuntimeOptions
+
+        cfg = _load(scenario_path(config), None)
+        _check_outputs(db=db)
+        if not period > 0:
+            raise ConfigError(f"--period {period}: must be > 0")
+        opts = RuntimeOptions(period_s=period, dronecan_ids=_ids(dronecan_ids),
+                              allow_unmonitored=allow_unmonitored)  # fmt: skip
+        return _replay_frames(cfg, log, opts, db)
+
+    _print_runtime(_guard(go), as_json)
 
 
 def _print_runtime(metrics: dict[str, Any], as_json: bool) -> None:

@@ -32,7 +32,7 @@ def received_frames(path: Path) -> list[tuple[float, can.Message]]:
     """(t_s, frame) of every received frame of a log, in time order."""
     suffix = path.suffix.lower()
     if suffix not in LOG_SUFFIXES:
-        raise ConfigError(f"--replay-log {path}: unsupported log format {suffix!r}, use .blf/.asc")
+        raise ConfigError(f"{path}: unsupported frame log format {suffix!r}, use .blf/.asc")
     try:
         reader: Iterable[can.Message]
         if suffix == ".asc":
@@ -41,7 +41,7 @@ def received_frames(path: Path) -> list[tuple[float, can.Message]]:
             reader = can.BLFReader(path)
         frames = [(m.timestamp - SIM_EPOCH_S, m) for m in reader if m.is_rx]
     except (OSError, ValueError, EOFError) as err:
-        raise ConfigError(f"--replay-log {path}: cannot read ({err})") from None
+        raise ConfigError(f"{path}: cannot read the frame log ({err})") from None
     frames.sort(key=lambda x: x[0])
     return frames
 
@@ -55,6 +55,8 @@ def replay_log(
     """The BMS of ``cfg`` over the received frames of ``path``; returns the (closed) runtime
     with its events and metrics."""
     frames = received_frames(path)
+    if not frames:
+        raise ConfigError(f"{path}: the log holds no frame the BMS received: nothing to replay")
     channel = f"packpilot-replay-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
                    charger_channel=None, log_path=None)  # fmt: skip
@@ -62,8 +64,6 @@ def replay_log(
     bms = BmsRuntime(cfg, opts, recorder)
     period = opts.period_s
     try:
-        if not frames:
-            return bms
         t_end = frames[-1][0]
         j, k = 0, 0
         while True:
