@@ -15,14 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import threading
 from pathlib import Path
 from typing import Any
 
 from packpilot.config import load_config
-from packpilot.io.can.bus import open_bus
-from packpilot.runtime.bms import BmsRuntime, RuntimeOptions
-from packpilot.runtime.hil import Hil, run_realtime
+from packpilot.runtime.realtime import run_against_twin
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,24 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def measure(period_s: float, seconds: float) -> dict[str, Any]:
     cfg = load_config(ROOT / "examples" / "uav_mission.toml")
     cfg = cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"dt_s": period_s})})
-    ch = f"bench-{period_s:g}"
-    bus, charger = open_bus("virtual", ch), open_bus("virtual", f"{ch}-charger")
-    hil = Hil(cfg, bus, charger_bus=charger, bms_period_s=period_s)
-    opts = RuntimeOptions(
-        interface="virtual", channel=ch, charger_channel=f"{ch}-charger", period_s=period_s
-    )
-    bms = BmsRuntime(cfg, opts)
-    stop = threading.Event()
-    twin = threading.Thread(target=run_realtime, args=(hil, period_s, None, 1.0, stop))
-    twin.start()
-    try:
-        m = bms.run(seconds)
-    finally:
-        stop.set()
-        twin.join()
-        bms.close()
-        bus.shutdown()
-        charger.shutdown()
+    bms, hil, m = run_against_twin(cfg, period_s, seconds, f"bench-{period_s:g}")
     m["telemetry_faults"] = sum(1 for e in bms.events if e.kind == "Fault")
     m["switch_timeouts"] = sum(n.timeouts for n in hil.switch)
     m["unsupplied_periods"] = 0 if hil.last_iv is None else int(not hil.last_iv.supplied[0])

@@ -7,16 +7,15 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
 
 from packpilot.cli import scenario_path
 from packpilot.config import ScenarioConfig, load_config
-from packpilot.io.can.bus import open_bus
-from packpilot.runtime.bms import BmsRuntime, RuntimeOptions
-from packpilot.runtime.hil import Hil, run_realtime
+from packpilot.runtime.bms import BmsRuntime
+from packpilot.runtime.hil import Hil
+from packpilot.runtime.realtime import run_against_twin
 
 
 def uav(dt_s: float) -> ScenarioConfig:
@@ -25,27 +24,8 @@ def uav(dt_s: float) -> ScenarioConfig:
 
 
 def realtime(period_s: float, seconds: float, channel: str) -> tuple[BmsRuntime, Hil, dict]:
-    """The twin stepping every ``period_s`` in one thread, the BMS every ``period_s`` in this
-    one, for ``seconds`` of wall time."""
-    cfg = uav(period_s)
-    bus = open_bus("virtual", channel)
-    charger = open_bus("virtual", f"{channel}-charger")
-    hil = Hil(cfg, bus, charger_bus=charger, bms_period_s=period_s)
-    opts = RuntimeOptions(interface="virtual", channel=channel,
-                          charger_channel=f"{channel}-charger", period_s=period_s)  # fmt: skip
-    bms = BmsRuntime(cfg, opts)
-    stop = threading.Event()
-    twin = threading.Thread(target=run_realtime, args=(hil, period_s, None, 1.0, stop))
-    twin.start()
-    try:
-        metrics = bms.run(seconds)
-    finally:
-        stop.set()
-        twin.join()
-        bms.close()
-        bus.shutdown()
-        charger.shutdown()
-    return bms, hil, metrics
+    """The twin and the BMS each stepping every ``period_s``, for ``seconds`` of wall time."""
+    return run_against_twin(uav(period_s), period_s, seconds, channel)
 
 
 def test_realtime_100ms() -> None:
