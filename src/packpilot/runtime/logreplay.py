@@ -57,7 +57,7 @@ def replay_log(
     frames = received_frames(path)
     channel = f"packpilot-replay-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
-                   charger_channel=None, log_path=None)  # fmt: skip
+                   charger_channel=None, log_path=None, bus_kwargs=())  # fmt: skip
     feeder = open_bus("virtual", channel)
     bms = BmsRuntime(cfg, opts, recorder)
     period = opts.period_s
