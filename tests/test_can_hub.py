@@ -18,6 +18,7 @@ import pytest
 
 from packpilot.errors import ConfigError
 from packpilot.io.can.bus import open_bus, parse_bus_args
+from packpilot.io.can.client import FrameCounters, received
 from packpilot.io.can.hub import (
     CanHub,
     Frame,
@@ -26,6 +27,8 @@ from packpilot.io.can.hub import (
     parse_send,
     split_messages,
 )
+from packpilot.runtime.bms import filters
+from packpilot.runtime.lockstep import REQUEST_ONLY
 from tests.conftest import EXAMPLES
 
 CLI = [sys.executable, "-m", "packpilot.cli"]
@@ -239,6 +242,24 @@ def test_a_stalled_client_loses_frames_the_others_do_not() -> None:
             stalled.close()
             reader.shutdown()
             tx.close()
+
+
+def test_receivers_on_socketcand_get_every_pending_frame_in_one_drain(hub: CanHub) -> None:
+    """python-can filters ``socketcand`` in software and its ``recv(timeout=0)`` gives up at
+    the first frame a filter drops, so the runtime passes no filter there (as on
+    ``virtual``): one drain reads every pending frame and the receiver classifies them."""
+    rx = open_bus("socketcand", "pack", host=hub.host, port=hub.port,
+                  **filters("socketcand", REQUEST_ONLY))  # fmt: skip
+    tx = raw(hub)
+    try:
+        joined(hub)
+        tx.sendall(b"< send 123 0  >" * 5 + b"< send 1806E5F4 8 0 0 0 0 0 0 0 0 >")
+        time.sleep(0.3)
+        got = list(received(rx, FrameCounters(), None, 0.0))
+        assert [m.arbitration_id for m in got] == [0x123] * 5 + [0x1806E5F4]
+    finally:
+        rx.shutdown()
+        tx.close()
 
 
 def test_a_non_loopback_bind_is_refused_unless_allowed() -> None:
