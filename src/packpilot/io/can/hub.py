@@ -216,10 +216,6 @@ class CanHub:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    @property
-    def clients(self) -> int:
-        return len(self._clients)
-
     async def _serve(self, sock: socket.socket) -> None:
         self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
         try:
