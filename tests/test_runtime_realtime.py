@@ -1,22 +1,27 @@
 """`run` against `hil` in real time: two threads on one python-can ``virtual`` channel, each
-on its own monotonic clock; and the two-process form over SocketCAN ``vcan`` where the kernel
-has it."""
+on its own monotonic clock; two processes through the loopback CAN hub (python-can's
+``socketcand`` client); and two processes over SocketCAN ``vcan`` where the kernel has it."""
 
 from __future__ import annotations
 
+import json
 import shutil
+import signal
+import sqlite3
 import subprocess
 import sys
-import threading
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from packpilot.cli import scenario_path
 from packpilot.config import ScenarioConfig, load_config
-from packpilot.io.can.bus import open_bus
-from packpilot.runtime.bms import BmsRuntime, RuntimeOptions
-from packpilot.runtime.hil import Hil, run_realtime
+from packpilot.io.can.hub import CanHub
+from packpilot.runtime.bms import BmsRuntime
+from packpilot.runtime.hil import Hil
+from packpilot.runtime.realtime import run_against_twin
 
 
 def uav(dt_s: float) -> ScenarioConfig:
@@ -25,27 +30,8 @@ def uav(dt_s: float) -> ScenarioConfig:
 
 
 def realtime(period_s: float, seconds: float, channel: str) -> tuple[BmsRuntime, Hil, dict]:
-    """The twin stepping every ``period_s`` in one thread, the BMS every ``period_s`` in this
-    one, for ``seconds`` of wall time."""
-    cfg = uav(period_s)
-    bus = open_bus("virtual", channel)
-    charger = open_bus("virtual", f"{channel}-charger")
-    hil = Hil(cfg, bus, charger_bus=charger, bms_period_s=period_s)
-    opts = RuntimeOptions(interface="virtual", channel=channel,
-                          charger_channel=f"{channel}-charger", period_s=period_s)  # fmt: skip
-    bms = BmsRuntime(cfg, opts)
-    stop = threading.Event()
-    twin = threading.Thread(target=run_realtime, args=(hil, period_s, None, 1.0, stop))
-    twin.start()
-    try:
-        metrics = bms.run(seconds)
-    finally:
-        stop.set()
-        twin.join()
-        bms.close()
-        bus.shutdown()
-        charger.shutdown()
-    return bms, hil, metrics
+    """The twin and the BMS each stepping every ``period_s``, for ``seconds`` of wall time."""
+    return run_against_twin(uav(period_s), period_s, seconds, channel)
 
 
 def test_realtime_100ms() -> None:
@@ -92,3 +78,79 @@ def test_two_processes_over_vcan(tmp_path: Path) -> None:  # pragma: no cover - 
     twin.wait(timeout=60)
     assert run.returncode == 0, run.stderr
     assert '"can_received"' in run.stdout
+
+
+CLI = [sys.executable, "-m", "packpilot.cli"]
+START_TIMEOUT_S = 600.0  # a cold kernel cache compiles the core and the plant first (minutes)
+
+
+def _start(args: list[str], err: Path) -> subprocess.Popen[str]:
+    with err.open("w") as f:
+        return subprocess.Popen([*CLI, *args], stdout=subprocess.PIPE, stderr=f, text=True)
+
+
+def _wait(proc: subprocess.Popen[str], err: Path, done: Any, what: str) -> None:
+    """Until ``done()``; fails with the process's stderr if it exits or never gets there."""
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not done():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            pytest.fail(f"{what} (exit {proc.poll()}): {err.read_text()}")
+        time.sleep(0.05)
+
+
+def _rows(db: Path) -> int:
+    try:
+        with sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True) as c:
+            return int(c.execute("select count(*) from pack_samples").fetchone()[0])
+    except sqlite3.Error:
+        return 0
+
+
+def _stop(proc: subprocess.Popen[str]) -> str:
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=60)
+    return out
+
+
+def test_two_processes_over_the_can_hub(tmp_path: Path) -> None:
+    """`packpilot hil` and `packpilot run` as two processes on one CAN channel through the
+    loopback hub, for 5 s of real time: no vcan needed, 127.0.0.1 only. The twin starts first
+    (its switch nodes open once each before the BMS speaks), the run records until its first
+    50 periods are committed, then the twin stops and the run is stopped right after (within
+    the 2 s a battery may be silent), both by SIGTERM."""
+    db, twin_err, run_err = tmp_path / "run.sqlite", tmp_path / "hil.err", tmp_path / "run.err"
+    with CanHub("127.0.0.1", 0) as hub:
+        bus = ["--can-interface", "socketcand", "--can-channel", "pack",
+               "--can-arg", "host=127.0.0.1", "--can-arg", f"port={hub.port}"]  # fmt: skip
+        twin = _start(["hil", "uav_mission", *bus], twin_err)
+        run = None
+        try:
+            _wait(twin, twin_err, lambda: "packpilot hil:" in twin_err.read_text(), "hil")
+            run = _start(["run", "uav_mission", *bus, "--db", str(db), "--json"], run_err)
+            _wait(run, run_err, lambda: _rows(db) >= 50, "run did not record 50 periods")
+            hil_out = _stop(twin)
+            run_out = _stop(run)
+        finally:
+            for p in (twin, run):
+                if p is not None:
+                    p.kill()
+        stats = hub.stats
+    assert run.returncode == 0, run_err.read_text()
+    assert twin.returncode == 0, twin_err.read_text()
+    m, h = json.loads(run_out), json.loads(hil_out)
+    assert m["steps"] >= 50
+    assert m["can_received"] >= 5 * m["steps"]  # the twin's ~7.5 frames per BMS period
+    assert m["can_malformed"] == m["can_unexpected"] == m["can_send_errors"] == 0
+    assert m["charger_frames_received"] > 0
+    assert h["frames_received"] > 0  # the twin heard the commands
+    assert h["switch_timeouts"] == 2  # once per node before the BMS started, never after
+    assert h["inverter_limits"]["DischargeCurrentLimit"] > 0
+    assert stats.malformed == stats.dropped == 0 and stats.frames_in > 0
+    with sqlite3.connect(db) as c:
+        kinds = {r[0] for r in c.execute("select kind from events")}
+        last = c.execute("select bus_v, load_a from pack_samples order by step desc").fetchone()
+        dsg = [r[0] for r in c.execute("select dsg_on from battery_samples where step = "
+                                       "(select max(step) from battery_samples)")]  # fmt: skip
+    assert "Fault" not in kinds  # telemetry always fresh
+    assert last[0] > 20.0 and last[1] > 0.0  # the load is supplied
+    assert dsg == [1.0, 1.0]  # both batteries on the bus

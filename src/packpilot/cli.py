@@ -881,8 +881,25 @@ def _ids(text: str | None) -> tuple[int, ...] | None:
         raise ConfigError(f"--dronecan-ids {text!r}: comma-separated integers") from None
 
 
-CanIface = Annotated[str, typer.Option(help="python-can interface (socketcan, virtual, ...)")]
+CanIface = Annotated[
+    str, typer.Option(help="python-can interface (socketcan, socketcand, virtual, ...)")
+]
 CanChan = Annotated[str, typer.Option(help="CAN channel, e.g. can0")]
+CanArgs = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--can-arg",
+        metavar="KEY=VALUE",
+        help="a python-can interface option, repeatable (socketcand: --can-arg host=127.0.0.1"
+        " --can-arg port=29536; hardware: bitrate=500000); numbers and true/false are typed",
+    ),
+]
+
+
+def _can_args(items: list[str] | None) -> dict[str, Any]:
+    from packpilot.io.can.bus import parse_bus_args
+
+    return parse_bus_args(items or ())
 
 
 @app.command()
@@ -907,6 +924,7 @@ def run(
     ] = None,
     dronecan_ids: Annotated[str | None, typer.Option(help=DRONECAN_HELP)] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the metrics as JSON")] = False,
+    can_arg: CanArgs = None,
 ) -> None:
     """The BMS on a real pack over CAN, until Ctrl-C or --duration (docs/runtime.md)."""
 
@@ -919,6 +937,7 @@ def run(
             interface=can_interface, channel=can_channel, charger_channel=charger_channel,
             period_s=period, log_path=can_log, node_id=node_id,
             allow_unmonitored=allow_unmonitored, dronecan_ids=_ids(dronecan_ids),
+            bus_kwargs=tuple(_can_args(can_arg).items()),
         )  # fmt: skip
         if replay_log is not None:
             return _replay_frames(cfg, replay_log, opts, db)
@@ -974,6 +993,7 @@ def hil(
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
     can_log: Annotated[Path | None, typer.Option(help="log every frame to .blf or .asc")] = None,
     dronecan_ids: Annotated[str | None, typer.Option(help=DRONECAN_HELP)] = None,
+    can_arg: CanArgs = None,
 ) -> None:
     """The simulated pack as CAN nodes (batteries, switches, charger, inverter) for `run`."""
 
@@ -988,16 +1008,18 @@ def hil(
             raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
         if not (bms_period > 0 and 1 <= timeout_periods <= 1000):
             raise ConfigError("--bms-period must be > 0 and --timeout-periods 1..1000")
+        kw = _can_args(can_arg)
         cfg = _load(scenario_path(config), duration)
         _check_outputs(can_log=can_log)
-        bus = open_bus(can_interface, can_channel)
+        bus = open_bus(can_interface, can_channel, **kw)
         charger_bus = open_bus(can_interface, charger_channel or can_channel,
-                               **filters(can_interface, REQUEST_ONLY))  # fmt: skip
+                               **filters(can_interface, REQUEST_ONLY), **kw)  # fmt: skip
         log = FrameLog(can_log) if can_log is not None else None
         ids = _ids(dronecan_ids) or ()
         twin = Hil(cfg, bus, charger_bus=charger_bus, bms_period_s=bms_period,
                    timeout_periods=timeout_periods, log=log,
                    dronecan_ids={i: b for i, b in enumerate(ids) if b >= 0})  # fmt: skip
+        _sigterm_interrupts()
         typer.echo(f"packpilot hil: {cfg.pack.name} on {can_interface}:{can_channel} "
                    f"at {speed:g}x (Ctrl-C stops)", err=True)  # fmt: skip
         try:
@@ -1020,9 +1042,47 @@ def hil(
     _print_runtime(_guard(go), as_json=True)
 
 
+@app.command("can-hub")
+def can_hub(
+    port: Annotated[int, typer.Option(help="TCP port (0: any free port)")] = 29536,
+    host: Annotated[
+        str, typer.Option(help="address to listen on (not loopback: needs --allow-remote)")
+    ] = "127.0.0.1",
+    allow_remote: Annotated[
+        bool,
+        typer.Option(
+            "--allow-remote",
+            help="allow a non-loopback --host: whoever reaches it can send frames (no auth)",
+        ),
+    ] = False,
+) -> None:
+    """A CAN bus over TCP on 127.0.0.1 for `run` and `hil` as two processes without vcan
+    (socketcand's raw mode: --can-interface socketcand --can-arg host=.. --can-arg port=..).
+    Ctrl-C or SIGTERM stops it."""
+
+    def go() -> dict[str, int]:
+        from packpilot.io.can.hub import CanHub
+
+        hub = CanHub(host, port, allow_remote=allow_remote)
+        addr, bound = hub.start()
+        _sigterm_interrupts()
+        typer.echo(f"can-hub on {addr}:{bound}  (clients: --can-interface socketcand --can-arg"
+                   f" host={addr} --can-arg port={bound}; Ctrl-C stops)")  # fmt: skip
+        try:
+            hub.wait()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            hub.close()
+        return hub.stats.as_dict()
+
+    stats = _guard(go)
+    typer.echo("can-hub: " + ", ".join(f"{k} {v}" for k, v in stats.items()), err=True)
+
+
 def _sigterm_interrupts() -> None:
     """SIGTERM (systemd, docker stop) ends `run` as Ctrl-C does: the record is finished and
-    stamped ``interrupted``, the buses shut down, exit 0."""
+    stamped ``interrupted``, the buses shut down, exit 0 (`hil` and `can-hub` likewise)."""
     import signal
 
     def interrupt(signum: int, frame: Any) -> None:

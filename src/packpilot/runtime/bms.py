@@ -48,12 +48,17 @@ STANDARD_ONLY = [{"can_id": 0, "can_mask": 0, "extended": False}]
 CHARGER_ONLY = [{"can_id": STATUS_ID, "can_mask": 0x1FFFFFFF, "extended": True}]
 
 
+SOFTWARE_FILTERED = frozenset({"virtual", "socketcand"})
+"""Interfaces whose receive filters python-can applies in software, after ``recv``."""
+
+
 def filters(interface: str, which: list[dict[str, Any]]) -> dict[str, Any]:
     """Receive filters where the interface applies them before ``recv`` (socketcan: in the
-    kernel). python-can's software filtering (``virtual``) gives up a ``recv(timeout=0)`` at
-    the first frame it filters out, which would leave the rest of the queue unread for a
-    period, so there the receivers classify and count every frame themselves."""
-    return {} if interface == "virtual" else {"can_filters": which}
+    kernel). python-can's software filtering (``virtual``, ``socketcand``) gives up a
+    ``recv(timeout=0)`` at the first frame it filters out, which would leave the rest of the
+    queue unread for a period, so there the receivers classify and count every frame
+    themselves."""
+    return {} if interface in SOFTWARE_FILTERED else {"can_filters": which}
 
 
 @dataclass(frozen=True)
@@ -79,6 +84,7 @@ class RuntimeOptions:
     allow_unmonitored: bool = False
     """Run without ``[plausibility]`` (then stale telemetry is NOT detected): bench use."""
     bus_kwargs: tuple[tuple[str, Any], ...] = ()
+    """python-can interface options (``--can-arg``) for every bus ``run`` opens."""
 
 
 def configured_infos(cfg: ScenarioConfig) -> list[PackInfo]:

@@ -64,7 +64,8 @@ def lockstep(
     charger at 250 kbit/s would be); the BMS period is ``cfg.sim.dt_s``."""
     channel = f"packpilot-hil-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
-                   charger_channel=f"{channel}-charger", period_s=cfg.sim.dt_s)  # fmt: skip
+                   charger_channel=f"{channel}-charger", period_s=cfg.sim.dt_s,
+                   bus_kwargs=())  # fmt: skip
     bus = open_bus("virtual", channel)
     charger_bus = open_bus("virtual", f"{channel}-charger")
     hil = Hil(cfg, bus, charger_bus=charger_bus, timeout_periods=timeout_periods)

@@ -59,7 +59,7 @@ def replay_log(
         raise ConfigError(f"{path}: the log holds no frame the BMS received: nothing to replay")
     channel = f"packpilot-replay-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
-                   charger_channel=None, log_path=None)  # fmt: skip
+                   charger_channel=None, log_path=None, bus_kwargs=())  # fmt: skip
     feeder = open_bus("virtual", channel)
     bms = BmsRuntime(cfg, opts, recorder)
     period = opts.period_s

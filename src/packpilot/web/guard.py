@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import hmac
-import ipaddress
 import secrets
 import socket
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
@@ -23,6 +22,7 @@ from typing import Any
 from urllib.parse import parse_qs
 
 from packpilot.errors import InputError
+from packpilot.io.net import is_loopback, resolves_to_loopback
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -53,23 +53,6 @@ def check_token(token: str) -> str:
             f"--token: must be at least {MIN_TOKEN_CHARS} printable characters without spaces"
         )
     return token
-
-
-def is_loopback(addr: str) -> bool:
-    """An IP address literal on the loopback network (names are not resolved here)."""
-    try:
-        return ipaddress.ip_address(addr.strip("[]").split("%")[0]).is_loopback
-    except ValueError:
-        return False
-
-
-def resolves_to_loopback(host: str) -> bool:
-    """Every address ``host`` resolves to is loopback (``localhost``, ``127.0.0.1``, ``::1``)."""
-    try:
-        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
-    except socket.gaierror:
-        return False
-    return bool(infos) and all(is_loopback(str(i[4][0])) for i in infos)
 
 
 def split_host(value: str) -> str:

@@ -1,8 +1,11 @@
 """Opening a python-can bus and logging frames with *simulation* timestamps.
 
-On hardware: ``open_bus("socketcan", "can0")``. In tests and simulations: the in-process
-``virtual`` interface, where every ``can.Bus(interface="virtual", channel=X)`` object sees the
-frames the others on channel ``X`` send (not its own, unless ``receive_own_messages=True``).
+On hardware: ``open_bus("socketcan", "can0")``, interface options (a bitrate, socketcand's host
+and port) as keywords, from ``--can-arg KEY=VALUE`` (:func:`parse_bus_args`). In tests and
+simulations: the in-process ``virtual`` interface, where every
+``can.Bus(interface="virtual", channel=X)`` object sees the frames the others on channel ``X``
+send (not its own, unless ``receive_own_messages=True``); two processes without vcan share a
+channel through ``packpilot can-hub`` (``io/can/hub.py``, python-can's ``socketcand`` client).
 
 :class:`FrameLog` writes BLF or ASC directly through python-can's writers, without a
 ``can.Notifier`` thread: the node that sends or receives a frame logs it itself, stamped with
@@ -18,6 +21,9 @@ the first frame unless read with ``can.ASCReader(path, relative_timestamp=False)
 from __future__ import annotations
 
 import copy
+import logging
+import re
+from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -31,14 +37,72 @@ SIM_EPOCH_S = 946_684_800.0
 """2000-01-01T00:00:00Z: the wall-clock date simulation time 0 is written as."""
 
 
+RESERVED_BUS_ARGS = frozenset({"interface", "bustype", "channel", "can_filters", "context"})
+"""Set by their own options (or by the runtime: receive filters), never by ``--can-arg``."""
+_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_INT = re.compile(r"[+-]?(?:[0-9]+|0[xX][0-9A-Fa-f]+)")
+_FLOAT = re.compile(r"[+-]?(?:[0-9]+\.[0-9]*|\.[0-9]+|[0-9]+)(?:[eE][+-]?[0-9]+)?")
+
+
+def parse_bus_args(items: Iterable[str]) -> dict[str, Any]:
+    """``--can-arg KEY=VALUE`` options as python-can interface keyword arguments (socketcand's
+    ``host`` and ``port``, a hardware ``bitrate``): a value that looks like an integer, a
+    float or true / false is one, anything else is a string."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, eq, text = item.partition("=")
+        key = key.strip()
+        if not eq or not _KEY.fullmatch(key):
+            raise ConfigError(f"--can-arg {item!r}: expected KEY=VALUE, e.g. bitrate=500000")
+        if key in RESERVED_BUS_ARGS:
+            raise ConfigError(f"--can-arg {item!r}: {key} is not an interface option here"
+                              " (--can-interface / --can-channel set the bus)")  # fmt: skip
+        if key in out:
+            raise ConfigError(f"--can-arg {item!r}: {key} given twice")
+        out[key] = bus_arg_value(text.strip())
+    return out
+
+
+def bus_arg_value(text: str) -> Any:
+    """``500000`` → int, ``0x1F`` → int, ``1.5e3`` → float, ``true`` → True, else the text."""
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    if _INT.fullmatch(text):
+        return int(text, 16) if "x" in text.lower() else int(text)
+    if _FLOAT.fullmatch(text):
+        return float(text)
+    return text
+
+
 def open_bus(interface: str = "virtual", channel: str = "packpilot", **kw: Any) -> can.BusABC:
     """Open a python-can bus; failures become a one-line :class:`ConfigError`."""
+    if interface == "socketcand":
+        _quiet_socketcand()
     try:
         return can.Bus(interface=interface, channel=channel, **kw)
-    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as err:
+    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError,
+            TypeError) as err:  # fmt: skip
+        hint = " (interface options: --can-arg KEY=VALUE)" if isinstance(err, TypeError) else ""
         raise ConfigError(
-            f"cannot open CAN bus --can-interface {interface} --can-channel {channel}: {err}"
+            f"cannot open CAN bus --can-interface {interface} --can-channel {channel}: {err}{hint}"
         ) from None
+
+
+class _StreamNoise(logging.Filter):
+    """python-can's socketcand client warns on every TCP read that ends mid-message (the
+    normal case of a stream: the rest comes with the next read) and on every retry of its
+    10 s connect loop (thousands of lines): stderr noise, not news. Its other warnings stay."""
+
+    NOISE = ("Got incomplete message", "Failed to connect to server")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(self.NOISE)
+
+
+def _quiet_socketcand() -> None:
+    log = logging.getLogger("can.interfaces.socketcand.socketcand")
+    if not any(isinstance(f, _StreamNoise) for f in log.filters):
+        log.addFilter(_StreamNoise())
 
 
 class FrameLog:
@@ -82,4 +146,7 @@ class FrameLog:
         self.close()
 
 
-__all__ = ["LOG_SUFFIXES", "SIM_EPOCH_S", "FrameLog", "open_bus"]
+__all__ = [
+    "LOG_SUFFIXES", "RESERVED_BUS_ARGS", "SIM_EPOCH_S", "FrameLog", "bus_arg_value", "open_bus",
+    "parse_bus_args",
+]  # fmt: skip
