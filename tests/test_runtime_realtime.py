@@ -22,6 +22,7 @@ from packpilot.io.can.hub import CanHub
 from packpilot.runtime.bms import BmsRuntime
 from packpilot.runtime.hil import Hil
 from packpilot.runtime.realtime import run_against_twin
+from packpilot.web.recorded import Recording
 
 
 def uav(dt_s: float) -> ScenarioConfig:
@@ -116,8 +117,9 @@ def test_two_processes_over_the_can_hub(tmp_path: Path) -> None:
     """`packpilot hil` and `packpilot run` as two processes on one CAN channel through the
     loopback hub, for 5 s of real time: no vcan needed, 127.0.0.1 only. The twin starts first
     (its switch nodes open once each before the BMS speaks), the run records until its first
-    50 periods are committed, then the twin stops and the run is stopped right after (within
-    the 2 s a battery may be silent), both by SIGTERM."""
+    50 periods are committed (the dashboard's reader attaches then and follows the file), then
+    the twin stops and the run is stopped right after (within the 2 s a battery may be
+    silent), both by SIGTERM."""
     db, twin_err, run_err = tmp_path / "run.sqlite", tmp_path / "hil.err", tmp_path / "run.err"
     with CanHub("127.0.0.1", 0) as hub:
         bus = ["--can-interface", "socketcand", "--can-channel", "pack",
@@ -128,8 +130,17 @@ def test_two_processes_over_the_can_hub(tmp_path: Path) -> None:
             _wait(twin, twin_err, lambda: "packpilot hil:" in twin_err.read_text(), "hil")
             run = _start(["run", "uav_mission", *bus, "--db", str(db), "--json"], run_err)
             _wait(run, run_err, lambda: _rows(db) >= 50, "run did not record 50 periods")
+            # the dashboard's reader attaches to the running process's file and follows it
+            attached = Recording(db)
+            first = attached.n_samples
+            assert attached.following and attached.live.kind == "attached" and first >= 50
+            _wait(run, run_err, lambda: attached.poll() and attached.n_samples >= first + 10,
+                  "the attached reader did not follow the run")  # fmt: skip
             hil_out = _stop(twin)
             run_out = _stop(run)
+            assert not attached.poll()  # the run ended: so does the attached view
+            assert attached.ended == "interrupted" and attached.live.state == "stopped"
+            assert attached.n_samples == _rows(db)
         finally:
             for p in (twin, run):
                 if p is not None:
