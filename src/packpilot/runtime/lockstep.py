@@ -61,13 +61,17 @@ def lockstep(
     timeout_periods: int = 5,
 ) -> Lockstep:
     """A twin and a BMS on a fresh virtual channel, the charger on its own (as a TC/Elcon
-    charger at 250 kbit/s would be); the BMS period is ``cfg.sim.dt_s``."""
+    charger at 250 kbit/s would be); the BMS period is ``cfg.sim.dt_s``. The batteries
+    ``opts.dronecan_ids`` names publish DroneCAN (as ``hil --dronecan-ids`` with the same
+    list)."""
     channel = f"packpilot-hil-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
                    charger_channel=f"{channel}-charger", period_s=cfg.sim.dt_s)  # fmt: skip
     bus = open_bus("virtual", channel)
     charger_bus = open_bus("virtual", f"{channel}-charger")
-    hil = Hil(cfg, bus, charger_bus=charger_bus, timeout_periods=timeout_periods)
+    ids = {i: b for i, b in enumerate(opts.dronecan_ids or ()) if b >= 0}
+    hil = Hil(cfg, bus, charger_bus=charger_bus, timeout_periods=timeout_periods,
+              dronecan_ids=ids)  # fmt: skip
     try:
         bms = BmsRuntime(cfg, opts, recorder)
     except BaseException:
