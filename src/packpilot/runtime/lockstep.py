@@ -100,4 +100,36 @@ def run_lockstep(
     return ls
 
 
-__all__ = ["Lockstep", "lockstep", "run_lockstep"]
+Transition = tuple[int, int, bool]
+"""(period, battery, new state) of one switch."""
+
+
+def transitions(x: np.ndarray) -> list[Transition]:
+    """Every switch transition of ``x`` (periods × batteries of booleans)."""
+    d = np.nonzero(x[1:] != x[:-1])
+    return [(int(k) + 1, int(i), bool(x[k + 1, i])) for k, i in zip(*d, strict=True)]
+
+
+def match_transitions(
+    ref: np.ndarray, got: np.ndarray, periods: int
+) -> tuple[list[Transition], list[Transition]]:
+    """(missing, extra): the transitions of ``ref`` that ``got`` lacks and those ``got`` has
+    beyond them, matched in order (same switch, same new state, at most ``periods`` apart):
+    how a CAN run's switch decisions compare with the simulator's."""
+    theirs = transitions(got)
+    missing: list[Transition] = []
+    extra: list[Transition] = []
+    j = 0
+    for x in transitions(ref):
+        near = (k for k in range(j, len(theirs)) if theirs[k][1:] == x[1:]
+                and abs(theirs[k][0] - x[0]) <= periods)  # fmt: skip
+        k = next(near, None)
+        if k is None:
+            missing.append(x)
+            continue
+        extra += theirs[j:k]
+        j = k + 1
+    return missing, extra + theirs[j:]
+
+
+__all__ = ["Lockstep", "Transition", "lockstep", "match_transitions", "run_lockstep", "transitions"]
