@@ -133,3 +133,18 @@ def test_dronecan_battery_info_round_trip() -> None:
     assert back.model_name == "PackPilot-1"
     unknown = dc.decode(dc.encode(dc.BatteryInfo(0, 1.0, 0.0, 20.0, 50), 100, 0))
     assert math.isnan(unknown.soh_pct)  # 127 = unknown
+
+
+def test_dronecan_cells_carry_the_nominal_voltage() -> None:
+    """BatteryInfoAux's nominal voltage converts BatteryInfo's Wh to Ah; 0 means "omit the
+    conversion" (the DSDL), and so does an unknown Wh."""
+    cells = dc.BatteryCells(battery_id=3, cell_v=(3.9, 3.91), cycle_count=7,
+                            nominal_voltage_v=22.25)  # fmt: skip
+    back = dc.decode_any(dc.encode_cells(cells, node_id=12, transfer_id=1))
+    assert isinstance(back, dc.BatteryCells)
+    assert (back.battery_id, back.cycle_count, back.nominal_voltage_v) == (3, 7, 22.25)
+    assert back.cell_v == pytest.approx((3.9, 3.91), abs=0.002)
+    assert dc.ah_from_wh(111.25, 22.25) == 5.0
+    assert math.isnan(dc.ah_from_wh(111.25, 0.0))
+    assert math.isnan(dc.ah_from_wh(math.nan, 22.25))
+    assert math.isnan(dc.ah_from_wh(-1.0, 22.25))

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import can
+import numpy as np
 import pytest
 
 from packpilot.cli import scenario_path
@@ -176,11 +177,9 @@ def test_dronecan_batteries_as_inputs(cfg: ScenarioConfig) -> None:
     package), their switch nodes' SwitchState is the feedback: the flight runs on them (float16
     telemetry: no fault, load supplied, both batteries joined); a silent DroneCAN battery goes
     stale and is isolated like any other."""
-    ids = {0: 21, 1: 22}
 
     def drive(end_s: float, silent_from: float | None = None) -> Lockstep:
-        ls = lockstep(cfg, RuntimeOptions(dronecan_ids=(21, 22)))
-        ls.hil.dronecan_ids = ids
+        ls = lockstep(cfg, RuntimeOptions(dronecan_ids=(21, 22)))  # the twin publishes them
         try:
             for _ in range(round(end_s / DT)):
                 if silent_from is not None and ls.hil.t_s >= silent_from - 1e-9:
@@ -203,3 +202,42 @@ def test_dronecan_batteries_as_inputs(cfg: ScenarioConfig) -> None:
     stale = [e for e in lost.bms.events if e.kind == "Fault" and e.data["kind"] == "stale"]
     assert [e.battery for e in stale] == [1]
     assert not lost.chg[-1][1] and not lost.dsg[-1][1]
+
+
+def half_step(x: np.ndarray) -> np.ndarray:
+    """Half a float16 step at ``x``: the most round-to-nearest moves it."""
+    return np.spacing(np.abs(x).astype(np.float16)).astype(np.float64) / 2 + 1e-9
+
+
+def test_dronecan_values_at_the_bms(cfg: ScenarioConfig) -> None:
+    """What the BMS reads from DroneCAN batteries is what the twin measured, within the
+    wire's resolution, every period: voltage, current, cells within half a float16 step
+    (unit, sign and scale right), temperature within half a step of its kelvin, SOC within
+    half a percent, the capacities from BatteryInfo's Wh over BatteryInfoAux's nominal
+    voltage (they were left unknown: the inverter was told SOC 0 %, SOH 0 %, the aircraft no
+    time to empty, for a pack at 86 %)."""
+    ls = lockstep(cfg, RuntimeOptions(dronecan_ids=(21, 22)))
+    assert ls.hil.dronecan_ids == {0: 21, 1: 22}
+    got, truth = ls.bms.core.m.bat, ls.hil.m.bat
+    try:
+        for _ in range(round(30.0 / DT)):
+            ls.step(DT)  # the twin's m: what it published this period; the core's: what it read
+            for name in ("voltage_v", "current_a", "min_cell_v", "max_cell_v"):
+                want = getattr(truth, name)[0]
+                assert np.all(np.abs(getattr(got, name)[0] - want) <= half_step(want)), name
+            kelvin = truth.temp_c[0] + 273.15
+            assert np.all(np.abs(got.temp_c[0] - truth.temp_c[0]) <= half_step(kelvin))
+            assert np.all(np.abs(got.soc[0] - truth.soc[0]) <= 0.005 + 1e-12)
+            g = truth.group_v[0, :, :6]
+            assert np.all(np.abs(got.group_v[0, :, :6] - g) <= half_step(g))
+    finally:
+        ls.close()
+    for name in ("full_capacity_ah", "remaining_capacity_ah"):
+        want = getattr(truth, name)[0]
+        # float16 Wh: 2^-4 Wh steps at 64-128 Wh over ~22 V: 1.4 mAh
+        assert getattr(got, name)[0] == pytest.approx(want, abs=0.002)
+    soc = 100.0 * truth.remaining_capacity_ah[0].sum() / truth.full_capacity_ah[0].sum()
+    pylon_soc = ls.hil.inverter.last["Pylon_SocSoh"]
+    assert abs(pylon_soc["SOC"] - soc) <= 1.0 and pylon_soc["SOH"] == 100
+    assert ls.hil.aircraft.last[0].soc_pct == pytest.approx(soc, abs=1.0)
+    assert 0 < ls.hil.protection["TimeToEmpty"] < 65535

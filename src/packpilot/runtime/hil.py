@@ -48,7 +48,7 @@ from packpilot.io.can.client import FrameCounters, received, transmit
 from packpilot.io.can.codec import FrameError
 from packpilot.io.can.emulator import ChargerEmulator
 from packpilot.io.can.plant import battery_map
-from packpilot.model.pack import Interval
+from packpilot.model.pack import Interval, Pack
 from packpilot.sim.loop import Demand
 from packpilot.sim.plant_io import SimulatedPlant
 
@@ -171,6 +171,8 @@ class Hil:
         topo = self.plant.topology
         bats = cfg.pack.batteries
         self.map = battery_map(topo.names, topo.roles, [b.series_groups for b in bats])
+        self.nominal_v = [nominal_voltage(self.plant.pack, i) for i in range(len(bats))]
+        """Each battery's nominal voltage (BatteryInfoAux: its Wh ↔ Ah conversion)."""
         info = self.plant.infos[0]
         g = max((b.series_groups for b in bats), default=1)
         ar = Arena()
@@ -245,10 +247,10 @@ class Hil:
         if bid is None:
             return encode_battery(i, r, self.counter, t)
         tid = self.counter & 0x1F
+        vn = self.nominal_v[i]
         info = dc.BatteryInfo(bid, r.voltage_v, r.current_a, r.temp_c, 100.0 * r.soc,
-                              full_wh=r.full_ah * r.voltage_v,
-                              remaining_wh=r.remaining_ah * r.voltage_v)  # fmt: skip
-        cells = dc.BatteryCells(bid, r.group_v)
+                              full_wh=r.full_ah * vn, remaining_wh=r.remaining_ah * vn)  # fmt: skip
+        cells = dc.BatteryCells(bid, r.group_v, nominal_voltage_v=vn)
         node = DRONECAN_NODE0 + i
         return dc.encode(info, node, tid, t=t) + dc.encode_cells(cells, node, tid, t=t)
 
@@ -332,6 +334,16 @@ class Hil:
 
 def _finite0(x: float) -> float:
     return x if math.isfinite(x) else 0.0
+
+
+def nominal_voltage(pack: Pack, i: int) -> float:
+    """Battery ``i``'s nominal voltage as its DroneCAN node states it: its cells' open-circuit
+    voltage at half charge × series groups, rounded to float16 as on the wire, so the Wh it
+    reports (Ah × this) converts back to its Ah with only the Wh's own float16 rounding."""
+    first = int(pack.string_cell_starts[i])
+    prm = next(b.params for b in pack.banks if np.any(b.idx == first))
+    cell_v = float(np.interp(0.5, prm.ocv_soc, prm.ocv_table_v))
+    return float(np.float16(cell_v * pack.cfg.pack.batteries[i].series_groups))
 
 
 def report(bat: Any, k: int) -> BatteryReport:

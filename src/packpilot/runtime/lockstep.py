@@ -61,14 +61,18 @@ def lockstep(
     timeout_periods: int = 5,
 ) -> Lockstep:
     """A twin and a BMS on a fresh virtual channel, the charger on its own (as a TC/Elcon
-    charger at 250 kbit/s would be); the BMS period is ``cfg.sim.dt_s``."""
+    charger at 250 kbit/s would be); the BMS period is ``cfg.sim.dt_s``. The batteries
+    ``opts.dronecan_ids`` names publish DroneCAN (as ``hil --dronecan-ids`` with the same
+    list)."""
     channel = f"packpilot-hil-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
                    charger_channel=f"{channel}-charger", period_s=cfg.sim.dt_s,
                    bus_kwargs=())  # fmt: skip
     bus = open_bus("virtual", channel)
     charger_bus = open_bus("virtual", f"{channel}-charger")
-    hil = Hil(cfg, bus, charger_bus=charger_bus, timeout_periods=timeout_periods)
+    ids = {i: b for i, b in enumerate(opts.dronecan_ids or ()) if b >= 0}
+    hil = Hil(cfg, bus, charger_bus=charger_bus, timeout_periods=timeout_periods,
+              dronecan_ids=ids)  # fmt: skip
     try:
         bms = BmsRuntime(cfg, opts, recorder)
     except BaseException:
@@ -97,4 +101,36 @@ def run_lockstep(
     return ls
 
 
-__all__ = ["Lockstep", "lockstep", "run_lockstep"]
+Transition = tuple[int, int, bool]
+"""(period, battery, new state) of one switch."""
+
+
+def transitions(x: np.ndarray) -> list[Transition]:
+    """Every switch transition of ``x`` (periods × batteries of booleans)."""
+    d = np.nonzero(x[1:] != x[:-1])
+    return [(int(k) + 1, int(i), bool(x[k + 1, i])) for k, i in zip(*d, strict=True)]
+
+
+def match_transitions(
+    ref: np.ndarray, got: np.ndarray, periods: int
+) -> tuple[list[Transition], list[Transition]]:
+    """(missing, extra): the transitions of ``ref`` that ``got`` lacks and those ``got`` has
+    beyond them, matched in order (same switch, same new state, at most ``periods`` apart):
+    how a CAN run's switch decisions compare with the simulator's."""
+    theirs = transitions(got)
+    missing: list[Transition] = []
+    extra: list[Transition] = []
+    j = 0
+    for x in transitions(ref):
+        near = (k for k in range(j, len(theirs)) if theirs[k][1:] == x[1:]
+                and abs(theirs[k][0] - x[0]) <= periods)  # fmt: skip
+        k = next(near, None)
+        if k is None:
+            missing.append(x)
+            continue
+        extra += theirs[j:k]
+        j = k + 1
+    return missing, extra + theirs[j:]
+
+
+__all__ = ["Lockstep", "Transition", "lockstep", "match_transitions", "run_lockstep", "transitions"]

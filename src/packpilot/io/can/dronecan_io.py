@@ -56,6 +56,13 @@ def _f(x: float) -> float:
     return x if math.isfinite(x) else 0.0
 
 
+def ah_from_wh(wh: float, nominal_voltage_v: float) -> float:
+    """Wh → Ah by the nominal voltage, as the BatteryInfoAux DSDL says ("if the value of
+    this field is 0, the conversion should be omitted": NaN then, and for an unknown Wh)."""
+    ok = math.isfinite(wh) and wh >= 0.0 and math.isfinite(nominal_voltage_v)
+    return wh / nominal_voltage_v if ok and nominal_voltage_v > 0.0 else math.nan
+
+
 def _pct(x: float, unknown: int) -> int:
     return unknown if not math.isfinite(x) else min(max(round(x), 0), 127)
 
@@ -81,11 +88,13 @@ def encode(
 
 @dataclass(frozen=True, slots=True)
 class BatteryCells:
-    """One BatteryInfoAux message: the cell voltages (float16 on the wire) and cycles."""
+    """One BatteryInfoAux message: the cell voltages (float16 on the wire), cycles and the
+    nominal voltage that converts BatteryInfo's Wh to Ah (0: unknown, no conversion)."""
 
     battery_id: int
     cell_v: tuple[float, ...]
     cycle_count: int = 0
+    nominal_voltage_v: float = 0.0
 
 
 def _transfer(payload: Any, node_id: int, transfer_id: int, priority: int, t: float) -> list[
@@ -108,6 +117,7 @@ def encode_cells(
     msg = dronecan.ardupilot.equipment.power.BatteryInfoAux(
         voltage_cell=[_f(x) for x in cells.cell_v[:255]],
         cycle_count=max(0, min(cells.cycle_count, 0xFFFF)),
+        nominal_voltage=_f(cells.nominal_voltage_v),
         battery_id=cells.battery_id & 0xFF,
     )
     return _transfer(msg, node_id, transfer_id, priority, t)
@@ -167,6 +177,7 @@ def decode_any(frames: Sequence[can.Message]) -> BatteryInfo | BatteryCells:
             battery_id=int(p.battery_id),
             cell_v=tuple(float(x) for x in p.voltage_cell),
             cycle_count=int(p.cycle_count),
+            nominal_voltage_v=float(p.nominal_voltage),
         )
     return decode(frames)
 
@@ -204,7 +215,9 @@ __all__ = [
     "OVERLOAD",
     "TEMP_COLD",
     "TEMP_HOT",
+    "BatteryCells",
     "BatteryInfo",
+    "ah_from_wh",
     "decode",
     "encode",
 ]

@@ -233,18 +233,25 @@ class CanPlant:
             node.values.update({
                 "Voltage": done.voltage_v, "Current": done.current_a, "TempMax": done.temp_c,
                 "SOC": done.soc_pct / 100.0, "Present": 1.0,
+                "FullWh": done.full_wh, "RemainingWh": done.remaining_wh,
             })  # fmt: skip
             node.rx_s["dronecan"] = t
-            return
-        cells = done.cell_v
-        node.values["MinCellV"] = min(cells, default=math.nan)
-        node.values["MaxCellV"] = max(cells, default=math.nan)
-        node.values["CycleCount"] = float(done.cycle_count)
-        n = min(len(cells), MAX_GROUPS)
-        node.group_v[:] = math.nan
-        node.group_v[:n] = cells[:n]
-        node.values["NGroupsReported"] = float(len(cells))
-        node.rx_s["cells"] = t
+        else:
+            cells = done.cell_v
+            node.values["MinCellV"] = min(cells, default=math.nan)
+            node.values["MaxCellV"] = max(cells, default=math.nan)
+            node.values["CycleCount"] = float(done.cycle_count)
+            node.values["NominalV"] = done.nominal_voltage_v
+            n = min(len(cells), MAX_GROUPS)
+            node.group_v[:] = math.nan
+            node.group_v[:n] = cells[:n]
+            node.values["NGroupsReported"] = float(len(cells))
+            node.rx_s["cells"] = t
+        # Capacities: BatteryInfo's Wh over BatteryInfoAux's nominal voltage (the two arrive
+        # as separate transfers; NaN until both did, or when the battery omits the conversion).
+        full = dc.ah_from_wh(node.get("FullWh"), node.get("NominalV"))
+        node.values["FullAh"] = full if full > 0.0 else math.nan
+        node.values["RemainingAh"] = dc.ah_from_wh(node.get("RemainingWh"), node.get("NominalV"))
 
     @staticmethod
     def _take_groups(node: _Latest, vals: dict[str, float], t: float) -> None:
