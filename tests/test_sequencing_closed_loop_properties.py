@@ -223,11 +223,28 @@ SOAK_2 = Case(
 )
 
 
+# Found by a CI-budget run of the property (2026-11-25, a helper's full suite): 0.5 s periods,
+# R3 closed battery 3 (half the others' resistance) under 27 A and flagged 3.87 A predicted at
+# zero load; as the two discharging batteries converged the prediction fell to just under the
+# 2.5 A limit and the flag cleared one period before the load fell to 0, when 2.72 A flowed
+# into battery 3 for one period. The resistances, estimated over a 0.5 s current step, take in
+# polarization and under-predict by ~9 %: the flag now clears only below risk_clear_ratio
+# (0.8) x the limit.
+SUITE_3 = Case(
+    ocv0_v=(21.0, 21.0, 21.703125, 21.515625, 21.0),
+    r_ohm=(0.03125, 0.03125, 0.03125, 0.015625, 0.03125),
+    dt_s=0.5,
+    load_t_s=(0.0, 7.0),
+    load_a=(27.0, 0.0),
+    insert=None,
+)
+
+
 @pytest.mark.parametrize("comparator", [False, True])
 @pytest.mark.parametrize(
     "case",
-    [KNOWN_18, KNOWN_18B, SWEEP_7, SWEEP_7B, SWEEP_7C, SOAK_1, SOAK_2],
-    ids=["step11", "step181", "sweep7", "sweep7b", "sweep7c", "soak1", "soak2"],
+    [KNOWN_18, KNOWN_18B, SWEEP_7, SWEEP_7B, SWEEP_7C, SOAK_1, SOAK_2, SUITE_3],
+    ids=["step11", "step181", "sweep7", "sweep7b", "sweep7c", "soak1", "soak2", "suite3"],
 )
 def test_closed_loop_invariants_known_counterexample(case: Case, comparator: bool) -> None:
     res = _check_invariants(case, comparator)

@@ -96,6 +96,19 @@ class SequencingConfig(Strict):
             "with it closed, no engaged battery would take more than that if the load vanished."
         ),
     )
+    risk_clear_ratio: float = Field(
+        0.8,
+        gt=0.0,
+        le=1.0,
+        description=(
+            "The zero-load risk flag (CrossCurrentRisk) is raised when the current predicted "
+            "into a battery if the load vanished exceeds its charge limit, and clears only once "
+            "the prediction falls below risk_clear_ratio x that limit. The prediction rests on "
+            "resistances estimated from current steps, which take in some polarization (at 0.5 s "
+            "periods it read 2.5 A where 2.72 A flowed): a flag that drops just before the load "
+            "does is no warning."
+        ),
+    )
     default_capacity_ah: float = Field(
         5.0,
         gt=0.0,

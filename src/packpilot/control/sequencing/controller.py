@@ -219,6 +219,7 @@ def build(
         q_rev_as=float(config.q_rev_as),
         t_mode=float(config.t_mode),
         charge_limit_c=float(config.charge_limit_c),
+        risk_clear_ratio=float(config.risk_clear_ratio),
         default_capacity_ah=float(config.default_capacity_ah),
         r_batt_ohm=float(config.r_batt_ohm),
         i_step=float(config.i_step),

@@ -177,6 +177,8 @@ class SequencingParams(NamedTuple):
     t_mode: float
     charge_limit_c: float
     """Charge limit per battery in C: at most charge_limit_c x capacity_ah amperes into it."""
+    risk_clear_ratio: float
+    """The zero-load risk flag clears below this fraction of the charge limit (hysteresis)."""
     default_capacity_ah: float
     """Capacity assumed where the topology does not state one (replay logs)."""
     r_batt_ohm: float
@@ -688,13 +690,17 @@ def _discharge_tick(
     # Zero-load prediction of the engaged set: an engaged battery that would take more than
     # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
     # voltages drifted apart during co-discharge) is flagged once per episode; the reverse cut
-    # (or the plant's comparator) bounds it. Nothing is opened on a prediction.
+    # (or the plant's comparator) bounds it. Nothing is opened on a prediction. The flag
+    # clears only below risk_clear_ratio x the limit (the prediction is an estimate).
     m = _engaged(state, chg_on, p, grp, -1)
     for k in range(n):
         pred[k] = 0.0
     _share(grp, m, ef, g, 0.0, pred)
     for k in range(n):
-        risk = pred[k] > i_lim[k]
+        # Raised above the limit, cleared only well below it: the prediction is an estimate.
+        risk = pred[k] > i_lim[k] or (
+            at_risk[p, k] and pred[k] > prm.risk_clear_ratio * i_lim[k]
+        )
         if risk and not at_risk[p, k]:
             r = emit(ev, p, src, RISK, k, t)
             ev.val[r, 0] = pred[k]
