@@ -512,6 +512,46 @@ def test_engage_waits_for_the_charge_limit_at_zero_load() -> None:
         assert out.commands.chg_on == (True, engaged)
 
 
+def test_engage_keeps_the_zero_load_prediction_within_the_margin() -> None:
+    # The same join with a 1.05C limit (5.25 A): the 5 A predicted at zero load is 95 % of it,
+    # over the 0.9 margin that covers the estimate's error, so the FET stays open; with the
+    # margin at 1.0 (the limit itself) it closes.
+    for margin, engaged in ((0.9, False), (1.0, True)):
+        cfg = SequencingConfig(i_step=1e3, v_co=0.5, charge_limit_c=1.05,
+                               charge_limit_margin=margin)  # fmt: skip
+        ctrl, out = _standby_pair(cfg, 23.0)
+        out = ctrl.step(meas(0.2, [22.96, 23.16], [20.0, 0.0]), 0.1)
+        assert out.commands.chg_on == (True, engaged), margin
+
+
+def test_the_risk_flag_is_raised_near_the_limit_and_clears_well_below_it() -> None:
+    # R3 closes battery 1 (0.5 V below, 40 mOhm: 12.5 A predicted at zero load) under a 13 A
+    # limit (2.6C): 96 % of it, flagged with the 0.9 margin, not when the margin is the limit.
+    for margin, flagged in ((0.9, [1]), (1.0, [])):
+        cfg = SequencingConfig(charge_limit_c=2.6, charge_limit_margin=margin)
+        plant = TinyPlant(ocv0=[25.0, 24.5], r_ohm=[0.02, 0.02])
+        run = closed_loop(plant, lambda t: 0.0 if t < 1.0 else 60.0, t_end=3.0, dt=0.02, cfg=cfg)
+        risk = [e.battery for e in run.events if e.kind == "CrossCurrentRisk"]
+        assert risk == flagged, margin
+
+
+def test_the_risk_flag_clears_only_below_risk_clear_ratio() -> None:
+    # The same R3 closing under a 5 A limit (1C): 12.5 A predicted, flagged; as the two
+    # co-discharge the prediction falls. The flag holds through 0.9 x 5 A (where it was
+    # raised) and clears at the first period below 0.8 x 5 A = 4 A, not before.
+    plant = TinyPlant(ocv0=[25.0, 24.5], r_ohm=[0.02, 0.02])
+    cfg = SequencingConfig(charge_limit_c=1.0)
+    run = closed_loop(plant, lambda t: 0.0 if t < 1.0 else 60.0, t_end=140.0, dt=0.1, cfg=cfg)
+    pred = [float(o.status["seq_zero_load_into_a"][1]) for o in run.outputs]
+    flag = [bool(o.status["seq_at_risk"][1]) for o in run.outputs]
+    raised = flag.index(True)
+    cleared = raised + flag[raised:].index(False)
+    assert pred[raised] > 4.5 and all(flag[raised:cleared])
+    assert min(pred[raised:cleared]) < 4.5  # held between 0.8 and 0.9 x the limit
+    assert pred[cleared] < 4.0 <= pred[cleared - 1]
+    assert not any(flag[cleared:])
+
+
 def test_engage_needs_the_joiner_to_discharge_at_the_present_load() -> None:
     # Two batteries admitted at rest 30 mV apart (R1: within v_th). At zero load the lower one
     # would be charged (0.75 A): it keeps its FET open while the higher one engages.

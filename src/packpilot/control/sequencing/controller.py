@@ -148,8 +148,8 @@ REASONS = (
     ),
     Reason(
         "CrossCurrentRisk",
-        "battery {battery}: {predicted_a:.2f} A (above its {i_limit_a:.2f} A charge limit) would "
-        "flow into it if the load vanished",
+        "battery {battery}: {predicted_a:.2f} A (near or above its {i_limit_a:.2f} A charge "
+        "limit) would flow into it if the load vanished",
         fields("predicted_a", "i_limit_a", "_battery:i"),
     ),
     Reason(
@@ -219,6 +219,7 @@ def build(
         q_rev_as=float(config.q_rev_as),
         t_mode=float(config.t_mode),
         charge_limit_c=float(config.charge_limit_c),
+        charge_limit_margin=float(config.charge_limit_margin),
         risk_clear_ratio=float(config.risk_clear_ratio),
         default_capacity_ah=float(config.default_capacity_ah),
         r_batt_ohm=float(config.r_batt_ohm),

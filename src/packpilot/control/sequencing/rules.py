@@ -177,6 +177,8 @@ class SequencingParams(NamedTuple):
     t_mode: float
     charge_limit_c: float
     """Charge limit per battery in C: at most charge_limit_c x capacity_ah amperes into it."""
+    charge_limit_margin: float
+    """Share of the charge limit a zero-load prediction may reach (the prediction's error)."""
     risk_clear_ratio: float
     """The zero-load risk flag clears below this fraction of the charge limit (hysteresis)."""
     default_capacity_ah: float
@@ -465,7 +467,7 @@ def _engage(
         _share(grp, m2, ef, g, 0.0, pred)
         for q in range(m2):
             j = grp[q]
-            if pred[j] > i_lim[j]:
+            if pred[j] > prm.charge_limit_margin * i_lim[j]:
                 ok = False
         if not ok:
             continue
@@ -697,8 +699,8 @@ def _discharge_tick(
         pred[k] = 0.0
     _share(grp, m, ef, g, 0.0, pred)
     for k in range(n):
-        # Raised above the limit, cleared only well below it: the prediction is an estimate.
-        risk = pred[k] > i_lim[k] or (
+        # Raised near the limit, cleared only well below it: the prediction is an estimate.
+        risk = pred[k] > prm.charge_limit_margin * i_lim[k] or (
             at_risk[p, k] and pred[k] > prm.risk_clear_ratio * i_lim[k]
         )
         if risk and not at_risk[p, k]:
