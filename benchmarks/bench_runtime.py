@@ -36,6 +36,7 @@ import tomli_w
 
 from packpilot.config import load_config
 from packpilot.io.can.hub import CanHub
+from packpilot.io.telemetry import samples_committed
 from packpilot.runtime.realtime import run_against_twin
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,8 +75,8 @@ def measure_two_processes(period_s: float, seconds: float) -> dict[str, Any]:
         run = subprocess.Popen([*cli, "run", str(scenario), *bus, "--period", str(period_s),
                                 "--db", str(db), "--json"], stdout=subprocess.PIPE,
                                text=True)  # fmt: skip
-        n0, t0 = _when(lambda: _rows(db) > 0, hub)  # the first 50 periods are committed
-        n1, t1 = _when(lambda: _rows(db) >= seconds / period_s, hub)
+        n0, t0 = _when(lambda: samples_committed(db) > 0, hub)  # the first 50 periods are committed
+        n1, t1 = _when(lambda: samples_committed(db) >= seconds / period_s, hub)
         twin.send_signal(signal.SIGTERM)
         twin_out, _ = twin.communicate()
         run.send_signal(signal.SIGTERM)
@@ -88,14 +89,6 @@ def measure_two_processes(period_s: float, seconds: float) -> dict[str, Any]:
     m["hub_frames_per_s"] = round((n1 - n0) / (t1 - t0), 1)
     m["hub_malformed"], m["hub_dropped"] = hub.stats.malformed, hub.stats.dropped
     return m
-
-
-def _rows(db: Path) -> int:
-    try:
-        with sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True) as c:
-            return int(c.execute("select count(*) from pack_samples").fetchone()[0])
-    except sqlite3.Error:
-        return 0
 
 
 def _when(done: Any, hub: CanHub) -> tuple[int, float]:

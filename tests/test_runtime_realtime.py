@@ -19,6 +19,7 @@ import pytest
 from packpilot.cli import scenario_path
 from packpilot.config import ScenarioConfig, load_config
 from packpilot.io.can.hub import CanHub
+from packpilot.io.telemetry import samples_committed
 from packpilot.runtime.bms import BmsRuntime
 from packpilot.runtime.hil import Hil
 from packpilot.runtime.realtime import run_against_twin
@@ -99,14 +100,6 @@ def _wait(proc: subprocess.Popen[str], err: Path, done: Any, what: str) -> None:
         time.sleep(0.05)
 
 
-def _rows(db: Path) -> int:
-    try:
-        with sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True) as c:
-            return int(c.execute("select count(*) from pack_samples").fetchone()[0])
-    except sqlite3.Error:
-        return 0
-
-
 def _stop(proc: subprocess.Popen[str]) -> str:
     proc.send_signal(signal.SIGTERM)
     out, _ = proc.communicate(timeout=60)
@@ -129,7 +122,7 @@ def test_two_processes_over_the_can_hub(tmp_path: Path) -> None:
         try:
             _wait(twin, twin_err, lambda: "packpilot hil:" in twin_err.read_text(), "hil")
             run = _start(["run", "uav_mission", *bus, "--db", str(db), "--json"], run_err)
-            _wait(run, run_err, lambda: _rows(db) >= 50, "run did not record 50 periods")
+            _wait(run, run_err, lambda: samples_committed(db) >= 50, "run recorded < 50 periods")
             # the dashboard's reader attaches to the running process's file and follows it
             attached = Recording(db)
             first = attached.n_samples
@@ -140,7 +133,7 @@ def test_two_processes_over_the_can_hub(tmp_path: Path) -> None:
             run_out = _stop(run)
             assert not attached.poll()  # the run ended: so does the attached view
             assert attached.ended == "interrupted" and attached.live.state == "stopped"
-            assert attached.n_samples == _rows(db)
+            assert attached.n_samples == samples_committed(db)
         finally:
             for p in (twin, run):
                 if p is not None:

@@ -516,3 +516,29 @@ def test_late_status_channel_in_wide_exports(tmp_path: Path) -> None:
     with pytest.warns(UserWarning, match="late"):
         trace_to_csv(Result(NAMES, Trace.from_samples(samples), [], {}), tmp_path / "m.csv")
     assert "left_late" not in pacsv.read_csv(tmp_path / "m.csv").column_names
+
+
+def test_samples_committed_counts_what_a_reader_can_see(tmp_path: Path) -> None:
+    """What a watcher of a writer starting up reads: 0 with no file, no run or no sample yet,
+    then the committed samples of the latest run only (buffered ones are not there yet)."""
+    from packpilot.io.telemetry import samples_committed
+
+    db = tmp_path / "grow.sqlite"
+    assert samples_committed(db) == 0
+    rec = SQLiteRecorder(db, flush_every=10**6, commit_every_s=1e9)
+    try:
+        assert samples_committed(db) == 0  # the schema, no run
+        rec.start({}, NAMES)
+        assert samples_committed(db) == 0
+        for s in make_samples(7):
+            rec.record(s)
+        assert samples_committed(db) == 0  # buffered, not committed
+        rec.flush()
+        assert samples_committed(db) == 7
+        rec.finish({})
+        rec.start({}, NAMES)  # a second run: its own count
+        rec.record(make_samples(1)[0])
+        rec.flush()
+        assert samples_committed(db) == 1
+    finally:
+        rec.close()

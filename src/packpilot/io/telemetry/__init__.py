@@ -13,7 +13,7 @@ The schema is documented in ``docs/telemetry.md``.
 from __future__ import annotations
 
 from packpilot.io.telemetry.export import export_csv, export_parquet, trace_to_csv, wide_columns
-from packpilot.io.telemetry.reader import list_runs, load_run
+from packpilot.io.telemetry.reader import list_runs, load_run, samples_committed
 from packpilot.io.telemetry.schema import PACK_COLUMNS, SCHEMA_VERSION
 from packpilot.io.telemetry.writer import SQLiteRecorder
 
@@ -25,6 +25,7 @@ __all__ = [
     "export_parquet",
     "list_runs",
     "load_run",
+    "samples_committed",
     "trace_to_csv",
     "wide_columns",
 ]

@@ -315,6 +315,24 @@ def _samples(conn: sqlite3.Connection, rid: int, n_b: int, after: int) -> Sample
     return steps, pm, battery, group_v, aux
 
 
+def samples_committed(path: Path | str) -> int:
+    """How many samples of the file's latest run are committed so far: 0 while the file, its
+    schema or its first run does not exist yet (a writer still starting up)."""
+    try:
+        conn = _open_ro(path)
+    except InputError:
+        return 0
+    try:
+        row = conn.execute(
+            "SELECT COUNT(*) FROM pack_samples WHERE run_id = (SELECT MAX(id) FROM runs)"
+        ).fetchone()
+    except sqlite3.Error:
+        return 0
+    finally:
+        conn.close()
+    return int(row[0])
+
+
 def list_runs(path: Path | str) -> list[dict[str, Any]]:
     """Every run in the file, oldest first, with its JSON columns decoded and its step count."""
     conn = _open_ro(path)
