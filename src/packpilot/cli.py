@@ -885,6 +885,9 @@ CanIface = Annotated[
     str, typer.Option(help="python-can interface (socketcan, socketcand, virtual, ...)")
 ]
 CanChan = Annotated[str, typer.Option(help="CAN channel, e.g. can0")]
+ChargerChan = Annotated[
+    str | None, typer.Option(help="the charger's CAN channel, if not the batteries'")
+]
 CanArgs = Annotated[
     list[str] | None,
     typer.Option(
@@ -907,9 +910,7 @@ def run(
     config: Annotated[Path, typer.Argument(help="scenario TOML file describing the pack")],
     can_interface: CanIface = "socketcan",
     can_channel: CanChan = "can0",
-    charger_channel: Annotated[
-        str | None, typer.Option(help="the charger's CAN channel, if not the batteries'")
-    ] = None,
+    charger_channel: ChargerChan = None,
     period: Annotated[float, typer.Option(help="BMS period, s (monotonic clock)")] = 0.1,
     duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
     db: Annotated[Path | None, typer.Option(help="record telemetry to this SQLite file")] = None,
@@ -980,9 +981,7 @@ def hil(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
     can_interface: CanIface = "socketcan",
     can_channel: CanChan = "vcan0",
-    charger_channel: Annotated[
-        str | None, typer.Option(help="the charger's CAN channel, if not the batteries'")
-    ] = None,
+    charger_channel: ChargerChan = None,
     speed: Annotated[
         float, typer.Option(help="simulated seconds per wall second (0: as fast as possible)")
     ] = 1.0,
