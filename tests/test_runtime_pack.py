@@ -25,9 +25,11 @@ def cfg() -> ScenarioConfig:
     return load_config(scenario_path(Path("uav_mission")))
 
 
-def run(cfg: ScenarioConfig, end_s: float, act: object = None) -> tuple[Lockstep, list]:
+def run(
+    cfg: ScenarioConfig, end_s: float, act: object = None, opts: RuntimeOptions | None = None
+) -> tuple[Lockstep, list]:
     """Lock-step to ``end_s``; ``act(hil, bus, t)`` after each period's telemetry."""
-    ls = lockstep(cfg, RuntimeOptions())
+    ls = lockstep(cfg, opts or RuntimeOptions())
     bus = can.Bus(interface="virtual", channel=ls.bms.opts.channel)
     if act is not None:
         ls.hil.hooks.append(lambda h, t: act(h, bus, t))  # type: ignore[operator]
@@ -109,12 +111,7 @@ def test_replay_of_a_recorded_frame_log(cfg: ScenarioConfig, tmp_path: Path) -> 
     from packpilot.runtime.logreplay import received_frames, replay_log
 
     log = tmp_path / "run.blf"
-    ls = lockstep(cfg, RuntimeOptions(log_path=log))
-    try:
-        for _ in range(round(100.0 / DT)):
-            ls.step(DT)
-    finally:
-        ls.close()
+    ls, _ = run(cfg, 100.0, opts=RuntimeOptions(log_path=log))
     rx = received_frames(log)
     assert rx and all(m.is_rx for _, m in rx)
     assert {m.arbitration_id for _, m in rx} >= {0x300, 0x301, 0x220, 0x18FF50E5}
@@ -135,12 +132,7 @@ def test_replay_can_on_the_command_line(cfg: ScenarioConfig, tmp_path: Path) -> 
     import sys
 
     log = tmp_path / "run.asc"
-    ls = lockstep(cfg, RuntimeOptions(log_path=log))
-    try:
-        for _ in range(round(60.0 / DT)):
-            ls.step(DT)
-    finally:
-        ls.close()
+    ls, _ = run(cfg, 60.0, opts=RuntimeOptions(log_path=log))
     cli = [sys.executable, "-m", "packpilot.cli"]
     db = tmp_path / "again.sqlite"
     proc = subprocess.run([*cli, "replay", "can", str(log), "uav_mission", "--period", str(DT),
