@@ -54,15 +54,10 @@ def run_can(cfg: ScenarioConfig, dronecan: bool) -> dict[str, Any]:
     err: dict[str, list[float]] = {q: [] for q in QUANTITIES}
     aux = ls.hil.plant.topology.aux
     aux_relay: list[bool] = []
-    load_j = dock_j = 0.0
     t0 = time.perf_counter()
     try:
         for _ in range(n_steps(cfg)):
             ls.step(cfg.sim.dt_s)
-            iv = ls.hil.last_iv
-            assert iv is not None
-            load_j += float(iv.bus_v[0] * iv.load_a[0]) * cfg.sim.dt_s
-            dock_j += float(iv.charger_v[0] * iv.charger_a[0]) * cfg.sim.dt_s
             if aux is not None:
                 aux_relay.append(bool(ls.hil.plant.pack.effective_gates()[0][0, aux]))
             for q in QUANTITIES:
@@ -79,8 +74,8 @@ def run_can(cfg: ScenarioConfig, dronecan: bool) -> dict[str, Any]:
         "chg": np.array(ls.chg).reshape(n, b),
         "dsg": np.array(ls.dsg).reshape(n, b),
         "aux_relay": np.array(aux_relay).reshape(-1, 1),
-        "load_wh": load_j / 3600.0,
-        "dock_wh": dock_j / 3600.0,
+        "load_wh": ls.load_j / 3600.0,
+        "dock_wh": ls.dock_j / 3600.0,
         "allowance": ls.bms.core.status_of(0).get("protection_fraction"),
         "unsupplied_periods": int(np.sum(~np.array(ls.supplied))),
         "group_soc_spread": group_soc_spread(ls.hil.plant.pack),

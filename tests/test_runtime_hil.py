@@ -17,7 +17,6 @@ from packpilot.model.pack import Pack
 from packpilot.runtime.bms import RuntimeOptions
 from packpilot.runtime.lockstep import (
     Transition,
-    lockstep,
     match_transitions,
     run_lockstep,
     transitions,
@@ -209,16 +208,8 @@ def test_uav_mission_flight_over_dronecan_matches_simulate() -> None:
     cfg = scenario("uav_mission", 1250.0)
     runner = Runner(cfg, progress=False)
     sim = runner.run()
-    ls = lockstep(cfg, RuntimeOptions(dronecan_ids=(21, 22)))
-    energy_j = 0.0
-    try:
-        for _ in range(n_steps(cfg)):
-            ls.step(cfg.sim.dt_s)
-            iv = ls.hil.last_iv
-            assert iv is not None
-            energy_j += float(iv.bus_v[0] * iv.load_a[0]) * cfg.sim.dt_s
-    finally:
-        ls.close()
+    ls = run_lockstep(cfg, n_steps(cfg), RuntimeOptions(dronecan_ids=(21, 22)))
+    energy_j = ls.load_j
     c = ls.bms.plant.counters
     assert c.received > 0 and c.malformed == c.unexpected == 0
     assert ls.bms.plant.assembler.errors == 0 and ls.hil.commands == c.sent

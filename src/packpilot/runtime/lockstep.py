@@ -36,6 +36,10 @@ class Lockstep:
     chg: list[np.ndarray] = field(default_factory=list)
     dsg: list[np.ndarray] = field(default_factory=list)
     supplied: list[bool] = field(default_factory=list)
+    load_j: float = 0.0
+    """Energy the twin's load took from the bus (its plant's own bus voltage and load current)."""
+    dock_j: float = 0.0
+    """Energy the twin's charger put on the bus."""
 
     def step(self, dt_s: float) -> None:
         t = self.hil.t_s
@@ -46,6 +50,8 @@ class Lockstep:
         self.chg.append(c)
         self.dsg.append(d)
         self.supplied.append(bool(iv.supplied[0]))
+        self.load_j += float(iv.bus_v[0] * iv.load_a[0]) * dt_s
+        self.dock_j += float(iv.charger_v[0] * iv.charger_a[0]) * dt_s
 
     def close(self) -> None:
         self.bms.close()
