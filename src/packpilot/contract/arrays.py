@@ -70,6 +70,10 @@ class BatteryArrays(NamedTuple):
     present: B1
     reported: B1
     """False where the measurement had no entry for this battery at all."""
+    sw_explained: B1
+    """The switch node explains a disagreement of the feedback with the commands (it opened
+    on its command timeout, or has not obeyed our latest command yet): the plausibility layer
+    does not judge the switches then. Only the CAN runtime sets it (issue #26)."""
 
 
 class ChargerArrays(NamedTuple):
@@ -194,6 +198,7 @@ def battery_arrays(n_packs: int, n_batteries: int, n_groups: int) -> BatteryArra
         sw_dsg=np.zeros(shape, np.bool_),
         present=np.zeros(shape, np.bool_),
         reported=np.zeros(shape, np.bool_),
+        sw_explained=np.zeros(shape, np.bool_),
     )
 
 

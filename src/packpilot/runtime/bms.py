@@ -151,6 +151,7 @@ class BmsRuntime:
             period_s=opts.period_s,
             stale_s=cfg.plausibility.max_sample_age_s if cfg.plausibility else math.inf,
             dronecan_ids={bid: i for i, bid in enumerate(opts.dronecan_ids or ()) if bid >= 0},
+            capacity_ah=float(np.nansum(infos[0].capacity_ah)), charger=cfg.charger.present,
         )  # fmt: skip
         self.charger: CanChargerLink | None = None
         links: list[Any] = []
@@ -182,6 +183,8 @@ class BmsRuntime:
         if self.opts.publish:
             self.publisher.maybe_publish(t)
         events = self.core.events()[0] if self.core.ev.n[0] else []
+        if self.plant.detections:
+            events = [*self._detected(), *events]
         if events:
             self.events.extend(events)
         if self.recorder is not None:
@@ -190,6 +193,18 @@ class BmsRuntime:
                 self.recorder.record_events(events)
         self.k += 1
         return events
+
+    def _detected(self) -> list[Event]:
+        """What the CAN port detected this period (telemetry sequence, presence, dock), as
+        events of the runtime (``battery``: the traction index, None for the pack)."""
+        traction = self.plant.map.traction
+        out = []
+        for d in self.plant.detections:
+            k = traction.index(d.battery) if d.battery in traction else None
+            out.append(Event(d.t_s, d.kind, k, d.message, {"node": -1 if d.battery is None
+                                                          else d.battery}))  # fmt: skip
+        self.plant.detections.clear()
+        return out
 
     def sample(self, t: float) -> StepSample:
         """What the BMS measured this period, as the recorders' unit of telemetry (the
@@ -293,6 +308,9 @@ class BmsRuntime:
         out.update({f"can_{k}": getattr(c, k) for k in ("sent", "received", "malformed",
                                                         "unexpected", "send_errors")})  # fmt: skip
         out["can_babbling_periods"] = self.plant.babbled
+        fr = self.plant.freshness
+        out.update({f"can_{k}": getattr(fr, k) for k in ("duplicates", "out_of_order",
+                    "resyncs", "suspect", "present_glitches", "dock_rejected")})  # fmt: skip
         out["published_frames"] = self.publisher.sent
         if self.charger is not None:
             cc = self.charger.client.counters

@@ -208,10 +208,18 @@ class Hil:
         self.hooks: list[Callable[[Hil, float], None]] = []
         """Called with (hil, t) after each period's telemetry went out: fault injection (an
         intruder's frames, silencing a node from the next period on)."""
+        self.proxies: list[Callable[[Hil, list[can.Message], float], list[can.Message]]] = []
+        """Called with (hil, frames, t) before a period's telemetry goes out; returns the
+        frames to send instead: fault injection between the nodes and the bus (frozen,
+        replayed, altered or duplicated frames), as a proxy on the wire would."""
         self.silent: set[int] = set()
         """CAN indices of battery nodes that do not publish (telemetry loss); :data:`PLATFORM`
         silences the platform node."""
         self.last_iv: Interval | None = None
+        self.deaf = False
+        """Fault injection: every frame sent to the twin is lost (switch commands, balancer,
+        aux, the charger's requests excepted: that is its own bus) while True."""
+        self.lost = 0
 
     @property
     def t_s(self) -> float:
@@ -235,6 +243,8 @@ class Hil:
         if PLATFORM not in self.silent:
             out.append(encode_platform(float(m.bus_v[0]), bool(m.docked[0]), self.counter, t))
         self.counter = (self.counter + 1) & 0xFF
+        for proxy in self.proxies:
+            out = proxy(self, out, t)
         for msg in out:
             self.send(msg, t)
         for hook in self.hooks:
@@ -292,6 +302,9 @@ class Hil:
 
     def receive(self, t: float) -> None:
         for msg in received(self.bus, self.counters, self.log, t):
+            if self.deaf:
+                self.lost += 1
+                continue
             if self.inverter.take(msg, t) or self.aircraft.take(msg):
                 continue
             self._command(msg, t)

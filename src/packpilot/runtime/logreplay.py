@@ -13,6 +13,9 @@ Frame times are the recording's simulation / runtime seconds, written as ``SIM_E
 from __future__ import annotations
 
 import itertools
+import math
+import struct
+import zlib
 from collections.abc import Iterable
 from dataclasses import replace
 from pathlib import Path
@@ -33,17 +36,35 @@ def received_frames(path: Path) -> list[tuple[float, can.Message]]:
     suffix = path.suffix.lower()
     if suffix not in LOG_SUFFIXES:
         raise ConfigError(f"{path}: unsupported frame log format {suffix!r}, use .blf/.asc")
+    frames: list[tuple[float, can.Message]] = []
     try:
         reader: Iterable[can.Message]
         if suffix == ".asc":
             reader = can.ASCReader(path, relative_timestamp=False)
         else:
             reader = can.BLFReader(path)
-        frames = [(m.timestamp - SIM_EPOCH_S, m) for m in reader if m.is_rx]
-    except (OSError, ValueError, EOFError) as err:
+        it = iter(reader)
+        while True:
+            try:
+                m = next(it)
+            except StopIteration:
+                break
+            except (ValueError, EOFError, struct.error, zlib.error):
+                break  # a log cut short by a killed writer: keep what was written whole
+            if m.is_rx:
+                frames.append((m.timestamp - SIM_EPOCH_S, m))
+    except (OSError, ValueError, EOFError, struct.error) as err:
         raise ConfigError(f"{path}: cannot read the frame log ({err})") from None
     frames.sort(key=lambda x: x[0])
     return frames
+
+
+def periods(frames: list[tuple[float, can.Message]], period_s: float) -> int:
+    """How many periods of ``period_s`` from 0 s the replay steps over the frames' times."""
+    t_end = frames[-1][0]
+    if not (math.isfinite(t_end) and t_end + period_s / 2 >= 0.0):
+        return 0
+    return math.floor((t_end + period_s / 2) / period_s + 1e-9) + 1
 
 
 def replay_log(
@@ -57,6 +78,13 @@ def replay_log(
     frames = received_frames(path)
     if not frames:
         raise ConfigError(f"{path}: the log holds no frame the BMS received: nothing to replay")
+    opts_period = (opts or RuntimeOptions()).period_s
+    if periods(frames, opts_period) == 0:
+        raise ConfigError(
+            f"{path}: no period to replay: its frames end at {frames[-1][0]:.6g} s, before the "
+            "recording's 0 s (a BLF whose header was never written, e.g. by a writer killed "
+            "before it flushed)"
+        )
     channel = f"packpilot-replay-{next(_channels)}"
     opts = replace(opts or RuntimeOptions(), interface="virtual", channel=channel,
                    charger_channel=None, log_path=None, bus_kwargs=())  # fmt: skip

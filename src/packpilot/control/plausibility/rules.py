@@ -744,6 +744,9 @@ def step_pack(
             elif _stale(prm, m.bat.sample_age_s[p, i])[0] == BAD:
                 f = _none()  # a stale sample's feedback says nothing about the switch now
                 delay = prm.switch_delay_s
+            elif m.bat.sw_explained[p, i]:
+                f = _none()  # the node opened on its timeout / has not heard us yet (#26)
+                delay = prm.switch_delay_s
             else:
                 f = _switch(tp.relay[i], int(st.cmd_chg[p, i]), int(st.cmd_dsg[p, i]),
                             m.bat.sw_chg[p, i], m.bat.sw_dsg[p, i], k)  # fmt: skip

@@ -358,12 +358,17 @@ def _max_discharging(state: I64, p: int, x: F64) -> float:
 
 
 @kernel_inline
-def _load(pres: B1, cur: F64) -> float:
-    """Pack current: the sum of the present batteries' currents."""
+def _charge_in(pres: B1, cur: F64, can_charge: B1) -> float:
+    """Pack current as evidence of charging: the present batteries' currents, where a battery
+    whose charge path does not conduct (feedback) counts no charging current — it cannot
+    take any, so a negative reading there is its sensor's, and one battery's implausible
+    reading must not move the others' switches into charge mode (issue #26: a standby
+    battery reading -30 A opened the healthy battery's discharge FET in flight)."""
     tot = 0.0
     for k in range(pres.shape[0]):
         if pres[k]:
-            tot += cur[k]
+            c = cur[k]
+            tot += c if can_charge[k] or not c < 0.0 else 0.0
     return tot
 
 
@@ -591,7 +596,7 @@ def _discharge_tick(
         skip[k] = cur[k] > i_det
         any_cut = any_cut or cut[k]
     if any_cut:
-        _open_charged(prm, st, ev, src, p, _load(pres, cur), t)
+        _open_charged(prm, st, ev, src, p, _charge_in(pres, cur, was_c), t)
 
     # Hot insertion (R1 re-applied to the newcomer): a battery v_th above the bus takes over
     # and the batteries v_th below it stand by in the same period, so none is charged.
@@ -649,7 +654,7 @@ def _discharge_tick(
                 ev.val[r, V_DATA + 2] = ef[k] - e_ref
 
     # Engage (R2 switches the joiner's charge FET; also re-closes one the reverse cut opened).
-    _engage(prm, st, p, pres, _load(pres, cur))
+    _engage(prm, st, p, pres, _charge_in(pres, cur, was_c))
 
     # R3: charge diode conducting (charge FET off, discharge FET on, discharge current).
     # Only current measured over a period in which this controller held the charge FET off
@@ -687,7 +692,7 @@ def _discharge_tick(
     # the same period, before the current flows; it stays admitted and re-engages by the
     # engage rule. Never one R3 closed in this period: its diode current says it sources.
     if any_r3:
-        _open_charged(prm, st, ev, src, p, _load(pres, cur), t)
+        _open_charged(prm, st, ev, src, p, _charge_in(pres, cur, was_c), t)
 
     # Zero-load prediction of the engaged set: an engaged battery that would take more than
     # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
@@ -916,11 +921,12 @@ def _update_resistance(
 def _update_mode(
     prm: SequencingParams, mode: I64, mode_evidence_since_s: F64, initialized: B1,
     conduct_since_s: F64, ev: EventBuf, src: int, p: int, cur: F64, pres: B1, docked: bool,
-    t: float,
+    t: float, can_charge: B1,
 ) -> None:  # fmt: skip
     """Docking switches to charge mode at once; charging current alone must persist t_mode.
-    Charge mode ends t_mode after the dock is gone and the pack is no longer charged."""
-    pack_i = _load(pres, cur)
+    Charge mode ends t_mode after the dock is gone and the pack is no longer charged.
+    Charging current counts only where a charge path conducts (:func:`_charge_in`)."""
+    pack_i = _charge_in(pres, cur, can_charge)
     charging_seen = pack_i < -prm.i_det
     if mode[p] == MODE_DISCHARGE:
         evidence = charging_seen
@@ -1059,7 +1065,7 @@ def step_pack(
     docked = bool(m.docked[p])
     _update_mode(
         prm, mode, mode_evidence_since_s, initialized, conduct_since_s, ev, src, p, cur, pres,
-        docked, t,
+        docked, t, bat.sw_chg[p],
     )  # fmt: skip
     if mode[p] == MODE_CHARGE:
         _charge_tick(prm, st, ev, src, p, cur, pres, t, dt_s)

@@ -106,9 +106,16 @@ def _quiet_socketcand() -> None:
 
 
 class FrameLog:
-    """Append-only BLF/ASC log of frames, timestamped with the caller's simulation time."""
+    """Append-only BLF/ASC log of frames, timestamped with the caller's simulation time.
 
-    def __init__(self, path: Path | str) -> None:
+    Flushed to the operating system at least every ``flush_every_s`` of the log's own clock
+    (the runtime's seconds for ``run``, simulated seconds for ``simulate``): a BLF gets its
+    buffered frames written as one container and its header (start time, object count, file
+    size) rewritten, so a process killed with SIGKILL leaves a log that reads back up to the
+    last second, as the SQLite recorder's last commit does. The log's clock, not the wall
+    clock, decides when, so a simulation writes the same bytes every time."""
+
+    def __init__(self, path: Path | str, flush_every_s: float = 1.0) -> None:
         self.path = Path(path)
         suffix = self.path.suffix.lower()
         if suffix not in LOG_SUFFIXES:
@@ -122,6 +129,9 @@ class FrameLog:
         except OSError as err:
             raise ConfigError(f"--can-log {self.path}: cannot write ({err})") from None
         self.count = 0
+        self.flush_every_s = flush_every_s
+        self._flushed_s: float | None = None
+        self.flushes = 0
 
     def log(self, msg: can.Message, t_s: float, *, rx: bool) -> None:
         """Record ``msg`` as received (``rx``) or sent at simulation time ``t_s``."""
@@ -130,6 +140,28 @@ class FrameLog:
         entry.is_rx = rx
         self._writer.on_message_received(entry)
         self.count += 1
+        if self._flushed_s is None:
+            self._flushed_s = float(t_s)
+        elif not float(t_s) - self._flushed_s < self.flush_every_s:  # NaN times flush too
+            self.flush()
+            self._flushed_s = float(t_s)
+
+    def flush(self) -> None:
+        """Everything logged so far onto the file (the OS's buffers: survives SIGKILL of this
+        process, not a power cut). BLF: the buffered frames as one compressed container and
+        the header rewritten with the current start time and counts, which python-can's
+        writer otherwise writes only when it is stopped (a killed log read back with times
+        from 1970: nothing to replay)."""
+        w = self._writer
+        if isinstance(w, can.BLFWriter):
+            w._flush()  # python-can writes containers only when full or stopped
+            f = w.file
+            end = f.tell()
+            f.seek(0)
+            w._write_header(end)
+            f.seek(end)
+        w.file.flush()
+        self.flushes += 1
 
     def close(self) -> None:
         self._writer.stop()

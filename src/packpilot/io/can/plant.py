@@ -58,6 +58,23 @@ REQUIRED = ("meas", "cells", "state", "capacity")
 """Frame kinds every battery sends each period (plus its group blocks when it has groups)."""
 DRONECAN_REQUIRED = ("dronecan", "switch_state")
 """A DroneCAN battery: its BatteryInfo, and its switch node's SwitchState (the feedback)."""
+COUNTED = ("meas", "state")
+"""Frame kinds that carry the node's alive counter (+1 per period)."""
+SUSPECT_PERIODS = 2
+"""Periods in a row with a duplicated, frozen or out-of-sequence counter after which a node's
+telemetry is not trusted (issue #26: frozen, stale, duplicated or reordered frames are
+detected within 2 periods)."""
+RESYNC_PERIODS = 2
+"""A counter sequence silent this many periods may be replaced by a new one (node reboot)."""
+PRESENT_DEBOUNCE_S = 0.5
+"""How long a battery's Present bit must hold a new value before the BMS believes it."""
+PRESENT_CURRENT_A = 1.0
+"""A battery carrying more than this is present, whatever its Present bit says."""
+DOCK_DEBOUNCE_S = 1.0
+"""How long the dock contact must read docked before the BMS believes it (in flight)."""
+DOCK_MAX_DISCHARGE_C = 0.1
+"""Docking is believed only while the pack discharges at most this C-rate (of its summed
+capacity): a pack feeding a flight load is not on a dock."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +87,33 @@ class BatteryMap:
     """Series groups of traction battery ``k``."""
     aux: int | None = None
     aux_groups: int = 0
+
+
+@dataclass
+class Freshness:
+    """What the telemetry checks found (run metrics, asserted on in tests)."""
+
+    duplicates: int = 0
+    """Counted frames whose alive counter repeated the last one (dropped)."""
+    out_of_order: int = 0
+    """Counted frames behind or too far ahead of the sequence (dropped): old, reordered or a
+    second node on the same identifiers."""
+    resyncs: int = 0
+    suspect: int = 0
+    """Times a node became suspect (not trusted: its sample reads infinitely old)."""
+    present_glitches: int = 0
+    """Present-bit changes not (yet) believed."""
+    dock_rejected: int = 0
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Something the port detected on the bus, for the runtime's events."""
+
+    t_s: float
+    kind: str
+    battery: int | None
+    message: str
 
 
 class _Latest:
@@ -87,6 +131,23 @@ class _Latest:
         self.block_rx_s = np.full(-(-n_groups // GROUPS_PER_FRAME), -math.inf)
         self.babbling = False
         self.seen_this_period: dict[int, int] = {}
+        self.new_seq = 0
+        self.bad_seq = 0
+        """Counted frames judged new / bad (duplicate, out of order) in this period."""
+        self.seq = {k: _Sequence() for k in COUNTED}
+        """The alive counter of each counted frame kind."""
+        self.bad_periods = 0
+        """Consecutive periods with a duplicated, frozen or out-of-sequence counted frame."""
+        self.suspect = False
+        """Its frames conflict or stopped advancing for :data:`SUSPECT_PERIODS` periods:
+        not trusted (age infinite) until a clean period."""
+        self.present_belief: bool | None = None
+        """The Present bit as the BMS believes it (debounced; None: no state frame yet)."""
+        self.present_bit_since_s = math.nan
+        """Since when the Present bit has disagreed with the belief (NaN: it agrees)."""
+        self.sw_timed_out = False
+        self.sw_seq: int | None = None
+        self.sw_rx_s = -math.inf
 
     def age(self, t: float) -> float:
         """Age of the oldest required frame (inf: never complete)."""
@@ -99,6 +160,39 @@ class _Latest:
 
     def get(self, name: str) -> float:
         return self.values.get(name, math.nan)
+
+
+class _Sequence:
+    """One frame kind's alive counter: the last one accepted and when."""
+
+    __slots__ = ("last", "rx_s")
+
+    def __init__(self) -> None:
+        self.last: int | None = None
+        self.rx_s = -math.inf
+
+    def judge(self, counter: int, t: float, period_s: float) -> str:
+        """``new`` (accept), ``duplicate`` (the same counter again: a repeated or frozen
+        frame), ``out_of_order`` (behind, or further ahead than the periods since the last
+        accepted one allow: an old frame, a second source) or ``resync`` (the accepted
+        sequence has been silent for :data:`RESYNC_PERIODS` periods: a rebooted node starts
+        a new one; accept it)."""
+        if self.last is None:
+            verdict = "new"
+        else:
+            d = (counter - self.last) & 0xFF
+            if d == 0:
+                return "duplicate"
+            gap = t - self.rx_s
+            allowed = 2 + (max(0, round(gap / period_s)) if period_s > 0 else 0)
+            if d <= min(allowed, 127):
+                verdict = "new"
+            elif period_s > 0 and gap >= RESYNC_PERIODS * period_s - 1e-9:
+                verdict = "resync"
+            else:
+                return "out_of_order"
+        self.last, self.rx_s = counter, t
+        return verdict
 
 
 class CanPlant:
@@ -116,11 +210,23 @@ class CanPlant:
         period_s: float = 0.1,
         stale_s: float = 2.0,
         dronecan_ids: Mapping[int, int] | None = None,
+        capacity_ah: float = math.nan,
+        charger: bool = False,
     ) -> None:
         """``period_s``: the BMS period, at which every battery node sends its frames;
         ``stale_s``: the plausibility layer's ``max_sample_age_s``; ``dronecan_ids``:
-        DroneCAN ``battery_id`` → CAN index of the batteries read from BatteryInfo."""
+        DroneCAN ``battery_id`` → CAN index of the batteries read from BatteryInfo;
+        ``capacity_ah``: the pack's summed configured capacity (the dock's current check);
+        ``charger``: the scenario has a charger (docking then needs it online)."""
         self.bus = bus
+        self.capacity_ah = capacity_ah
+        self.has_charger = charger
+        self.freshness = Freshness()
+        self.detections: list[Detection] = []
+        """What the port detected in this period (read and cleared by the runtime)."""
+        self.dock_belief: bool | None = None
+        self.dock_since_s = math.nan
+        self.dock_rejected = False
         self.stale_s = stale_s
         self.period_s = period_s
         self._last_poll_s: float | None = None
@@ -153,6 +259,8 @@ class CanPlant:
         self.held_aux_relay: bool | None = None
         self.held_aux_charge_a = 0.0
         self.seq = 0
+        self.sent_seqs: list[int] = []
+        """The sequence numbers of the last few command periods (newest last)."""
         self._view_cache: dict[tuple[int, int, type], Any] = {}
 
     # ------------------------------------------------------------------ receive
@@ -161,6 +269,7 @@ class CanPlant:
         t = self.t_s
         for node in self.node.values():
             node.seen_this_period.clear()
+            node.new_seq = node.bad_seq = 0
         for msg in received(self.bus, self.counters, self.log, t):
             self._take(msg, t)
         # A backlog after a stalled period is not babbling: allow for the periods that passed.
@@ -169,13 +278,35 @@ class CanPlant:
             periods = max(1, math.ceil((t - self._last_poll_s) / self.period_s - 1e-6))
         self._last_poll_s = t
         babbled = False
-        for node in self.node.values():
+        for i, node in self.node.items():
             node.babbling = any(
                 n > self.babble_factor * _expected(fid, node) * periods
                 for fid, n in node.seen_this_period.items()
             )
             babbled |= node.babbling
+            self._judge_sequence(i, node, t)
         self.babbled += babbled
+
+    def _judge_sequence(self, i: int, node: _Latest, t: float) -> None:
+        """A period with a duplicated, frozen or out-of-sequence counted frame is bad;
+        :data:`SUSPECT_PERIODS` bad periods in a row make the node suspect, a clean period
+        with a new frame trusts it again."""
+        bad = node.bad_seq > 0
+        new = node.new_seq > 0
+        if bad:
+            node.bad_periods += 1
+        elif new:
+            node.bad_periods = 0
+        was = node.suspect
+        node.suspect = node.bad_periods >= SUSPECT_PERIODS
+        if node.suspect and not was:
+            self.freshness.suspect += 1
+            self.detections.append(Detection(t, "TelemetrySuspect", i, (
+                f"battery node {i}: its alive counter repeated, froze or went out of sequence "
+                f"for {SUSPECT_PERIODS} periods: not trusted")))  # fmt: skip
+        elif was and not node.suspect:
+            self.detections.append(Detection(t, "TelemetryTrusted", i,
+                                             f"battery node {i}: counter advancing again"))
 
     def _take(self, msg: can.Message, t: float) -> None:
         if self.assembler.wants(msg):
@@ -205,12 +336,73 @@ class CanPlant:
             self._take_groups(node, vals, t)
             return
         if kind == "switch_state":  # the feedback of a battery that does not report its own;
+            timed_out = vals["TimedOut"] == 1.0
+            if timed_out and not node.sw_timed_out:
+                self.detections.append(Detection(t, "SwitchTimeoutSeen", i, (
+                    f"switch node {i} opened on its command timeout (our commands did not "
+                    "reach it): not a switch fault")))  # fmt: skip
+            node.sw_timed_out = timed_out
+            node.sw_seq = int(vals["Seq"])
+            node.sw_rx_s = t
             if node.dronecan:  # a PackPilot battery reports its own (BatteryState)
                 node.values["ChgOn"], node.values["DsgOn"] = vals["ChgOn"], vals["DsgOn"]
                 node.rx_s[kind] = t
             return
+        if kind in COUNTED and not self._fresh(i, node, kind, vals, t):
+            return
+        if kind == "state":
+            vals = dict(vals)
+            vals["Present"] = self._present(i, node, vals.get("Present", math.nan), t)
         node.values.update(vals)
         node.rx_s[kind] = t
+
+    def _fresh(self, i: int, node: _Latest, kind: str, vals: dict[str, float], t: float) -> bool:
+        """Check a counted frame's alive counter; only a new one refreshes the battery."""
+        c = vals.get("Counter", math.nan)
+        if not math.isfinite(c):
+            verdict = "out_of_order"
+        else:
+            verdict = node.seq[kind].judge(int(c), t, self.period_s)
+        if verdict in ("new", "resync"):
+            node.new_seq += 1
+            if verdict == "resync":
+                self.freshness.resyncs += 1
+                self.detections.append(Detection(t, "TelemetryResync", i, (
+                    f"battery node {i}: {kind} counter restarted at {int(c)} (node reboot?)")))
+            return True
+        node.bad_seq += 1
+        if verdict == "duplicate":
+            self.freshness.duplicates += 1
+        else:
+            self.freshness.out_of_order += 1
+        return False
+
+    def _present(self, i: int, node: _Latest, bit: float, t: float) -> float:
+        """The debounced Present bit: a new value counts once it held
+        :data:`PRESENT_DEBOUNCE_S`; a battery that carries current is present."""
+        raw = bit == 1.0 or math.isnan(bit)
+        if node.present_belief is None:
+            node.present_belief = raw
+        elif raw == node.present_belief:
+            node.present_bit_since_s = math.nan
+        else:
+            current = abs(node.get("Current"))
+            if not raw and current > PRESENT_CURRENT_A:
+                raw_ok = False  # carries current: it is there
+            else:
+                if math.isnan(node.present_bit_since_s):
+                    node.present_bit_since_s = t
+                    self.freshness.present_glitches += 1
+                raw_ok = t - node.present_bit_since_s >= PRESENT_DEBOUNCE_S - 1e-9
+            if raw_ok:
+                node.present_belief = raw
+                node.present_bit_since_s = math.nan
+                word = "inserted" if raw else "removed"
+                self.detections.append(Detection(t, "PresenceConfirmed", i, (
+                    f"battery node {i}: {word} (Present bit held {PRESENT_DEBOUNCE_S:g} s)")))
+            elif not raw and math.isnan(node.present_bit_since_s):
+                self.freshness.present_glitches += 1
+        return 1.0 if node.present_belief else 0.0
 
     def _take_dronecan(self, msg: can.Message, t: float) -> None:
         """A frame of a DroneCAN transfer; a complete BatteryInfo / BatteryInfoAux of a mapped
@@ -290,9 +482,55 @@ class CanPlant:
                 self.held_aux_relay = bool(m.aux.sw_chg[0, 0] and m.aux.sw_dsg[0, 0])
         fresh = t - self.platform_rx_s <= self.platform_timeout_s
         m.bus_v[0] = self.platform.get("BusV", math.nan) if fresh else math.nan
-        m.docked[0] = bool(self.platform.get("Docked", 0.0))
         currents = m.bat.current_a[0]
         m.load_current_a[0] = float(np.sum(currents)) if currents.size else 0.0
+        m.docked[0] = self._docked(m, t)
+
+    def _docked(self, m: MeasArrays, t: float) -> bool:
+        """The dock contact as the BMS believes it. Its first value is taken as it is (a pack
+        powered up on its dock); later, undocking counts at once (it stops charging), but
+        docking only once the contact has read docked for :data:`DOCK_DEBOUNCE_S` and the
+        cross-checks hold: the bus voltage is fresh, the charger (if the scenario has one)
+        reports online, and the pack is not feeding a load (net discharge at most
+        :data:`DOCK_MAX_DISCHARGE_C`). A stuck or glitching contact in flight therefore never
+        puts the pack in charge mode (issue #26)."""
+        if "Docked" not in self.platform:
+            return bool(self.dock_belief)
+        bit = self.platform["Docked"] == 1.0
+        if self.dock_belief is None or not bit:
+            self.dock_belief, self.dock_since_s, self.dock_rejected = bit, math.nan, False
+            return bit
+        if self.dock_belief:
+            return True
+        if math.isnan(self.dock_since_s):
+            self.dock_since_s = t
+        if t - self.dock_since_s < DOCK_DEBOUNCE_S - 1e-9:
+            return False
+        why = self._dock_doubt(m)
+        if why:
+            if not self.dock_rejected:
+                self.freshness.dock_rejected += 1
+                self.detections.append(Detection(t, "DockRejected", None,
+                                                 f"dock contact reads docked, but {why}"))
+            self.dock_rejected = True
+            return False
+        self.dock_belief = True
+        self.detections.append(Detection(t, "DockConfirmed", None, (
+            f"dock contact held {DOCK_DEBOUNCE_S:g} s, bus voltage, charger and current agree")))
+        return True
+
+    def _dock_doubt(self, m: MeasArrays) -> str:
+        """Why the measurements contradict a docked pack ('' if they do not)."""
+        if not math.isfinite(m.bus_v[0]):
+            return "the bus voltage is unknown"
+        if self.has_charger and not (m.charger.reported[0] and m.charger.online[0]):
+            return "the charger is not online"
+        i = float(m.load_current_a[0])
+        cap = self.capacity_ah
+        limit = DOCK_MAX_DISCHARGE_C * cap if math.isfinite(cap) and cap > 0 else 1.0
+        if not i <= limit:
+            return f"the pack discharges {i:.1f} A (a docked pack feeds at most {limit:.2g} A)"
+        return ""
 
     def _fill(self, bat: BatteryArrays, k: int, node: _Latest, t: float) -> None:
         g = node.get
@@ -311,7 +549,7 @@ class CanPlant:
         bat.group_v[0, k, :ng] = node.group_v[:ng]
         reported = g("NGroupsReported")
         bat.n_groups[0, k] = int(reported) if math.isfinite(reported) else 0
-        age = math.inf if node.babbling else node.age(t)
+        age = math.inf if (node.babbling or node.suspect) else node.age(t)
         known = age <= self.stale_s  # a stale sample's switch feedback is not feedback
         bat.sw_chg[0, k] = known and g("ChgOn") == 1.0
         bat.sw_dsg[0, k] = known and g("DsgOn") == 1.0
@@ -319,6 +557,19 @@ class CanPlant:
         bat.present[0, k] = present == 1.0 or math.isnan(present)  # never heard: judge it
         bat.reported[0, k] = True
         bat.sample_age_s[0, k] = age
+        bat.sw_explained[0, k] = self.explained(node, t)
+
+    def explained(self, node: _Latest, t: float) -> bool:
+        """The battery's switch node says why its switches may disagree with the commands:
+        it opened them on its command timeout, or it has not yet obeyed one of our last
+        commands (lost or late command frames). Such a disagreement is the bus's doing, not a
+        failed switch, so the plausibility layer does not judge the switch then; a node that
+        never sent its state explains nothing (judged as before)."""
+        if t - node.sw_rx_s > self.stale_s:
+            return False
+        if node.sw_timed_out:
+            return True
+        return bool(self.sent_seqs) and node.sw_seq not in self.sent_seqs
 
     def apply(self, arenas: Arenas, cmd_row: int) -> None:
         """Hold the commands at ``cmd_row`` (no opinion: unchanged) and send them all."""
@@ -348,6 +599,7 @@ class CanPlant:
                 out += encode_balancer(i, cur, seq, t)
         if self.map.aux is not None:
             out.append(encode_aux(bool(self.held_aux_relay), self.held_aux_charge_a, seq, t))
+        self.sent_seqs = [*self.sent_seqs[-2:], seq]
         self.seq = (seq + 1) & 0xFF
         for msg in out:
             self._send(msg, t)
@@ -385,4 +637,4 @@ def battery_map(names: Sequence[str], roles: Sequence[str], groups: Sequence[int
     )
 
 
-__all__ = ["REQUIRED", "BatteryMap", "CanPlant", "battery_map"]
+__all__ = ["REQUIRED", "BatteryMap", "CanPlant", "Detection", "Freshness", "battery_map"]
