@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 TEST_STAMP := $(VENV)/.test-extras-stamp
 OUT    := out
 
-.PHONY: demo test bench lint clean venv browser mutate soak
+.PHONY: demo test bench lint clean venv browser mutate soak faults
 
 venv: $(STAMP)
 
@@ -77,6 +77,16 @@ mutate: $(TEST_STAMP)
 soak: $(TEST_STAMP)
 	HYPOTHESIS_PROFILE=nightly PYBAMM_DISABLE_TELEMETRY=true \
 		$(PY) -m pytest -n 2 -q -p no:cacheprovider -m hypothesis
+
+# Fault injection over the CAN runtime (#26): every fault of tests/fault_suite.py (lock-step
+# `run` against `hil` on a real python-can bus; the slow ones included: frozen loaded battery,
+# 30 s of 10x frame load, a frame flood) as a table on stdout, then the fault tests (the CI
+# subset, kill -9 of `run --db --can-log` through the CAN hub, the older bus faults). Needs the
+# test extras installed (`make test` once); never runs pip.
+faults:
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.fault_suite
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -q -p no:cacheprovider \
+		tests/test_runtime_fault_suite.py tests/test_runtime_faults.py
 
 bench: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py

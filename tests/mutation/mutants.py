@@ -23,10 +23,12 @@ class Mutant:
     new: str
     why: str
     file: str = "rules.py"
+    package: str = "control"
+    """``control`` for the compiled rules; ``io`` for the CAN runtime's port (#26)."""
 
     @property
     def path(self) -> str:
-        return f"src/packpilot/control/{self.module}/{self.file}"
+        return f"src/packpilot/{self.package}/{self.module}/{self.file}"
 
 
 def _m(module: str, name: str, old: str, new: str, why: str) -> Mutant:
@@ -98,6 +100,10 @@ PLAUSIBILITY = [
     _m("plausibility", "stale-switch-judged",
        "elif _stale(prm, m.bat.sample_age_s[p, i])[0] == BAD:", "elif False:",
        "a stale sample's switch feedback latches a switch fault"),
+    _m("plausibility", "explained-switch-judged",
+       "elif m.bat.sw_explained[p, i]:", "elif False:",
+       "#26: a switch disagreement the node explains (its command timeout after lost "
+       "commands) latches stuck-open faults that remove both batteries for good"),
     _m("plausibility", "no-persistence", "if not latched and bad_s >= delay - EPS:",
        "if not latched:", "a fault latches on the first bad sample"),
     _m("plausibility", "early-clear", "ok_s >= clear_after_s - EPS",
@@ -321,13 +327,47 @@ SEQUENCING = [
        "_set(sw, ev, src, p, k, new, False, t, SET, R_FAIL_SAFE)",
        "_set(sw, ev, src, p, k, DISCHARGING if present else OFF, True, t, SET, R_FAIL_SAFE)",
        "invalid measurements leave the charge FETs on"),
+    _m("sequencing", "mode-evidence-raw-current",
+       "tot += c if can_charge[k] or not c < 0.0 else 0.0", "tot += c",
+       "#26: a standby battery's implausible negative current (its charge path open) puts "
+       "the pack in charge mode and opens the healthy battery's discharge FET"),
+]
+
+
+def _io(name: str, old: str, new: str, why: str, file: str = "plant.py") -> Mutant:
+    return Mutant("can", name, old, new, why, file, "io")
+
+
+CAN = [
+    _io("counter-unchecked",
+        "if kind in COUNTED and not self._fresh(i, node, kind, vals, t):", "if False:",
+        "#26: frozen frames (alive counter frozen) refresh the battery: never detected"),
+    _io("never-suspect", "node.suspect = node.bad_periods >= SUSPECT_PERIODS",
+        "node.suspect = False",
+        "#26: frozen / conflicting telemetry detected only when it is 2 s old"),
+    _io("order-unchecked", "if d <= min(allowed, 127):", "if d <= 255:",
+        "#26: frames with an old counter (replayed, reordered) are accepted"),
+    _io("no-resync", "elif period_s > 0 and gap >= RESYNC_PERIODS * period_s - 1e-9:",
+        "elif False:", "#26: a rebooted node's new counter is never accepted"),
+    _io("present-undebounced",
+        "raw_ok = t - node.present_bit_since_s >= PRESENT_DEBOUNCE_S - 1e-9",
+        "raw_ok = True", "#26: one frame with the Present bit clear removes the battery"),
+    _io("dock-unchecked", "why = self._dock_doubt(m)", 'why = ""',
+        "#26: a dock contact stuck in flight puts the pack in charge mode"),
+    _io("explained-never", "if t - node.sw_rx_s > self.stale_s:\n            return False",
+        "if True:\n            return False",
+        "#26: the node's timeout does not explain a switch disagreement"),
+    _io("log-never-flushed",
+        "elif not float(t_s) - self._flushed_s < self.flush_every_s:", "elif False:",
+        "#26: the frame log is written only when python-can's container fills: a killed "
+        "run's log ends long before its database", "bus.py"),
 ]
 
 # fmt: on
 
 MUTANTS: list[Mutant] = [
     *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
-    *SEQUENCING,
+    *SEQUENCING, *CAN,
 ]
 
 PENDING: dict[str, str] = {}
@@ -346,6 +386,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_plausibility_properties.py",
         "tests/test_plausibility_closed_loop.py",
         "tests/test_fault_injection.py",
+        "tests/test_runtime_fault_suite.py::test_lost_switch_commands_are_not_a_switch_fault",
     ],
     "charging": [
         "tests/test_charging_controller.py",
@@ -365,7 +406,9 @@ TESTS: dict[str, list[str]] = {
         "tests/test_sequencing_replay.py",
         "tests/test_fault_injection.py::test_a_tripped_battery_cannot_be_charged_by_the_reserve"
         "_that_replaces_it",
+        "tests/test_runtime_fault_suite.py::test_a_standby_batterys_current_never_moves_the_other",
     ],
+    "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],
     "soc": ["tests/test_soc_estimator.py"],
     "equalization": [

@@ -155,12 +155,14 @@ class FrameLog:
         w = self._writer
         if isinstance(w, can.BLFWriter):
             w._flush()  # python-can writes containers only when full or stopped
-            f = w.file
-            end = f.tell()
-            f.seek(0)
+            out = w.file
+            end = out.tell()
+            out.seek(0)
             w._write_header(end)
-            f.seek(end)
-        w.file.flush()
+            out.seek(end)
+        f = getattr(w, "file", None)  # both writers keep their open file as .file
+        if f is not None:
+            f.flush()
         self.flushes += 1
 
     def close(self) -> None:
