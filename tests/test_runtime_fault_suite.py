@@ -69,6 +69,20 @@ def test_lost_switch_commands_are_not_a_switch_fault(cfg: ScenarioConfig) -> Non
     assert_safe(o)
 
 
+def test_lost_commands_with_default_nodes_drop_the_load_only_while_the_nodes_wait(
+    cfg: ScenarioConfig,
+) -> None:
+    """The same with nodes that open both paths on their timeout (0.5 s): the load drops for
+    the (loss - timeout) = 1 s the nodes hold it open (the node contract, not the BMS), and is
+    back with the first command heard (before #26: latched dsg_fet_stuck_open, 0 V for the
+    rest of the run)."""
+    o = fs.measure(cfg, fault("switch commands lost 1.5 s (default nodes"))
+    assert no_switch_faults(o)
+    assert o.unsupplied_s <= 1.0 + DT + 1e-9
+    k = round(o.fault.until_s / DT) + 2
+    assert all(o.ls.supplied[k:]) and o.ls.dsg[-1].all()
+
+
 def test_a_dock_contact_stuck_in_flight_is_rejected(cfg: ScenarioConfig) -> None:
     """The dock bit reads docked for 5 s while the pack feeds its 16 A flight load: after the
     1 s debounce the cross-check rejects it; no charge mode, every discharge path stays."""
