@@ -19,6 +19,7 @@ from packpilot.contract.topology import Topology
 from packpilot.control.method import Method
 from packpilot.control.registry import REGISTRY
 from packpilot.control.supervisor import controller as supervisor
+from packpilot.io.can.plant import PORT_EVENT_KINDS
 from packpilot.sim.loop import LOOP_EVENT_KINDS
 from packpilot.sim.runner import Runner
 from packpilot.sim.verdict import (
@@ -34,8 +35,9 @@ from tests.conftest import EXAMPLES
 
 
 def emitted_kinds() -> set[str]:
-    """Every event kind the registry's methods, the supervisor and the loop can emit."""
-    kinds = {r.kind for r in supervisor.REASONS} | set(LOOP_EVENT_KINDS)
+    """Every event kind the registry's methods, the supervisor, the loop and the CAN
+    runtime's port can emit."""
+    kinds = {r.kind for r in supervisor.REASONS} | set(LOOP_EVENT_KINDS) | set(PORT_EVENT_KINDS)
     for entry in REGISTRY.values():
         method = entry.resolve()
         assert isinstance(method, Method), entry.name

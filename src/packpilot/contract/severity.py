@@ -70,6 +70,15 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "CrossCurrentRisk": KindRow(Severity.WARNING, "crosscurrent"),
         # a battery with a failed sensor now supplies the load (degraded mode, #15 §5)
         "ReserveEngaged": KindRow(Severity.WARNING, "reserve"),
+        # the CAN runtime's own detections (issue #26): telemetry not trusted, a dock contact
+        # contradicted by the measurements, a switch node that opened on its command timeout
+        "TelemetrySuspect": KindRow(Severity.WARNING, "telemetry", "TelemetryTrusted"),
+        "DockRejected": KindRow(Severity.WARNING, "dock"),
+        "SwitchTimeoutSeen": KindRow(Severity.WARNING, "switchtimeout"),
+        "TelemetryTrusted": _I,
+        "TelemetryResync": _I,
+        "PresenceConfirmed": _I,
+        "DockConfirmed": _I,
         # routine: the controllers doing their job
         "BalancingUpdated": _I,
         "BatteryFull": _I,

@@ -106,6 +106,13 @@ class Freshness:
     dock_rejected: int = 0
 
 
+PORT_EVENT_KINDS = (
+    "TelemetrySuspect", "TelemetryTrusted", "TelemetryResync", "PresenceConfirmed",
+    "DockRejected", "DockConfirmed", "SwitchTimeoutSeen",
+)  # fmt: skip
+"""The event kinds the port's detections become (``contract/severity.py`` rates them)."""
+
+
 @dataclass(frozen=True)
 class Detection:
     """Something the port detected on the bus, for the runtime's events."""
@@ -637,4 +644,7 @@ def battery_map(names: Sequence[str], roles: Sequence[str], groups: Sequence[int
     )
 
 
-__all__ = ["REQUIRED", "BatteryMap", "CanPlant", "Detection", "Freshness", "battery_map"]
+__all__ = [
+    "PORT_EVENT_KINDS", "REQUIRED", "BatteryMap", "CanPlant", "Detection", "Freshness",
+    "battery_map",
+]  # fmt: skip
