@@ -346,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
             bad.append(f"{o.fault.name}: unsupplied {o.unsupplied_s:.1f} s")
         if o.max_charge_a > o.limit_a:
             bad.append(f"{o.fault.name}: {o.max_charge_a:.2f} A into a battery")
-        if o.detected_s > o.fault.bound_s:
+        if o.detected_s > o.fault.bound_s + 1e-6:
             bad.append(f"{o.fault.name}: detected after {o.detected_s:.1f} s")
     for line in bad:
         print(f"faults: acceptance not met: {line}", file=sys.stderr)

@@ -20,8 +20,10 @@ import numpy as np
 import pytest
 
 from packpilot.config import ScenarioConfig
+from packpilot.io.can import battery as bc
 from packpilot.io.can.bus import SIM_EPOCH_S
 from packpilot.io.can.hub import CanHub
+from packpilot.io.can.plant import BatteryMap, CanPlant
 from packpilot.io.telemetry import samples_committed
 from packpilot.runtime.logreplay import received_frames
 from tests import fault_suite as fs
@@ -109,7 +111,7 @@ def test_a_standby_batterys_current_never_moves_the_other(cfg: ScenarioConfig,
     k0, k1 = round(o.fault.at_s / DT) - 5, round(o.fault.end_s / DT)
     assert len({(bool(c[0]), bool(d[0])) for c, d in
                 zip(o.ls.chg[k0:k1], o.ls.dsg[k0:k1], strict=True)}) == 1  # fmt: skip
-    assert o.detected_s <= o.fault.bound_s
+    assert o.detected_s <= o.fault.bound_s + 1e-6
     assert_safe(o)
 
 
@@ -118,9 +120,9 @@ def test_frozen_telemetry_is_detected_within_two_periods(cfg: ScenarioConfig) ->
     within 2 periods (a stale sensor fault: isolated as a reserve); trusted again once its
     counter advances (before #26: never detected on a standby battery)."""
     o = fs.measure(cfg, fault("frozen telemetry of standby B"))
-    assert o.detected_s <= 2 * DT
+    assert o.detected_s <= 2 * DT + 1e-6
     (stale,) = kinds(o, "Fault:stale", 1)
-    assert stale - o.fault.at_s <= 2 * DT
+    assert stale - o.fault.at_s <= 2 * DT + 1e-6
     assert kinds(o, "TelemetryTrusted", 1)
     assert o.ls.bms.plant.freshness.duplicates > 0
     assert_safe(o)
@@ -130,7 +132,7 @@ def test_old_frames_interleaved_are_detected(cfg: ScenarioConfig) -> None:
     """B's frames of 10 s ago sent after its fresh ones for 8 s: their counters are behind,
     dropped, and B is not trusted within 2 periods (before #26: accepted, no event)."""
     o = fs.measure(cfg, fault("stale frames (10 s old)"))
-    assert o.detected_s <= 2 * DT
+    assert o.detected_s <= 2 * DT + 1e-6
     assert o.ls.bms.plant.freshness.out_of_order >= round(8.0 / DT)
     assert_safe(o)
 
@@ -173,7 +175,7 @@ def test_a_real_removal_is_believed_after_the_debounce(cfg: ScenarioConfig) -> N
 
 def test_a_node_reboot_resyncs_its_counter(cfg: ScenarioConfig) -> None:
     o = fs.measure(cfg, fault("node reboot of A"))
-    assert o.detected_s <= o.fault.bound_s
+    assert o.detected_s <= o.fault.bound_s + 1e-6
     assert not kinds(o, "Fault:stale")
     assert_safe(o)
 
@@ -182,7 +184,7 @@ def test_a_duplicated_node_id_is_not_trusted(cfg: ScenarioConfig) -> None:
     """A second node sends on B's identifiers: two counter sequences, B not trusted within
     2 periods, isolated while A supplies; trusted again when the intruder stops."""
     o = fs.measure(cfg, fault("duplicated node id"))
-    assert o.detected_s <= 2 * DT
+    assert o.detected_s <= 2 * DT + 1e-6
     assert kinds(o, "TelemetryTrusted", 1)
     assert_safe(o)
 
@@ -244,3 +246,34 @@ def test_replay_of_a_log_with_no_period_says_so(tmp_path: Path) -> None:
                        capture_output=True, text=True, timeout=600)  # fmt: skip
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "no period to replay" in r.stderr
+
+
+def test_a_frame_counts_from_its_timestamp_not_from_when_it_was_read() -> None:
+    """Real time: a frame's age counts from its receive timestamp (when it reached the bus,
+    on the wall clock every python-can interface stamps), so telemetry stuck behind a backlog
+    (a flood, a stalled reader) is as old as it is; read late 2 periods in a row, the node is
+    not trusted (before #26: a frame read late counted as new)."""
+    rx = can.Bus(interface="virtual", channel="packpilot-ts")
+    tx = can.Bus(interface="virtual", channel="packpilot-ts", preserve_timestamps=True)
+    plant = CanPlant(rx, BatteryMap(traction=(0,), groups=(0,)), period_s=0.1, stale_s=2.0)
+    wall = [1000.0]
+    plant.wall = lambda: wall[0]
+    r = bc.BatteryReport(22.0, 5.0, 3.6, 3.7, 25.0, 24.0, 0.5, True, True, True, 5.0, 2.5,
+                         1.0, ())  # fmt: skip
+    try:
+        for k in range(3):
+            plant.t_s, wall[0] = 0.1 * k, 1000.0 + 0.1 * k
+            for m in bc.encode_battery(0, r, k, 1000.0 + 0.1 * k - 1.0):  # 1 s old when read
+                tx.send(m)
+            plant.poll()
+        node = plant.node[0]
+        assert node.age(plant.t_s) == pytest.approx(1.0)
+        assert node.suspect and plant.freshness.late >= 4
+        plant.t_s, wall[0] = 0.3, 1000.3
+        for m in bc.encode_battery(0, r, 3, 1000.3):  # on time again
+            tx.send(m)
+        plant.poll()
+        assert not node.suspect and node.age(0.3) == pytest.approx(0.0)
+    finally:
+        rx.shutdown()
+        tx.shutdown()

@@ -361,6 +361,9 @@ CAN = [
     _io("explained-never", "if t - node.sw_rx_s > self.stale_s:\n            return False",
         "if True:\n            return False",
         "#26: the node's timeout does not explain a switch disagreement"),
+    _io("timestamp-ignored", "            self.freshness.late += 1\n        return d",
+        "            self.freshness.late += 1\n        return 0.0",
+        "#26: a frame read late (behind a backlog) counts as new"),
     _io("log-never-flushed",
         "elif not float(t_s) - self._flushed_s < self.flush_every_s:", "elif False:",
         "#26: the frame log is written only when python-can's container fills: a killed "

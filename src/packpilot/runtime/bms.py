@@ -241,6 +241,7 @@ class BmsRuntime:
         period = self.opts.period_s
         self.warm_up()
         self.wait_for_telemetry(self.opts.startup_timeout_s, clock, sleep)
+        self.plant.wall = time.time  # from now on a frame's age counts from its timestamp
         t0 = clock()
         due = t0
         prev: float | None = None
@@ -309,8 +310,9 @@ class BmsRuntime:
                                                         "unexpected", "send_errors")})  # fmt: skip
         out["can_babbling_periods"] = self.plant.babbled
         fr = self.plant.freshness
-        out.update({f"can_{k}": getattr(fr, k) for k in ("duplicates", "out_of_order",
-                    "resyncs", "suspect", "present_glitches", "dock_rejected")})  # fmt: skip
+        names = ("duplicates", "out_of_order", "resyncs", "suspect", "late", "present_glitches",
+                 "dock_rejected")  # fmt: skip
+        out.update({f"can_{k}": getattr(fr, k) for k in names})
         out["published_frames"] = self.publisher.sent
         if self.charger is not None:
             cc = self.charger.client.counters

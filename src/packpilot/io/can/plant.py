@@ -29,7 +29,7 @@ state the BMS last asked for, starting from the feedback of the battery's first 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,6 +64,10 @@ SUSPECT_PERIODS = 2
 """Periods in a row with a duplicated, frozen or out-of-sequence counter after which a node's
 telemetry is not trusted (issue #26: frozen, stale, duplicated or reordered frames are
 detected within 2 periods)."""
+LATE_PERIODS = 2
+LATE_FLOOR_S = 0.2
+"""A frame read more than max(2 periods, 0.2 s) after it reached the bus is late (the floor:
+host stalls of a few tens of ms at a 10 ms period are not a telemetry fault)."""
 RESYNC_PERIODS = 2
 """A counter sequence silent this many periods may be replaced by a new one (node reboot)."""
 PRESENT_DEBOUNCE_S = 0.5
@@ -101,6 +105,8 @@ class Freshness:
     resyncs: int = 0
     suspect: int = 0
     """Times a node became suspect (not trusted: its sample reads infinitely old)."""
+    late: int = 0
+    """Frames read more than ``late_s`` after they reached the bus (a receive backlog)."""
     present_glitches: int = 0
     """Present-bit changes not (yet) believed."""
     dock_rejected: int = 0
@@ -229,6 +235,11 @@ class CanPlant:
         self.capacity_ah = capacity_ah
         self.has_charger = charger
         self.freshness = Freshness()
+        self.wall: Callable[[], float] | None = None
+        """The wall clock frames are stamped with (``time.time``), set by a real-time run:
+        a frame then counts from when it reached the bus, not from when it was read."""
+        self.late_s = max(LATE_PERIODS * period_s, LATE_FLOOR_S)
+        """A frame read this long after it reached the bus is late (a bad period)."""
         self.detections: list[Detection] = []
         """What the port detected in this period (read and cleared by the runtime)."""
         self.dock_belief: bool | None = None
@@ -277,8 +288,9 @@ class CanPlant:
         for node in self.node.values():
             node.seen_this_period.clear()
             node.new_seq = node.bad_seq = 0
+        now = self.wall() if self.wall is not None else math.nan
         for msg in received(self.bus, self.counters, self.log, t):
-            self._take(msg, t)
+            self._take(msg, t - self._delay(msg, now))
         # A backlog after a stalled period is not babbling: allow for the periods that passed.
         periods = 1
         if self._last_poll_s is not None and self.period_s > 0:
@@ -314,6 +326,20 @@ class CanPlant:
         elif was and not node.suspect:
             self.detections.append(Detection(t, "TelemetryTrusted", i,
                                              f"battery node {i}: counter advancing again"))
+
+    def _delay(self, msg: can.Message, now: float) -> float:
+        """How long ``msg`` waited since it reached the bus (its receive timestamp, on the
+        wall clock of every python-can interface) before this poll read it: 0 without a wall
+        clock (lock-step, replay), or when the timestamp is missing or ahead of the clock."""
+        ts = msg.timestamp
+        if not (math.isfinite(now) and ts and math.isfinite(ts)):
+            return 0.0
+        d = now - ts
+        if not 0.0 < d < 1e6:
+            return 0.0
+        if d > self.late_s:
+            self.freshness.late += 1
+        return d
 
     def _take(self, msg: can.Message, t: float) -> None:
         if self.assembler.wants(msg):
@@ -366,6 +392,8 @@ class CanPlant:
     def _fresh(self, i: int, node: _Latest, kind: str, vals: dict[str, float], t: float) -> bool:
         """Check a counted frame's alive counter; only a new one refreshes the battery."""
         c = vals.get("Counter", math.nan)
+        if self.t_s - t > self.late_s:
+            node.bad_seq += 1  # late: read well after it came (a backlog); its age counts
         if not math.isfinite(c):
             verdict = "out_of_order"
         else:
