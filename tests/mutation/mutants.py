@@ -23,9 +23,13 @@ class Mutant:
     new: str
     why: str
     file: str = "rules.py"
+    src: str = ""
+    """A file under ``src/packpilot`` outside ``control/`` (config validation, publishers)."""
 
     @property
     def path(self) -> str:
+        if self.src:
+            return f"src/packpilot/{self.src}"
         return f"src/packpilot/control/{self.module}/{self.file}"
 
 
@@ -156,6 +160,16 @@ CHARGING = [
        "charging resumes before the charger reported healthy for fault_clear_s"),
     _m("charging", "no-dock-rest", "st.rested[p] = st.session_s[p] >= prm.dock_rest_s",
        "st.rested[p] = True", "charging starts without the dock rest"),
+    Mutant("charging", "fixed-d1-eps-defaults", "out[name] = min(base, share * float(dv1))",
+           "out[name] = base", "d1_v / eps_eq_v defaults do not scale: ΔV1 = 0.5 V is refused",
+           src="config/charging.py"),
+]
+
+PUBLISH = [
+    Mutant("publish", "time-to-trip-nan-first", "time_to_trip_s=soonest(ttt),",
+           "time_to_trip_s=min(ttt),",
+           "a standby battery listed first (NaN) hides the other battery's coming trip",
+           src="runtime/publish.py"),
 ]
 
 PROTECTION = [
@@ -244,8 +258,13 @@ EQUALIZATION = [
     _m("equalization", "gate-ignores-min-current",
        "if mag < prm.min_current_a or mag == 0.0:", "if mag == 0.0:",
        "equalizers run below the minimum string current"),
-    _m("equalization", "owed-overwritten", "            if a > owed[p, i, g]:\n",
-       "            if True:\n", "a new grant lowers what is still owed"),
+    _m("equalization", "owed-never-lowered",
+       "            granted[p, i, g] += a - owed[p, i, g]\n            owed[p, i, g] = a\n",
+       "            if a > owed[p, i, g]:\n                granted[p, i, g] += a - owed[p, i, g]\n"
+       "                owed[p, i, g] = a\n",
+       "formula 2 / the subtraction lower AH but not what the group is still owed (#24)"),
+    _m("equalization", "above-average-charged", "if q <= 0.0 or not dvs[p, i, g] > 0.0:",
+       "if q <= 0.0:", "a group above the string average keeps receiving what it is owed"),
     _m("equalization", "last-step-overdelivers", "cur[p, i, g] = q * 3600.0 / dt",
        "cur[p, i, g] = i_eq", "the last partial step delivers more than owed"),
     _m("equalization", "zero-voltage-accepted", "if not math.isfinite(v) or v <= 0.0:",
@@ -327,7 +346,7 @@ SEQUENCING = [
 
 MUTANTS: list[Mutant] = [
     *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
-    *SEQUENCING,
+    *SEQUENCING, *PUBLISH,
 ]
 
 PENDING: dict[str, str] = {}
@@ -352,7 +371,9 @@ TESTS: dict[str, list[str]] = {
         "tests/test_charging_rules.py",
         "tests/test_charging_properties.py",
         "tests/test_charging_schedule.py",
+        "tests/test_charging_delta_v1.py",
     ],
+    "publish": ["tests/test_publish_standby.py"],
     "protection": [
         "tests/test_protection_controller.py",
         "tests/test_protection_properties.py",
@@ -372,6 +393,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_equalization_controller.py",
         "tests/test_equalization_core.py",
         "tests/test_equalization_owed.py",
+        "tests/test_equalization_above_average.py",
         "tests/test_equalization_properties.py",
         "tests/test_equalization_replay.py",
     ],
