@@ -149,8 +149,10 @@ class Publisher:
         dcl = 0.0 if tripped else _finite0(ch.value("pack_limit_dsg_a"))
         # A battery counts towards the SOC only with both capacities known: a NaN remaining
         # beside a finite full capacity would read as empty and drag the pack's SOC down.
-        known = here & np.isfinite(m.bat.full_capacity_ah[0]) & np.isfinite(
-            m.bat.remaining_capacity_ah[0]
+        known = (
+            here
+            & np.isfinite(m.bat.full_capacity_ah[0])
+            & np.isfinite(m.bat.remaining_capacity_ah[0])
         )
         full = np.where(known, m.bat.full_capacity_ah[0], 0.0)
         rem = np.where(known, m.bat.remaining_capacity_ah[0], 0.0)

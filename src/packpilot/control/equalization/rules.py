@@ -17,14 +17,15 @@ Per string (a traction battery = one string of series groups), every sample peri
   subtraction lower it with AH (issue #24: the charge still to deliver falls with AH);
 * a group at or above the string average (ΔV_g <= 0) receives nothing: its owed Ah waits.
 
-While Ah is owed, the group lags (ΔV_g > 0) and the gate is open (|I_string| ≥ ``min_current_a``, or always in
-fixed-current mode with ``balance_at_rest``) group g's equalizer carries the current I (the
-string current clamped to ``equalizer_max_a``, or the fixed ``fixed_current_a``) and the owed
-Ah drops by I·dt (the last partial step prorated): the balancing time is 3600·AH/I, from AH
-and the battery current (S43). With bidirectional equalizers the string's currents are
-shifted by their lower median. A string whose group voltages or current cannot drive the
-method is held: equalizers at 0 A, timers cleared, AH and owed Ah kept, one ``Fault``
-(``FaultCleared`` when valid data returns); an absent battery is held silently.
+While Ah is owed, the group lags (ΔV_g > 0) and the gate is open (|I_string| ≥
+``min_current_a``, or always in fixed-current mode with ``balance_at_rest``) group g's
+equalizer carries the current I (the string current clamped to ``equalizer_max_a``, or the
+fixed ``fixed_current_a``) and the owed Ah drops by I·dt (the last partial step prorated):
+the balancing time is 3600·AH/I, from AH and the battery current (S43). With bidirectional
+equalizers the string's currents are shifted by their lower median. A string whose group
+voltages or current cannot drive the method is held: equalizers at 0 A, timers cleared, AH
+and owed Ah kept, one ``Fault`` (``FaultCleared`` when valid data returns); an absent battery
+is held silently.
 
 State is (P, B, G) for the per-group values (G = the most series groups of any battery; a
 battery with fewer groups leaves the rest of its row unused) and (P, B) per string.
