@@ -296,6 +296,9 @@ SEQUENCING = [
     _m("sequencing", "reverse-cut-current-only",
        "if cur[k] < -prm.i_rev or rev_q_as[p, k] > prm.q_rev_as + 1e-12:",
        "if cur[k] < -prm.i_rev:", "a small circulating reverse current is never cut"),
+    _m("sequencing", "trickle-needs-i-det", "        if fed <= 0.0:\n",
+       "        if fed <= i_det:\n",
+       "a sibling trickling less than i_det into an engaged battery is never cut (#24)"),
     _m("sequencing", "engage-no-margin",
        "            if pred[j] > prm.charge_limit_margin * i_lim[j]:\n",
        "            if pred[j] > i_lim[j]:\n",
@@ -384,6 +387,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_sequencing_properties.py",
         "tests/test_sequencing_closed_loop_properties.py",
         "tests/test_sequencing_replay.py",
+        "tests/test_sequencing_trickle.py",
         "tests/test_fault_injection.py::test_a_tripped_battery_cannot_be_charged_by_the_reserve"
         "_that_replaces_it",
     ],
