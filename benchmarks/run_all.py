@@ -197,7 +197,7 @@ def _sequencing_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
             ("peak per-battery current / load after meet", "peak_share", "{:.2f}", "<= 0.6"),
             ("longest reverse > 1 A (s)", "rev_1a_s", "{:.1f}", "<= 0.1 s"),
             ("cross-charge (mAh per hour)", "cross_mah_h", "{:.2f}", "<= 1"),
-            ("energy vs direct, equal brown-out budget", "energy_budget_ratio", "{:.2%}", ">= 99%"),
+            ("energy vs direct to 1st brown-out", "energy_to_brownout_ratio", "{:.2%}", ">= 99%"),
             ("I2R heat vs direct", "heat_ratio", "{:.2f}", "< 1"),
         )
         for label, key, fmt, goal in figures:

@@ -44,10 +44,13 @@ SEQUENCING_GOALS: dict[str, Callable[[float], bool]] = {
     "peak_share": lambda x: x <= 0.6,
     "rev_1a_s": lambda x: x <= 0.1 + 1e-9,
     "cross_mah_h": lambda x: x <= 1.0,
-    "energy_budget_ratio": lambda x: x >= 0.99,
+    "energy_to_brownout_ratio": lambda x: x >= 0.99,
     "heat_ratio": lambda x: x < 1.0,
 }
-"""Issue #15 §1's goals, per figure (the bench, its headlines and the report use this table)."""
+"""Issue #15 §1's goals, per figure (the bench, its headlines and the report use this table).
+Energy is judged against direct parallel **up to the first load brown-out** (issue #15's
+decision, recorded in issue #24): after the load's lock-out the flight is over, and pulsing a
+locked-out load is not energy delivered."""
 
 SEQUENCING_GOAL_TEXT: dict[str, str] = {
     "co_share": ">= 0.90",
@@ -55,7 +58,7 @@ SEQUENCING_GOAL_TEXT: dict[str, str] = {
     "peak_share": "<= 0.6",
     "rev_1a_s": "<= 0.1 s",
     "cross_mah_h": "<= 1",
-    "energy_budget_ratio": ">= 0.99",
+    "energy_to_brownout_ratio": ">= 0.99",
     "heat_ratio": "< 1",
 }
 """The same goals as text, for tables."""
