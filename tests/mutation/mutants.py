@@ -165,6 +165,13 @@ CHARGING = [
            src="config/charging.py"),
 ]
 
+QUALITY = [
+    Mutant("quality", "held-share-counts-engaged", "    held = sel_f & ~both\n",
+           "    held = sel_f\n",
+           "the controller is judged on a load split the plant makes with every battery engaged",
+           src="sim/quality.py"),
+]
+
 PUBLISH = [
     Mutant("publish", "time-to-trip-nan-first", "time_to_trip_s=soonest(ttt),",
            "time_to_trip_s=min(ttt),",
@@ -349,7 +356,7 @@ SEQUENCING = [
 
 MUTANTS: list[Mutant] = [
     *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
-    *SEQUENCING, *PUBLISH,
+    *SEQUENCING, *PUBLISH, *QUALITY,
 ]
 
 PENDING: dict[str, str] = {}
@@ -377,6 +384,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_charging_delta_v1.py",
     ],
     "publish": ["tests/test_publish_standby.py"],
+    "quality": ["tests/test_demo_goals.py"],
     "protection": [
         "tests/test_protection_controller.py",
         "tests/test_protection_properties.py",
