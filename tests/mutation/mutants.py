@@ -23,12 +23,14 @@ class Mutant:
     new: str
     why: str
     file: str = "rules.py"
-    package: str = "control"
-    """``control`` for the compiled rules; ``io`` for the CAN runtime's port (#26)."""
+    src: str = ""
+    """A file under ``src/packpilot`` outside ``control/`` (config validation, publishers)."""
 
     @property
     def path(self) -> str:
-        return f"src/packpilot/{self.package}/{self.module}/{self.file}"
+        if self.src:
+            return f"src/packpilot/{self.src}"
+        return f"src/packpilot/control/{self.module}/{self.file}"
 
 
 def _m(module: str, name: str, old: str, new: str, why: str) -> Mutant:
@@ -162,6 +164,23 @@ CHARGING = [
        "charging resumes before the charger reported healthy for fault_clear_s"),
     _m("charging", "no-dock-rest", "st.rested[p] = st.session_s[p] >= prm.dock_rest_s",
        "st.rested[p] = True", "charging starts without the dock rest"),
+    Mutant("charging", "fixed-d1-eps-defaults", "out[name] = min(base, share * float(dv1))",
+           "out[name] = base", "d1_v / eps_eq_v defaults do not scale: ΔV1 = 0.5 V is refused",
+           src="config/charging.py"),
+]
+
+QUALITY = [
+    Mutant("quality", "held-share-counts-engaged", "    held = sel_f & ~both\n",
+           "    held = sel_f\n",
+           "the controller is judged on a load split the plant makes with every battery engaged",
+           src="sim/quality.py"),
+]
+
+PUBLISH = [
+    Mutant("publish", "time-to-trip-nan-first", "time_to_trip_s=soonest(ttt),",
+           "time_to_trip_s=min(ttt),",
+           "a standby battery listed first (NaN) hides the other battery's coming trip",
+           src="runtime/publish.py"),
 ]
 
 PROTECTION = [
@@ -250,8 +269,13 @@ EQUALIZATION = [
     _m("equalization", "gate-ignores-min-current",
        "if mag < prm.min_current_a or mag == 0.0:", "if mag == 0.0:",
        "equalizers run below the minimum string current"),
-    _m("equalization", "owed-overwritten", "            if a > owed[p, i, g]:\n",
-       "            if True:\n", "a new grant lowers what is still owed"),
+    _m("equalization", "owed-never-lowered",
+       "            granted[p, i, g] += a - owed[p, i, g]\n            owed[p, i, g] = a\n",
+       "            if a > owed[p, i, g]:\n                granted[p, i, g] += a - owed[p, i, g]\n"
+       "                owed[p, i, g] = a\n",
+       "formula 2 / the subtraction lower AH but not what the group is still owed (#24)"),
+    _m("equalization", "above-average-charged", "if q <= 0.0 or not dvs[p, i, g] > 0.0:",
+       "if q <= 0.0:", "a group above the string average keeps receiving what it is owed"),
     _m("equalization", "last-step-overdelivers", "cur[p, i, g] = q * 3600.0 / dt",
        "cur[p, i, g] = i_eq", "the last partial step delivers more than owed"),
     _m("equalization", "zero-voltage-accepted", "if not math.isfinite(v) or v <= 0.0:",
@@ -283,6 +307,9 @@ SEQUENCING = [
     _m("sequencing", "reverse-cut-current-only",
        "if cur[k] < -prm.i_rev or rev_q_as[p, k] > prm.q_rev_as + 1e-12:",
        "if cur[k] < -prm.i_rev:", "a small circulating reverse current is never cut"),
+    _m("sequencing", "trickle-needs-i-det", "        if fed <= 0.0:\n",
+       "        if fed <= i_det:\n",
+       "a sibling trickling less than i_det into an engaged battery is never cut (#24)"),
     _m("sequencing", "engage-no-margin",
        "            if pred[j] > prm.charge_limit_margin * i_lim[j]:\n",
        "            if pred[j] > i_lim[j]:\n",
@@ -335,7 +362,7 @@ SEQUENCING = [
 
 
 def _io(name: str, old: str, new: str, why: str, file: str = "plant.py") -> Mutant:
-    return Mutant("can", name, old, new, why, file, "io")
+    return Mutant("can", name, old, new, why, src=f"io/can/{file}")
 
 
 CAN = [
@@ -374,7 +401,7 @@ CAN = [
 
 MUTANTS: list[Mutant] = [
     *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
-    *SEQUENCING, *CAN,
+    *SEQUENCING, *PUBLISH, *QUALITY, *CAN,
 ]
 
 PENDING: dict[str, str] = {}
@@ -400,7 +427,10 @@ TESTS: dict[str, list[str]] = {
         "tests/test_charging_rules.py",
         "tests/test_charging_properties.py",
         "tests/test_charging_schedule.py",
+        "tests/test_charging_delta_v1.py",
     ],
+    "publish": ["tests/test_publish_standby.py"],
+    "quality": ["tests/test_demo_goals.py"],
     "protection": [
         "tests/test_protection_controller.py",
         "tests/test_protection_properties.py",
@@ -411,6 +441,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_sequencing_properties.py",
         "tests/test_sequencing_closed_loop_properties.py",
         "tests/test_sequencing_replay.py",
+        "tests/test_sequencing_trickle.py",
         "tests/test_fault_injection.py::test_a_tripped_battery_cannot_be_charged_by_the_reserve"
         "_that_replaces_it",
         "tests/test_runtime_fault_suite.py::test_a_standby_batterys_current_never_moves_the_other",
@@ -422,6 +453,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_equalization_controller.py",
         "tests/test_equalization_core.py",
         "tests/test_equalization_owed.py",
+        "tests/test_equalization_above_average.py",
         "tests/test_equalization_properties.py",
         "tests/test_equalization_replay.py",
     ],

@@ -35,6 +35,13 @@ VOLTAGE_FIELDS: tuple[str, ...] = (
 )
 """Settings that scale with the series count when ``voltage_basis = "cell"``."""
 
+SCALED_BY_DELTA_V1: dict[str, float] = {"d1_v": 1.0 / 3.0, "eps_eq_v": 1.0 / 6.0}
+"""Unset, these default to min(their default, share × ΔV1): both must stay below ΔV1, and the
+source lists ΔV1 = 1, 3, 5, 8, 10 or 0.5 V (spec/staged_charging.md, parameter table). At the
+default ΔV1 = 3 V the shares give exactly the fixed defaults (d1 = 1 V, the example's 90 → 89 V;
+eps_eq = 0.5 V), so every ΔV1 ≥ 3 V keeps them and only a smaller ΔV1 scales them down
+(0.5 V → d1 = 0.167 V, eps_eq = 0.083 V) instead of being refused (issue #24 item 6)."""
+
 
 class ChargingConfig(Strict):
     """Staged-charging settings. Voltages are per battery (``voltage_basis = "battery"``, the
@@ -53,7 +60,9 @@ class ChargingConfig(Strict):
         default=3.0, gt=0.0, description="ΔV1, first voltage threshold: V2 − Vr1 stays below it."
     )
     d1_v: float = Field(
-        default=1.0, ge=0.0, description="Vr1 = V2 − d1 (first regulation voltage); d1 < ΔV1."
+        default=1.0,
+        ge=0.0,
+        description="Vr1 = V2 − d1 (first regulation voltage); d1 < ΔV1. Unset: min(1 V, ΔV1/3).",
     )
     vc1_margin_v: float = Field(
         default=3.0, ge=0.0, description="Vc1 = Vr1 + this (S20 charging voltage, ≥ Vr1)."
@@ -83,7 +92,10 @@ class ChargingConfig(Strict):
         "reach_tol of its Vr2 counts as at Vr2, so no extra tiny S40 step follows without it.",
     )
     eps_eq_v: float = Field(
-        default=0.5, gt=0.0, description="Equal-voltage tolerance: widest span of one level."
+        default=0.5,
+        gt=0.0,
+        description="Equal-voltage tolerance: widest span of one level; < ΔV1. Unset: "
+        "min(0.5 V, ΔV1/6).",
     )
     reach_tol_v: float = Field(
         default=0.5,
@@ -204,15 +216,24 @@ class ChargingConfig(Strict):
 
     @model_validator(mode="before")
     @classmethod
-    def _cell_defaults(cls, data: Any) -> Any:
-        """Per-cell basis: unset voltage settings default to the battery default / 30."""
-        if not isinstance(data, dict) or data.get("voltage_basis") != "cell":
+    def _defaults(cls, data: Any) -> Any:
+        """Fill the unset voltage settings: per-cell basis → the battery default / 30; then
+        ``d1_v`` and ``eps_eq_v`` scale down with a small ΔV1 (:data:`SCALED_BY_DELTA_V1`)."""
+        if not isinstance(data, dict):
             return data
         out = dict(data)
+        per_cell = out.get("voltage_basis") == "cell"
         for name in VOLTAGE_FIELDS:
-            if name not in out:
+            if name not in out and per_cell:
                 default = cls.model_fields[name].default
                 out[name] = float(default) / REFERENCE_SERIES
+        dv1 = data.get("delta_v1_v")
+        if isinstance(dv1, int | float) and not isinstance(dv1, bool) and dv1 > 0:
+            for name, share in SCALED_BY_DELTA_V1.items():
+                if name not in data:
+                    base = float(cls.model_fields[name].default)
+                    base /= REFERENCE_SERIES if per_cell else 1.0
+                    out[name] = min(base, share * float(dv1))
         return out
 
     @model_validator(mode="after")
@@ -265,4 +286,4 @@ class ChargingConfig(Strict):
         return load_section_model(cls, data, "charging", source)
 
 
-__all__ = ["REFERENCE_SERIES", "VOLTAGE_FIELDS", "ChargingConfig"]
+__all__ = ["REFERENCE_SERIES", "SCALED_BY_DELTA_V1", "VOLTAGE_FIELDS", "ChargingConfig"]

@@ -256,7 +256,10 @@ def sequencing(page: Page) -> str:
                      " which every battery discharged with both FETs on"),
         "sw_per_min": ("switch changes", "/min", "FET gate changes per minute of steady load"),
         "peak_share": ("peak load share", "", "largest battery current over the load current"
-                       " after the voltages met (load > 5 A)"),
+                       " after the voltages met (load > 5 A); with every battery engaged the"
+                       " split is the plant's (direct parallel gives the same)"),
+        "peak_share_held": ("peak load share, one held out", "", "the same at the steps in"
+                            " which the controller held a battery out (0: never)"),
         "rev_peak_a": ("peak current into a battery", "A", "no charger on"),
         "rev_1a_s": ("longest > 1 A into a battery", "s", "uninterrupted"),
         "cross_mah_h": ("cross-charge", "mAh/h", "charge pushed into batteries per hour"),

@@ -147,8 +147,15 @@ class Publisher:
         tripped = mode(ch) in TRIPPED_MODES
         ccl = 0.0 if tripped else _finite0(ch.value("pack_limit_chg_a"))
         dcl = 0.0 if tripped else _finite0(ch.value("pack_limit_dsg_a"))
-        full = np.where(here, m.bat.full_capacity_ah[0], 0.0)
-        rem = np.where(here, m.bat.remaining_capacity_ah[0], 0.0)
+        # A battery counts towards the SOC only with both capacities known: a NaN remaining
+        # beside a finite full capacity would read as empty and drag the pack's SOC down.
+        known = (
+            here
+            & np.isfinite(m.bat.full_capacity_ah[0])
+            & np.isfinite(m.bat.remaining_capacity_ah[0])
+        )
+        full = np.where(known, m.bat.full_capacity_ah[0], 0.0)
+        rem = np.where(known, m.bat.remaining_capacity_ah[0], 0.0)
         nominal = np.where(here, np.asarray(self.info.capacity_ah), 0.0)
         soc = 100.0 * _ratio(float(np.nansum(rem)), float(np.nansum(full)))
         soh = 100.0 * _ratio(float(np.nansum(full)), float(np.nansum(nominal)))
@@ -202,13 +209,14 @@ class Publisher:
             return ProtectionReport(mode_ix, 255, math.nan, math.nan, math.nan)
         i = max(finite, key=lambda j: fr[j])
         param = ch.value("protection_param", i)
+        ttt = [ch.value("protection_time_to_trip_s", j) for j in range(n)]
         tte = [ch.value("protection_time_to_empty_s", j) for j in range(n)]
         return ProtectionReport(
             mode=mode_ix,
             active_param=int(param) if math.isfinite(param) else 255,
             allowance_used=fr[i],
-            time_to_trip_s=min(ch.value("protection_time_to_trip_s", j) for j in finite),
-            time_to_empty_s=max((x for x in tte if math.isfinite(x)), default=math.nan),
+            time_to_trip_s=soonest(ttt),
+            time_to_empty_s=latest(tte),
         )
 
     def battery_infos(self) -> list[dc.BatteryInfo]:
@@ -244,6 +252,22 @@ class Publisher:
         return f
 
 
+def soonest(times_s: Sequence[float]) -> float:
+    """The soonest of per-battery predicted times, over the batteries that have one.
+
+    A battery that stands by (sequencing's STANDBY, or any battery not discharging) predicts
+    nothing: NaN. Python's ``min`` keeps a NaN that comes first (every comparison with NaN is
+    false), so the aircraft would read "no trip coming" while another battery trips in 2 s;
+    the NaNs are dropped before comparing. NaN only when no battery predicts a time."""
+    return min((x for x in times_s if math.isfinite(x)), default=math.nan)
+
+
+def latest(times_s: Sequence[float]) -> float:
+    """The latest of per-battery predicted times over the batteries that have one (the time
+    to empty of the pack: the last battery to run out), NaN when none has one."""
+    return max((x for x in times_s if math.isfinite(x)), default=math.nan)
+
+
 def _finite0(x: float) -> float:
     return x if math.isfinite(x) else 0.0
 
@@ -256,4 +280,4 @@ def _nanmax(x: np.ndarray) -> float:
     return float(np.nanmax(x)) if x.size and np.isfinite(x).any() else math.nan
 
 
-__all__ = ["PERIOD_S", "PYLON_BITS", "Channels", "Publisher"]
+__all__ = ["PERIOD_S", "PYLON_BITS", "Channels", "Publisher", "latest", "soonest"]

@@ -369,7 +369,7 @@ class StringView:
     ledger_time_s = _Row("ledger_time_s")
     """Seconds each group's balancing was active (prorated on the last partial step)."""
     ledger_granted_ah = _Row("ledger_granted_ah")
-    """Charge granted by S43 (the raises of the owed Ah): delivered + owed."""
+    """Charge granted by S43 (the changes of the owed Ah at the updates): delivered + owed."""
     ledger_gross_ah = _Row("ledger_gross_ah")
     """Charge the AH rule delivered into each group: Σ I_eq·time/3600."""
     ledger_net_ah = _Row("ledger_net_ah")

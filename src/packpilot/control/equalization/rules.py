@@ -10,19 +10,22 @@ Per string (a traction battery = one string of series groups), every sample peri
   (formula 2), likewise; equality resets both timers and updates nothing;
 * if every AH_g > 0, the minimum is subtracted from all (S41/S42);
 * at every AH update of group g (formula 1 or 2 applied, even when the value does not change,
-  or the subtraction) the group is granted AH_g (S43): its **owed Ah** is raised to AH_g if it
-  is below (``granted`` books the raise); it is never lowered but by delivery, so a balance the
-  equalizer's current limit cannot deliver before the next update is carried over, not dropped
-  (issue #15; the spec's [REC] clamped the time to the update period, which dropped it).
+  or the subtraction) the group is granted AH_g (S43): its **owed Ah** becomes AH_g
+  (``granted`` books the change). Formula 1 raises it, so a balance the equalizer's current
+  limit cannot deliver before the next update is carried over, not dropped (issue #15; the
+  spec's [REC] clamped the time to the update period, which dropped it); formula 2 and the
+  subtraction lower it with AH (issue #24: the charge still to deliver falls with AH);
+* a group at or above the string average (ΔV_g <= 0) receives nothing: its owed Ah waits.
 
-While Ah is owed and the gate is open (|I_string| ≥ ``min_current_a``, or always in
-fixed-current mode with ``balance_at_rest``) group g's equalizer carries the current I (the
-string current clamped to ``equalizer_max_a``, or the fixed ``fixed_current_a``) and the owed
-Ah drops by I·dt (the last partial step prorated): the balancing time is 3600·AH/I, from AH
-and the battery current (S43). With bidirectional equalizers the string's currents are
-shifted by their lower median. A string whose group voltages or current cannot drive the
-method is held: equalizers at 0 A, timers cleared, AH and owed Ah kept, one ``Fault``
-(``FaultCleared`` when valid data returns); an absent battery is held silently.
+While Ah is owed, the group lags (ΔV_g > 0) and the gate is open (|I_string| ≥
+``min_current_a``, or always in fixed-current mode with ``balance_at_rest``) group g's
+equalizer carries the current I (the string current clamped to ``equalizer_max_a``, or the
+fixed ``fixed_current_a``) and the owed Ah drops by I·dt (the last partial step prorated):
+the balancing time is 3600·AH/I, from AH and the battery current (S43). With bidirectional
+equalizers the string's currents are shifted by their lower median. A string whose group
+voltages or current cannot drive the method is held: equalizers at 0 A, timers cleared, AH
+and owed Ah kept, one ``Fault`` (``FaultCleared`` when valid data returns); an absent battery
+is held silently.
 
 State is (P, B, G) for the per-group values (G = the most series groups of any battery; a
 battery with fewer groups leaves the rest of its row unused) and (P, B) per string.
@@ -110,7 +113,8 @@ class EqState(NamedTuple):
     ledger_time_s: F64
     """(P, B, G) seconds each group's balancing was active (prorated on the last step)."""
     ledger_granted_ah: F64
-    """(P, B, G) charge granted by S43: Σ of the raises of the owed Ah (= delivered + owed)."""
+    """(P, B, G) charge granted by S43: Σ of the changes of the owed Ah at the updates (raises
+    by formula 1, cuts by formula 2 and the subtraction; = delivered + owed)."""
     ledger_gross_ah: F64
     """(P, B, G) charge the AH rule delivered into each group: Σ I_eq·time/3600."""
     ledger_net_ah: F64
@@ -355,12 +359,14 @@ def sample_string(
     owed, granted = st.owed_ah, st.ledger_granted_ah
     for g in range(n):
         if upd[p, g]:
-            # S43: the group is owed AH_g from now on; what is still owed from earlier grants
-            # is kept (never lowered but by delivery), so nothing granted is dropped.
+            # S43: the balancing time follows AH_g from now on, so the group is owed exactly
+            # AH_g: raised by formula 1 (what one update period could not deliver is still in
+            # it: AH only grows while the lag persists), lowered when formula 2 halves AH or
+            # the subtraction resets it (issue #24: the charge still to deliver falls with AH).
+            # ``granted`` books the change either way (granted = delivered + owed).
             a = ah[p, i, g]
-            if a > owed[p, i, g]:
-                granted[p, i, g] += a - owed[p, i, g]
-                owed[p, i, g] = a
+            granted[p, i, g] += a - owed[p, i, g]
+            owed[p, i, g] = a
     return subtracted
 
 
@@ -452,7 +458,10 @@ def _pack(
                 step_ah = i_eq * dt / 3600.0
                 for g in range(n):
                     q = owed[p, i, g]
-                    if q <= 0.0:
+                    # A group at or above the average (ΔV_g <= 0 at its last sample) is not
+                    # behind: charging it would widen the spread. What it is owed waits (and
+                    # falls with its AH at the next formula-2 update) until it lags again.
+                    if q <= 0.0 or not dvs[p, i, g] > 0.0:
                         continue
                     if q >= step_ah:
                         cur[p, i, g] = i_eq
