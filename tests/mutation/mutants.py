@@ -156,6 +156,16 @@ CHARGING = [
        "charging resumes before the charger reported healthy for fault_clear_s"),
     _m("charging", "no-dock-rest", "st.rested[p] = st.session_s[p] >= prm.dock_rest_s",
        "st.rested[p] = True", "charging starts without the dock rest"),
+    _m("charging", "join-onto-any-bus", "if top < 0 or hi <= bus:", "if True:",
+       "a relay closes although its battery would discharge into the others (issue #24 "
+       "item 3)"),
+    _m("charging", "join-on-polarized-bus", "if known and g > 0.0:\n",
+       "if False:\n",
+       "a join trusts the bus measured now, polarization included (issue #24 item 3)"),
+    _m("charging", "s30-ends-at-merge",
+       "keep = lo < st.vt_v[p] - prm.reach_tol\n",
+       "keep = lo < st.vt_v[p] - prm.reach_tol and hi - lo > prm.eps_eq\n",
+       "S30 ends when its groups merge, short of Vt (issue #24 item 4)"),
 ]
 
 PROTECTION = [
