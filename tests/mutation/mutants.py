@@ -26,6 +26,8 @@ class Mutant:
 
     @property
     def path(self) -> str:
+        if self.file.startswith("src/"):  # a rule outside control/ (the plant's BMU supply)
+            return self.file
         return f"src/packpilot/control/{self.module}/{self.file}"
 
 
@@ -166,6 +168,21 @@ CHARGING = [
        "keep = lo < st.vt_v[p] - prm.reach_tol\n",
        "keep = lo < st.vt_v[p] - prm.reach_tol and hi - lo > prm.eps_eq\n",
        "S30 ends when its groups merge, short of Vt (issue #24 item 4)"),
+]
+
+BMU = [
+    Mutant("bmu", "no-dock-restart", "back = ~self.bmu_on & (dock | (",
+           "back = ~self.bmu_on & (False | (",
+           "the dock does not bring a browned-out BMU back (issue #24 item 5)",
+           "src/packpilot/model/pack.py"),
+    Mutant("bmu", "aux-below-empty", "out = self.bmu_on & ~dock & ((v < cut) | empty)",
+           "out = self.bmu_on & ~dock & (v < cut)",
+           "an empty aux battery keeps the BMU up (issue #24 item 5)",
+           "src/packpilot/model/pack.py"),
+    Mutant("bmu", "bmu-runs-while-down", "        if powered.all():\n",
+           "        if True:\n",
+           "a browned-out BMU still decides and logs stages (issue #24 item 5)",
+           "src/packpilot/sim/loop.py"),
 ]
 
 PROTECTION = [
@@ -337,7 +354,7 @@ SEQUENCING = [
 
 MUTANTS: list[Mutant] = [
     *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
-    *SEQUENCING,
+    *SEQUENCING, *BMU,
 ]
 
 PENDING: dict[str, str] = {}
@@ -377,6 +394,13 @@ TESTS: dict[str, list[str]] = {
         "_that_replaces_it",
     ],
     "supervisor": ["tests/test_supervisor.py"],
+    "bmu": [  # the plant's BMU supply (issue #24 item 5); one closed loop, ~2 min interpreted
+        "tests/test_bmu_supply.py::test_the_aux_battery_never_goes_below_empty",
+        "tests/test_bmu_supply.py::test_the_dock_restarts_the_bmu_and_charges_the_aux_battery"
+        "_by_itself",
+        "tests/test_bmu_supply.py::test_closed_loop_the_dock_brings_a_browned_out_bmu_back_and"
+        "_the_pack_charges",
+    ],
     "soc": ["tests/test_soc_estimator.py"],
     "equalization": [
         "tests/test_equalization_controller.py",
