@@ -128,7 +128,9 @@ def test_brownout_and_restart_are_logged() -> None:
 
 def test_closed_loop_brownout_opens_every_relay_in_the_step_it_happens() -> None:
     """evtol_charging, aux at SOC 0, dock gone at 20 s, every traction relay closed at 30 s:
-    the BMU browns out (~45 min later) and the trace row of that very step shows all open."""
+    the BMU browns out (at empty since issue #24: the 20 s on the dock put ~0.03 Ah in, a
+    couple of minutes for the 15 W BMU; before, it ran the LFP battery below empty down to
+    its 10 V cut-off, ~45 min) and the trace row of that very step shows all open."""
     from packpilot.sim.runner import Runner
 
     cfg = load_config(EXAMPLE)
@@ -150,8 +152,123 @@ def test_closed_loop_brownout_opens_every_relay_in_the_step_it_happens() -> None
 
     res = Runner(cfg, progress=False, hooks=[close_all]).run()
     (e,) = [e for e in res.events if e.kind.startswith("Bmu")]
-    assert e.kind == "BmuBrownOut" and e.data["aux_v"] < 10.0
+    assert e.kind == "BmuBrownOut" and "empty" in e.message and e.t_s > 32.0
     k = int(np.searchsorted(res.trace.t_s, e.t_s))
     chg, dsg = res.trace.channel("chg_on"), res.trace.channel("dsg_on")
     assert chg[k - 1, :6].all() and dsg[k - 1, :6].all()  # closed until that step
     assert not chg[k:].any() and not dsg[k:].any()  # open from its end on, and stay open
+
+
+# --------------------------------------------------------------------------- issue #24 item 5
+
+
+def aux_soc(pack: Pack) -> float:
+    soc, _ = pack.cell_states()
+    return float(soc[0, pack.cell_string == pack.aux_index].min())
+
+
+def test_the_aux_battery_never_goes_below_empty() -> None:
+    """Issue #24 item 5: an LFP aux battery at SOC 0 still shows more than the BMU's cut-off,
+    and the 15 W BMU ran it to -5 %. Now the BMU's draw stops at empty (its protection) and
+    the BMU browns out there, whatever the terminal voltage says."""
+    cfg = scenario()
+    bats = [
+        b.model_copy(update={"soc0": 0.0005}) if b.role == "aux" else b
+        for b in cfg.pack.batteries
+    ]
+    pack = Pack(cfg.model_copy(update={"pack": cfg.pack.model_copy(update={"batteries": bats})}))
+    lowest = 1.0
+    for _ in range(60):  # 0.0005 x 20 Ah at 15 W / ~12 V lasts ~29 s
+        pack.step(2.0, "none", np.zeros(1))
+        lowest = min(lowest, aux_soc(pack))
+    assert lowest >= 0.0
+    assert not pack.bmu_on[0]  # browned out at empty ...
+    assert pack.battery_v_aux()[0] >= pack.bmu_cutoff_v  # ... above the voltage cut-off
+
+
+def docked_browned_out(**aux: Any) -> Pack:
+    """evtol_charging, docked, its aux battery empty and the BMU browned out."""
+    cfg = load_config(EXAMPLE)
+    bats = [
+        b.model_copy(update={"soc0": 0.0}) if b.role == "aux" else b for b in cfg.pack.batteries
+    ]
+    cfg = cfg.model_copy(
+        update={
+            "aux": cfg.aux.model_copy(update=aux),
+            "pack": cfg.pack.model_copy(update={"batteries": bats}),
+        }
+    )
+    pack = Pack(cfg)
+    pack.bmu_on[:] = False  # browned out before the dock came
+    pack.hold_unpowered()
+    return pack
+
+
+def test_the_dock_restarts_the_bmu_and_charges_the_aux_battery_by_itself() -> None:
+    """Issue #24 item 5: the dock supplies the BMU (and charges the aux battery) without the
+    BMU's help: with every switch open and nothing commanded, a docked browned-out BMU is
+    powered again after one period and the aux battery takes the dock path's current."""
+    pack = docked_browned_out()
+    a = pack.aux_index
+    assert a is not None and pack.dock_supplies_bmu()[0]
+    soc0 = aux_soc(pack)
+    iv = pack.step(2.0, "none", np.zeros(1))
+    assert pack.bmu_on[0] and pack.bmu_changed[0]
+    assert not pack.chg_on.any() and not pack.dsg_on.any()  # nothing was closed for it
+    assert iv.string_a[0, a] == pytest.approx(-1.0, rel=0.05)  # the dock path's 1 A
+    for _ in range(30):
+        pack.step(2.0, "none", np.zeros(1))
+    assert aux_soc(pack) > soc0
+    assert pack.bmu_w()[0] == 0.0  # the BMU runs from the dock, not from the aux battery
+
+
+def test_without_the_dock_path_a_browned_out_bmu_stays_down() -> None:
+    """``dock_powers_bmu = false``: the BMU lives on the aux battery alone (the behaviour
+    before issue #24): docking changes nothing for a browned-out BMU."""
+    pack = docked_browned_out(dock_powers_bmu=False)
+    for _ in range(5):
+        iv = pack.step(2.0, "none", np.zeros(1))
+    assert not pack.bmu_on[0]
+    assert iv.string_a[0, pack.aux_index] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_closed_loop_the_dock_brings_a_browned_out_bmu_back_and_the_pack_charges() -> None:
+    """Issue #24 item 5's acceptance, closed loop: the aux battery nearly empty and no dock,
+    the BMU browns out (at empty, ~2 min) and every switch opens; the dock connects at 600 s,
+    powers the BMU, which restarts and charges the aux battery and the pack to full. While it
+    was down the charging method logged nothing (before, it logged idle -> rest -> S20 as if
+    charging, with every switch held open, and the aux battery stayed at -5 %). evtol_charging
+    with 2 Ah traction batteries and a 10 A dock (same C-rates, 50 x shorter)."""
+    import tomllib
+
+    from packpilot.config import parse_config
+    from packpilot.sim.runner import Runner
+
+    data = tomllib.loads(EXAMPLE.read_text())
+    for b in data["pack"]["batteries"]:
+        if b.get("role") == "aux":
+            b["soc0"] = 0.002
+        else:
+            b["capacity_ah"] = 2.0
+    data["charger"].update({"current_a": 10.0, "connect_s": 600.0})
+    data["charging"].update({"charger_current_limit_a": 10.0, "termination_current_a": 0.2})
+    data["sim"].update({"dt_s": 1.0, "duration_s": 6000.0, "progress": False})
+    runner = Runner(parse_config(data), progress=False)
+    res = runner.run()
+    kinds = [(e.t_s, e.kind) for e in res.events]
+    out = next(t for t, k in kinds if k == "BmuBrownOut")
+    back = next(t for t, k in kinds if k == "BmuRestarted")
+    assert out < 600.0 <= back <= 601.0
+    assert not [k for t, k in kinds if out < t < back]  # a browned-out BMU logs nothing
+    stages = [e.data["stage"] for e in res.events if e.kind == "StageChanged" and e.t_s > back]
+    assert stages[:3] == ["rest", "S20", "S30"]
+    assert [k for _, k in kinds].count("ChargeComplete") == 1
+    tr = list(runner.traction)
+    soc = res.trace.channel("soc")
+    a = res.battery_names.index("AUX")
+    assert soc[-1, tr].min() > 0.97
+    assert soc[:, a].min() >= 0.0  # never below empty
+    assert soc[-1, a] > 0.05  # charged from the dock (its path, then the BMU's DC/DC)
+    k = int(np.searchsorted(res.trace.t_s, out)) + 1
+    j = int(np.searchsorted(res.trace.t_s, back))
+    assert not res.trace.channel("chg_on")[k:j].any()  # every switch open while down

@@ -96,15 +96,19 @@ def test_example3_and_4_six_batteries(mode: str, vt2: float) -> None:
     ctrl = controller(6, target_mode=mode)
     run = drive(toy, ctrl, 6 * 3600)
     st = charging_stages(run)
-    # stage 1: first = the 80s, second = the 90s, Vt = 100 (the next existing level)
+    # stage 1: first = the 80s, second = the 90s, Vt = V2 + 10 = 100 V
     assert (st[0]["stage"], st[0]["first"], st[0]["second"]) == ("S20", "0,1", "2,3")
     assert (st[0]["vr1_v"], st[0]["cmd_v"]) == (89.0, 92.0)
     assert (st[1]["stage"], st[1]["closed"], st[1]["vt_v"]) == ("S30", "0,1,2,3", 100.0)
-    # stage 2: the four (now ~90 V) batteries are first, the 100s second; Vt = 110 / 120
-    assert (st[2]["stage"], st[2]["first"], st[2]["second"]) == ("S20", "0,1,2,3", "4,5")
-    assert (st[2]["vr1_v"], st[2]["cmd_v"]) == (99.0, 102.0)
+    # stage 2: the four batteries are first, the 100s second; Vt = 110 / 120 (issue #24
+    # item 4: stage 1's S30 charges the four towards its Vt, 100 V, and regroups once they are
+    # at the next pair's Vr1 = 99 V, so S20 is skipped, spec §5's note: the text's "four 90 V"
+    # is its own inconsistency, §7.3). The 100s join once the bus will charge them (item 3).
+    assert (st[2]["stage"], st[2]["first"], st[2]["second"]) == ("S30", "0,1,2,3", "4,5")
+    assert (st[2]["vr1_v"], st[2]["vt_v"]) == (99.0, vt2)
     assert (st[3]["stage"], st[3]["closed"], st[3]["vt_v"]) == ("S30", "0,1,2,3,4,5", vt2)
-    assert st[-1]["stage"] == "top_off" and st[-1]["cmd_v"] == 120.0
+    # 110 V reached: 120 - 110 is not > ΔV2, so no S40 (example 3's last sentence)
+    assert [s["stage"] for s in st[4:]] == ["top_off"] and st[-1]["cmd_v"] == 120.0
     assert run.kinds("ChargeComplete")
     # the 100 V batteries were never connected before stage 2's S30
     first_s30_all = next(k for k, o in enumerate(run.outputs) if o.commands.chg_on == (True,) * 6)
@@ -164,7 +168,29 @@ def test_saturation_s30_charges_to_v_sat_through_the_merge() -> None:
     lv = charging_stages(
         drive(six(), controller(6, target_mode="levels"), 6 * 3600)
     )
-    assert "S40" in [s["stage"] for s in lv]
+    # levels mode too charges through the merge, to V2 + step_v = 110 V (issue #24 item 4)
+    assert [(s["stage"], s["vt_v"]) for s in lv if s["stage"] == "S30"][-1] == ("S30", 110.0)
+
+
+def test_s30_charges_both_groups_to_vt_through_the_merge() -> None:
+    """Issue #24 item 4: S30 charges the first and second batteries "until both reach Vt"
+    (Vt = V2 + step_v, 90 -> 100 V in example 1). Before, 'levels' mode left S30 when the two
+    groups merged (~90.5 V) and Vt was never reached: the next stage was an S40 step to
+    ~100.5 V instead of one from 100 V to 110 V."""
+    toy = ToyPack([80.0, 90.0])
+    run = Run()
+    ctrl = controller(2)
+    while not any(s["stage"] == "S40" for s in run.stages()):
+        drive(toy, ctrl, 60, run=run)
+        assert len(run.outputs) < 4 * 3600
+    st = charging_stages(run)
+    assert [s["stage"] for s in st] == ["S20", "S30", "S40"]
+    assert st[1]["vt_v"] == 100.0
+    s40_at = next(k for k, o in enumerate(run.outputs) if o.status["chg_stage"][0] == "S40")
+    est = run.outputs[s40_at].status["chg_est_v"]
+    assert min(est) >= 100.0 - 0.5  # both reached Vt (within reach_tol) before S30 ended
+    assert st[2]["vr2_v"] == pytest.approx(min(est) + 10.0, abs=0.6)
+    assert st[2]["vr2_v"] >= 109.5
 
 
 def test_single_battery_pack_charges() -> None:

@@ -18,8 +18,15 @@ from tests.test_charging_helpers import ToyPack, pack_info
 CFG = ChargingConfig()
 
 
-def frozen(v0: list[float], **toy: Any) -> tuple[ToyPack, ChargingController]:
-    return ToyPack(v0, **toy), ChargingController(CFG, pack_info(len(v0)))
+CFG_R = ChargingConfig(r_comp_initial_ohm=0.05)
+"""With an R known from the start: a frozen pack carries no current, so nothing teaches R, and
+without one the join gate (issue #24 item 3) closes only the lowest battery of a first plan."""
+
+
+def frozen(
+    v0: list[float], cfg: ChargingConfig = CFG, **toy: Any
+) -> tuple[ToyPack, ChargingController]:
+    return ToyPack(v0, **toy), ChargingController(cfg, pack_info(len(v0)))
 
 
 def patched(m: Measurements, i: int, **kw: Any) -> Measurements:
@@ -46,7 +53,7 @@ def test_a_cell_exactly_at_the_limit_stops_its_battery() -> None:
 def test_a_battery_within_eps_eq_of_the_connected_level_joins_it() -> None:
     """A battery that becomes eligible at most eps_eq above the connected level regroups:
     S20 is decided afresh and the battery is connected with the first level."""
-    toy, ctrl = frozen([80.0, 90.0, 80.0 + 0.5 * CFG.eps_eq_v])
+    toy, ctrl = frozen([80.0, 90.0, 80.0 + 0.5 * CFG.eps_eq_v], CFG_R)
     good = toy.measure()
     blind = patched(good, 2, voltage_v=math.nan)  # left out of the first decision
     outs = run(ctrl, blind, 5)
@@ -99,7 +106,7 @@ def test_an_overvoltage_battery_is_latched_out_as_overvoltage() -> None:
 def test_s20_runs_until_its_lowest_battery_reaches_vr1() -> None:
     """S20 charges the first level up to Vr1 = V2 - d1: it ends when the *lowest* connected
     battery gets there, not the highest (which would leave the others short of the level)."""
-    toy, ctrl = frozen([80.0, 80.4, 90.0])
+    toy, ctrl = frozen([80.0, 80.4, 90.0], CFG_R)
     outs = run(ctrl, toy.measure(), 5)
     assert outs[-1].status["chg_stage"][0] == "S20"
     assert outs[-1].commands.chg_on == (True, True, False)
@@ -108,3 +115,63 @@ def test_s20_runs_until_its_lowest_battery_reaches_vr1() -> None:
     outs = run(ctrl, straddle, 3)
     assert [o.status["chg_stage"][0] for o in outs] == ["S20"] * 3
     assert outs[-1].commands.chg_on == (True, True, False)
+
+
+def charging(m: Measurements, i: int, terminal_v: float, current_a: float) -> Measurements:
+    """``m`` with battery ``i`` charging: its terminal voltage and (negative) current."""
+    return patched(m, i, voltage_v=terminal_v, current_a=current_a)
+
+
+def test_the_second_battery_joins_only_onto_a_bus_above_it() -> None:
+    """Issue #24 item 3: S20 has brought the first battery to Vr1 = V2 - d1 = 88 V (89.2 V at
+    -20 A and 0.05 Ohm is 88.2 V), but the bus the two would settle at in current limit,
+    (20 + (88.2 + 90) / 0.05) / (2 / 0.05) = 89.6 V, is below the second battery (90 V):
+    closing its relay now would discharge it into the first. S20 goes on (its Vc1 = 91 V
+    lifts the bus); at 89.1 V (90.1 V at -20 A) the bus settles at 90.05 V and S30 joins."""
+    cfg = ChargingConfig(r_comp_initial_ohm=0.05, d1_v=2.0, r_comp_adapt=False)
+    toy, ctrl = frozen([80.0, 90.0], cfg)
+    rest = toy.measure()
+    outs = run(ctrl, rest, 5)
+    assert outs[-1].status["chg_stage"][0] == "S20"
+    assert outs[-1].commands.chg_on == (True, False)
+    outs = run(ctrl, charging(rest, 0, 89.2, -20.0), 3)
+    assert outs[-1].status["chg_est_v"][0] >= 90.0 - cfg.d1_v  # S20's own exit is met
+    assert [o.status["chg_stage"][0] for o in outs] == ["S20"] * 3
+    assert all(o.commands.chg_on == (True, False) for o in outs)
+    outs = run(ctrl, charging(rest, 0, 90.1, -20.0), 1)
+    assert outs[-1].status["chg_stage"][0] == "S30"
+    assert outs[-1].commands.chg_on == (True, True)
+
+
+def test_the_join_looks_at_the_settled_bus_not_the_polarized_one() -> None:
+    """Issue #24 item 3: the charging battery's terminal (the bus now) is 90.5 V, above the
+    second battery, but that is 88.5 V of rest voltage (R = 0.1 Ohm, -20 A) plus polarization
+    that decays once the current is shared: at the dock's 5 A the two settle at
+    0.25 + (88.5 + 90) / 2 = 89.5 V, and the second would discharge. It waits."""
+    cfg = ChargingConfig(r_comp_initial_ohm=0.1, d1_v=2.0, charger_current_limit_a=5.0,
+                         termination_current_a=0.5, r_comp_adapt=False)  # fmt: skip
+    toy, ctrl = frozen([80.0, 90.0], cfg)
+    rest = toy.measure()
+    run(ctrl, rest, 5)
+    outs = run(ctrl, charging(rest, 0, 90.5, -20.0), 3)
+    assert outs[-1].status["chg_est_v"][0] == 88.5 >= 90.0 - cfg.d1_v
+    assert [o.status["chg_stage"][0] for o in outs] == ["S20"] * 3
+    assert all(o.commands.chg_on == (True, False) for o in outs)
+
+
+def test_a_first_plan_closes_a_level_only_where_the_predicted_bus_charges_it() -> None:
+    """Issue #24 item 3, nothing charging yet: a level spans up to eps_eq, and at a small dock
+    current the bus of the level in parallel, (sum est/R + I) / (sum 1/R) = 80.15 + 5 x 0.05 / 3
+    = 80.23 V, sits below its top battery (80.45 V), which would discharge into the other two:
+    it waits for the measured bus. The other two close at once."""
+    cfg = ChargingConfig(r_comp_initial_ohm=0.05, charger_current_limit_a=5.0,
+                         termination_current_a=0.5)  # fmt: skip
+    toy, ctrl = frozen([80.0, 80.0, 80.45, 90.0], cfg)
+    rest = toy.measure()
+    outs = run(ctrl, rest, 5)
+    assert outs[-1].status["chg_stage"][0] == "S20"
+    assert outs[-1].commands.chg_on == (True, True, False, False)
+    assert outs[-1].status["chg_group"][2] == 1  # a first battery, waiting for the bus
+    on_bus = charging(charging(rest, 0, 80.5, -2.5), 1, 80.5, -2.5)
+    outs = run(ctrl, on_bus, 1)
+    assert outs[-1].commands.chg_on == (True, True, True, False)

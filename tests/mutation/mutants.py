@@ -30,6 +30,8 @@ class Mutant:
     def path(self) -> str:
         if self.src:
             return f"src/packpilot/{self.src}"
+        if self.file.startswith("src/"):  # a rule outside control/ (the plant's BMU supply)
+            return self.file
         return f"src/packpilot/control/{self.module}/{self.file}"
 
 
@@ -167,6 +169,16 @@ CHARGING = [
     Mutant("charging", "fixed-d1-eps-defaults", "out[name] = min(base, share * float(dv1))",
            "out[name] = base", "d1_v / eps_eq_v defaults do not scale: ΔV1 = 0.5 V is refused",
            src="config/charging.py"),
+    _m("charging", "join-onto-any-bus", "if top < 0 or hi <= bus:", "if True:",
+       "a relay closes although its battery would discharge into the others (issue #24 "
+       "item 3)"),
+    _m("charging", "join-on-polarized-bus", "if known and g > 0.0:\n",
+       "if False:\n",
+       "a join trusts the bus measured now, polarization included (issue #24 item 3)"),
+    _m("charging", "s30-ends-at-merge",
+       "keep = lo < st.vt_v[p] - prm.reach_tol\n",
+       "keep = lo < st.vt_v[p] - prm.reach_tol and hi - lo > prm.eps_eq\n",
+       "S30 ends when its groups merge, short of Vt (issue #24 item 4)"),
 ]
 
 QUALITY = [
@@ -181,6 +193,21 @@ PUBLISH = [
            "time_to_trip_s=min(ttt),",
            "a standby battery listed first (NaN) hides the other battery's coming trip",
            src="runtime/publish.py"),
+]
+
+BMU = [
+    Mutant("bmu", "no-dock-restart", "back = ~self.bmu_on & (dock | (",
+           "back = ~self.bmu_on & (False | (",
+           "the dock does not bring a browned-out BMU back (issue #24 item 5)",
+           "src/packpilot/model/pack.py"),
+    Mutant("bmu", "aux-below-empty", "out = self.bmu_on & ~dock & ((v < cut) | empty)",
+           "out = self.bmu_on & ~dock & (v < cut)",
+           "an empty aux battery keeps the BMU up (issue #24 item 5)",
+           "src/packpilot/model/pack.py"),
+    Mutant("bmu", "bmu-runs-while-down", "        if powered.all():\n",
+           "        if True:\n",
+           "a browned-out BMU still decides and logs stages (issue #24 item 5)",
+           "src/packpilot/sim/loop.py"),
 ]
 
 PROTECTION = [
@@ -401,7 +428,7 @@ CAN = [
 
 MUTANTS: list[Mutant] = [
     *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
-    *SEQUENCING, *PUBLISH, *QUALITY, *CAN,
+    *SEQUENCING, *PUBLISH, *QUALITY, *CAN, *BMU,
 ]
 
 PENDING: dict[str, str] = {}
@@ -448,6 +475,13 @@ TESTS: dict[str, list[str]] = {
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],
+    "bmu": [  # the plant's BMU supply (issue #24 item 5); one closed loop, ~2 min interpreted
+        "tests/test_bmu_supply.py::test_the_aux_battery_never_goes_below_empty",
+        "tests/test_bmu_supply.py::test_the_dock_restarts_the_bmu_and_charges_the_aux_battery"
+        "_by_itself",
+        "tests/test_bmu_supply.py::test_closed_loop_the_dock_brings_a_browned_out_bmu_back_and"
+        "_the_pack_charges",
+    ],
     "soc": ["tests/test_soc_estimator.py"],
     "equalization": [
         "tests/test_equalization_controller.py",

@@ -270,6 +270,25 @@ class AuxConfig(_Strict):
         description="A browned-out BMU restarts when the aux battery is back above "
         "bmu_cutoff_v + this (V); the switches stay open until commanded again",
     )
+    dock_powers_bmu: bool = Field(
+        True,
+        description="While the charging dock is connected it supplies the BMU itself (its "
+        "low-voltage output, no relay or command of the BMU in the path) and charges the aux "
+        "battery at dock_aux_charge_a: a browned-out BMU restarts as soon as the dock "
+        "connects (issue #24). False: the BMU lives on the aux battery alone",
+    )
+    dock_aux_charge_a: NonNegFloat = Field(
+        1.0,
+        le=MAX_CURRENT_A,
+        description="Current the dock's own path pushes into the aux battery while connected "
+        "(A), tapering to 0 over the last 0.2 V below dock_aux_cv_v; 0: none",
+    )
+    dock_aux_cv_v: PosFloat | None = Field(
+        None,
+        le=MAX_VOLTAGE_V,
+        description="Voltage limit of the dock's aux path (V); default the aux battery's "
+        "series groups x its cell's v_max_v",
+    )
 
 
 class CanConfig(_Strict):

@@ -77,18 +77,32 @@ class Part:
     s0: int = 0
     owner: CompiledController | None = None
     """The one-pack controller whose state this is (it follows the state into the arena)."""
+    config: Any = None
+    """The validated config the state was built from (what a reboot builds it from again)."""
 
     @classmethod
     def of(cls, ctl: CompiledController) -> Part:
         """Share a one-pack controller's state (its accessors keep working)."""
-        return cls(ctl.method, ctl.prm, ctl.st, owner=ctl)
+        return cls(ctl.method, ctl.prm, ctl.st, owner=ctl, config=ctl.config)
 
     @classmethod
     def build(cls, method: Method, config: Any, infos: Sequence[PackInfo]) -> Part:
         if not isinstance(config, method.config):
             config = method.config.model_validate(config or {})
         prm, st = method.build(config, infos)
-        return cls(method, prm, st)
+        return cls(method, prm, st, config=config)
+
+
+def _reset_rows(state: Any, fresh: Any, mask: NDArray[np.bool_]) -> None:
+    """Copy the packs in ``mask`` of a freshly built state into ``state`` (in place: the
+    arrays are views into the core's arena). Per-pack arrays have the packs first."""
+    for name in type(state)._fields:
+        cur, new = getattr(state, name), getattr(fresh, name)
+        if isinstance(cur, np.ndarray):
+            if cur.ndim >= 1 and cur.shape[0] == mask.shape[0]:
+                cur[mask] = new[mask]
+        elif hasattr(cur, "_fields"):
+            _reset_rows(cur, new, mask)
 
 
 @dataclass
@@ -250,6 +264,25 @@ class Core:
             for c, r in enumerate(reasons):
                 table[s, c] = sr.event_class(r.kind)
         return table
+
+    def reboot(self, mask: NDArray[np.bool_]) -> None:
+        """The packs in ``mask`` start afresh, as a BMU does when it powers up again after a
+        brown-out (issue #24): every compiled method's and the supervisor's state of those
+        packs is built anew from its config; the other packs are untouched. (Python
+        controllers run at P = 1 and keep their state: they have no build to redo.)"""
+        if not mask.any():
+            return
+        for x in self.compiled:
+            if x.config is None:
+                continue
+            _, fresh = x.method.build(x.config, self.infos)
+            _reset_rows(x.st, fresh, mask)
+        sup = self.supervisor
+        if sup is not None and self.supervisor_config is not None:
+            _, fresh = sup_ctl.build_supervisor(
+                self.supervisor_config, self.infos, self._ev_class()
+            )
+            _reset_rows(sup.st, fresh, mask)
 
     # ------------------------------------------------------------------ the step
     def step_batch(self, m: MeasArrays, dt_s: float, meas: Measurements | None = None) -> None:

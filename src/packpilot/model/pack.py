@@ -41,6 +41,10 @@ BoolArray = NDArray[np.bool_]
 IntArray = NDArray[np.int64]
 
 
+AUX_EMPTY_AH = 1e-6
+"""An aux battery with at most this left in its weakest cell is empty: the BMU browns out."""
+
+
 def _load_cell_set(name: str) -> cellmod.CellParams:
     if name.endswith((".json", ".toml", ".npz")) or "/" in name:
         return cellmod.load_parameter_file(Path(name))
@@ -459,7 +463,7 @@ class Pack:
             self.sw_diode_ohm, self.sw_rev_trip_a, self.is_aux, self.present_from_s,
             -1 if self.aux_index is None else self.aux_index, prm, t, h, kind,
             self.chg_on, self.dsg_on, self.welded, self.fet_shorted, self.balancer_a,
-            self.aux_input(), self.bmu_w(), self.bus_v, self.group_v_prev, self.e_cell,
+            self.aux_input(), self.aux_draw_w(h), self.bus_v, self.group_v_prev, self.e_cell,
             self.r_cell,
             self._charger_on(t), ch.on_req, ch.last_request_s, ch.flags, ch.v_req, ch.i_req,
             demand, connected,
@@ -649,7 +653,7 @@ class Pack:
             bus_ok = self.bus_v >= aux_cfg.dcdc_min_input_v
             i_aux_chg = np.where(bus_ok, self.aux_input(), 0.0)
             aux_p_bus = i_aux_chg * v_aux / aux_cfg.dcdc_efficiency
-            x_cell[:, self.cell_string == a] += (self.bmu_w() / v_aux - i_aux_chg)[:, None]
+            x_cell[:, self.cell_string == a] += (self.aux_draw_w() / v_aux - i_aux_chg)[:, None]
         return aux_p_bus
 
     # ------------------------------------------------------------------ the BMU's supply
@@ -678,8 +682,64 @@ class Pack:
         return np.where(closed, self.aux_charge_a, 0.0)
 
     def bmu_w(self) -> Array:
-        """Power the BMU draws from the aux battery (P,): 0 while browned out."""
-        return np.where(self.bmu_on, self.cfg.aux.bms_load_w, 0.0)
+        """Power the BMU draws from the aux battery (P,): 0 while browned out, and 0 while the
+        dock supplies it (``[aux] dock_powers_bmu``, the dock connected)."""
+        on = self.bmu_on & ~self.dock_supplies_bmu()
+        return np.where(on, self.cfg.aux.bms_load_w, 0.0)
+
+    def dock_supplies_bmu(self, t_s: float | None = None) -> BoolArray:
+        """(P,) the dock is connected and supplies the BMU and the aux path itself
+        (``[aux] dock_powers_bmu``); at the plant's time by default."""
+        if not self.cfg.aux.dock_powers_bmu or self.aux_index is None:
+            return np.zeros(self.n_packs, dtype=bool)
+        return self.charger_connected(self.t_s if t_s is None else t_s)
+
+    @property
+    def dock_aux_cv_v(self) -> float:
+        """Voltage limit of the dock's aux path ([aux] dock_aux_cv_v, default the aux
+        battery's series groups x its cell's v_max_v); NaN without an aux battery."""
+        if self.aux_index is None:
+            return math.nan
+        cv = self.cfg.aux.dock_aux_cv_v
+        if cv is not None:
+            return float(cv)
+        a = self.aux_index
+        first = int(np.nonzero(self.cell_string == a)[0][0])
+        params = next(b.params for b in self.banks if np.any(b.idx % self.n_cells == first))
+        bat = self.cfg.pack.batteries[a]
+        return float(bat.series_groups * bat.cells_per_group * params.v_max_v)
+
+    def _aux_left_ah(self) -> Array:
+        """(P,) charge left in the aux battery's weakest cell (Ah; NaN without one)."""
+        if self.aux_index is None:
+            return np.full(self.n_packs, np.nan)
+        soc, _ = self.cell_states()
+        cells = self.cell_string == self.aux_index
+        left: Array = np.min(soc[:, cells] * self.capacity_ah[:, cells], axis=1)
+        return left
+
+    def aux_draw_w(self, dt_s: float = math.inf) -> Array:
+        """Net power drawn from the aux battery's cells besides its DC/DC (P,; negative: into
+        it): the BMU's load, less the dock's own charging path while the dock is connected.
+
+        The aux battery never goes below empty (issue #24): the BMU's draw over a period of
+        ``dt_s`` is capped at the charge its weakest cell has left (its protection cuts the
+        load at empty, which the terminal-voltage brown-out alone missed: an LFP aux battery
+        at SOC 0 still shows more than its cut-off, and the 15 W BMU ran it to -5 %)."""
+        draw = self.bmu_w()
+        if self.aux_index is None:
+            return draw
+        a = self.aux_index
+        v_aux = np.maximum(self._string_sum_groups(self.group_v_prev)[:, a], 1e-3)
+        if math.isfinite(dt_s) and dt_s > 0.0:
+            left_ah = np.maximum(self._aux_left_ah() - 0.5 * AUX_EMPTY_AH, 0.0)  # rounding
+            draw = np.minimum(draw, left_ah * 3600.0 / dt_s * v_aux)
+        dock = self.dock_supplies_bmu()
+        if dock.any():
+            aux = self.cfg.aux
+            taper = np.clip((self.dock_aux_cv_v - v_aux) / 0.2, 0.0, 1.0)
+            draw = draw - np.where(dock, aux.dock_aux_charge_a * taper * v_aux, 0.0)
+        return draw
 
     def _bmu_supply(self, battery_v: Array) -> None:
         """Brown-out and restart of the BMU from the aux terminal voltage at the end of the
@@ -692,8 +752,10 @@ class Pack:
         self._aux_v = v.copy()
         self.bmu_min_v = np.minimum(self.bmu_min_v, v)
         cut = self.bmu_cutoff_v
-        out = self.bmu_on & (v < cut)
-        back = ~self.bmu_on & (v >= cut + self.cfg.aux.bmu_recover_hysteresis_v)
+        dock = self.dock_supplies_bmu()
+        empty = self._aux_left_ah() <= AUX_EMPTY_AH
+        out = self.bmu_on & ~dock & ((v < cut) | empty)
+        back = ~self.bmu_on & (dock | ((v >= cut + self.cfg.aux.bmu_recover_hysteresis_v) & ~empty))
         self.bmu_changed = out | back
         if not self.bmu_changed.any():
             return

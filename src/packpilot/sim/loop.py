@@ -156,11 +156,14 @@ def control(
     dt_s: float,
     faults: FaultInjector | None = None,
     hooks: Sequence[Hook] = (),
+    unpowered: NDArray[np.bool_] | None = None,
 ) -> None:
     """The BMS half of one period, whatever stands behind the port: hooks and plant-side
     faults, charger status over the links, sensors, sensor faults, the supervised core, the
     actuators, charger setpoints over the links. :meth:`ClosedLoop.step` runs it before the
-    plant's physics; the runtime (:mod:`packpilot.runtime`) runs it against a CAN bus."""
+    plant's physics; the runtime (:mod:`packpilot.runtime`) runs it against a CAN bus.
+    ``unpowered``: packs whose BMU is browned out (their events and charger setpoints are
+    dropped, :func:`mute`)."""
     m = core.m
     for hook in hooks:
         hook(t)
@@ -172,9 +175,30 @@ def control(
     if faults is not None:
         faults.filter(m)
     core.step_batch(m, dt_s)
+    if unpowered is not None:
+        mute(core, unpowered)
     plant.apply(core.arenas, int(core.directory[DIR_CMD]))
     if links:
         links.send(t, core.cmd)
+
+
+def mute(core: Core, packs: NDArray[np.bool_]) -> None:
+    """Drop what the core decided for ``packs`` this step (BMUs that are browned out): their
+    events leave the buffer and their charger is commanded off (their gates and aux DC/DC are
+    held open by the plant, ``Pack.hold_unpowered``)."""
+    ev, cmd = core.ev, core.cmd
+    keep = 0
+    for k in range(int(ev.n[0])):
+        if packs[int(ev.pack[k])]:
+            continue
+        if keep != k:
+            for arr in (ev.pack, ev.src, ev.code, ev.battery, ev.t_s, ev.val):
+                arr[keep] = arr[k]
+        keep += 1
+    ev.n[0] = keep
+    cmd.charger_set[packs] = True
+    cmd.charger_enable[packs] = False
+    cmd.charger_a[packs] = 0.0
 
 
 def with_supply(
@@ -300,16 +324,41 @@ class ClosedLoop:
         """One period of every pack."""
         plant, core = self.plant, self.core
         t = plant.t_s
-        control(core, plant, self.links, t, dt_s, self.faults, self.hooks)
+        powered = plant.pack.bmu_on
+        if powered.all():
+            control(core, plant, self.links, t, dt_s, self.faults, self.hooks)
+        else:
+            self._unpowered(t, dt_s, powered.copy())
         iv = plant.step(dt_s, np.full(plant.n_packs, self.demand(t)), self.profile.kind)
         self.n_stepped += 1
         kinds = core.event_kinds() if core.ev.n[0] else None
+        if plant.pack.bmu_changed.any():
+            # a BMU that powers up again boots afresh: its methods' state starts over
+            core.reboot(plant.pack.bmu_changed & plant.pack.bmu_on)
         supply = self._supply_events(t, iv, dt_s)
         self.metrics.add(plant.pack, iv, self._traction, with_supply(kinds, supply, plant.n_packs))
         stop = self.cfg.sim.stop_when_unsupplied_s
         if stop is not None:
             self.metrics.stop(self.unsupplied_s >= stop, plant.pack)
         return StepRecord(k, iv, self, supply)
+
+    def _unpowered(self, t: float, dt_s: float, powered: NDArray[np.bool_]) -> None:
+        """A period in which some pack's BMU is browned out: that BMU runs nothing — no
+        measurement, no decision, no event, no command, no charger heartbeat (the charger
+        then times out) — so it logs no stage it cannot act on (issue #24 item 5). With no
+        BMU powered the core does not step at all; in a batch with some powered, the core
+        steps and the unpowered packs' events and charger setpoints are dropped (their gates
+        are held open by the plant)."""
+        core = self.core
+        if powered.any():
+            control(core, self.plant, self.links, t, dt_s, self.faults, self.hooks, ~powered)
+            return
+        for hook in self.hooks:
+            hook(t)
+        if self.faults is not None:
+            self.faults.before_step(t)
+        self.plant.pack.hold_unpowered()  # whatever a hook did, an unpowered BMU drives nothing
+        core.ev.n[0] = 0
 
     @property
     def running(self) -> bool:
@@ -352,10 +401,12 @@ class ClosedLoop:
             v = float(pack.battery_v_aux()[p])
             data = {"aux_v": v, "cutoff_v": cut}
             if not pack.bmu_on[p]:
-                msg = f"BMU browned out: aux battery {v:.3f} V < {cut:.3f} V, every switch open"
+                why = f"{v:.3f} V < {cut:.3f} V" if v < cut else f"empty at {v:.3f} V"
+                msg = f"BMU browned out: aux battery {why}, every switch open"
                 out.append((p, Event(t, LOOP_EVENT_KINDS[2], None, msg, data)))
             else:
-                msg = f"BMU restarted: aux battery {v:.3f} V"
+                dock = " (powered by the dock)" if pack.dock_supplies_bmu()[p] else ""
+                msg = f"BMU restarted{dock}: aux battery {v:.3f} V"
                 out.append((p, Event(t, LOOP_EVENT_KINDS[3], None, msg, data)))
         return out
 

@@ -10,9 +10,10 @@ Per pack:
 * ``final_soc``: each battery's SOC (weakest cell) after the last step;
 * ``peak_string_current_a``: each battery's current at its largest magnitude (the first such
   step; a NaN current is the peak and stays it, as ``argmax`` has it);
-* ``peak_cross_current_a``: the largest current into a traction battery while the pack alone
-  supplies the load (load drawing, no charger delivering: current into a battery then comes
-  from another battery);
+* ``peak_cross_current_a``: the largest battery-to-battery current at one traction battery's
+  terminals, whatever the load and the charger do (:func:`cross_current`; issue #24: it
+  counted only while no charger delivered, and said 0 while a battery discharged into its
+  siblings at 30 A during a staged charge);
 * ``load_unsupplied_s``: time the load got less than it asked for;
 * ``joule_heat_j`` and the diode ledgers: the plant's own integrals at the pack's last step;
 * ``events``: counts by kind.
@@ -55,6 +56,39 @@ def _nanmax(a: float, b: float) -> float:
     if math.isnan(b):
         return a
     return max(a, b)
+
+
+@kernel
+def cross_current(string_a: F64, traction: I64, charger_a: float) -> float:
+    """The largest battery-to-battery current at one traction battery's terminals (A, ≥ 0).
+
+    On the bus, the current into the charging batteries (C, their sum) comes from the charger
+    and from the discharging ones (D); the part the charger does not cover, B = max(0, C − I),
+    is battery to battery (the node then gives B ≤ D: the rest of D feeds the load). B is
+    shared pro rata: a charging battery takes c_k·B/C of it, a discharging one gives
+    d_k·B/D. Without a charger this is each charging battery's own current, the definition
+    before issue #24, which counted only while no charger delivered. NaN if a current is.
+    """
+    into = 0.0
+    out = 0.0
+    big_c = 0.0
+    big_d = 0.0
+    for k in range(traction.shape[0]):
+        x = string_a[traction[k]]
+        if math.isnan(x):
+            return math.nan
+        if x < 0.0:
+            big_c -= x
+            into = max(into, -x)
+        else:
+            big_d += x
+            out = max(out, x)
+    flow = big_c - (charger_a if charger_a > 0.0 else 0.0)
+    if flow <= 0.0 or big_c <= 0.0:
+        return 0.0
+    share_in = into * flow / big_c
+    share_out = out * flow / big_d if big_d > 0.0 else 0.0
+    return max(share_in, share_out)
 
 
 @kernel
@@ -102,15 +136,9 @@ def accumulate(
             if not math.isnan(peak_abs[p, s]) and (a > peak_abs[p, s] or math.isnan(a)):
                 peak_abs[p, s] = a
                 peak_val[p, s] = cur
-        if load_a[p] > 1e-3 and charger_a[p] < 1e-3:
-            into = 0.0
-            for k in range(traction.shape[0]):
-                x = -string_a[p, traction[k]]
-                x = x if x > 0.0 or math.isnan(x) else 0.0
-                if x > into or math.isnan(x):
-                    into = x if not math.isnan(into) else into
-            if into > peak_cross[p] or math.isnan(into):
-                peak_cross[p] = into if not math.isnan(peak_cross[p]) else peak_cross[p]
+        into = cross_current(string_a[p], traction, charger_a[p])
+        if into > peak_cross[p] or math.isnan(into):
+            peak_cross[p] = into if not math.isnan(peak_cross[p]) else peak_cross[p]
         d = demand_a[p]
         if d > 1e-9 and load_a[p] < d - 1e-6:
             unsupplied_steps[p] += 1
@@ -220,4 +248,4 @@ class Metrics:
         }
 
 
-__all__ = ["Metrics", "accumulate"]
+__all__ = ["Metrics", "accumulate", "cross_current"]

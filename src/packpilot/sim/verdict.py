@@ -10,8 +10,11 @@ still lose power. So the verdict has two sources, both computed here, once, for 
   cause, with the first time, the count and whether the condition was cleared;
 * **physics checks** on the recorded plant truth (the trace: what really happened, not what the
   sensors reported): over-discharge (a cell below its cell set's minimum voltage: alarm; SOC
-  below 0 %: warning), cross-charge (current into a traction battery above its charge limit
-  while no charger delivers: alarm) and load loss (the load got less than it asked for: alarm).
+  below 0 %: warning), cross-charge (battery-to-battery current into a traction battery above
+  its charge limit, whatever the charger does: alarm), cross-discharge (a traction battery
+  giving more than 2 A to other batteries for more than 10 s while the dock charges: alarm)
+  and load loss (the load got less than it asked for: alarm). The battery-to-battery share of
+  a battery's current is :func:`packpilot.sim.metrics.cross_current`'s, per battery.
 
 The checks are streaming (:class:`PhysicsWatch` takes the trace in chunks of any length), so
 the dashboard feeds it as samples arrive and a finished run feeds its whole trace at once, with
@@ -51,8 +54,12 @@ LOAD_LOSS_ABS_A = 0.05
 """The load counts as unsupplied when it got less than its demand by more than 1 % and 50 mA
 (the bus solve is exact; this only keeps rounding out)."""
 CHARGER_IDLE_A = 0.01
-"""A charger delivering at most this is not charging: current into a battery then comes from
-another battery."""
+"""A charger delivering at most this is not charging."""
+CROSS_DISCHARGE_A = 2.0
+CROSS_DISCHARGE_S = 10.0
+"""A traction battery that gives more than 2 A to other batteries for more than 10 s while
+the dock charges is discharging into its siblings: what staged charging exists to avoid
+(issue #24 item 3's acceptance bound)."""
 
 _CH = {name: k for k, name in enumerate(BATTERY_CHANNELS)}
 
@@ -276,6 +283,9 @@ class PhysicsWatch:
             self._checks[("cell", s)] = _Check("OverDischarge", over, alarm, name)
             self._checks[("soc", s)] = _Check("OverDischarge", over, warning, name)
             self._checks[("cross", s)] = _Check("CrossCharge", "crosscharge", alarm, name)
+            self._checks[("xdsg", s)] = _Check("CrossDischarge", "crosscharge", alarm, name)
+        self._xdsg_run_s = np.zeros(n)
+        """Per string: how long its cross-discharge has lasted at the end of the last chunk."""
         self._checks[("load", n)] = _Check("LoadLoss", "unsupplied", Severity.ALARM, None)
         self._last_t_s = math.nan
 
@@ -301,15 +311,22 @@ class PhysicsWatch:
             cell_v = battery[:, :, _CH["min_cell_v"]]
             soc = battery[:, :, _CH["soc"]]
             limit_a = self.limits.charge_c * battery[:, :, _CH["full_ah"]]
-            into_a = -battery[:, :, _CH["current_a"]]
-            idle = (charger_a <= CHARGER_IDLE_A)[:, None] & self._traction[None, :]
+            into_s, out_s = _battery_to_battery(
+                battery[:, :, _CH["current_a"]], self._traction, charger_a
+            )
+            charging = (charger_a > CHARGER_IDLE_A)[:, None] & self._traction[None, :]
             short_a = demand_a - load_a
             lost = short_a > np.maximum(LOAD_LOSS_REL * demand_a, LOAD_LOSS_ABS_A)
         for s in range(len(self.limits.names)):
             self._column(("cell", s), t_s, dt, cell_v[:, s] < self._v_min[s], -cell_v[:, s])
             self._column(("soc", s), t_s, dt, soc[:, s] < 0.0, -soc[:, s])
-            over = idle[:, s] & (into_a[:, s] > limit_a[:, s])
-            self._column(("cross", s), t_s, dt, over, into_a[:, s], limit_a[:, s])
+            over = self._traction[s] & (into_s[:, s] > limit_a[:, s])
+            self._column(("cross", s), t_s, dt, over, into_s[:, s], limit_a[:, s])
+            raw = charging[:, s] & (out_s[:, s] > CROSS_DISCHARGE_A)
+            run_s = _run_lengths(raw, dt, self._xdsg_run_s[s])
+            self._xdsg_run_s[s] = run_s[-1]
+            lasting = raw & (run_s > CROSS_DISCHARGE_S)
+            self._column(("xdsg", s), t_s, dt, lasting, out_s[:, s])
         self._column(("load", len(self.limits.names)), t_s, dt, lost, short_a)
         self._last_t_s = float(t_s[-1])
 
@@ -361,7 +378,38 @@ class PhysicsWatch:
                 f"cross-charge {c.worst:.1f} A from another battery, above its charge limit"
                 f" {c.limit:.1f} A ({lim.charge_c:g}C)"
             )
+        if what == "xdsg":
+            return (
+                f"discharged up to {c.worst:.1f} A into other batteries while the dock charged"
+                f" (more than {CROSS_DISCHARGE_A:g} A for more than {CROSS_DISCHARGE_S:g} s)"
+            )
         return f"load short of its demand by up to {c.worst:.1f} A for {c.duration_s:.1f} s"
+
+
+def _battery_to_battery(current_a: F64, traction: B1, charger_a: F64) -> tuple[F64, F64]:
+    """(steps, strings) battery-to-battery current into and out of each traction battery,
+    as :func:`packpilot.sim.metrics.cross_current` shares it (0 for the aux battery)."""
+    cur = np.where(traction[None, :], current_a, 0.0)
+    chg = np.maximum(-cur, 0.0)
+    dsg = np.maximum(cur, 0.0)
+    big_c = chg.sum(axis=1)
+    big_d = dsg.sum(axis=1)
+    flow = np.maximum(big_c - np.maximum(charger_a, 0.0), 0.0)
+    into = chg * (flow / np.where(big_c > 0.0, big_c, 1.0))[:, None]
+    out = dsg * (flow / np.where(big_d > 0.0, big_d, 1.0))[:, None]
+    return into, out
+
+
+def _run_lengths(cond: B1, dt: F64, carry_s: float) -> F64:
+    """How long ``cond`` has held at each sample (s; 0 where it does not), continuing a run of
+    ``carry_s`` from the previous chunk."""
+    held = np.where(cond, dt, 0.0)
+    total = np.cumsum(held)
+    start = np.maximum.accumulate(np.where(cond, 0.0, total))
+    run = total - start
+    first_break = int(np.argmin(cond)) if not cond.all() else cond.size
+    run[:first_break] += carry_s
+    return np.where(cond, run, 0.0)
 
 
 # --------------------------------------------------------------------------- a run

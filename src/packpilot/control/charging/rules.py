@@ -385,9 +385,64 @@ def _set_top_off(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, s
 
 
 @kernel_inline
+def _join_ok(st: ChargingState, p: int, v_ref: float, cmd_v: float, i_stage_a: float) -> float:
+    """Takes out of the plan in the ``new_*`` rows every battery whose relay it would close
+    although that battery would not be *charged* once closed (issue #24 item 3); returns the
+    highest IR-compensated voltage of those (−inf: every join is fit). Batteries already
+    connected stay.
+
+    The plan's bus is predicted as it settles with the charger in current limit:
+    (I + Σ v_est_k/R_k) / (Σ 1/R_k) over the plan's batteries, capped at ``cmd_v`` (in voltage
+    limit the bus is held there), with v_est the IR-compensated (rest) voltages and R the
+    learned, settled resistances; a closing battery is charged iff its v_est is at most that.
+    The highest unfit battery waits and the rest are predicted again. The bus measured now
+    (``v_ref``, the charging batteries' terminal voltage) is *not* the test: it carries their
+    RC polarization, which decays once the current is shared, and a battery that joined on it
+    (96/96.4/97 V at 20 A) discharged at up to 10 A for 80 s as it did. Without a learned R the
+    measured bus is used, and with nothing charging either only the lowest batteries (ties
+    within 1 mV) close; the others join from the next periods' estimates.
+    """
+    n = st.elig.shape[1]
+    est, r_use = st.est[p], st.r_use[p]
+    worst = -math.inf
+    lo = math.inf
+    known = True
+    for i in range(n):
+        if st.new_members[p, i]:
+            lo = fmin(lo, est[i])
+            known = known and r_use[i] > 0.0
+    while True:
+        g = 0.0
+        x = i_stage_a
+        hi = -math.inf
+        top = -1
+        for i in range(n):
+            if st.new_members[p, i]:
+                if known:
+                    g += 1.0 / r_use[i]
+                    x += est[i] / r_use[i]
+                if not st.members[p, i] and est[i] > hi:
+                    hi = est[i]
+                    top = i
+        if known and g > 0.0:
+            bus = fmin(cmd_v, x / g)
+        elif not math.isnan(v_ref):
+            bus = v_ref
+        else:
+            bus = lo + 1e-3
+        if top < 0 or hi <= bus:
+            return worst
+        st.new_members[p, top] = False
+        worst = fmax(worst, hi)
+
+
+@kernel_inline
 def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: int,
-           t_s: float) -> None:  # fmt: skip
-    """Decide afresh from the levels of the eligible batteries (non-empty), and latch it."""
+           t_s: float, v_ref: float, plan_ok: bool, n_elig: int) -> None:  # fmt: skip
+    """Decide afresh from the levels of the eligible batteries (non-empty), and latch it,
+    unless a relay it would close is unfit (:func:`_join_ok`): then a latched plan that is
+    still whole keeps running (it raises the bus towards the waiting battery), else the plan
+    is latched without the unfit batteries."""
     n = st.elig.shape[1]
     est = st.est[p]
     count = 0
@@ -401,6 +456,10 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
     st.new_members[p].fill(False)
     st.new_first[p].fill(False)
     st.new_second[p].fill(False)
+    stage = S30
+    vr1 = math.nan
+    vt = math.nan
+    vr2 = math.nan
     if n_levels == 1:
         vp = math.nan
         for k in range(count):
@@ -415,41 +474,61 @@ def _fresh(prm: ChargingParams, st: ChargingState, p: int, ev: EventBuf, src: in
             # the S40 step just ended by reaching Vr2 (within reach_tol: CV only approaches
             # it): the batteries are at Vr2 for the S40 test, which is exactly ΔV2 from there
             v_at = fmax(vp, st.vr2_v[p])
+        elif st.stage[p] == S30 and vp >= st.vt_v[p] - prm.reach_tol:
+            v_at = fmax(vp, st.vt_v[p])  # likewise an S30 that ended by reaching its Vt
         if prm.v_sat - v_at > prm.delta_v2 + prm.s40_hysteresis:  # S40 [T]: V_sat − V > ΔV2
+            stage = S40
             vr2 = fmin(prm.v_sat, vp + prm.delta_v2)
             cmd_v = fmin(prm.v_sat, vr2 + prm.k3)
-            _set_plan(st, p, S40, cmd_v, math.nan, math.nan, vr2, WHY_NONE, ev, src, t_s)
         else:
-            _set_plan(st, p, TOP_OFF, prm.v_sat, math.nan, math.nan, math.nan, WHY_NONE, ev,
-                      src, t_s)  # fmt: skip
-        return
-    v1 = math.nan
-    v2 = math.nan
-    vt = math.nan
-    for k in range(count):
-        i = idx[order[k]]
-        lv = level[k]
-        if lv == 0:
-            st.new_first[p, i] = True
-            st.new_members[p, i] = True
-            v1 = est[i] if math.isnan(v1) else fmax(v1, est[i])
-        elif lv == 1:
-            st.new_second[p, i] = True
-            st.new_members[p, i] = True
-            v2 = est[i] if math.isnan(v2) else fmin(v2, est[i])
-        elif lv == 2 and math.isnan(vt):
-            vt = est[i]  # the lowest of the third level (first in sorted order)
-    vr1 = v2 - prm.d1
-    if v1 < vr1:
-        _set_row(st.new_members, p, st.new_first[p])
-        cmd_v = fmin(prm.v_sat, vr1 + prm.k1)
-        _set_plan(st, p, S20, cmd_v, vr1, math.nan, math.nan, WHY_NONE, ev, src, t_s)
-        return
-    if n_levels < 3:
-        vt = prm.v_sat if prm.target_saturation else v2 + prm.step
-    vt = fmin(vt, prm.v_sat)
-    cmd_v = fmin(prm.v_sat, vt + prm.k2)
-    _set_plan(st, p, S30, cmd_v, vr1, vt, math.nan, WHY_NONE, ev, src, t_s)
+            stage = TOP_OFF
+            cmd_v = prm.v_sat
+    else:
+        v1 = math.nan
+        v2 = math.nan
+        for k in range(count):
+            i = idx[order[k]]
+            lv = level[k]
+            if lv == 0:
+                st.new_first[p, i] = True
+                st.new_members[p, i] = True
+                v1 = est[i] if math.isnan(v1) else fmax(v1, est[i])
+            elif lv == 1:
+                st.new_second[p, i] = True
+                st.new_members[p, i] = True
+                v2 = est[i] if math.isnan(v2) else fmin(v2, est[i])
+        vr1 = v2 - prm.d1
+        if v1 < vr1:
+            stage = S20
+            _set_row(st.new_members, p, st.new_first[p])
+            cmd_v = fmin(prm.v_sat, vr1 + prm.k1)
+        else:
+            # S30 [T]: Vt "according to the second battery voltage" (issue #24 item 4):
+            # V2 + step_v (example 1: 90 -> 100 V, example 3: 90 -> 100, then 100 -> 110 V);
+            # 'saturation' mode: V_sat once no third level is left (example 4: 120 V)
+            vt = v2 + prm.step
+            if prm.target_saturation and n_levels < 3:
+                vt = prm.v_sat
+            vt = fmin(vt, prm.v_sat)
+            cmd_v = fmin(prm.v_sat, vt + prm.k2)
+    n_new = 0
+    for i in range(n):
+        n_new += 1 if st.new_members[p, i] else 0
+    i_stage = stage_current(
+        prm.charger_current_limit_a, prm.current_sqrt, prm.full_current_a,
+        prm.has_battery_limit, prm.battery_current_limit_a, n_new, n_elig,
+    )  # fmt: skip
+    worst = _join_ok(st, p, v_ref, cmd_v, i_stage)
+    if worst > -math.inf and plan_ok and st.cmd_v[p] > worst:
+        adds = False
+        for i in range(n):
+            adds = adds or (st.new_members[p, i] and not st.members[p, i])
+        if not adds:
+            return  # the latched plan goes on charging: its bus rises towards the waiting one
+    # else latch the plan without the unfit batteries (they join from a later decision: each
+    # is within eps_eq of the connected level, or the latched plan could not go on or could
+    # not lift the bus above it)
+    _set_plan(st, p, stage, cmd_v, vr1, vt, vr2, WHY_NONE, ev, src, t_s)
 
 
 @kernel_inline
@@ -744,19 +823,24 @@ def step_pack(
                         keep = keep and elig[i]  # a connected battery dropped out: regroup
                         hi = est[i] if hi == -math.inf else fmax(hi, est[i])
                         lo = est[i] if lo == math.inf else fmin(lo, est[i])
+                # another battery at or below the connected level: regroup. An S30 does so
+                # once its batteries are within d1 of the next level, i.e. at that pair's Vr1,
+                # where the next stage's S20 would end (its charge to Vt goes past the next
+                # level; met only within eps_eq, the levels merge and the stage after is an
+                # S40 step instead of the source's S30 of example 3/4's stage 2)
+                near = fmax(prm.eps_eq, prm.d1) if stage == S30 else 0.0
                 for i in range(n):
-                    if elig[i] and not st.members[p, i] and est[i] <= hi + prm.eps_eq:
-                        keep = False  # another battery is at or below the connected level
+                    if elig[i] and not st.members[p, i] and (
+                        est[i] <= hi + prm.eps_eq or est[i] <= hi + near
+                    ):
+                        keep = False
                 if keep and stage == S20:
                     keep = lo < st.vr1_v[p]
                 elif keep and stage == S30:
-                    merged = hi - lo <= prm.eps_eq
-                    reached = lo >= st.vt_v[p] - prm.reach_tol
-                    if prm.target_saturation and st.vt_v[p] == prm.v_sat:
-                        # saturation mode (spec example 4): S30 charges G1 ∪ G2 to V_sat
-                        # itself; the merge of the groups is no hand-over to S40
-                        merged = False
-                    keep = not (merged or reached)
+                    # S30 [T] charges the first and second batteries until both reach Vt: the
+                    # merge of the two groups is no exit (issue #24 item 4; until then
+                    # 'levels' mode re-grouped at the merge and never reached Vt)
+                    keep = lo < st.vt_v[p] - prm.reach_tol
                 elif keep:
                     keep = lo < st.vr2_v[p] - prm.reach_tol and hi - lo <= prm.delta_v1
             if n_elig == 0:
@@ -770,7 +854,16 @@ def step_pack(
                 if changed:
                     _set_top_off(prm, st, p, ev, src, t)
             elif not keep:
-                _fresh(prm, st, p, ev, src, t)
+                # the bus voltage measured now, if the latched plan is charging: the highest
+                # terminal voltage of its charging batteries (the bus less a relay's drop)
+                v_ref = math.nan
+                plan_ok = stage in (S20, S30, S40, TOP_OFF)
+                for i in range(n):
+                    if st.members[p, i]:
+                        plan_ok = plan_ok and elig[i]
+                        if valid[i] and amps[i] < 0.0:
+                            v_ref = volt[i] if math.isnan(v_ref) else fmax(v_ref, volt[i])
+                _fresh(prm, st, p, ev, src, t, v_ref, plan_ok, n_elig)
             if st.stage[p] == COMPLETE:
                 k = emit(ev, p, src, CHARGE_COMPLETE, -1, t)
                 ev.val[k, 0] = st.session_s[p]
