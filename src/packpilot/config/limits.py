@@ -175,12 +175,12 @@ class LimitRow(Strict):
             )
         if not 1 <= self.debounce <= MAX_DEBOUNCE:
             raise ValueError(
-                f"{who}: debounce must be 1 to {MAX_DEBOUNCE} consecutive samples, "
+                f"{who}: debounce must be >= 1 and <= {MAX_DEBOUNCE} consecutive samples, "
                 f"got {self.debounce}"
             )
         if not (_finite(self.delay_s) and 0.0 <= self.delay_s <= DETECT_DELAY_MAX_S):
             raise ValueError(
-                f"{who}: delay_s must be a time of 0 to {DETECT_DELAY_MAX_S:g} s, "
+                f"{who}: delay_s must be a finite time >= 0 and <= {DETECT_DELAY_MAX_S:g} s, "
                 f"got {self.delay_s}"
             )
         if self.latch_s is not None and not (_finite(self.latch_s) and self.latch_s >= 0.0):
@@ -281,7 +281,9 @@ class CurveTable(Strict):
             raise ValueError(f"x: must be strictly increasing, got {self.x}")
         most = QUANTITY_RANGE["chg_c_rate"][1]
         if not all(_finite(v) and 0.0 <= v <= most for v in self.c_rate):
-            raise ValueError(f"c_rate: values must be within 0..{most:g} C, got {self.c_rate}")
+            raise ValueError(
+                f"c_rate: values must be finite and >= 0 and <= {most:g} C, got {self.c_rate}"
+            )
         return self
 
     def at(self, x: float) -> float:

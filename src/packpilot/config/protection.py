@@ -167,7 +167,8 @@ class ProtectionParameter(Strict):
             )
         if not (math.isfinite(self.t_max_s) and MIN_T_MAX_S <= self.t_max_s <= MAX_T_MAX_S):
             raise ValueError(
-                f"{who}: t_max_s must be a duration of {MIN_T_MAX_S:g} to {MAX_T_MAX_S:g} s, "
+                f"{who}: t_max_s must be a positive duration of {MIN_T_MAX_S:g} to "
+                f"{MAX_T_MAX_S:g} s, "
                 f"got {self.t_max_s}"
             )
         ms = self.t_max_s * 1000.0

@@ -238,7 +238,7 @@ def _control_routes(app: FastAPI, session: Session, rules: Guard) -> None:
     async def open_recording(
         request: Request,
         recording: str = Body(..., embed=True, max_length=1000),
-        run_id: int | None = Body(None, embed=True, ge=1),
+        run_id: int | None = Body(None, embed=True, ge=1, le=2**63 - 1),
     ) -> Response:
         return await gate.switch(request, lambda: session.open_recording(recording, run_id))
 
