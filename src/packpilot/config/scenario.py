@@ -521,8 +521,8 @@ def read_toml(path: Path) -> dict[str, Any]:
     if size > MAX_FILE_BYTES:
         raise ConfigError(f"{path}: {size:,} bytes; a scenario file has at most {MAX_FILE_BYTES:,}")
     try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
+        raw = path.read_bytes().removeprefix(b"\xef\xbb\xbf")  # a UTF-8 BOM is dropped
+        data = tomllib.loads(raw.decode("utf-8"))
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError:
