@@ -164,3 +164,55 @@ def test_a_warning_on_the_way_to_a_clean_error_does_not_leak() -> None:
     res = _cli(code=GUARDED)
     assert res.returncode == 2
     assert res.stderr.splitlines() == ["error: log.csv: row 2: absurd"], res.stderr
+
+
+# ------------------------------------------------- issue #26 §3: every numeric option checked
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["run", "uav_mission", "--duration", "nan"], "--duration nan: must be"),
+        (["run", "uav_mission", "--duration", "-5"], "--duration -5.0: must be"),
+        (["run", "uav_mission", "--duration", "inf"], "--duration inf: must be"),
+        (["run", "uav_mission", "--node-id", "200"], "--node-id 200: must be 1..127"),
+        (["run", "uav_mission", "--node-id", "-1"], "--node-id -1: must be 1..127"),
+        (["run", "uav_mission", "--node-id", "0"], "--node-id 0: must be 1..127"),
+        (["run", "uav_mission", "--period", "0"], "--period 0.0: must be"),
+        (["run", "uav_mission", "--period", "nan"], "--period nan: must be"),
+        (["hil", "uav_mission", "--speed", "inf"], "--speed inf: must be"),
+        (["hil", "uav_mission", "--bms-period", "1e-9"], "--bms-period 1e-09: must be"),
+        (["hil", "uav_mission", "--timeout-periods", "0"], "--timeout-periods 0: must be"),
+        (["can-hub", "--port", "70000"], "--port 70000: must be 0..65535"),
+        (["can-hub", "--port", "-1"], "--port -1: must be 0..65535"),
+        (["dashboard", "--max-connections", "0"], "--max-connections 0: must be"),
+        (["dashboard", "--max-websockets", "-3"], "--max-websockets -3: must be"),
+        (["dashboard", "--speed", "nan"], "--speed nan: must be"),
+        (["dashboard", "--run-id", str(2**63)], f"--run-id {2**63}: must be 1..{2**63 - 1}"),
+        (["report", "x.sqlite", "--run-id", str(2**63)], f"--run-id {2**63}: must be"),
+        (["report", "x.sqlite", "--run-id", "0"], "--run-id 0: must be"),
+        (["replay", "can", "x.blf", "uav_mission", "--period", "nan"], "--period nan: must be"),
+        (["calibrate", "protection", "--cell", "uav_5ah", "--parallel", "0"], "--parallel 0"),
+        (["calibrate", "protection", "--cell", "uav_5ah", "--min-temp", "nan"], "--min-temp"),
+    ],
+)
+def test_a_numeric_option_out_of_range_is_one_line(args: list[str], needle: str) -> None:
+    """``run --duration nan`` / ``-5`` ran 0 steps and exited 0; ``--node-id 200`` and ``-1``
+    were accepted; ``report --run-id 2**63`` was a traceback (SQLite overflow). Each is refused
+    before anything opens a bus, a port or a file."""
+    res = RUNNER.invoke(app, args)
+    _one_line_error(res, needle)
+
+
+def test_a_run_id_beyond_sqlite_is_one_line_from_the_reader(tmp_path: Path) -> None:
+    """The reader itself refuses it (the dashboard's and report's common path)."""
+    from packpilot.errors import InputError
+    from packpilot.io.telemetry.reader import load_run
+
+    db = tmp_path / "run.sqlite"
+    res = RUNNER.invoke(
+        app, ["simulate", "uav_dual_parallel", "--duration", "0.3", "--db", str(db)]
+    )
+    assert res.exit_code == 0, res.output
+    with pytest.raises(InputError, match=r"run id 9223372036854775808 is not 1\.\."):
+        load_run(db, 2**63)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import copy
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -194,3 +197,146 @@ def test_the_longest_allowed_run_is_accepted() -> None:
     d = dual_pack()
     d["sim"] = {**d.get("sim", {}), "dt_s": 1e-3, "duration_s": 1.0e5}  # exactly 1e8 periods
     assert parse_config(d).sim.dt_s == 1e-3
+
+
+# ------------------------------------------------------- issue #26 §3: ranges and list sizes
+
+
+def _full_scenario() -> dict[str, Any]:
+    """Every section present with its defaults (dumped), on a two-battery pack with a charger:
+    the schema's every number, from the models, not from an example."""
+    from packpilot.config.scenario import SECTIONS, ScenarioConfig
+
+    cfg: dict[str, Any] = {
+        "pack": {
+            "batteries": [
+                {"name": "A", "cells_per_group": 6, "soc0": 0.5},
+                {"name": "B", "cells_per_group": 6, "soc0": 0.5},
+            ]
+        },
+        "controller": ["sequencing", "protection", "charging", "equalization"],
+        "charger": {"present": True, "rated_a": 50.0, "current_a": 10.0, "voltage_v": 30.0},
+        "load": {"kind": "current", "value": 5.0},
+        "balancer": {"present": True},
+    }
+    for name, model in SECTIONS.items():
+        cfg[name] = model().model_dump(mode="json", exclude_none=True)
+    full = ScenarioConfig.model_validate(cfg).model_dump(mode="json", exclude_none=True)
+    full.pop("faults")
+    return full
+
+
+def _numbers(node: Any, path: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    if isinstance(node, dict):
+        return [p for k, v in node.items() for p in _numbers(v, (*path, k))]
+    if isinstance(node, list):
+        return [p for i, v in enumerate(node) for p in _numbers(v, (*path, i))]
+    is_num = isinstance(node, int | float) and not isinstance(node, bool)
+    return [path] if is_num else []
+
+
+def _at(cfg: Any, path: tuple[Any, ...]) -> Any:
+    for key in path[:-1]:
+        cfg = cfg[key]
+    return cfg
+
+
+@pytest.mark.parametrize("value", [1e300, -1e300])
+def test_every_number_of_the_schema_has_a_physical_range(value: float) -> None:
+    """Issue #26: thresholds that switch a rule off were accepted (``i_rev = 1e300``). Every
+    number anywhere in a full scenario, set to +-1e300, is refused with the field named."""
+    full = _full_scenario()
+    parse_config(full)
+    accepted, unnamed = [], []
+    for path in _numbers(full):
+        cfg = copy.deepcopy(full)
+        _at(cfg, path)[path[-1]] = value
+        try:
+            parse_config(cfg, "f.toml")
+        except ConfigError as err:
+            names = [str(k) for k in path if not isinstance(k, int)]
+            if names[-1] not in str(err) and names[-2] not in str(err):
+                unnamed.append(f"{'.'.join(map(str, path))}: {err}")
+        else:
+            accepted.append(".".join(map(str, path)))
+    assert len(_numbers(full)) > 200
+    assert not accepted, accepted
+    assert not unnamed, unnamed
+
+
+@pytest.mark.parametrize(
+    ("section", "key", "value"),
+    [
+        ("sequencing", "i_rev", 1e300),
+        ("sequencing", "i_det", 1e300),
+        ("sequencing", "v_th", 1e300),
+        ("sequencing", "q_rev_as", 1e300),
+        ("sequencing", "i_rev", 25.0),
+        ("equalization", "dv_set_v", 9.2e18),
+        ("equalization", "dv_set_v", 1.5),
+        ("charging", "v_sat_v", 1e-12),
+        ("charger", "current_a", 1e308),
+        ("charger", "current_a", 60.0),  # above rated_a = 50
+        ("charger", "heartbeat_timeout_s", 1e6),
+        ("supervisor", "join_limit_v", 1e6),
+        ("plausibility", "range_delay_s", 1e6),
+        ("soc", "rest_current_a", 1e6),
+    ],
+)
+def test_thresholds_of_issue_26_are_refused(section: str, key: str, value: float) -> None:
+    cfg = _full_scenario()
+    cfg[section][key] = value
+    with pytest.raises(ConfigError, match=rf"f\.toml: {section}\b.*{key}"):
+        parse_config(cfg, "f.toml")
+
+
+def test_repeated_method_in_controller_is_refused() -> None:
+    cfg = _full_scenario()
+    cfg["controller"] = ["protection", "protection"]
+    with pytest.raises(ConfigError, match=r"controller: each method runs once; repeated: prot"):
+        parse_config(cfg, "f.toml")
+
+
+def test_more_methods_than_exist_is_refused_before_each_is_checked() -> None:
+    cfg = _full_scenario()
+    cfg["controller"] = ["protection", "sequencing", "charging", "equalization"] * 4
+    with pytest.raises(ConfigError, match=r"controller: at most 4 methods"):
+        parse_config(cfg, "f.toml")
+
+
+def test_t_max_below_a_millisecond_is_refused() -> None:
+    """``t_max_s = 1e-12`` rounded to 0 ms passed and divided by zero compiling the table."""
+    cfg = _full_scenario()
+    cfg["protection"]["parameters"][0]["t_max_s"] = 1e-12
+    with pytest.raises(ConfigError, match=r"protection\.parameters\.0.*t_max_s.*0\.001"):
+        parse_config(cfg, "f.toml")
+
+
+def test_a_million_entry_list_is_refused_at_once(tmp_path: Path) -> None:
+    """A 10^6-entry list took 34 s and 5.4 GB before a traceback: the length is checked on the
+    parsed TOML first (and a file past 1 MiB is not parsed at all)."""
+    cfg = _full_scenario()
+    cfg["limits"]["rows"] = cfg["limits"]["rows"] * 50  # 1,200 rows, well under 1 MiB
+    t0 = time.perf_counter()
+    with pytest.raises(
+        ConfigError, match=r"f\.toml: limits\.rows: at most 1,024 entries, got 1,200"
+    ):
+        parse_config(cfg, "f.toml")
+    p = tmp_path / "big.toml"
+    p.write_text("[pack]\nbatteries = [" + "0," * 1_000_000 + "]\n")
+    with pytest.raises(ConfigError, match=r"big\.toml: 2,000,0\d\d bytes; a scenario file has at"):
+        load_config(p)
+    assert time.perf_counter() - t0 < 2.0
+
+
+def test_a_table_whose_coverage_grid_is_too_large_is_refused_before_the_check() -> None:
+    cfg = _full_scenario()
+    rows = [
+        {"param": "P1", "ranges": {"current_a": f"({k}, {k + 1}]", "temp_c": f"({k}, {k + 1}]"}}
+        for k in range(250)
+    ]  # 250 rows x 503 x 503 grid cells: minutes of coverage check
+    cfg["protection"]["table"] = rows
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match=r"protection.*grid too large"):
+        parse_config(cfg, "f.toml")
+    assert time.perf_counter() - t0 < 2.0

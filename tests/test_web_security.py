@@ -261,17 +261,134 @@ def test_half_open_connections_are_capped_and_timed_out(server: Dashboard) -> No
         s.sendall(b"GET /api/status HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
     time.sleep(0.3)
     try:
-        extra = socket.create_connection(("127.0.0.1", server.port), timeout=5)
-        assert closed_by_server(extra, 1.0), "a 9th connection was kept beyond the cap of 8"
-        extra.close()
+        # at the cap, a new request evicts the oldest connection not being served (issue #26:
+        # it used to be refused, so trickling clients locked every normal request out)
+        assert get(server.port).startswith(b"HTTP/1.1 200")
+        assert closed_by_server(idle[0], 0.5), "the oldest idle connection was kept"
         assert time.monotonic() - t0 < 1.4  # all of that before the header timeout
-        for s in idle + trickle:  # the header timeout (1.5 s) frees every slot
+        for s in idle[1:] + trickle:  # the header timeout (1.5 s) frees every slot
             assert closed_by_server(s, 5.0), "a half-open connection was never closed"
         assert time.monotonic() - t0 >= 1.4
     finally:
         for s in idle + trickle:
             s.close()
     assert get(server.port).startswith(b"HTTP/1.1 200")  # served again
+
+
+def test_connections_beyond_the_cap_are_refused_when_all_are_being_served(
+    server: Dashboard,
+) -> None:
+    """Eviction takes only connections not being served: WebSockets (served) hold their
+    slots, and a new connection beyond the cap is closed at once."""
+    import websockets.sync.client as wsc
+
+    url = f"ws://127.0.0.1:{server.port}/ws"
+    socks = [wsc.connect(url, open_timeout=5) for _ in range(2)]  # max_websockets = 2
+    try:
+        held = [socket.create_connection(("127.0.0.1", server.port), timeout=5) for _ in range(5)]
+        time.sleep(0.2)
+        assert get(server.port).startswith(b"HTTP/1.1 200")  # evicts an idle one
+        assert sum(closed_by_server(s, 0.3) for s in held) >= 1
+        for s in held:
+            s.close()
+    finally:
+        for w in socks:
+            w.close()
+
+
+@pytest.fixture
+def busy_server() -> Iterator[Dashboard]:
+    """The default connection cap (64), a 1 s body timeout."""
+    yield from _serving(Dashboard(host="127.0.0.1", port=0, body_timeout_s=1.0))
+
+
+@pytest.fixture
+def default_server() -> Iterator[Dashboard]:
+    """Every limit at its default (a 10 s body timeout: not what frees the slots below)."""
+    yield from _serving(Dashboard(host="127.0.0.1", port=0))
+
+
+def _serving(dash: Dashboard) -> Iterator[Dashboard]:
+    thread = threading.Thread(target=dash.serve, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while dash.server is None or not dash.server.started:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    yield dash
+    dash.stop()
+    thread.join(10)
+
+
+SLOW_POST = (
+    b"POST /api/speed HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+    b"Content-Length: 1000\r\n\r\n{"
+)
+
+
+def test_a_normal_request_is_served_within_1s_while_200_slow_bodies_are_open(
+    default_server: Dashboard,
+) -> None:
+    """Issue #26: 63 connections sending a POST head and trickling the body held every slot
+    (>= 34 s) while everything else got 503."""
+    slow: list[socket.socket] = []
+    try:
+        for k in range(200):
+            s = socket.create_connection(("127.0.0.1", default_server.port), timeout=5)
+            s.sendall(SLOW_POST)
+            slow.append(s)
+            if k < 63:
+                time.sleep(0.01)  # the first 63 settle one by one: every slot of the cap of 64
+        time.sleep(0.2)
+        for _ in range(3):
+            t0 = time.monotonic()
+            reply = get(default_server.port)
+            assert reply.startswith(b"HTTP/1.1 200"), reply[:80]
+            assert time.monotonic() - t0 < 1.0
+    finally:
+        for s in slow:
+            s.close()
+
+
+def test_a_trickled_body_is_cut_after_the_body_timeout(busy_server: Dashboard) -> None:
+    """An authenticated request whose handler waits for its body: the body timer (1 s here)
+    closes it, however the bytes trickle."""
+    s = socket.create_connection(("127.0.0.1", busy_server.port), timeout=5)
+    try:
+        t0 = time.monotonic()
+        s.sendall(
+            b"POST /api/speed HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 100\r\n"
+            + f"X-PackPilot-Token: {busy_server.guard.token}\r\n\r\n".encode()
+            + b'{"speed": '
+        )
+        for _ in range(3):  # a byte every 0.2 s: the head timer no longer runs, the body's does
+            time.sleep(0.2)
+            s.sendall(b" ")
+        assert closed_by_server(s, 3.0), "a trickled body was never cut"
+        assert 0.9 <= time.monotonic() - t0 < 3.0
+    finally:
+        s.close()
+
+
+@pytest.mark.parametrize(
+    ("head", "status"),
+    [
+        (b"Content-Length: 200000000\r\n", b"413"),  # 200 MB, unauthenticated
+        (b"Content-Length: 99999999999999999999999\r\n", b"400"),  # h11's own refusal
+        (b"Transfer-Encoding: chunked\r\n", b"411"),
+    ],
+)
+def test_an_oversized_body_is_refused_by_its_size_before_authentication(
+    busy_server: Dashboard, head: bytes, status: bytes
+) -> None:
+    """An unauthenticated 200 MB body was read in full before its 403: now the declared
+    size is refused at once, with no token and before a byte of the body is sent."""
+    with socket.create_connection(("127.0.0.1", busy_server.port), timeout=5) as s:
+        t0 = time.monotonic()
+        s.sendall(b"POST /api/speed HTTP/1.1\r\nHost: 127.0.0.1\r\n" + head + b"\r\n")
+        reply = s.recv(4096)
+        assert reply.startswith(b"HTTP/1.1 " + status), reply[:80]
+        assert time.monotonic() - t0 < 1.0
 
 
 def test_a_keep_alive_client_is_not_cut_off(server: Dashboard) -> None:

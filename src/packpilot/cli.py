@@ -309,6 +309,35 @@ def _with_duration(cfg: ScenarioConfig, duration: float | None) -> ScenarioConfi
     return _revalidated(cfg, "sim", {"duration_s": duration}, "--duration")
 
 
+PERIOD_RANGE_S = (1e-4, 10.0)
+"""A BMS period on the command line: the range of ``sim.dt_s`` (0.1 ms to 10 s)."""
+MAX_RUN_ID = 2**63 - 1
+"""Largest run id SQLite can hold (a signed 64-bit integer; 2^63 raised OverflowError)."""
+DRONECAN_NODE_IDS = (1, 127)
+"""DroneCAN node ids a node may take (0 is anonymous, 7 bits)."""
+MAX_SPEED = 1e6
+"""Fastest ``--speed`` (simulated s per wall s; 0 = as fast as possible)."""
+
+
+def check_option(option: str, value: float | None, lo: float, hi: float, unit: str = "") -> None:
+    """A numeric option within ``lo..hi`` (NaN and inf fail), else one line naming it
+    (``run --duration nan`` ran 0 steps and exited 0; ``--node-id 200`` was accepted)."""
+    if value is None:
+        return
+    from packpilot.errors import ConfigError
+
+    if not lo <= value <= hi:
+        ends = "..".join(f"{x:g}" if isinstance(x, float) else str(x) for x in (lo, hi))
+        raise ConfigError(f"{option} {value!r}: must be {ends}{unit}")
+
+
+def _check_duration(duration: float | None) -> None:
+    """``--duration`` of a run that has no scenario duration to validate it against."""
+    from packpilot.config.base import MAX_TIME_S
+
+    check_option("--duration", duration, 1e-4, MAX_TIME_S, " s")
+
+
 def _revalidated(
     cfg: ScenarioConfig, section: str, update: dict[str, Any], option: str
 ) -> ScenarioConfig:
@@ -448,6 +477,8 @@ def calibrate_protection_cmd(
         from packpilot.model.cell.calibrate import calibrate_protection, to_toml
         from packpilot.model.cell.params import PARAMETER_SETS
 
+        check_option("--parallel", parallel, 1, 64)
+        check_option("--min-temp", min_temp, -100.0, 100.0, " degC")
         params = load_parameter_set(cell) if cell in PARAMETER_SETS else load_parameter_file(cell)
         cfg, cells = calibrate_protection(params, soc_floor, parallel=parallel, min_temp_c=min_temp)
         header = (
@@ -486,6 +517,7 @@ def report(
     def go() -> None:
         from packpilot.report.html import report_from_db
 
+        check_option("--run-id", run_id, 1, MAX_RUN_ID)
         target = out if out is not None else default_report_path(db, run_id)
         path = report_from_db(db, target, run_id, can_log)
         typer.echo(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
@@ -815,10 +847,11 @@ def dashboard(
         from packpilot.web.recorded import is_sqlite
         from packpilot.web.session import RECORDING_SUFFIXES, Library
 
-        if speed < 0 or speed != speed:
-            raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
-        if not 0 <= port <= 65535:
-            raise ConfigError(f"--port {port}: must be 0..65535")
+        check_option("--speed", speed, 0.0, MAX_SPEED, " (0 = as fast as possible)")
+        check_option("--port", port, 0, 65535)
+        check_option("--run-id", run_id, 1, MAX_RUN_ID)
+        check_option("--max-websockets", max_websockets, 1, 10_000)
+        check_option("--max-connections", max_connections, 1, 10_000)
         if runs_dir is not None and not runs_dir.is_dir():
             raise ConfigError(f"--runs-dir {runs_dir}: not a directory")
         if db is not None:
@@ -932,6 +965,9 @@ def run(
     def go() -> dict[str, Any]:
         from packpilot.runtime.bms import BmsRuntime, RuntimeOptions
 
+        check_option("--period", period, *PERIOD_RANGE_S, " s")
+        _check_duration(duration)
+        check_option("--node-id", node_id, *DRONECAN_NODE_IDS, " (a DroneCAN node id)")
         cfg = _load(scenario_path(config), None)
         _check_outputs(db=db, can_log=can_log)
         opts = RuntimeOptions(
@@ -997,16 +1033,14 @@ def hil(
     """The simulated pack as CAN nodes (batteries, switches, charger, inverter) for `run`."""
 
     def go() -> dict[str, Any]:
-        from packpilot.errors import ConfigError
         from packpilot.io.can.bus import FrameLog, open_bus
         from packpilot.runtime.bms import filters
         from packpilot.runtime.hil import Hil, run_realtime
         from packpilot.runtime.lockstep import REQUEST_ONLY
 
-        if not speed >= 0:
-            raise ConfigError(f"--speed {speed}: must be >= 0 (0 = as fast as possible)")
-        if not (bms_period > 0 and 1 <= timeout_periods <= 1000):
-            raise ConfigError("--bms-period must be > 0 and --timeout-periods 1..1000")
+        check_option("--speed", speed, 0.0, MAX_SPEED, " (0 = as fast as possible)")
+        check_option("--bms-period", bms_period, *PERIOD_RANGE_S, " s")
+        check_option("--timeout-periods", timeout_periods, 1, 1000)
         kw = _can_args(can_arg)
         cfg = _load(scenario_path(config), duration)
         _check_outputs(can_log=can_log)
@@ -1062,6 +1096,7 @@ def can_hub(
     def go() -> dict[str, int]:
         from packpilot.io.can.hub import CanHub
 
+        check_option("--port", port, 0, 65535)
         hub = CanHub(host, port, allow_remote=allow_remote)
         addr, bound = hub.start()
         _sigterm_interrupts()
@@ -1118,13 +1153,11 @@ def replay_can_cmd(
     Same as `packpilot run CONFIG --replay-log LOG`."""
 
     def go() -> dict[str, Any]:
-        from packpilot.errors import ConfigError
         from packpilot.runtime.bms import RuntimeOptions
 
         cfg = _load(scenario_path(config), None)
         _check_outputs(db=db)
-        if not period > 0:
-            raise ConfigError(f"--period {period}: must be > 0")
+        check_option("--period", period, *PERIOD_RANGE_S, " s")
         opts = RuntimeOptions(period_s=period, dronecan_ids=_ids(dronecan_ids),
                               allow_unmonitored=allow_unmonitored)  # fmt: skip
         return _replay_frames(cfg, log, opts, db)
@@ -1138,6 +1171,7 @@ def _print_runtime(metrics: dict[str, Any], as_json: bool) -> None:
         return
     for k, v in metrics.items():
         typer.echo(f"{k:>24}  {_metric_text(v)}")
+
 
 def _runner(cfg: ScenarioConfig) -> Any:
     from packpilot.sim.runner import Runner

@@ -28,6 +28,6 @@ def read_text(path: Path, what: str) -> str:
     if not path.is_file():
         raise InputError(f"{path}: {what} is not a file")
     try:
-        return path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8-sig")  # a leading BOM (Excel's CSV) is dropped
     except UnicodeDecodeError:
         raise InputError(f"{path}: {what} is not a UTF-8 text file") from None

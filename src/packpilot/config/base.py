@@ -37,6 +37,35 @@ MAX_TIME_S = 1e9
 10 s). Larger values are typos, and a time of 1e308 s overflows once it becomes milliseconds."""
 CELL_V_MAX_V = 5.0
 """No cell chemistry PackPilot models rests above 5 V: a per-cell voltage beyond it is absurd."""
+CELL_V_FULL_MIN_V = 2.0
+"""Lowest full-charge voltage of any cell chemistry (LTO charges to 2.8 V): a saturation or
+cell voltage limit below it means no cell could ever be charged (``v_sat_v = 1e-12``)."""
+MAX_CURRENT_A = 1e5
+"""Largest current a load, a charger, a converter or a limit may name (100 kA)."""
+MAX_VOLTAGE_V = 1e4
+"""Largest pack-level voltage a setting may name (10 kV)."""
+DETECT_MAX_A = 20.0
+"""Largest dead band of a current-detection rule (diode conduction, reverse cut, rest,
+discharge / charge detection): it must sit above sensor noise and offset (0.5 % of a 1 kA
+sensor is 5 A) and below the currents it tells apart; a larger one switches the rule off in
+every pack PackPilot models (``i_rev = 1e300`` was accepted)."""
+SPREAD_MAX_V = 100.0
+"""Largest voltage *difference* threshold between batteries, or margin above a battery voltage:
+the full-to-empty swing of the highest battery a scenario can hold (64 series groups x 1.7 V
+= 109 V) rounded down. A larger spread is never reached, so the rule it guards never acts."""
+GROUP_DV_MAX_V = 1.0
+"""Largest voltage-difference threshold between series groups (cell level): more than half of
+a Li-ion cell's 1.7 V full-to-empty swing (``dv_set_v = 9.2e18`` was accepted)."""
+DETECT_DELAY_MAX_S = 60.0
+"""Longest delay before a plausibility or limit violation counts: a 2 C charge moves a cell
+~3 % SOC per minute, so a longer delay lets a fault act unseen (a delay of 1e9 s switches
+the check off)."""
+OHM_MAX = 10.0
+"""Largest battery or cell resistance a setting may name (a coin cell's 10 Ohm)."""
+MAX_LIST_ITEMS = 1024
+"""Longest array (and largest table) anywhere in a scenario file, checked on the parsed TOML
+before validation: the schema's longest list (a protection table) needs a few hundred rows;
+a 10^6-entry list took 34 s and 5.4 GB before a traceback."""
 
 Seconds = Annotated[
     float, Field(ge=0, le=MAX_TIME_S, allow_inf_nan=False), AfterValidator(plus_zero)
@@ -174,11 +203,40 @@ def _clip(text: str, limit: int = MAX_SHOWN_CHARS) -> str:
     return f"{text[: limit - 1]}… ({len(text):,} chars)"
 
 
+def oversized(node: Any, path: str = "") -> tuple[str, int] | None:
+    """The first array or table in parsed TOML longer than :data:`MAX_LIST_ITEMS`, as
+    ``(dotted path, length)``, or None. Runs before pydantic, which would validate every
+    element of a 10^6-entry list (and some validators are quadratic in it) before its length
+    check fired."""
+    if isinstance(node, dict | list) and len(node) > MAX_LIST_ITEMS:
+        return path, len(node)
+    items = (
+        node.items()
+        if isinstance(node, dict)
+        else enumerate(node)
+        if isinstance(node, list)
+        else ()
+    )
+    for key, child in items:
+        if isinstance(child, dict | list):
+            hit = oversized(
+                child, f"{path}.{_printable(str(key))}" if path else _printable(str(key))
+            )
+            if hit is not None:
+                return hit
+    return None
+
+
 def load_section_model(
     cls: type[M], data: Mapping[str, Any] | None, section: str, source: str
 ) -> M:
     """Validate ``data`` as ``cls``; a bad value becomes a one-line :class:`ConfigError`
     naming the source, the section and the field (``limits.rows.3``)."""
+    big = oversized(dict(data or {}))
+    if big is not None:
+        where, n = big
+        loc = f"{section}.{where}" if where else section
+        raise ConfigError(f"{source}: {loc}: at most {MAX_LIST_ITEMS:,} entries, got {n:,}")
     try:
         return cls.model_validate(dict(data or {}))
     except ValidationError as err:
@@ -186,9 +244,18 @@ def load_section_model(
 
 
 __all__ = [
+    "CELL_V_FULL_MIN_V",
     "CELL_V_MAX_V",
+    "DETECT_DELAY_MAX_S",
+    "DETECT_MAX_A",
+    "GROUP_DV_MAX_V",
+    "MAX_CURRENT_A",
+    "MAX_LIST_ITEMS",
     "MAX_SHOWN_CHARS",
     "MAX_TIME_S",
+    "MAX_VOLTAGE_V",
+    "OHM_MAX",
+    "SPREAD_MAX_V",
     "Finite",
     "Fraction",
     "NonNegFloat",
@@ -199,5 +266,6 @@ __all__ = [
     "did_you_mean",
     "fmt_error",
     "load_section_model",
+    "oversized",
     "plus_zero",
 ]

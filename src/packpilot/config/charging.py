@@ -13,7 +13,17 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
+from packpilot.config.base import (
+    CELL_V_FULL_MIN_V,
+    CELL_V_MAX_V,
+    DETECT_DELAY_MAX_S,
+    MAX_CURRENT_A,
+    MAX_VOLTAGE_V,
+    OHM_MAX,
+    SPREAD_MAX_V,
+    Strict,
+    load_section_model,
+)
 
 REFERENCE_SERIES = 30
 """Series cells of the ~100 V battery the battery-level defaults were written for; with
@@ -57,36 +67,53 @@ class ChargingConfig(Strict):
         "value / 30).",
     )
     delta_v1_v: float = Field(
-        default=3.0, gt=0.0, description="ΔV1, first voltage threshold: V2 − Vr1 stays below it."
+        default=3.0,
+        gt=0.0,
+        le=SPREAD_MAX_V,
+        description="ΔV1, first voltage threshold: V2 − Vr1 stays below it.",
     )
     d1_v: float = Field(
         default=1.0,
         ge=0.0,
+        le=SPREAD_MAX_V,
         description="Vr1 = V2 − d1 (first regulation voltage); d1 < ΔV1. Unset: min(1 V, ΔV1/3).",
     )
     vc1_margin_v: float = Field(
-        default=3.0, ge=0.0, description="Vc1 = Vr1 + this (S20 charging voltage, ≥ Vr1)."
+        default=3.0,
+        ge=0.0,
+        le=SPREAD_MAX_V,
+        description="Vc1 = Vr1 + this (S20 charging voltage, ≥ Vr1).",
     )
     vc2_margin_v: float = Field(
-        default=0.0, ge=0.0, description="Vc2 = Vt + this (S30 charging voltage, ≥ Vt)."
+        default=0.0,
+        ge=0.0,
+        le=SPREAD_MAX_V,
+        description="Vc2 = Vt + this (S30 charging voltage, ≥ Vt).",
     )
     vc3_margin_v: float = Field(
-        default=0.0, ge=0.0, description="Vc3 = Vr2 + this (S40 charging voltage, ≥ Vr2)."
+        default=0.0,
+        ge=0.0,
+        le=SPREAD_MAX_V,
+        description="Vc3 = Vr2 + this (S40 charging voltage, ≥ Vr2).",
     )
     target_mode: Literal["levels", "saturation"] = Field(
         default="levels",
         description="S30 target Vt when no third level exists: 'levels' = V2 + step_v, "
         "'saturation' = V_sat. With a third level, Vt is that level in both modes.",
     )
-    step_v: float = Field(default=10.0, gt=0.0, description="Vt = V2 + step_v in 'levels' mode.")
+    step_v: float = Field(
+        default=10.0, gt=0.0, le=SPREAD_MAX_V, description="Vt = V2 + step_v in 'levels' mode."
+    )
     delta_v2_v: float = Field(
         default=10.0,
         gt=0.0,
+        le=SPREAD_MAX_V,
         description="ΔV2: all batteries equal and V_sat − V > ΔV2 → S40 step to V + ΔV2.",
     )
     s40_hysteresis_v: float = Field(
         default=0.0,
         ge=0.0,
+        le=SPREAD_MAX_V,
         description="Hysteresis of the S40 test, added to ΔV2: S40 when V_sat − V > ΔV2 + this. "
         "Default 0: the source's test exactly (issue #15 §3). A CV step that ended within "
         "reach_tol of its Vr2 counts as at Vr2, so no extra tiny S40 step follows without it.",
@@ -94,25 +121,39 @@ class ChargingConfig(Strict):
     eps_eq_v: float = Field(
         default=0.5,
         gt=0.0,
+        le=SPREAD_MAX_V,
         description="Equal-voltage tolerance: widest span of one level; < ΔV1. Unset: "
         "min(0.5 V, ΔV1/6).",
     )
     reach_tol_v: float = Field(
         default=0.5,
         gt=0.0,
+        le=SPREAD_MAX_V,
         description="A CV target counts as reached within this (CV approaches it only "
         "asymptotically); also the 'at V_sat' band.",
     )
-    v_sat_v: float = Field(default=120.0, gt=0.0, description="V_sat, saturated battery voltage.")
+    v_sat_v: float = Field(
+        default=120.0,
+        ge=CELL_V_FULL_MIN_V,
+        le=MAX_VOLTAGE_V,
+        description="V_sat, saturated battery voltage.",
+    )
     overvoltage_margin_v: float = Field(
-        default=1.0, gt=0.0, description="Terminal voltage above V_sat + this opens the relay."
+        default=1.0,
+        gt=0.0,
+        le=SPREAD_MAX_V,
+        description="Terminal voltage above V_sat + this opens the relay.",
     )
     charger_current_limit_a: float = Field(
-        default=20.0, gt=0.0, description="Current limit commanded to the charger (A)."
+        default=20.0,
+        gt=0.0,
+        le=MAX_CURRENT_A,
+        description="Current limit commanded to the charger (A).",
     )
     battery_current_limit_a: float | None = Field(
         default=None,
         gt=0.0,
+        le=MAX_CURRENT_A,
         description="Optional charge-current limit per connected battery (A): the charger is "
         "commanded min(charger_current_limit_a, n_connected x this), so a stage that charges "
         "few batteries does not push the whole charger current through them.",
@@ -128,6 +169,7 @@ class ChargingConfig(Strict):
     full_current_a: float | None = Field(
         default=None,
         gt=0.0,
+        le=MAX_CURRENT_A,
         description="I_full of current_law = 'sqrt': the current when all N batteries still "
         "to charge are connected (A); default charger_current_limit_a. A value above the "
         "charger limit raises the current of the small stages, the charger limit still caps it.",
@@ -135,24 +177,29 @@ class ChargingConfig(Strict):
     termination_current_a: float = Field(
         default=1.0,
         gt=0.0,
+        le=MAX_CURRENT_A,
         description="A battery at V_sat whose charge current has fallen to this is full (A).",
     )
     cell_v_limit_v: float = Field(
         default=4.2,
-        gt=0.0,
+        ge=CELL_V_FULL_MIN_V,
         le=CELL_V_MAX_V,
         description="Max cell voltage (per cell, never scaled): opens relay.",
     )
     r_comp_initial_ohm: float = Field(
         default=0.0,
         ge=0.0,
+        le=OHM_MAX,
         description="Initial internal-resistance estimate for IR compensation (Ω per battery).",
     )
     r_comp_adapt: bool = Field(
         default=True, description="Learn each battery's resistance from current steps."
     )
     r_est_min_step_a: float = Field(
-        default=2.0, gt=0.0, description="Smallest current step used to estimate resistance (A)."
+        default=2.0,
+        gt=0.0,
+        le=MAX_CURRENT_A,
+        description="Smallest current step used to estimate resistance (A).",
     )
     r_est_gain: float = Field(
         default=0.5, gt=0.0, le=1.0, description="Filter gain of the resistance estimate (0..1]."
@@ -166,10 +213,14 @@ class ChargingConfig(Strict):
     r_settle_max_ratio: float = Field(
         default=4.0,
         ge=1.0,
+        le=1000.0,
         description="A settled R above this multiple of the step R is rejected as corrupted.",
     )
     r_comp_max_ohm: float = Field(
-        default=1.0, gt=0.0, description="Estimates above this are rejected as implausible (Ω)."
+        default=1.0,
+        gt=0.0,
+        le=OHM_MAX,
+        description="Estimates above this are rejected as implausible (Ω).",
     )
     dock_rest_s: float = Field(
         default=2.0,
@@ -178,7 +229,10 @@ class ChargingConfig(Strict):
         "first sort uses rest voltages (no I·R) and the relay opening teaches R.",
     )
     charger_status_timeout_s: float = Field(
-        default=5.0, gt=0.0, description="Docked with no charger status this long → Fault."
+        default=5.0,
+        gt=0.0,
+        le=DETECT_DELAY_MAX_S,
+        description="Docked with no charger status this long → Fault.",
     )
     charger_fault_clear_s: float = Field(
         default=5.0,
@@ -199,7 +253,7 @@ class ChargingConfig(Strict):
         default=0.05, ge=0.0, lt=0.5, description="SOC hysteresis of aux charging start/stop."
     )
     aux_charge_current_a: float = Field(
-        default=5.0, gt=0.0, description="DC/DC current into the aux battery (A)."
+        default=5.0, gt=0.0, le=MAX_CURRENT_A, description="DC/DC current into the aux battery (A)."
     )
     aux_charge_from_bus: bool = Field(
         default=False,
@@ -208,10 +262,16 @@ class ChargingConfig(Strict):
         "the dock only (through its relay and module 140).",
     )
     aux_cv_v: float = Field(
-        default=14.4, gt=0.0, description="CV limit of the aux battery's terminal voltage (V)."
+        default=14.4,
+        gt=0.0,
+        le=MAX_VOLTAGE_V,
+        description="CV limit of the aux battery's terminal voltage (V).",
     )
     aux_cv_band_v: float = Field(
-        default=0.2, gt=0.0, description="Aux current tapers linearly to 0 over this band (V)."
+        default=0.2,
+        gt=0.0,
+        le=SPREAD_MAX_V,
+        description="Aux current tapers linearly to 0 over this band (V).",
     )
 
     @model_validator(mode="before")
@@ -241,6 +301,11 @@ class ChargingConfig(Strict):
         for name in (*VOLTAGE_FIELDS, "charger_current_limit_a", "termination_current_a"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"{name} must be a finite number")
+        if self.voltage_basis == "cell" and self.v_sat_v > CELL_V_MAX_V:
+            raise ValueError(
+                f"v_sat_v ({self.v_sat_v} V per cell) must be at most {CELL_V_MAX_V} V with "
+                "voltage_basis = 'cell'"
+            )
         if self.eps_eq_v >= self.delta_v1_v:
             raise ValueError(
                 f"eps_eq_v ({self.eps_eq_v}) must be smaller than delta_v1_v ({self.delta_v1_v})"

@@ -13,7 +13,7 @@ from pydantic import (
     model_validator,
 )
 
-from packpilot.config.base import Strict
+from packpilot.config.base import GROUP_DV_MAX_V, MAX_CURRENT_A, Strict
 
 MIN_PERIOD_S = 1e-4
 """Shortest T1, T2 or sampling period: the shortest control period (``sim.dt_s``); a shorter
@@ -33,6 +33,8 @@ class EqualizationConfig(Strict):
 
     dv_set_v: float = Field(
         0.005,
+        gt=0.0,
+        le=GROUP_DV_MAX_V,
         description="Preset group voltage difference ΔV_set (V). A group lags when "
         "V_avg − V_g exceeds it; must be > 0 so that at least one group always decays.",
     )
@@ -48,11 +50,14 @@ class EqualizationConfig(Strict):
     )
     n_ah: float = Field(
         0.5,
+        ge=0.0,
+        le=1.0,
         description="Newton iteration value N (Ah), 0..1: the ceiling and fixed point of AH_g "
         "under formula 1, i.e. the most extra charge one update can grant a group.",
     )
     sample_period_s: float = Field(
         1.0,
+        le=3600.0,
         description="Sampling period Ts (s) of the group voltages; steps shorter than this "
         "accumulate until a sample is due.",
     )
@@ -64,16 +69,22 @@ class EqualizationConfig(Strict):
     )
     min_current_a: float = Field(
         0.5,
+        ge=0.0,
+        le=MAX_CURRENT_A,
         description="Minimum |string current| (A) for balancing (charging or discharging); "
         "below it the equalizers idle and their remaining time is held.",
     )
     equalizer_max_a: float = Field(
         2.0,
+        gt=0.0,
+        le=MAX_CURRENT_A,
         description="Rated output current of one group equalizer (A); the string current is "
         "clamped to it in string_current mode.",
     )
     fixed_current_a: float = Field(
         1.0,
+        gt=0.0,
+        le=MAX_CURRENT_A,
         description="Fixed equalizer output current I_eq (A) used in fixed_current mode.",
     )
     balance_at_rest: bool = Field(

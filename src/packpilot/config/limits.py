@@ -22,7 +22,23 @@ from typing import Any, Literal, Protocol
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
+from packpilot.config.base import CELL_V_MAX_V, DETECT_DELAY_MAX_S, Strict, load_section_model
+
+MAX_DEBOUNCE = 100
+"""Most consecutive violating samples a row may need: 10 s at the shortest usual period
+(0.1 s); more keeps a trip from ever firing on a noisy signal."""
+MAX_ROWS = 256
+MAX_CURVE_POINTS = 64
+"""Most limit rows and derating-table points (the defaults use 24 and 6)."""
+CURVE_X_RANGE: Mapping[str, tuple[float, float]] = {
+    "cell_v": (0.0, CELL_V_MAX_V),
+    "temp_c": (-100.0, 300.0),
+    "soc": (0.0, 1.0),
+}
+"""The physical range of each derating table's input (as :data:`QUANTITY_RANGE`)."""
+CONTEXT_C_MAX = 10.0
+"""Largest C-rate below which a battery still counts as resting (not charging): beyond it a
+charge at 10 C would escape the charging-only rows."""
 
 Quantity = Literal[
     "cell_v_max", "cell_v_min", "chg_c_rate", "dsg_c_rate", "temp_max_c", "temp_min_c"
@@ -157,12 +173,16 @@ class LimitRow(Strict):
                 f"{who}: reset {self.reset} must be above threshold {self.threshold} "
                 "(the safe side of a lower limit)"
             )
-        if self.debounce < 1:
+        if not 1 <= self.debounce <= MAX_DEBOUNCE:
             raise ValueError(
-                f"{who}: debounce must be >= 1 consecutive samples, got {self.debounce}"
+                f"{who}: debounce must be >= 1 and <= {MAX_DEBOUNCE} consecutive samples, "
+                f"got {self.debounce}"
             )
-        if not (_finite(self.delay_s) and self.delay_s >= 0.0):
-            raise ValueError(f"{who}: delay_s must be a finite time >= 0 s, got {self.delay_s}")
+        if not (_finite(self.delay_s) and 0.0 <= self.delay_s <= DETECT_DELAY_MAX_S):
+            raise ValueError(
+                f"{who}: delay_s must be a finite time >= 0 and <= {DETECT_DELAY_MAX_S:g} s, "
+                f"got {self.delay_s}"
+            )
         if self.latch_s is not None and not (_finite(self.latch_s) and self.latch_s >= 0.0):
             raise ValueError(
                 f"{who}: latch_s must be a finite time >= 0 s or omitted for a manual reset, "
@@ -239,8 +259,13 @@ class CurveTable(Strict):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    x: tuple[float, ...] = Field(description="Input points, strictly increasing.")
-    c_rate: tuple[float, ...] = Field(description="Allowed current at each point, C (>= 0).")
+    x: tuple[float, ...] = Field(
+        max_length=MAX_CURVE_POINTS, description="Input points, strictly increasing."
+    )
+    c_rate: tuple[float, ...] = Field(
+        max_length=MAX_CURVE_POINTS,
+        description="Allowed current at each point, C (0..1000, the C-rate range of a limit).",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CurveTable:
@@ -254,8 +279,11 @@ class CurveTable(Strict):
             raise ValueError(f"x: values must be finite numbers, got {self.x}")
         if any(b <= a for a, b in pairwise(self.x)):
             raise ValueError(f"x: must be strictly increasing, got {self.x}")
-        if not all(_finite(v) and v >= 0.0 for v in self.c_rate):
-            raise ValueError(f"c_rate: values must be finite and >= 0, got {self.c_rate}")
+        most = QUANTITY_RANGE["chg_c_rate"][1]
+        if not all(_finite(v) and 0.0 <= v <= most for v in self.c_rate):
+            raise ValueError(
+                f"c_rate: values must be finite and >= 0 and <= {most:g} C, got {self.c_rate}"
+            )
         return self
 
     def at(self, x: float) -> float:
@@ -312,6 +340,17 @@ class DeratingConfig(Strict):
         description="Discharge limit over SOC (0..1).",
     )
 
+    @model_validator(mode="after")
+    def _x_in_range(self) -> DeratingConfig:
+        """Each table's points lie in its input's physical range (a point at 1e300 V is a
+        typo that stretches the taper over every voltage a cell can have)."""
+        for name in type(self).model_fields:
+            lo, hi = CURVE_X_RANGE[name.rsplit("_vs_", 1)[1]]
+            xs = getattr(self, name).x
+            if not lo <= min(xs) <= max(xs) <= hi:
+                raise ValueError(f"{name}.x: points must lie within {lo:g}..{hi:g}, got {xs}")
+        return self
+
     # The scalar form of the tables, for tests and tools; the BMS evaluates them compiled
     # (``packpilot.control.limits.rules``), checked equal by the equivalence test.
 
@@ -347,6 +386,7 @@ class LimitsConfig(Strict):
     rows: tuple[LimitRow, ...] = Field(
         default=DEFAULT_ROWS,
         min_length=1,
+        max_length=MAX_ROWS,
         description="The limit table; see docs/safety.md for the defaults.",
     )
     derating: DeratingConfig = Field(default_factory=DeratingConfig)
@@ -365,8 +405,11 @@ class LimitsConfig(Strict):
     def _check(self) -> LimitsConfig:
         if not (_finite(self.derate_fraction) and 0.0 <= self.derate_fraction <= 1.0):
             raise ValueError(f"derate_fraction must be within 0..1, got {self.derate_fraction}")
-        if not (_finite(self.context_current_c) and self.context_current_c >= 0.0):
-            raise ValueError(f"context_current_c must be >= 0, got {self.context_current_c}")
+        if not (_finite(self.context_current_c) and 0.0 <= self.context_current_c <= CONTEXT_C_MAX):
+            raise ValueError(
+                f"context_current_c must be within 0..{CONTEXT_C_MAX:g} C, "
+                f"got {self.context_current_c}"
+            )
         ladders: dict[str, list[int]] = {}
         for k, row in enumerate(self.rows):
             ladders.setdefault(row.limit, []).append(k)

@@ -8,7 +8,14 @@ from typing import Any
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import CELL_V_MAX_V, Strict, load_section_model
+from packpilot.config.base import (
+    CELL_V_MAX_V,
+    DETECT_DELAY_MAX_S,
+    GROUP_DV_MAX_V,
+    MAX_TIME_S,
+    Strict,
+    load_section_model,
+)
 
 
 def _finite(x: object) -> bool:
@@ -22,6 +29,23 @@ ENVELOPE: dict[str, tuple[float, float]] = {
     "soc_range": (-1.0, 2.0),
 }
 """Where each plausibility range may lie: beyond this no sensor reading is physical."""
+
+UPPER: dict[str, float] = {
+    "nonfinite_delay_s": DETECT_DELAY_MAX_S,
+    "range_delay_s": DETECT_DELAY_MAX_S,
+    "max_sample_age_s": DETECT_DELAY_MAX_S,
+    "sum_delay_s": DETECT_DELAY_MAX_S,
+    "switch_delay_s": DETECT_DELAY_MAX_S,
+    "stuck_time_s": 3600.0,
+    "stuck_temp_time_s": 86_400.0,
+    "stuck_current_c": 10.0,
+    "sum_tolerance_v_per_group": GROUP_DV_MAX_V,
+    "clear_after_s": MAX_TIME_S,
+}
+"""The physical range's upper end of each delay and threshold (docs/safety.md, "Physical
+ranges"): a detection delay beyond a minute, a stuck window beyond an hour (a day for the
+slow temperature), a stuck current beyond 10 C or a sum tolerance beyond 1 V per group means
+the check never fires. A long clear time only keeps a fault latched (safe)."""
 
 
 class PlausibilityConfig(Strict):
@@ -94,25 +118,17 @@ class PlausibilityConfig(Strict):
                     f"{name} ({lo:g}, {hi:g}) must lie within {least:g}..{most:g}: a wider "
                     "range calls every reading plausible"
                 )
-        for name in (
-            "nonfinite_delay_s",
-            "range_delay_s",
-            "stuck_time_s",
-            "stuck_temp_time_s",
-            "stuck_current_c",
-            "max_sample_age_s",
-            "sum_tolerance_v_per_group",
-            "sum_delay_s",
-            "switch_delay_s",
-            "clear_after_s",
-        ):
+        for name, most in UPPER.items():
             v = getattr(self, name)
             if name in ("stuck_time_s", "stuck_temp_time_s"):
-                if v is not None and not (_finite(v) and v > 0.0):
-                    raise ValueError(f"{name} must be > 0 s, or omitted to switch it off; got {v}")
+                if v is not None and not (_finite(v) and 0.0 < v <= most):
+                    raise ValueError(
+                        f"{name} must be > 0 and <= {most:g} s, or omitted to switch it off; "
+                        f"got {v}"
+                    )
                 continue
-            if not (_finite(v) and v >= 0.0):
-                raise ValueError(f"{name} must be a finite value >= 0, got {v}")
+            if not (_finite(v) and 0.0 <= v <= most):
+                raise ValueError(f"{name} must be within 0..{most:g}, got {v}")
         return self
 
     @classmethod

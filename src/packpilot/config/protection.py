@@ -23,10 +23,36 @@ from pydantic import (
     model_validator,
 )
 
-from packpilot.config.base import Strict, load_section_model
+from packpilot.config.base import (
+    DETECT_MAX_A,
+    MAX_CURRENT_A,
+    Strict,
+    load_section_model,
+)
 
 MAX_T_MAX_S = 86_400.0
 """Longest t_max: a day at the cut-off is already 'never trips' (1e308 s overflowed in ms)."""
+MIN_T_MAX_S = 0.001
+"""Shortest t_max: one millisecond, the unit of the exact accumulation (``t_max_s = 1e-12``
+rounded to 0 ms and divided by zero when the table was compiled)."""
+MAX_PARAMETERS = 64
+MAX_ROWS = 256
+"""Most parameters and table rows a protection section may hold (the spec's grid has 9)."""
+MAX_COVERAGE_CELLS = 200_000
+"""Most (cell of the axis grid x row) pairs the exact coverage check may visit: the grid
+grows as the product of the breakpoints of every axis; beyond this the check (and the table
+an engineer can review) is too large, and the file is refused before the check runs."""
+HYSTERESIS_MAX: Mapping[str, float] = {
+    "current_a": 100.0,
+    "temp_c": 20.0,
+    "soh": 0.5,
+    "resistance_ohm": 1.0,
+    "cycle_count": 1000.0,
+}
+"""Widest hysteresis band per axis: a wider one keeps a row active over most of its axis'
+physical range, so the protection never moves to a stricter parameter."""
+MAX_TAU_S = 3600.0
+"""Longest filter / prediction time constant: an hour already ignores every flight."""
 MAX_M_MS = 2**53
 """Largest m = LCM(t_max in ms): the accumulated sums stay exact integers in float64."""
 CUTOFF_MIN_V = 2.0
@@ -139,9 +165,10 @@ class ProtectionParameter(Strict):
                 f"{who}: cutoff_v must be between {CUTOFF_MIN_V} and {CUTOFF_MAX_V} V "
                 f"(cell level), got {self.cutoff_v}"
             )
-        if not (math.isfinite(self.t_max_s) and 0.0 < self.t_max_s <= MAX_T_MAX_S):
+        if not (math.isfinite(self.t_max_s) and MIN_T_MAX_S <= self.t_max_s <= MAX_T_MAX_S):
             raise ValueError(
-                f"{who}: t_max_s must be a positive duration of at most {MAX_T_MAX_S:g} s, "
+                f"{who}: t_max_s must be a positive duration of {MIN_T_MAX_S:g} to "
+                f"{MAX_T_MAX_S:g} s, "
                 f"got {self.t_max_s}"
             )
         ms = self.t_max_s * 1000.0
@@ -258,11 +285,13 @@ class ProtectionConfig(Strict):
 
     parameters: tuple[ProtectionParameter, ...] = Field(
         default=DEFAULT_PARAMETERS,
+        max_length=MAX_PARAMETERS,
         description="Protection parameters (name, cutoff_v, t_max_s). Only those referenced by "
         "the table enter m = LCM(t_max).",
     )
     table: tuple[TableRow, ...] = Field(
         default=DEFAULT_TABLE,
+        max_length=MAX_ROWS,
         description="Range rows -> parameter; must cover the status space exactly once.",
     )
     voltage_comparison: Literal["<=", "<"] = Field(
@@ -322,12 +351,20 @@ class ProtectionConfig(Strict):
         "protection_time_to_trip_s).",
     )
 
-    @field_validator("discharge_threshold_a", "charge_threshold_a", "charge_detect_s")
+    @field_validator("discharge_threshold_a", "charge_threshold_a")
+    @classmethod
+    def _detection(cls, v: float, info: ValidationInfo) -> float:
+        name = info.field_name
+        if not (math.isfinite(v) and 0.0 <= v <= DETECT_MAX_A):
+            raise ValueError(f"{name} must be a current of 0 to {DETECT_MAX_A:g} A, got {v}")
+        return v
+
+    @field_validator("charge_detect_s")
     @classmethod
     def _non_negative(cls, v: float, info: ValidationInfo) -> float:
         name = info.field_name
-        if not (math.isfinite(v) and v >= 0.0):
-            raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        if not (math.isfinite(v) and 0.0 <= v <= MAX_TAU_S):
+            raise ValueError(f"{name} must be a time of 0 to {MAX_TAU_S:g} s, got {v}")
         return v
 
     @field_validator("warning_share")
@@ -340,8 +377,10 @@ class ProtectionConfig(Strict):
     @field_validator("resistance_step_a")
     @classmethod
     def _check_step(cls, v: float) -> float:
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"resistance_step_a must be a finite number > 0, got {v}")
+        if not (math.isfinite(v) and 0.0 < v <= MAX_CURRENT_A):
+            raise ValueError(
+                f"resistance_step_a must be a current > 0 and <= {MAX_CURRENT_A:g} A, got {v}"
+            )
         return v
 
     @field_validator("resistance_gain")
@@ -354,8 +393,8 @@ class ProtectionConfig(Strict):
     @field_validator("predict_tau_s")
     @classmethod
     def _check_tau(cls, v: float) -> float:
-        if not (math.isfinite(v) and v > 0.0):
-            raise ValueError(f"predict_tau_s must be a finite number > 0, got {v}")
+        if not (math.isfinite(v) and 0.0 < v <= MAX_TAU_S):
+            raise ValueError(f"predict_tau_s must be > 0 and <= {MAX_TAU_S:g} s, got {v}")
         return v
 
     @field_validator("hysteresis")
@@ -364,8 +403,9 @@ class ProtectionConfig(Strict):
         for axis, band in v.items():
             if axis not in AXES:
                 raise ValueError(f"hysteresis.{axis}: unknown axis; known: {', '.join(AXES)}")
-            if not (math.isfinite(band) and band >= 0.0):
-                raise ValueError(f"hysteresis.{axis} must be a finite number >= 0, got {band}")
+            most = HYSTERESIS_MAX[axis]
+            if not (math.isfinite(band) and 0.0 <= band <= most):
+                raise ValueError(f"hysteresis.{axis} must be within 0..{most:g}, got {band}")
         return v
 
     @field_validator("filter_tau_s")
@@ -374,8 +414,10 @@ class ProtectionConfig(Strict):
         for axis, tau in v.items():
             if axis not in AXES:
                 raise ValueError(f"filter_tau_s.{axis}: unknown axis; known: {', '.join(AXES)}")
-            if not (math.isfinite(tau) and tau > 0.0):
-                raise ValueError(f"filter_tau_s.{axis} must be a finite number > 0, got {tau}")
+            if not (math.isfinite(tau) and 0.0 < tau <= MAX_TAU_S):
+                raise ValueError(
+                    f"filter_tau_s.{axis} must be > 0 and <= {MAX_TAU_S:g} s, got {tau}"
+                )
         return v
 
     @model_validator(mode="after")
@@ -397,9 +439,22 @@ class ProtectionConfig(Strict):
                     raise ValueError(
                         f"table[{k}].ranges.{axis}: unknown axis; known: {', '.join(AXES)}"
                     )
+        self._check_grid()
         check_coverage(self.table, self.axes)
         self._check_lcm()
         return self
+
+    def _check_grid(self) -> None:
+        """Refuse a table whose exact coverage check would visit more than
+        :data:`MAX_COVERAGE_CELLS` (grid cell, row) pairs, before it starts."""
+        cells = len(self.table)
+        for axis in self.axes:
+            cells *= len(_axis_atoms(axis, self.table))
+            if cells > MAX_COVERAGE_CELLS:
+                raise ValueError(
+                    f"table: {len(self.table)} rows over axes {', '.join(self.axes)} make a "
+                    f"grid too large to check (more than {MAX_COVERAGE_CELLS:,} cell-row pairs)"
+                )
 
     def _check_lcm(self) -> None:
         """m = LCM of the used t_max in ms must stay an exact integer of the accumulation."""

@@ -28,16 +28,22 @@ from pydantic import (
 
 from packpilot.config.base import (
     CELL_V_MAX_V,
+    DETECT_DELAY_MAX_S,
+    DETECT_MAX_A,
+    MAX_CURRENT_A,
+    MAX_LIST_ITEMS,
     MAX_TIME_S,
+    MAX_VOLTAGE_V,
+    OHM_MAX,
     Finite,
     Fraction,
     NonNegFloat,
-    Period,
     PosFloat,
     Seconds,
     Strict,
     fmt_error,
     load_section_model,
+    oversized,
     plus_zero,
 )
 from packpilot.config.charging import ChargingConfig
@@ -59,12 +65,8 @@ cell); with :data:`~packpilot.config.base.CELL_V_MAX_V` the window a battery's
 CELL_R_OHM = (1e-5, 10.0)
 """Sane DC resistance of one cell (10 uOhm for a large prismatic cell to 10 Ohm for a coin cell);
 ``resistance_ohm`` is checked as the per-cell value it implies."""
-MAX_CURRENT_A = 1e5
-"""Largest current a load, a charger or a converter may name (100 kA)."""
 MAX_POWER_W = 1e8
 """Largest power a load may name (100 MW)."""
-MAX_VOLTAGE_V = 1e4
-"""Largest pack-level voltage a setting may name (10 kV)."""
 LOAD_R_OHM = (1e-6, 1e9)
 """Sane resistance of a resistive load."""
 
@@ -79,7 +81,7 @@ class SwitchConfig(_Strict):
     diode_drop_v: NonNegFloat = Field(
         0.6, le=5.0, description="body-diode forward drop (spec: 0.5-0.7 V; at most 5 V)"
     )
-    diode_ohm: PosFloat = Field(0.002, le=10.0, description="body-diode slope resistance")
+    diode_ohm: PosFloat = Field(0.002, le=OHM_MAX, description="body-diode slope resistance")
     chg_on: bool = Field(True, description="initial charge-path state (relay: closed iff both)")
     dsg_on: bool = Field(True, description="initial discharge-path state")
     welded: bool = Field(False, description="relay contact welded closed (fault)")
@@ -94,7 +96,10 @@ class SwitchConfig(_Strict):
         ),
     )
     reverse_trip_a: PosFloat = Field(
-        1.0, description="reverse-current comparator trip current (A into the battery)"
+        1.0,
+        le=DETECT_MAX_A,
+        description="reverse-current comparator trip current (A into the battery; a detection "
+        "threshold, at most DETECT_MAX_A)",
     )
 
 
@@ -231,11 +236,33 @@ class ChargerConfig(_Strict):
     disconnect_s: Seconds | None = None
     rated_v: PosFloat = Field(500.0, le=MAX_VOLTAGE_V)
     rated_a: PosFloat = Field(100.0, le=MAX_CURRENT_A)
-    r_out_ohm: PosFloat = Field(0.01, le=10.0)
-    heartbeat_timeout_s: Period = 5.0
-    voltage_v: NonNegFloat = Field(0.0, description="setpoint used when no controller commands it")
-    current_a: NonNegFloat = 0.0
+    r_out_ohm: PosFloat = Field(0.01, le=OHM_MAX)
+    heartbeat_timeout_s: Annotated[
+        float, Field(gt=0, le=DETECT_DELAY_MAX_S, allow_inf_nan=False)
+    ] = Field(
+        5.0,
+        description="the charger stops this long after the last setpoint (a BMS that died must "
+        "not leave it charging for longer than a detection delay)",
+    )
+    voltage_v: NonNegFloat = Field(
+        0.0, le=MAX_VOLTAGE_V, description="setpoint used when no controller commands it"
+    )
+    current_a: NonNegFloat = Field(0.0, le=MAX_CURRENT_A, description="setpoint (A), <= rated_a")
     enable: bool = False
+
+    @model_validator(mode="after")
+    def _within_rating(self) -> ChargerConfig:
+        """A setpoint above the charger's rating cannot be delivered (``current_a = 1e308``
+        was accepted): the rating is the physical range of the setpoint."""
+        if self.current_a > self.rated_a:
+            raise ValueError(
+                f"current_a ({self.current_a:g} A) must be <= rated_a ({self.rated_a:g} A)"
+            )
+        if self.voltage_v > self.rated_v:
+            raise ValueError(
+                f"voltage_v ({self.voltage_v:g} V) must be <= rated_v ({self.rated_v:g} V)"
+            )
+        return self
 
 
 class BalancerConfig(_Strict):
@@ -409,7 +436,8 @@ class ScenarioConfig(_Strict):
     aux: AuxConfig = AuxConfig()
     sim: SimConfig = SimConfig()
     controller: list[Annotated[str, AfterValidator(_known_method)]] = Field(
-        default_factory=list, description="control methods to run, in order"
+        default_factory=list,
+        description="control methods to run, in order; each at most once",
     )
     protection: Annotated[ProtectionConfig | None, _METHOD] = None
     sequencing: Annotated[SequencingConfig | None, _METHOD] = None
@@ -429,6 +457,23 @@ class ScenarioConfig(_Strict):
     )
     can: CanConfig | None = Field(None, description="charger over CAN (python-can)")
     faults: list[FaultConfig] = Field(default_factory=list)
+
+    @field_validator("controller", mode="before")
+    @classmethod
+    def _few_controllers(cls, value: Any) -> Any:
+        """Each method runs at most once (a repeated one made the core's part lookup raise), so
+        the list is at most as long as :data:`METHODS`; checked before the elements are."""
+        if isinstance(value, list | tuple) and len(value) > len(METHODS):
+            raise ValueError(f"at most {len(METHODS)} methods (each once), got {len(value)}")
+        return value
+
+    @field_validator("controller")
+    @classmethod
+    def _unique_controllers(cls, value: list[str]) -> list[str]:
+        dup = sorted({m for m in value if value.count(m) > 1})
+        if dup:
+            raise ValueError(f"each method runs once; repeated: {', '.join(dup)}")
+        return value
 
     @model_validator(mode="after")
     def _check_faults(self) -> ScenarioConfig:
@@ -481,14 +526,22 @@ SECTIONS: Mapping[str, type[BaseModel]] = MappingProxyType(
 """Every section a method, the supervisor or a safety layer reads -> its config model."""
 
 
+MAX_FILE_BYTES = 1 << 20
+"""Largest scenario file read (1 MiB): the largest example is 2 kB; a file of megabytes is not
+a scenario, and parsing it would cost seconds before any field is checked."""
+
+
 def read_toml(path: Path) -> dict[str, Any]:
     if not path.exists():
         raise ConfigError(f"{path}: file not found")
     if not path.is_file():
         raise ConfigError(f"{path}: not a file")
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ConfigError(f"{path}: {size:,} bytes; a scenario file has at most {MAX_FILE_BYTES:,}")
     try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
+        raw = path.read_bytes().removeprefix(b"\xef\xbb\xbf")  # a UTF-8 BOM is dropped
+        data = tomllib.loads(raw.decode("utf-8"))
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError:
@@ -516,6 +569,12 @@ def _depth(node: object, level: int = 0) -> int:
 def parse_config(data: dict[str, Any], source: str = "<config>") -> ScenarioConfig:
     """Validate a whole scenario, every section typed; the first error becomes one line
     naming ``source`` and the field path (``protection.parameters.0.cutoff_v``)."""
+    big = oversized(data)
+    if big is not None:
+        where, n = big
+        raise ConfigError(
+            f"{source}: {where or '(top level)'}: at most {MAX_LIST_ITEMS:,} entries, got {n:,}"
+        )
     try:
         return ScenarioConfig.model_validate(data)
     except ValidationError as err:

@@ -4,7 +4,22 @@ from __future__ import annotations
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import Strict
+from packpilot.config.base import (
+    DETECT_MAX_A,
+    MAX_CURRENT_A,
+    OHM_MAX,
+    SPREAD_MAX_V,
+    Strict,
+)
+
+Q_REV_MAX_AS = 3600.0
+"""Largest slow reverse-cut charge: 1 Ah (20 % of the 5 Ah reference cell) of circulating
+charge in one episode; a larger one never cuts (``q_rev_as = 1e300`` was accepted)."""
+T_RULE_MAX_S = 10.0
+"""Longest R3/R4 deadline, debounce and mode debounce: a body diode carrying the load for
+longer than seconds overheats (energy I x V_f x t), and a mode held back longer is off."""
+C_RATE_MAX = 100.0
+"""Largest charge limit in C a cell maker states (fast-charge LTO: ~10-20 C)."""
 
 
 class SequencingConfig(Strict):
@@ -14,6 +29,7 @@ class SequencingConfig(Strict):
 
     v_th: float = Field(
         0.5,
+        le=SPREAD_MAX_V,
         gt=0.0,
         description=(
             "R1 spread threshold (V). At (re)initialisation the batteries within v_th of the "
@@ -23,6 +39,7 @@ class SequencingConfig(Strict):
     )
     v_co: float = Field(
         0.05,
+        le=SPREAD_MAX_V,
         gt=0.0,
         description=(
             "R2 co-discharge threshold (V): a standby battery joins once its fast voltage "
@@ -34,6 +51,7 @@ class SequencingConfig(Strict):
     )
     i_det: float = Field(
         0.5,
+        le=DETECT_MAX_A,
         gt=0.0,
         description=(
             "Diode-conduction detection threshold (A) for R3/R4: a battery whose FET on that "
@@ -43,6 +61,7 @@ class SequencingConfig(Strict):
     )
     t_on: float = Field(
         0.1,
+        le=T_RULE_MAX_S,
         gt=0.0,
         description=(
             "R3/R4 deadline (s): once diode conduction is seen, the FET is commanded on no "
@@ -51,6 +70,7 @@ class SequencingConfig(Strict):
     )
     t_debounce: float = Field(
         0.02,
+        le=T_RULE_MAX_S,
         ge=0.0,
         description=(
             "R3/R4 debounce (s): conduction must persist this long before the FET is switched, "
@@ -59,6 +79,7 @@ class SequencingConfig(Strict):
     )
     i_rev: float = Field(
         0.5,
+        le=DETECT_MAX_A,
         gt=0.0,
         description=(
             "Reverse cut (A; embodiments 5 and 7: the charge FET is on only while discharge "
@@ -70,6 +91,7 @@ class SequencingConfig(Strict):
     )
     q_rev_as: float = Field(
         0.5,
+        le=Q_REV_MAX_AS,
         gt=0.0,
         description=(
             "Slow reverse cut (A s): an engaged battery that siblings keep charging below i_rev "
@@ -79,6 +101,7 @@ class SequencingConfig(Strict):
     )
     t_mode: float = Field(
         1.0,
+        le=T_RULE_MAX_S,
         ge=0.0,
         description=(
             "Mode debounce (s): a pack current below -i_det sustained for t_mode switches to "
@@ -89,6 +112,7 @@ class SequencingConfig(Strict):
 
     charge_limit_c: float = Field(
         0.5,
+        le=C_RATE_MAX,
         gt=0.0,
         description=(
             "Charge limit of each battery (C; issue #15's invariant): no battery may take more "
@@ -121,6 +145,7 @@ class SequencingConfig(Strict):
     )
     default_capacity_ah: float = Field(
         5.0,
+        le=1e4,
         gt=0.0,
         description=(
             "Capacity (Ah) assumed for the charge limit where the topology does not state a "
@@ -129,6 +154,7 @@ class SequencingConfig(Strict):
     )
     r_batt_ohm: float = Field(
         0.020,
+        le=OHM_MAX,
         gt=0.0,
         description=(
             "Initial estimate (ohm) of each battery's ohmic resistance, used until a current "
@@ -137,6 +163,7 @@ class SequencingConfig(Strict):
     )
     i_step: float = Field(
         1.0,
+        le=MAX_CURRENT_A,
         gt=0.0,
         description=(
             "Smallest change (A) of a battery's current between two samples that updates its "
@@ -164,4 +191,4 @@ class SequencingConfig(Strict):
         return self
 
 
-__all__ = ["SequencingConfig"]
+__all__ = ["C_RATE_MAX", "Q_REV_MAX_AS", "T_RULE_MAX_S", "SequencingConfig"]

@@ -8,7 +8,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import Strict, load_section_model
+from packpilot.config.base import DETECT_MAX_A, MAX_TIME_S, Strict, load_section_model
 
 VoltageSource = Literal["min", "avg"]
 
@@ -42,9 +42,11 @@ class SocConfig(Strict):
 
     @model_validator(mode="after")
     def _check(self) -> SocConfig:
-        if not (_finite(self.rest_current_a) and self.rest_current_a > 0.0):
-            raise ValueError(f"rest_current_a must be > 0 A, got {self.rest_current_a}")
-        if not (_finite(self.rest_time_s) and self.rest_time_s > 0.0):
+        if not (_finite(self.rest_current_a) and 0.0 < self.rest_current_a <= DETECT_MAX_A):
+            raise ValueError(
+                f"rest_current_a must be > 0 and <= {DETECT_MAX_A:g} A, got {self.rest_current_a}"
+            )
+        if not (_finite(self.rest_time_s) and 0.0 < self.rest_time_s <= MAX_TIME_S):
             raise ValueError(f"rest_time_s must be > 0 s, got {self.rest_time_s}")
         if not (_finite(self.blend) and 0.0 <= self.blend <= 1.0):
             raise ValueError(f"blend must be within 0..1, got {self.blend}")

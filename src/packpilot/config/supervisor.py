@@ -6,7 +6,7 @@ import math
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import Strict
+from packpilot.config.base import DETECT_DELAY_MAX_S, DETECT_MAX_A, SPREAD_MAX_V, Strict
 
 
 class SupervisorConfig(Strict):
@@ -14,14 +14,17 @@ class SupervisorConfig(Strict):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    init_time_s: float = Field(0.5, ge=0, description="plausible samples needed before IDLE")
+    init_time_s: float = Field(
+        0.5, ge=0, le=DETECT_DELAY_MAX_S, description="plausible samples needed before IDLE"
+    )
     discharge_current_a: float = Field(
-        0.5, gt=0, description="pack discharge current that means DISCHARGE mode"
+        0.5, gt=0, le=DETECT_MAX_A, description="pack discharge current that means DISCHARGE mode"
     )
     idle_after_s: float = Field(5.0, ge=0, description="quiet time before DISCHARGE → IDLE")
     join_limit_v: float = Field(
         3.0,
         gt=0,
+        le=SPREAD_MAX_V,
         description="largest voltage difference across which a relay may join batteries",
     )
     fault_hold_s: float = Field(

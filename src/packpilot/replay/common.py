@@ -41,6 +41,12 @@ AUX = "aux"
 """The auxiliary battery's prefix in a trace: not one of the pack's batteries unless asked."""
 
 CellValue = float | int | str | bool | None
+MEASURED_CHANNELS = frozenset(
+    ("voltage_v", "current_a", "soc", "temp_c", "min_cell_v", "max_cell_v")
+)
+"""A battery's columns include a measurement: a method's status columns ``A_seq_chg_on``,
+``A_seq_dsg_on`` (a sequencing trace) end in switch channels but made a phantom battery
+``A_seq`` that every replay refused the trace for."""
 _GROUP_V = re.compile(r"^(?:(.+)_)?g\d+_v$")
 
 
@@ -175,16 +181,18 @@ class LogTable:
         of first appearance: a name with at least two battery channels (group voltages
         ``<name>_g<k>_v`` count)."""
         found: dict[str, int] = {}
+        measured: set[str] = set()
         for name in self.columns:
             if (g := _GROUP_V.match(name)) is not None:  # a group voltage counts as a channel
                 found[g.group(1) or ""] = found.get(g.group(1) or "", 0) + 1
+                measured.add(g.group(1) or "")
             for ch in BATTERY_CHANNELS:
-                if name == ch:
-                    found[""] = found.get("", 0) + 1
-                elif name.endswith("_" + ch):
-                    prefix = name[: -len(ch) - 1]
+                prefix = "" if name == ch else name[: -len(ch) - 1]
+                if name == ch or name.endswith("_" + ch):
                     found[prefix] = found.get(prefix, 0) + 1
-        return [b for b, count in found.items() if count >= 2]
+                    if ch in MEASURED_CHANNELS:
+                        measured.add(prefix)
+        return [b for b, count in found.items() if count >= 2 and b in measured]
 
     def battery_prefix(self, battery: str | None) -> tuple[str, str]:
         """(column prefix, battery name) of the battery a one-battery method replays: the one

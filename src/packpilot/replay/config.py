@@ -44,7 +44,7 @@ def _read(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"{path}: file not found")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # a BOM is dropped
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ConfigError(f"{path}: not valid JSON: {err}") from None
     if not isinstance(data, dict):

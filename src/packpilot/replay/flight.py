@@ -138,6 +138,7 @@ def replay_flight(
     if options.battery is not None:
         raise InputError(f"{path}: --battery does not apply: a flight replay takes every battery")
     log = open_log(path, options)
+    log.require(["t_s"], {"t_s": "every replay needs the time of each row"})
     names = [b for b in log.batteries() if b != AUX]
     if not names or names == [""]:
         names = [""]

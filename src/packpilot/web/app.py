@@ -28,6 +28,7 @@ from fastapi.staticfiles import StaticFiles
 from packpilot.contract.record import BATTERY_CHANNELS
 from packpilot.errors import InputError, PackPilotError
 from packpilot.web.guard import (
+    BODY_TIMEOUT_S,
     HEADER_TIMEOUT_S,
     MAX_CONNECTIONS,
     MAX_WEBSOCKETS,
@@ -37,6 +38,7 @@ from packpilot.web.guard import (
     guarded_h11,
     query,
 )
+from packpilot.web.guard import BodyLimitMiddleware as _BodyLimitMiddleware
 from packpilot.web.guard import GuardMiddleware as _GuardMiddleware
 from packpilot.web.live import CHART_CHANNELS, MAX_SPEED, LiveRun, SimThread
 from packpilot.web.session import Library, NotAllowed, ReportWriter, RunnerFactory, Session
@@ -85,6 +87,7 @@ def create_app(
     app.state.guard = rules
     app.state.websockets = 0
     app.add_middleware(_GuardMiddleware, guard=rules)
+    app.add_middleware(_BodyLimitMiddleware)  # outermost: sizes before authentication
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     page = (STATIC / "index.html").read_text(encoding="utf-8")
     _read_routes(app, session, rules, page)
@@ -238,7 +241,7 @@ def _control_routes(app: FastAPI, session: Session, rules: Guard) -> None:
     async def open_recording(
         request: Request,
         recording: str = Body(..., embed=True, max_length=1000),
-        run_id: int | None = Body(None, embed=True, ge=1),
+        run_id: int | None = Body(None, embed=True, ge=1, le=2**63 - 1),
     ) -> Response:
         return await gate.switch(request, lambda: session.open_recording(recording, run_id))
 
@@ -390,9 +393,13 @@ class Dashboard:
         max_websockets: int = MAX_WEBSOCKETS,
         max_connections: int = MAX_CONNECTIONS,
         header_timeout_s: float = HEADER_TIMEOUT_S,
+        body_timeout_s: float = BODY_TIMEOUT_S,
     ) -> None:
         try:
             self._setup_limits(max_websockets, max_connections, header_timeout_s)
+            if not (math.isfinite(body_timeout_s) and body_timeout_s > 0):
+                raise InputError(f"body timeout must be > 0 s, got {body_timeout_s}")
+            self.body_timeout_s = body_timeout_s
             self.guard = Guard.for_bind(
                 host,
                 allow_remote=allow_remote,
@@ -480,7 +487,7 @@ class Dashboard:
         config = uvicorn.Config(
             self.app,
             log_level="warning",
-            http=guarded_h11(self.max_connections, self.header_timeout_s),
+            http=guarded_h11(self.max_connections, self.header_timeout_s, self.body_timeout_s),
             ws="websockets-sansio",
             ws_max_size=64 * 1024,  # the page sends nothing; a client's frames are ignored
             limit_concurrency=self.max_connections,

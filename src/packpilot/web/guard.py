@@ -15,6 +15,7 @@ import asyncio
 import hmac
 import secrets
 import socket
+import time
 from collections.abc import Awaitable, Callable, Iterable, MutableMapping
 from dataclasses import dataclass, field
 from http.cookies import SimpleCookie
@@ -40,6 +41,14 @@ MAX_CONNECTIONS = 64
 HEADER_TIMEOUT_S = 10.0
 """A connection that has not sent a complete request head within this time is closed: a
 half-open or trickling client holds a socket for at most this long."""
+BODY_TIMEOUT_S = 10.0
+"""A request whose body has not fully arrived this long after its head is closed (63
+connections trickling a POST body held every slot for >= 34 s)."""
+MAX_BODY_BYTES = 64 * 1024
+"""Largest request body accepted (the API's bodies are a few hundred bytes of JSON); refused
+by its Content-Length before authentication, before a byte of it is read (an unauthenticated
+200 MB body was read in full before its 403)."""
+_BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
 
 
 def new_token() -> str:
@@ -185,6 +194,36 @@ class GuardMiddleware:
         await self.app(scope, receive, send)
 
 
+class BodyLimitMiddleware:
+    """ASGI middleware, outermost (before the Host and token checks): a request body is
+    refused by its declared size before anything reads it -- 413 above ``max_bytes``, 411
+    for a POST without a Content-Length (a chunked body of unknown size) -- so no client,
+    authenticated or not, makes the server read more than ``max_bytes``. h11 reads no more
+    than the Content-Length a request declares."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int = MAX_BODY_BYTES) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope.get("type") == "http":
+            length = header(scope, "content-length")
+            if length is None and scope.get("method") in _BODY_METHODS:
+                if header(scope, "transfer-encoding") is not None:
+                    await refuse(scope, receive, send, 411, "a Content-Length is required")
+                    return
+            elif length is not None and not _size_ok(length, self.max_bytes):
+                why = f"request body larger than {self.max_bytes} bytes"
+                await refuse(scope, receive, send, 413, why)
+                return
+        await self.app(scope, receive, send)
+
+
+def _size_ok(length: str, most: int) -> bool:
+    text = length.strip()
+    return text.isdigit() and len(text) <= 12 and int(text) <= most
+
+
 async def refuse(scope: Scope, receive: Receive, send: Send, status: int, why: str) -> None:
     """An HTTP error, or for a WebSocket a refused handshake (the client sees HTTP 403)."""
     if scope["type"] == "websocket":
@@ -206,47 +245,131 @@ async def refuse(scope: Scope, receive: Receive, send: Send, status: int, why: s
     await send({"type": "http.response.body", "body": body})
 
 
-def guarded_h11(max_connections: int, header_timeout_s: float) -> type[asyncio.Protocol]:
-    """uvicorn's HTTP/1.1 protocol with two limits it lacks: at most ``max_connections``
-    open connections (beyond, a new one is closed at once), and a connection that has not
-    sent a complete request head within ``header_timeout_s`` is closed (half-open and
-    trickling clients; uvicorn only times out idle keep-alive connections)."""
+def _serving(p: Any) -> bool:
+    """``p`` still owns an open transport (not closed, not upgraded to a WebSocket)."""
+    tr = getattr(p, "transport", None)
+    return tr is not None and not tr.is_closing() and tr.get_protocol() is p
+
+
+def is_pending(p: Any) -> bool:
+    """A guarded HTTP connection not being served: no request in flight, or a request whose
+    body is still coming and whose response is not being sent (none yet, or already
+    complete: an early 403 leaves the client trickling the rest of its body)."""
     import h11
-    from uvicorn.protocols.http.h11_impl import H11Protocol
 
-    class GuardedH11(H11Protocol):
-        head_timer: asyncio.TimerHandle | None = None
+    if not hasattr(p, "opened_at") or not _serving(p):
+        return False
+    state = p.conn.their_state
+    if state is h11.IDLE:
+        return True
+    cycle = getattr(p, "cycle", None)
+    sending = cycle is not None and cycle.response_started and not cycle.response_complete
+    return state is h11.SEND_BODY and not sending
 
-        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-            if len(self.connections) >= max_connections:
-                self.transport = transport
-                transport.abort()  # refused: closed before a byte is read
-                return
-            super().connection_made(transport)
+
+def evict_oldest_pending(connections: set[Any]) -> None:
+    """Close the oldest pending connection (:func:`is_pending`), if any, and drop it from
+    ``connections`` now (its ``connection_lost`` runs a loop tick later)."""
+    waiting = [p for p in connections if is_pending(p)]
+    if waiting:
+        oldest = min(waiting, key=lambda p: p.opened_at)
+        oldest.transport.abort()
+        connections.discard(oldest)
+
+
+_ProtocolBase: Any = object
+"""The mixin's static base: uvicorn's H11Protocol comes in at class creation, so it is
+imported only when a server starts."""
+
+
+class _GuardedMixin(_ProtocolBase):  # type: ignore[misc]
+    """The limits of :func:`guarded_h11`, over uvicorn's ``H11Protocol`` (next in the MRO)."""
+
+    max_connections: int = MAX_CONNECTIONS
+    header_timeout_s: float = HEADER_TIMEOUT_S
+    body_timeout_s: float = BODY_TIMEOUT_S
+    head_timer: asyncio.TimerHandle | None = None
+    body_timer: asyncio.TimerHandle | None = None
+    opened_at: float = 0.0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:
+        self.opened_at = time.monotonic()
+        if len(self.connections) >= self.max_connections - 1:
+            evict_oldest_pending(self.connections)
+        if len(self.connections) >= self.max_connections:
+            self.transport = transport
+            transport.abort()  # refused: closed before a byte is read
+            return
+        super().connection_made(transport)
+        self._arm_head_timer()
+
+    def handle_events(self) -> None:
+        super().handle_events()
+        self._watch_body()
+
+    def _watch_body(self) -> None:
+        """A body timer runs while the peer is sending a request body."""
+        import h11
+
+        sending = self.conn.their_state is h11.SEND_BODY
+        if sending and self.body_timer is None:
+            self.body_timer = self.loop.call_later(self.body_timeout_s, self._body_timeout)
+        elif not sending and self.body_timer is not None:
+            self.body_timer.cancel()
+            self.body_timer = None
+
+    def _body_timeout(self) -> None:
+        import h11
+
+        self.body_timer = None
+        if _serving(self) and self.conn.their_state is h11.SEND_BODY:
+            self.transport.abort()
+
+    def _arm_head_timer(self) -> None:
+        if self.head_timer is not None:
+            self.head_timer.cancel()
+        self.head_timer = self.loop.call_later(self.header_timeout_s, self._head_timeout)
+
+    def _head_timeout(self) -> None:
+        """No complete request head since the connection opened or the last response
+        (h11 leaves IDLE only on a complete head): close it."""
+        import h11
+
+        if _serving(self) and self.conn.their_state is h11.IDLE:
+            self.transport.abort()  # (not closed already, nor upgraded to a WebSocket)
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.transport.is_closing():
             self._arm_head_timer()
 
-        def _arm_head_timer(self) -> None:
-            if self.head_timer is not None:
-                self.head_timer.cancel()
-            self.head_timer = self.loop.call_later(header_timeout_s, self._head_timeout)
+    def connection_lost(self, exc: Exception | None) -> None:
+        for timer in (self.head_timer, self.body_timer):
+            if timer is not None:
+                timer.cancel()
+        super().connection_lost(exc)
 
-        def _head_timeout(self) -> None:
-            """No complete request head since the connection opened or the last response
-            (h11 leaves IDLE only on a complete head): close it."""
-            tr = self.transport
-            if tr.is_closing() or tr.get_protocol() is not self:
-                return  # closed already, or upgraded to a WebSocket
-            if self.conn.their_state is h11.IDLE:
-                tr.abort()
 
-        def on_response_complete(self) -> None:
-            super().on_response_complete()
-            if not self.transport.is_closing():
-                self._arm_head_timer()
+def guarded_h11(
+    max_connections: int, header_timeout_s: float, body_timeout_s: float = BODY_TIMEOUT_S
+) -> type[asyncio.Protocol]:
+    """uvicorn's HTTP/1.1 protocol with the limits it lacks:
 
-        def connection_lost(self, exc: Exception | None) -> None:
-            if self.head_timer is not None:
-                self.head_timer.cancel()
-            super().connection_lost(exc)
+    * at most ``max_connections`` open connections. When a new one would reach the cap (where
+      uvicorn answers 503), the oldest connection that is not being served -- idle, still
+      sending its head, or still sending its body, no response started -- is closed to make
+      room; only when every connection is being served is the new one closed at once. So
+      clients that open connections and trickle (slowloris) cannot lock a normal request
+      out: they evict each other, not a request that arrives whole;
+    * a connection that has not sent a complete request head within ``header_timeout_s``
+      is closed (half-open and trickling clients; uvicorn only times out idle keep-alive
+      connections);
+    * a request whose body is not complete ``body_timeout_s`` after its head is closed."""
+    from uvicorn.protocols.http.h11_impl import H11Protocol
 
-    return GuardedH11
+    limits = {
+        "max_connections": max_connections,
+        "header_timeout_s": header_timeout_s,
+        "body_timeout_s": body_timeout_s,
+    }
+    return type("GuardedH11", (_GuardedMixin, H11Protocol), limits)

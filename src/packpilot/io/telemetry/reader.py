@@ -57,7 +57,13 @@ def _connect_checked(p: Path, query: str, any_thread: bool = False) -> sqlite3.C
     return conn
 
 
+MAX_RUN_ID = 2**63 - 1
+"""SQLite's largest integer: a larger run id raised OverflowError inside the query."""
+
+
 def _resolve_run(conn: sqlite3.Connection, path: Path | str, run_id: int | None) -> int:
+    if run_id is not None and not 1 <= run_id <= MAX_RUN_ID:
+        raise InputError(f"{path}: run id {run_id} is not 1..{MAX_RUN_ID}")
     if run_id is None:
         row = conn.execute("SELECT MAX(id) FROM runs").fetchone()
         if row is None or row[0] is None:
