@@ -12,11 +12,13 @@ venv: $(STAMP)
 
 # The demo needs only the package and its runtime dependencies; the test extras (pytest,
 # PyBaMM, linters, ...) are installed by `make test` / `make lint` on top (TEST_STAMP).
+# pip is not --quiet: it names each package as it goes, so the install is never minutes of
+# silence (issue #25: never more than 2 s without output in `make demo`).
 $(STAMP): pyproject.toml
 	@echo "setup: creating $(VENV) and installing packpilot (runtime dependencies only)" >&2
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e .
+	$(PY) -m pip install --progress-bar off --upgrade pip
+	$(PY) -m pip install --progress-bar off -e .
 	touch $(STAMP)
 
 $(TEST_STAMP): $(STAMP) pyproject.toml
@@ -26,7 +28,7 @@ $(TEST_STAMP): $(STAMP) pyproject.toml
 
 demo: $(STAMP)
 	mkdir -p $(OUT)
-	@echo "demo: simulating the 90-minute UAV mission (about 100 s; the first run also compiles the kernels)" >&2
+	@echo "demo: simulating the 90-minute UAV mission (about 100 s; the first run on a machine also compiles the kernels, saying so)" >&2
 	$(PY) -m packpilot.cli simulate examples/uav_mission.toml --progress \
 		--db $(OUT)/demo.sqlite --report $(OUT)/report.html --plot $(OUT)/demo.png \
 		--can-log $(OUT)/demo_can.blf --json > $(OUT)/demo_summary.json

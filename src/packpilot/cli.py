@@ -10,11 +10,14 @@ interrupted (Ctrl-C).
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import sys
+import threading
+import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
@@ -117,14 +120,23 @@ def _example_dirs() -> list[Path]:
     return [d for d in (here, checkout, installed) if d.is_dir()]
 
 
-def _guard(fn: Callable[[], T]) -> T:
+def _guard(fn: Callable[[], T], announce: bool | None = None) -> T:
     """Run a command: a user-facing error is one line and exit code 2; Ctrl-C is exit code
     130 without a traceback. Warnings raised on the way (a NumPy overflow on absurd input) are
     held back: shown after a command that works, dropped when a clean error says what was
-    wrong, so that error stays one line."""
+    wrong, so that error stays one line. Compiling kernels (the first run on a machine) is
+    said on stderr with a heartbeat when ``announce`` (default: stderr is a terminal)."""
+    from packpilot.buildclock import announce_compiles
+
+    if announce is None:
+        announce = sys.stderr.isatty()
     with warnings.catch_warnings(record=True) as held:
         try:
-            result = fn()
+            if announce:
+                with announce_compiles(sys.stderr):
+                    result = fn()
+            else:
+                result = fn()
         except PackPilotError as err:
             typer.echo(f"error: {err}", err=True)
             raise typer.Exit(code=EXIT_USER_ERROR) from None
@@ -197,13 +209,39 @@ def simulate(
         _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
         result = _run_interruptible(cfg, path, db, progress)
-        _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report, db,
-                       started)  # fmt: skip
-        return _summarise(result, cfg.model_dump(mode="json"), as_json, categories)
+        with _saying("writing the outputs and the verdict", bool(progress)):
+            _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report,
+                           db, started)  # fmt: skip
+            summary = _summary(result, cfg.model_dump(mode="json"), as_json)
+        return _emit_summary(summary, as_json, categories)
 
-    code = _guard(go)
+    code = _guard(go, announce=progress)
     if code:
         raise typer.Exit(code=code)
+
+
+@contextlib.contextmanager
+def _saying(label: str, on: bool, every_s: float = 1.5) -> Iterator[None]:
+    """``label ...`` on stderr, repeated with the time spent every ``every_s`` until the block
+    ends (``--progress``: ``make demo`` never leaves its reader in silence)."""
+    if not on:
+        yield
+        return
+    t0 = time.perf_counter()
+    print(f"{label} ...", file=sys.stderr, flush=True)
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(every_s):
+            print(f"{label} ... ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+
+    thread = threading.Thread(target=beat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _load(path: Path, duration: float | None) -> ScenarioConfig:
@@ -283,17 +321,26 @@ def _write_outputs(
         _write_report(result, report, cfg, path, db, started)
 
 
-def _summarise(result: Result, cfg: dict[str, Any], as_json: bool, categories: list[str]) -> int:
-    """Print the verdict, the alarms and the metrics; the exit code ``--fail-on`` asks for."""
-    from packpilot.sim.verdict import fail_on, run_verdict
+def _summary(result: Result, cfg: dict[str, Any], as_json: bool) -> Any:
+    """The verdict and the metrics (compiling the kernels reported apart from wall_time_s)."""
+    from packpilot.sim.verdict import run_verdict
 
     verdict = run_verdict(result, cfg)
+    metrics = {**result.metrics, "build_time_s": result.build_time_s}
+    return verdict, metrics
+
+
+def _emit_summary(summary: Any, as_json: bool, categories: list[str]) -> int:
+    """Print the verdict, the alarms and the metrics; the exit code ``--fail-on`` asks for."""
+    from packpilot.sim.verdict import fail_on
+
+    verdict, metrics = summary
     if as_json:
-        out = {"verdict": verdict.as_dict(), **result.metrics}
+        out = {"verdict": verdict.as_dict(), **metrics}
         typer.echo(json.dumps(out, default=_json_default))
     else:
         _print_verdict(verdict)
-        _print_metrics(result.metrics)
+        _print_metrics(metrics)
     hits = fail_on(verdict, categories)
     if hits:
         typer.echo(f"fail-on: {', '.join(hits)} (exit code {EXIT_FAIL_ON})", err=True)

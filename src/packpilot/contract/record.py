@@ -81,7 +81,9 @@ class Trace:
     """Shape (steps, n_batteries, len(BATTERY_CHANNELS))."""
     group_v: NDArray[np.float64]
     """Shape (steps, n_batteries, max_groups)."""
-    status: dict[str, list[Sequence[StatusValue]]]
+    status: Mapping[str, list[Sequence[StatusValue]]]
+    """Per channel, a row per step (one value per string). A run's trace renders a channel
+    only when it is read (``sim/record.py:TraceStatus``); read-only."""
     aux: NDArray[np.float64] | None = None
     step: NDArray[np.int64] | None = None
     """Step index of each row (None when unknown: then the row index is the step)."""
@@ -130,3 +132,6 @@ class Result:
     events: list[Event]
     metrics: dict[str, Any]
     run_id: int | None = None
+    build_time_s: float = 0.0
+    """Wall seconds the run spent compiling kernels or loading them from the on-disk cache
+    (its first calls of each kernel); ``metrics["wall_time_s"]`` is the simulation alone."""

@@ -58,7 +58,7 @@ from packpilot.control.core_kernel import (
     DIR_SUP_ST,
     METHOD_IDS,
     StatusBuf,
-    core_step,
+    step_for,
 )
 from packpilot.control.method import CompiledController, Method, StatusChannel, status_values
 from packpilot.control.supervisor import controller as sup_ctl
@@ -136,34 +136,6 @@ def put_commands(cmd: CmdArrays, p: int, c: Commands) -> None:
         ck.put_aux_relay(cmd, p, bool(c.aux_relay_closed))
     if c.aux_charge_a is not None:
         ck.put_aux_charge(cmd, p, float(c.aux_charge_a))
-
-
-_KNOWN: set[str] = set()
-
-
-def _know_every_branch(infos: Sequence[PackInfo]) -> None:
-    """The fused step compiles a branch for every method (and the supervisor) whether or not
-    this core has it; each branch rebuilds its named tuples from the arena, so their layouts
-    must be known: build each default once, on this topology, and record its layout."""
-    from packpilot.control.registry import REGISTRY
-
-    for name in sorted(COMPILED | {"supervisor"}):
-        if name in _KNOWN:
-            continue
-        ar = Arena()
-        if name == "supervisor":
-            ev_class = np.zeros((1, 1), np.int64)
-            prm, st = sup_ctl.build_supervisor(SupervisorConfig(), list(infos), ev_class)
-        else:
-            entry = REGISTRY[name]
-            base = entry.resolve()
-            assert isinstance(base, Method), name
-            config = entry.config()
-            method = entry.method(config, infos) or base
-            prm, st = method.build(config, list(infos))
-        ar.add(prm)
-        ar.add(st)
-        _KNOWN.add(name)
 
 
 class Core:
@@ -249,8 +221,11 @@ class Core:
         self.directory = d
         self.fused = all(isinstance(x, Part) and x.method.name in COMPILED for x in self.parts)
         """Every part is known to the one compiled step (else: part by part)."""
+        self.step_kernel: Any = None
+        """The fused step of exactly these parts (compiles only their rules), when fused."""
         if self.fused:
-            _know_every_branch(self.infos)
+            names = frozenset(x.method.name for x in self.compiled)
+            self.step_kernel = step_for(names, self.supervisor is not None)
 
     @property
     def compiled(self) -> list[Part]:
@@ -291,7 +266,7 @@ class Core:
         ``meas`` (P = 1 only) is what Python parts see; compiled parts read ``m``.
         """
         if self.fused:
-            core_step(*self.arenas, self.directory, dt_s)
+            self.step_kernel(*self.arenas, self.directory, dt_s)
             return
         cmd, ev, tp, status = self.cmd, self.ev, self.tp, self.status
         clear_commands(cmd)

@@ -81,7 +81,8 @@ def fmt_data(data: Mapping[str, Any]) -> str:
 
 METRIC_DOC: dict[str, str] = {
     "sim_time_s": "simulated time",
-    "wall_time_s": "wall-clock time of the simulation",
+    "wall_time_s": "wall-clock time of the simulation (compiling the kernels not included)",
+    "build_time_s": "wall-clock time compiling the kernels or loading them from the cache",
     "steps": "control steps",
     "energy_out_wh": "energy delivered to the load",
     "energy_in_wh": "energy taken from the charger",

@@ -204,6 +204,11 @@ def _summary(result: Result, info: RunInfo, verdict: Verdict) -> str:
             per_battery.append((key, v))
             continue
         scalar_rows.append((key, metric_value(key, v), metric_unit(key), METRIC_DOC.get(key, "")))
+    if result.build_time_s > 0:
+        key = "build_time_s"
+        scalar_rows.append(
+            (key, metric_value(key, result.build_time_s), metric_unit(key), METRIC_DOC[key])
+        )
     metrics_tbl = (
         table(("metric", "value", "unit", "meaning"), scalar_rows, cls="metrics")
         if scalar_rows

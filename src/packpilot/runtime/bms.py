@@ -29,7 +29,6 @@ from packpilot.config import ScenarioConfig
 from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Recorder, StepSample
 from packpilot.contract.topology import PackInfo
-from packpilot.control.core_kernel import core_step
 from packpilot.errors import ConfigError
 from packpilot.io.can.bus import FrameLog, open_bus
 from packpilot.io.can.codec import STATUS_ID
@@ -278,7 +277,7 @@ class BmsRuntime:
         core = self.core
         if core.fused:
             f, i, h, c, b, lay = (a.copy() for a in core.arenas)
-            core_step(f, i, h, c, b, lay, core.directory.copy(), self.opts.period_s)
+            core.step_kernel(f, i, h, c, b, lay, core.directory.copy(), self.opts.period_s)
         self.publisher.frames(0.0)
         self.publisher.transfer_id = 0
 

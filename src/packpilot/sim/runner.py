@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from packpilot.buildclock import build_seconds
 from packpilot.config import ScenarioConfig
 from packpilot.contract.bms import Controller, Event
 from packpilot.contract.charger import ChargerLink
@@ -60,6 +61,8 @@ class Runner:
     plant: SimulatedPlant = field(init=False)
 
     def __post_init__(self) -> None:
+        self._build0 = build_seconds()
+        """Kernel compile / cache-load time so far: the run reports its own apart."""
         self.plant = SimulatedPlant(self.cfg, 1, self.pack_overrides)
         self.info: PackInfo = self.plant.infos[0]
         self.traction = list(self.plant.topology.traction)
@@ -125,6 +128,7 @@ class Runner:
         if self.recorder is not None:
             self.run_id = self.recorder.start(cfg.model_dump(mode="json"), self.pack.names)
         wall0 = time.perf_counter()
+        built0 = build_seconds()
         status = "ok"
         enabled = cfg.sim.progress if self.progress is None else self.progress
         bar = _Progress(total, enabled, lines=self.progress is True and not sys.stderr.isatty())
@@ -152,7 +156,9 @@ class Runner:
         finally:
             bar.close()
             loop.close()
-            wall = time.perf_counter() - wall0
+            built = build_seconds()
+            # Simulation time only: compiling (or loading) a kernel at its first call is not.
+            wall = time.perf_counter() - wall0 - (built - built0)
             metrics = (
                 loop.metrics.of(0, wall, self.pack.names) if buf.rows else {"wall_time_s": wall}
             )
@@ -164,7 +170,12 @@ class Runner:
             events=self.events,
             metrics=metrics,
             run_id=self.run_id,
+            build_time_s=built - self._build0,
         )
+
+
+LINE_EVERY_S = 1.5
+"""Longest pause between two plain progress lines."""
 
 
 class _Progress:
@@ -181,12 +192,15 @@ class _Progress:
         self.task: Any = None
         self.next_at = max(1, -(-total // 10))
         """Steps done at which the next plain line is due (one per tenth)."""
+        self.last_line = self.t0
 
     def update(self, done: int) -> None:
         if not self.enabled:
             return
         if self.lines:
-            if done >= self.next_at:
+            # A line per tenth of the run, and at least every LINE_EVERY_S (``make demo``
+            # never leaves its reader more than 2 s without output).
+            if done >= self.next_at or time.perf_counter() - self.last_line >= LINE_EVERY_S:
                 self._line(done)
             return
         if done % 200:
@@ -199,7 +213,8 @@ class _Progress:
 
     def _line(self, done: int) -> None:
         self.next_at = -(-(done * 10 // self.total + 1) * self.total // 10)  # ceil
-        wall = time.perf_counter() - self.t0
+        self.last_line = time.perf_counter()
+        wall = self.last_line - self.t0
         print(
             f"simulating: {100 * done // self.total:3d} %"
             f" ({done}/{self.total} steps, {wall:.0f} s)",
