@@ -600,10 +600,16 @@ def replay_flight_cmd(
     as_json: JsonOpt = False,
     assume_temp_c: AssumeTempOpt = None,
     cells: CellsOpt = None,
+    parallel: Annotated[
+        str | None,
+        typer.Option(help="two batteries of the log that were in parallel, e.g. A,B "
+                     "(otherwise every battery is independent)"),
+    ] = None,
 ) -> None:
     """What PackPilot would have done on a recorded flight: every battery through discharge
-    protection and, with two or more batteries, the pack through parallel discharge
-    sequencing. What the log lacks is listed, never filled in silently."""
+    protection and, for two batteries the user says were in parallel (--parallel A,B), the
+    pair through parallel discharge sequencing. What the log lacks is listed, never filled
+    in silently."""
 
     def go() -> None:
         from packpilot.replay.common import LogOptions
@@ -615,7 +621,15 @@ def replay_flight_cmd(
             _check_outputs(report=report)
         prot = load_replay_config(config, "protection", other_method_ok=True)
         seq = load_replay_config(config, "sequencing", other_method_ok=True)
-        fr = replay_flight(log, prot, seq, LogOptions(None, assume_temp_c, cells))  # type: ignore[arg-type]
+        from packpilot.errors import InputError
+
+        pair = None
+        if parallel is not None:
+            parts = [p.strip() for p in parallel.split(",")]
+            if len(parts) != 2 or not all(parts):
+                raise InputError(f"--parallel {parallel!r}: give two battery names, e.g. A,B")
+            pair = (parts[0], parts[1])
+        fr = replay_flight(log, prot, seq, LogOptions(None, assume_temp_c, cells), pair)  # type: ignore[arg-type]
         _print_summary(fr.summary, as_json)
         if report is not None:
             write_flight_report(fr, report)
