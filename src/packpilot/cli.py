@@ -665,6 +665,76 @@ def import_cmd(
     _guard(go)
 
 
+# --- packpilot fit (issue 27) ------------------------------------------------------------
+
+
+@app.command("fit")
+def fit_cmd(
+    logs: Annotated[
+        list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log) of one battery type")
+    ],
+    out: Annotated[
+        Path | None, typer.Option(help="cell set to write (.json, what [pack] cell accepts)")
+    ] = None,
+    report: Annotated[Path | None, typer.Option(help="write the validation report (.html)")] = None,
+    battery: BatteryOpt = None,
+    cells: CellsOpt = None,
+    chemistry: Annotated[
+        str, typer.Option(help="shipped set whose OCV, thermal data and limits are the template")
+    ] = "uav_5ah",
+    train_share: Annotated[
+        float, typer.Option(help="share of each log's samples to fit on; the rest tests the fit")
+    ] = 0.6,
+    as_json: JsonOpt = False,
+) -> None:
+    """Fit a cell model to flight logs (capacity, initial SOC per log, R0, R1/tau1, a second
+    RC pair where resolved) on the first part of each log, test it on the rest, and say
+    whether it is usable, with each parameter's uncertainty and what cannot be identified."""
+
+    def go() -> None:
+        import json
+
+        from packpilot.model.cell import load_parameter_set
+        from packpilot.model.fit.cellset import cellset_dict
+        from packpilot.model.fit.validate import fit_and_validate
+        from packpilot.replay.fitlogs import profiles_from_logs
+        from packpilot.report.fit_report import write_fit_report
+
+        if out is not None:
+            from packpilot.io.outputs import check_output
+
+            check_output(out, "--out", (".json",))
+        if report is not None:
+            _check_outputs(report=report)
+        base = load_parameter_set(chemistry)
+        profiles, notes = profiles_from_logs(list(logs), cells, battery)
+        v = fit_and_validate(profiles, base.ocv_soc, base.ocv_table_v, train_share=train_share)
+        name = out.stem if out is not None else "fitted"
+        data = cellset_dict(v, name, chemistry)
+        data["notes"]["logs"] = notes
+        if out is not None:
+            out.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+        if report is not None:
+            write_fit_report(v, ", ".join(p.name for p in profiles), report)
+        summary = {k: data["notes"][k] for k in ("verdict", "reasons", "not_identifiable",
+                                                 "assumptions", "notes", "validation")}  # fmt: skip
+        summary["parameters"] = {
+            k: {"value": p["value"], "unit": p["unit"], "rel_uncertainty": p["rel_uncertainty"]}
+            for k, p in data["notes"]["parameters"].items()
+        }
+        summary["window"] = data["notes"]["window"]
+        summary["fit_cpu_s"] = data["notes"]["fit_cpu_s"]
+        _print_summary(summary, as_json)
+        for path in (out, report):
+            if path is not None and not as_json:
+                typer.echo(f"wrote {path}")
+
+    _guard(go)
+
+
+# --- end packpilot fit ----------------------------------------------------------------------
+
+
 @app.command()
 def campaign(
     config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
