@@ -67,6 +67,10 @@ def test_acceptance_short_tau_flagged_at_1hz() -> None:
     tau = r.params["tau1_s"]
     assert not tau.identifiable and "logging periods" in tau.reason
     assert any(f.startswith("tau1_s: not identifiable") for f in r.flags())
+    # R0 and R1 merge: the split is not claimed, their sum is what the data hold.
+    r0, r1 = r.params["r0_ohm"], r.params["r1_ohm"]
+    assert not r0.identifiable and "R0 + R1" in r0.reason
+    assert r0.value + r1.value == pytest.approx(truth.r0_ohm + truth.r1_ohm, rel=0.05)
 
 
 def test_small_soc_swing_flags_the_capacity() -> None:
@@ -141,3 +145,15 @@ def test_cli_fit_refuses_in_one_line(name: str, args: list[str], needle: str) ->
     assert res.exit_code == 2, res.output
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], lines
+
+
+def test_time_to_a_level_ignores_a_pulse_dip() -> None:
+    """A 2 s dip below 3.5 V under a pulse is not the pack reaching 3.5 V; a sustained fall is."""
+    from packpilot.model.fit.validate import _first_below
+
+    t = np.arange(0.0, 100.0)
+    v = np.full(100, 3.7)
+    v[20:22] = 3.4
+    v[60:] = 3.45
+    assert _first_below(t, v, 3.5) == pytest.approx(65.0)
+    assert _first_below(t, v, 3.3) is None

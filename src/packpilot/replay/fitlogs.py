@@ -47,6 +47,11 @@ def battery_profile(path: Path, b: BatterySeries, cells: int | None) -> tuple[Pr
         notes.append(f"{label}: {n} series cells (--cells)")
     if b.time_derived:
         notes.append(f"{label}: time derived: {b.time_derived}")
+    if not np.any(np.asarray(b.voltage_v) > 0.0):
+        raise InputError(
+            f"{path}: battery {b.name}: voltage is 0 throughout (no voltage measurement): "
+            "cannot fit"
+        )
     cur = hold(np.asarray(b.current_a, dtype=np.float64))[0]
     if float(np.max(np.abs(cur))) < MIN_PEAK_A:
         raise InputError(

@@ -224,6 +224,7 @@ def _params(lay: _Layout, x: F64, sig: F64, period_s: float, swing: float
         if n == "capacity_ah" and swing < MIN_SOC_SWING:
             reasons.append(f"SOC swing {100 * swing:.0f} % < {100 * MIN_SOC_SWING:.0f} %")
         out[n] = FitParam(n, value, UNITS[n], rel, not reasons, "; ".join(reasons))
+    _merge_flags(out, period_s)
     soc0 = {}
     for j, log in enumerate(lay.logs):
         k = len(lay.names) + j
@@ -231,6 +232,20 @@ def _params(lay: _Layout, x: F64, sig: F64, period_s: float, swing: float
         soc0[log] = FitParam(f"soc0[{log}]", float(x[k]), "", float(sig[k]), not edge,
                              "at a bound" if edge else "")  # fmt: skip
     return out, soc0
+
+
+def _merge_flags(out: dict[str, FitParam], period_s: float) -> None:
+    """When tau1 is below two logging periods the RC branch has settled by the next sample:
+    the data see R0 + R1 (the resistance a pulse shows), not how it splits."""
+    tau = out["tau1_s"]
+    if tau.value >= TAU_MIN_PERIODS * period_s:
+        return
+    total = out["r0_ohm"].value + out["r1_ohm"].value
+    why = f"merges with R1 (tau1 below two logging periods): R0 + R1 = {1000 * total:.2f} mOhm"
+    for n in ("r0_ohm", "r1_ohm"):
+        p = out[n]
+        reason = "; ".join(x for x in (p.reason, why) if x)
+        out[n] = FitParam(p.name, p.value, p.unit, p.rel_uncertainty, False, reason)
 
 
 def _rests(p: Profile, capacity_ah: float) -> list[int]:

@@ -5,8 +5,10 @@ compare with what a straight line would have predicted and with the log's own no
   (robust: 1.4826 x the median absolute first difference / sqrt 2) — no model can beat it;
 - **baseline**: ``V = a - b Ah - R I`` by linear least squares on the same training part; the
   model's *skill* is ``1 - RMSE_model / RMSE_line`` on the held-out part;
-- **time to 3.5 V and 3.3 V per cell**: the first held-out sample at or below each, measured
-  against predicted;
+- **time to 3.5 V and 3.3 V per cell**: the first time the voltage, as a moving median over
+  :data:`SUSTAIN_S` (a pulse's dip is not the pack reaching a level), is at or below each level,
+  measured against predicted, over the whole log (a level reached before the split was reached
+  while fitting: the held-out check is the one after it);
 - **verdict**: ``refused`` when the held-out part cannot judge the model (too few samples, no
   current swing); ``low confidence`` when the held-out RMSE is above twice the noise floor or
   above 50 mV, the skill is not positive, or the capacity is not identifiable; else ``usable``.
@@ -29,6 +31,8 @@ MIN_TEST_SAMPLES = 10
 MAX_RMSE_V = 0.050
 NOISE_FACTOR = 2.0
 THRESHOLDS_V = (3.5, 3.3)
+SUSTAIN_S = 10.0
+"""Moving-median window for the time to a voltage level."""
 
 
 @dataclass(frozen=True)
@@ -77,8 +81,14 @@ def _baseline(p: Profile, train: slice) -> F64:
     return out
 
 
+def _sustained(t: F64, v: F64) -> F64:
+    """The moving median of v over the SUSTAIN_S before each sample."""
+    lo = np.searchsorted(t, t - SUSTAIN_S, side="left")
+    return np.array([np.median(v[a : k + 1]) for k, a in enumerate(lo)])
+
+
 def _first_below(t: F64, v: F64, level: float) -> float | None:
-    hit = np.flatnonzero(v <= level)
+    hit = np.flatnonzero(_sustained(t, v) <= level)
     return float(t[hit[0]]) if hit.size else None
 
 
@@ -90,10 +100,9 @@ def _check(p: Profile, r: FitResult, split: int) -> LogCheck:
     err = pred[test] - p.voltage_v[test]
     rmse = float(np.sqrt(np.mean(err**2)))
     b_rmse = float(np.sqrt(np.mean((base[test] - p.voltage_v[test]) ** 2)))
-    t = p.t_s[test]
+    t = p.t_s
     cross = {
-        lv: (_first_below(t, p.voltage_v[test], lv), _first_below(t, pred[test], lv))
-        for lv in THRESHOLDS_V
+        lv: (_first_below(t, p.voltage_v, lv), _first_below(t, pred, lv)) for lv in THRESHOLDS_V
     }
     return LogCheck(
         name=p.name, split_t_s=float(p.t_s[split]), t_s=p.t_s, measured_v=p.voltage_v,
