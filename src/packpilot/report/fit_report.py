@@ -69,8 +69,7 @@ def _checks_table(v: Validation) -> str:
         cross = "; ".join(
             f"{lv:g} V: measured {_num(m)}, predicted {_num(p)}"
             + (f" (error {p - m:+.1f} s)" if m is not None and p is not None else "")
-            + (" (before the split: fitted, not held out)" if m is not None
-               and m < c.split_t_s else "")  # fmt: skip
+            + (" (before the split: fitted)" if m is not None and m < c.split_t_s else "")
             for lv, (m, p) in c.crossings.items()
         )
         rows.append([
