@@ -732,6 +732,63 @@ def fit_cmd(
     _guard(go)
 
 
+fleet_app = typer.Typer(
+    help="Battery health across flights: one record per flight per battery (SQLite), one row "
+    "per battery with its trend and flags.",
+    no_args_is_help=True,
+)
+app.add_typer(fleet_app, name="fleet")
+FleetDb = Annotated[Path, typer.Option(help="the fleet's SQLite file")]
+
+
+@fleet_app.command("add")
+def fleet_add_cmd(
+    logs: Annotated[list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log)")],
+    db: FleetDb = Path("fleet.sqlite"),
+    label: Annotated[
+        str | None, typer.Option(help="the battery's label, when the log has no serial number")
+    ] = None,
+    battery: BatteryOpt = None,
+    cells: CellsOpt = None,
+) -> None:
+    """Fit each flight of each battery and keep one record per flight per battery."""
+
+    def go() -> None:
+        from packpilot.replay.fleet import add_logs
+
+        for line in add_logs(db, list(logs), label, cells, battery):
+            typer.echo(line)
+
+    _guard(go)
+
+
+@fleet_app.command("report")
+def fleet_report_cmd(
+    db: FleetDb = Path("fleet.sqlite"),
+    r0_rise: Annotated[float, typer.Option(help="flag R0 up by more than this share")] = 0.20,
+    fade: Annotated[float, typer.Option(help="flag capacity down by more than this share")] = 0.10,
+    as_json: JsonOpt = False,
+) -> None:
+    """One row per battery: flights, R0 first vs recent, capacity change, flags."""
+
+    def go() -> None:
+        from packpilot.replay.fleet import report
+
+        rows = report(db, r0_rise, fade)
+        if as_json:
+            typer.echo(json.dumps(rows))
+            return
+        for r in rows:
+            flags = "; ".join(r["flags"]) or "no flag"  # type: ignore[arg-type]
+            typer.echo(
+                f"{r['battery']}: {r['flights']} flights, R0 {r['r0_first_mohm']:.2f} -> "
+                f"{r['r0_recent_mohm']:.2f} mOhm ({r['r0_change_pct']:+.0f} %), lowest cell "
+                f"{r['lowest_cell_v']:.2f} V: {flags}"
+            )
+
+    _guard(go)
+
+
 # --- end packpilot fit ----------------------------------------------------------------------
 
 
