@@ -184,8 +184,41 @@ def _real() -> list[dict[str, Any]]:
     return rows
 
 
+def _ulog(path: Path, prof: Any) -> None:
+    """A synthetic flight as PX4 would log it (one cell: cell_count 1)."""
+    from packpilot.io.flightlog.ulog import write_ulog
+
+    samples = [
+        {"timestamp": round(t * 1e6), "voltage_v": float(v), "current_a": float(i),
+         "current_average_a": float(i), "discharged_mah": 1000.0 * float(q),
+         "remaining": 0.5, "temperature": float("nan"), "voltage_cell_v": [0.0] * 14,
+         "cell_count": 1, "connected": True, "id": 0, "warning": 0}
+        for t, v, i, q in zip(prof.t_s, prof.voltage_v, prof.current_a, prof.charge_ah,
+                              strict=True)
+    ]  # fmt: skip
+    write_ulog(path, [samples], start_us=0)
+
+
+def _fleet_timing(n: int = 50) -> dict[str, Any]:
+    """`fleet add` over n logs (PX4 ULog, 1 Hz, 15 min flights), fits included."""
+    from packpilot.model.fit.synthetic import Truth, synthetic_log
+    from packpilot.replay.fleet import add_logs
+
+    with tempfile.TemporaryDirectory() as tmp:
+        logs = []
+        for k in range(n):
+            path = Path(tmp) / f"flight{k:02d}.ulg"
+            _ulog(path, synthetic_log(Truth(), 1.0, seconds=900, seed=k))
+            logs.append(path)
+        t0, c0 = time.perf_counter(), time.process_time()
+        lines = add_logs(Path(tmp) / "fleet.sqlite", logs, "pack-1", None, None)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return {"case": f"fleet add, {n} PX4 logs of 15 min at 1 Hz (fits included)",
+            "fleet_add_wall_s": wall, "fleet_add_cpu_s": cpu, "records": len(lines)}  # fmt: skip
+
+
 def run() -> list[dict[str, Any]]:
-    return _synthetic() + _real()
+    return [*_synthetic(), _fleet_timing(), *_real()]
 
 
 if __name__ == "__main__":
