@@ -136,3 +136,28 @@ def test_corrupt_and_cut_copies_are_one_line(tmp_path: Path) -> None:
     junk.write_bytes(bytes(range(256)) * 10)
     res = RUNNER.invoke(app, ["import", str(junk), "--out", str(tmp_path / "y.csv")])
     assert res.exit_code == 2 and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_binary_3x_curr_without_time_takes_gps_time(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same 3.0 layout as a binary log (``CURR hIhhhf`` without time, GPS ``Time`` in ms
+    of the GPS week without ``Week``): one CURR every 2 s, between GPS fixes 0.5 s apart."""
+    from packpilot.io.flightlog import dataflash
+
+    old = {"CURR": (9, "hIhhhf", "Thr,ThrInt,Volt,Curr,Vcc,CurrTot"),
+           "GPS": (130, "BIB", "Status,Time,NSats")}  # fmt: skip
+    monkeypatch.setattr(dataflash, "FORMATS", {**dataflash.FORMATS, **old})
+    msgs: list[tuple[str, list[float]]] = []
+    for k in range(40):
+        msgs.append(("GPS", [3, 500_000_000 + 1000 * k, 9]))
+        if k % 2 == 1:
+            msgs.append(("GPS", [3, 500_000_000 + 1000 * k + 500, 9]))
+            msgs.append(("CURR", [300, 0, 1180 - k, 1500, 5000, 4.17 * k]))
+    msgs.append(("GPS", [3, 500_040_000, 9]))
+    path = tmp_path / "old.bin"
+    dataflash.write_bin(path, msgs)
+    b = read_flight_log(path).batteries[0]
+    assert b.time_derived is not None and "GPS" in b.time_derived
+    np.testing.assert_allclose(np.diff(b.t_s), 2.0, atol=1e-9)
+    assert b.voltage_v[0] == pytest.approx(11.79) and b.current_a[0] == pytest.approx(15.0)
