@@ -109,7 +109,9 @@ def test_px4_smart_battery_has_temperature_and_real_cells() -> None:
     assert np.ptp(cells[0]) > 1e-4, "measured cells differ; they are not V / 6"
     assert t.columns["t_s"][0] == 0.0 and t.columns["t_s"][-1] == 599.0
     assert t.columns["A_temp_c"][0] == pytest.approx(-10.0, abs=0.5)
-    assert t.notes == ["PX4 ULog: A = battery_status instance 0"]
+    assert t.notes[0] == "PX4 ULog: A = battery_status instance 0"
+    assert t.notes[1] == "autopilot: PackPilot"  # the writer's sys_name
+    assert all(n.startswith("A: the autopilot") for n in t.notes[2:]), t.notes
 
 
 def test_px4_analog_batteries_lack_temperature_and_cells_and_say_so() -> None:
@@ -243,7 +245,7 @@ def test_damaged_or_empty_logs_are_one_line_errors(tmp_path: Path, suffix: str) 
 def test_a_log_without_battery_data(tmp_path: Path) -> None:
     p = tmp_path / "nobat.bin"
     write_bin(p, [])
-    with pytest.raises(InputError, match="no BAT, BCL or CURR"):
+    with pytest.raises(InputError, match="without battery data: it has no BAT or CURR"):
         read_flight_log(p)
 
 

@@ -55,7 +55,7 @@ def test_the_same_flight_from_ardupilot_needs_a_stated_temperature() -> None:
 
 
 def test_two_batteries_sequencing_would_have_blocked_the_cross_charge() -> None:
-    s = _flight(str(LOGS / "px4_two_batteries.ulg"), "--assume-temp-c", "25")
+    s = _flight(str(LOGS / "px4_two_batteries.ulg"), "--assume-temp-c", "25", "--parallel", "A,B")
     heads = s["headlines"]
     assert isinstance(heads, list)
     line = next(
@@ -70,16 +70,34 @@ def test_two_batteries_sequencing_would_have_blocked_the_cross_charge() -> None:
 
 
 def test_ardupilot_two_batteries_text_and_binary_give_one_answer() -> None:
-    a = _flight(str(LOGS / "ardupilot_two_batteries.bin"), "--cells", "6", "--assume-temp-c", "25")
-    b = _flight(str(LOGS / "ardupilot_two_batteries.log"), "--cells", "6", "--assume-temp-c", "25")
+    opts = ("--cells", "6", "--assume-temp-c", "25", "--parallel", "A,B")
+    a = _flight(str(LOGS / "ardupilot_two_batteries.bin"), *opts)
+    b = _flight(str(LOGS / "ardupilot_two_batteries.log"), *opts)
     assert a["headlines"] == b["headlines"]
     assert any("--cells" in n for n in a["assumed"])  # type: ignore[attr-defined]
+
+
+def test_batteries_are_independent_unless_said_parallel() -> None:
+    """A real PX4 log with a 6S and a 12S battery (23 V and 50 V): no sequencing and no
+    cross-current unless --parallel, and --parallel on that pair is refused with the reason."""
+    log = str(LOGS / "real" / "px4_sample_log_small.ulg")
+    s = _flight(log, "--assume-temp-c", "25")
+    assert s["sequencing"] is None
+    assert not any("cross-current" in h for h in s["headlines"])  # type: ignore[attr-defined]
+    assert any("independent" in h for h in s["headlines"])  # type: ignore[attr-defined]
+    res = RUNNER.invoke(app, ["replay", "flight", log, "--assume-temp-c", "25",
+                              "--parallel", "A,B"])  # fmt: skip
+    assert res.exit_code == 2
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "23.37 V" in err[0] and "49.74 V" in err[0], err
+    res = RUNNER.invoke(app, ["replay", "flight", log, "--parallel", "A,C"])
+    assert res.exit_code == 2 and "no battery C" in res.stderr
 
 
 def test_flight_text_summary_and_report(tmp_path: Path) -> None:
     out = tmp_path / "flight.html"
     res = RUNNER.invoke(app, ["replay", "flight", str(LOGS / "px4_two_batteries.ulg"),
-                              "--report", str(out)])  # fmt: skip
+                              "--report", str(out), "--parallel", "A,B"])  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "headlines:" in res.stdout and "  - B: sequencing would have kept" in res.stdout
     assert f"wrote {out}" in res.stdout
@@ -95,7 +113,7 @@ def test_flight_text_summary_and_report(tmp_path: Path) -> None:
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="headless Chromium not installed")
 def test_report_renders_in_chromium(tmp_path: Path) -> None:
     fr = replay_flight(LOGS / "px4_two_batteries.ulg", ProtectionConfig(), SequencingConfig(),
-                       LogOptions(assume_temp_c=25.0))  # fmt: skip
+                       LogOptions(assume_temp_c=25.0), ("A", "B"))  # fmt: skip
     page = tmp_path / "f.html"
     page.write_text(flight_html(fr))
     with chromium(tmp_path / "profile", 1100, 900) as cdp:

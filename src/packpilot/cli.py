@@ -679,10 +679,16 @@ def replay_flight_cmd(
     as_json: JsonOpt = False,
     assume_temp_c: AssumeTempOpt = None,
     cells: CellsOpt = None,
+    parallel: Annotated[
+        str | None,
+        typer.Option(help="two batteries of the log that were in parallel, e.g. A,B "
+                     "(otherwise every battery is independent)"),
+    ] = None,
 ) -> None:
     """What PackPilot would have done on a recorded flight: every battery through discharge
-    protection and, with two or more batteries, the pack through parallel discharge
-    sequencing. What the log lacks is listed, never filled in silently."""
+    protection and, for two batteries the user says were in parallel (--parallel A,B), the
+    pair through parallel discharge sequencing. What the log lacks is listed, never filled
+    in silently."""
 
     def go() -> None:
         from packpilot.replay.common import LogOptions
@@ -694,7 +700,15 @@ def replay_flight_cmd(
             _check_outputs(report=report)
         prot = load_replay_config(config, "protection", other_method_ok=True)
         seq = load_replay_config(config, "sequencing", other_method_ok=True)
-        fr = replay_flight(log, prot, seq, LogOptions(None, assume_temp_c, cells))  # type: ignore[arg-type]
+        from packpilot.errors import InputError
+
+        pair = None
+        if parallel is not None:
+            parts = [p.strip() for p in parallel.split(",")]
+            if len(parts) != 2 or not all(parts):
+                raise InputError(f"--parallel {parallel!r}: give two battery names, e.g. A,B")
+            pair = (parts[0], parts[1])
+        fr = replay_flight(log, prot, seq, LogOptions(None, assume_temp_c, cells), pair)  # type: ignore[arg-type]
         _print_summary(fr.summary, as_json)
         if report is not None:
             write_flight_report(fr, report)
@@ -728,6 +742,133 @@ def import_cmd(
         typer.echo(f"wrote {out} ({table.n_rows} rows, columns {', '.join(table.columns)})")
 
     _guard(go)
+
+
+# --- packpilot fit (issue 27) ------------------------------------------------------------
+
+
+@app.command("fit")
+def fit_cmd(
+    logs: Annotated[
+        list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log) of one battery type")
+    ],
+    out: Annotated[
+        Path | None, typer.Option(help="cell set to write (.json, what [pack] cell accepts)")
+    ] = None,
+    report: Annotated[Path | None, typer.Option(help="write the validation report (.html)")] = None,
+    battery: BatteryOpt = None,
+    cells: CellsOpt = None,
+    chemistry: Annotated[
+        str, typer.Option(help="shipped set whose OCV, thermal data and limits are the template")
+    ] = "uav_5ah",
+    train_share: Annotated[
+        float, typer.Option(help="share of each log's samples to fit on; the rest tests the fit")
+    ] = 0.6,
+    as_json: JsonOpt = False,
+) -> None:
+    """Fit a cell model to flight logs (capacity, initial SOC per log, R0, R1/tau1, a second
+    RC pair where resolved) on the first part of each log, test it on the rest, and say
+    whether it is usable, with each parameter's uncertainty and what cannot be identified."""
+
+    def go() -> None:
+        import json
+
+        from packpilot.model.cell import load_parameter_set
+        from packpilot.model.fit.cellset import cellset_dict
+        from packpilot.model.fit.validate import fit_and_validate
+        from packpilot.replay.fitlogs import profiles_from_logs
+        from packpilot.report.fit_report import write_fit_report
+
+        if out is not None:
+            from packpilot.io.outputs import check_output
+
+            check_output(out, "--out", (".json",))
+        if report is not None:
+            _check_outputs(report=report)
+        base = load_parameter_set(chemistry)
+        profiles, notes = profiles_from_logs(list(logs), cells, battery)
+        v = fit_and_validate(profiles, base.ocv_soc, base.ocv_table_v, train_share=train_share)
+        name = out.stem if out is not None else "fitted"
+        data = cellset_dict(v, name, chemistry)
+        data["notes"]["logs"] = notes
+        if out is not None:
+            out.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+        if report is not None:
+            write_fit_report(v, ", ".join(p.name for p in profiles), report)
+        summary = {k: data["notes"][k] for k in ("verdict", "reasons", "not_identifiable",
+                                                 "assumptions", "notes", "validation")}  # fmt: skip
+        summary["parameters"] = {
+            k: {"value": p["value"], "unit": p["unit"], "rel_uncertainty": p["rel_uncertainty"]}
+            for k, p in data["notes"]["parameters"].items()
+        }
+        summary["window"] = data["notes"]["window"]
+        summary["fit_cpu_s"] = data["notes"]["fit_cpu_s"]
+        _print_summary(summary, as_json)
+        for path in (out, report):
+            if path is not None and not as_json:
+                typer.echo(f"wrote {path}")
+
+    _guard(go)
+
+
+fleet_app = typer.Typer(
+    help="Battery health across flights: one record per flight per battery (SQLite), one row "
+    "per battery with its trend and flags.",
+    no_args_is_help=True,
+)
+app.add_typer(fleet_app, name="fleet")
+FleetDb = Annotated[Path, typer.Option(help="the fleet's SQLite file")]
+
+
+@fleet_app.command("add")
+def fleet_add_cmd(
+    logs: Annotated[list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log)")],
+    db: FleetDb = Path("fleet.sqlite"),
+    label: Annotated[
+        str | None, typer.Option(help="the battery's label, when the log has no serial number")
+    ] = None,
+    battery: BatteryOpt = None,
+    cells: CellsOpt = None,
+) -> None:
+    """Fit each flight of each battery and keep one record per flight per battery."""
+
+    def go() -> None:
+        from packpilot.replay.fleet import add_logs
+
+        for line in add_logs(db, list(logs), label, cells, battery):
+            typer.echo(line)
+
+    _guard(go)
+
+
+@fleet_app.command("report")
+def fleet_report_cmd(
+    db: FleetDb = Path("fleet.sqlite"),
+    r0_rise: Annotated[float, typer.Option(help="flag R0 up by more than this share")] = 0.20,
+    fade: Annotated[float, typer.Option(help="flag capacity down by more than this share")] = 0.10,
+    as_json: JsonOpt = False,
+) -> None:
+    """One row per battery: flights, R0 first vs recent, capacity change, flags."""
+
+    def go() -> None:
+        from packpilot.replay.fleet import report
+
+        rows = report(db, r0_rise, fade)
+        if as_json:
+            typer.echo(json.dumps(rows))
+            return
+        for r in rows:
+            flags = "; ".join(r["flags"]) or "no flag"  # type: ignore[arg-type]
+            typer.echo(
+                f"{r['battery']}: {r['flights']} flights, R0 {r['r0_first_mohm']:.2f} -> "
+                f"{r['r0_recent_mohm']:.2f} mOhm ({r['r0_change_pct']:+.0f} %), lowest cell "
+                f"{r['lowest_cell_v']:.2f} V: {flags}"
+            )
+
+    _guard(go)
+
+
+# --- end packpilot fit ----------------------------------------------------------------------
 
 
 @app.command()

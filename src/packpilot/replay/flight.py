@@ -1,6 +1,12 @@
 """What PackPilot would have done on a recorded flight: every battery of the log through the
-discharge protection and, with two or more batteries, the pack through parallel discharge
-sequencing, with the log's own facts (reverse currents, the lowest cell) beside the verdicts.
+discharge protection and, when the user says two batteries were in parallel (``--parallel
+A,B``), that pair through parallel discharge sequencing, with the log's own facts (reverse
+currents, the lowest cell) and the autopilot's own judgement (its warnings) beside the verdicts.
+
+Batteries in one log are independent unless the user says otherwise: a log can hold a 6S
+30 Ah flight pack and a 12S 6 Ah payload pack, and taking those for a parallel pair predicts
+hundreds of amperes of cross-current that cannot flow. A pair whose voltages differ by more than
+:data:`PARALLEL_MAX_SPREAD` is refused with both voltages.
 
 A replay is open loop: the log's measurements are what they were (flown without PackPilot);
 the answer is what the controller would have commanded from them — when the protection would
@@ -11,7 +17,7 @@ replay (no current, no temperature and no ``--assume-temp-c``) is listed with th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +28,11 @@ from packpilot.control.sequencing import SequencingConfig
 from packpilot.errors import InputError
 from packpilot.replay import protection, sequencing
 from packpilot.replay.common import AUX, LogOptions, LogTable, ReplayResult, open_log
+
+PARALLEL_MAX_SPREAD = 0.10
+"""Largest relative difference of two batteries' median voltages over the first samples for a
+``--parallel`` pair: packs of one cell count differ by a few percent at most."""
+FIRST_SAMPLES = 10
 
 REVERSE_A = 0.5
 """A battery current below -this while the pack discharges is a charge flowing into it from
@@ -131,10 +142,36 @@ def _sequencing_lines(log: LogTable, res: ReplayResult, names: list[str]) -> lis
     return lines
 
 
+def _pair(log: LogTable, names: list[str], parallel: tuple[str, str]) -> LogTable:
+    """The log restricted to the two batteries the user says were in parallel; refused with
+    the reason when they are not in the log or cannot be a parallel pair."""
+    path = log.path
+    for n in parallel:
+        if n not in names:
+            raise InputError(f"{path}: --parallel {n}: no battery {n} in the log ({names})")
+    if parallel[0] == parallel[1]:
+        raise InputError(f"{path}: --parallel {parallel[0]},{parallel[1]}: name two batteries")
+    v = [float(np.median(log.columns[f"{n}_voltage_v"][:FIRST_SAMPLES])) for n in parallel]
+    if abs(v[0] - v[1]) > PARALLEL_MAX_SPREAD * max(v):
+        raise InputError(
+            f"{path}: --parallel {','.join(parallel)} refused: {parallel[0]} is at {v[0]:.2f} V "
+            f"and {parallel[1]} at {v[1]:.2f} V at the start, more than "
+            f"{100 * PARALLEL_MAX_SPREAD:.0f} % apart (different cell counts or voltages "
+            "cannot be a parallel pair)"
+        )
+    keep = {
+        c: x for c, x in log.columns.items()
+        if c in ("t_s", "docked") or c.split("_")[0] in parallel
+    }  # fmt: skip
+    return replace(log, columns=keep)
+
+
 def replay_flight(
-    path: Path, prot_cfg: ProtectionConfig, seq_cfg: SequencingConfig, options: LogOptions
-) -> FlightReplay:
-    """Protection per battery, sequencing for the pack; one summary of both."""
+    path: Path, prot_cfg: ProtectionConfig, seq_cfg: SequencingConfig, options: LogOptions,
+    parallel: tuple[str, str] | None = None,
+) -> FlightReplay:  # fmt: skip
+    """Protection per battery, sequencing for a pair the user says was in parallel; one
+    summary of both."""
     if options.battery is not None:
         raise InputError(f"{path}: --battery does not apply: a flight replay takes every battery")
     log = open_log(path, options)
@@ -151,10 +188,17 @@ def replay_flight(
             )
         except InputError as err:
             skipped[name] = str(err).removeprefix(f"{path}: ").split("; header is")[0]
-    seq = sequencing.replay(log, seq_cfg) if len(names) > 1 else None
+    pair = None if parallel is None else _pair(log, names, parallel)
+    seq = None if pair is None else sequencing.replay(pair, seq_cfg)
     headlines = [_headline(n or "battery", prot.get(n), skipped.get(n)) for n in names]
-    if seq is not None:
-        headlines += _sequencing_lines(log, seq, names)
+    headlines += [n for n in log.notes if "the autopilot warned" in n]
+    if seq is not None and parallel is not None:
+        headlines += _sequencing_lines(pair or log, seq, list(parallel))
+    elif len(names) > 1:
+        headlines.append(
+            f"batteries {', '.join(names)} replayed as independent batteries (give "
+            "--parallel A,B if two of them were in parallel)"
+        )
     t = log.columns["t_s"]
     assumed = sorted({a for r in prot.values() for a in r.summary["assumed"]})  # type: ignore[attr-defined]
     summary: dict[str, object] = {

@@ -83,6 +83,10 @@ def load_profile(cfg: ScenarioConfig) -> loads.LoadProfile:
         return loads.constant(lc.kind, lc.value)
     if lc.profile.endswith(".csv"):
         return loads.from_csv(Path(lc.profile), repeat=lc.repeat)
+    if lc.profile.lower().endswith((".ulg", ".bin", ".log")):
+        from packpilot.sim.flight_load import flight_load
+
+        return flight_load(Path(lc.profile), lc.kind, lc.repeat)
     prof = loads.builtin(lc.profile, lc.value, lc.kind)
     return loads.LoadProfile(kind=prof.kind, t_s=prof.t_s, value=prof.value, repeat=lc.repeat)
 

@@ -52,6 +52,15 @@ class BatterySeries:
     soc: F64 | None = None
     present: F64 | None = None
     notes: tuple[str, ...] = ()
+    discharged_mah: F64 | None = None
+    """The autopilot's own charge counter (PX4 ``discharged_mah``, ArduPilot ``CurrTot``)."""
+    warning: F64 | None = None
+    """The autopilot's battery warning level per sample (PX4 ``warning``: 0 none, 1 low,
+    2 critical, 3 emergency, 4 failed)."""
+    serial_number: str | None = None
+    """The battery's serial number when the log has one (0 / empty = none)."""
+    time_derived: str | None = None
+    """How ``t_s`` was derived when the log's battery message has no time field."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +92,10 @@ class FlightLog:
     format: str
     batteries: list[BatterySeries]
     notes: tuple[str, ...] = ()
+    modes: tuple[tuple[float, str], ...] = ()
+    """Flight-mode changes as the autopilot logged them: (t_s, mode name)."""
+    autopilot: str | None = None
+    """The autopilot and version the log names (e.g. ``ArduCopter V3.1``), when it does."""
 
     def table(self, *, cells: int | None = None, assume_temp_c: float | None = None) -> Table:
         """The batteries on the union of their sample times, each battery's latest value
@@ -139,6 +152,7 @@ def _table(log: FlightLog, cells: int | None, assume_temp_c: float | None) -> Ta
         )
     hints: dict[str, str] = {}
     assumed: list[str] = []
+    notes += autopilot_notes(log)
     for b in log.batteries:
         idx = np.searchsorted(b.t_s, t, side="right") - 1
         notes += [f"{b.name}: {n}" for n in b.notes]
@@ -147,6 +161,56 @@ def _table(log: FlightLog, cells: int | None, assume_temp_c: float | None) -> Ta
             if note:
                 (assumed if isinstance(note, Assumed) else notes).append(f"{b.name}: {note}")
     return Table(columns=cols, notes=notes, hints=hints, assumed=assumed)
+
+
+WARNING_NAMES = ("none", "low", "critical", "emergency", "failed", "unhealthy", "charging")
+"""PX4's ``battery_status.warning`` levels in order (BATTERY_WARNING_*)."""
+
+MAX_MODES_NOTED = 12
+
+
+def autopilot_notes(log: FlightLog) -> list[str]:
+    """What the autopilot itself said about each battery and the flight (its charge counter,
+    remaining, warnings, serial number, flight modes): a pilot compares PackPilot with it."""
+    out: list[str] = []
+    if log.autopilot:
+        out.append(f"autopilot: {log.autopilot}")
+    for b in log.batteries:
+        out += [f"{b.name}: {x}" for x in battery_facts(b)]
+    if log.modes:
+        shown = ", ".join(f"{m} at {t:.1f} s" for t, m in log.modes[:MAX_MODES_NOTED])
+        more = len(log.modes) - MAX_MODES_NOTED
+        out.append(f"flight modes: {shown}" + (f" and {more} more" if more > 0 else ""))
+    return out
+
+
+def battery_facts(b: BatterySeries) -> list[str]:
+    """One line per thing the autopilot reported for a battery (only what it reported)."""
+    facts: list[str] = []
+    if b.time_derived:
+        facts.append(f"time derived: {b.time_derived}")
+    if b.serial_number:
+        facts.append(f"serial number {b.serial_number}")
+    d = b.discharged_mah
+    if d is not None and np.isfinite(d).any() and np.nanmax(d) > 0:
+        facts.append(f"the autopilot counted {float(np.nanmax(d)):.0f} mAh discharged")
+    if b.soc is not None and np.isfinite(b.soc).any():
+        ok = b.soc[np.isfinite(b.soc)]
+        low = f" (lowest {100 * ok.min():.0f} %)" if ok.min() < ok[-1] - 0.005 else ""
+        facts.append(
+            f"the autopilot's remaining went from {100 * ok[0]:.0f} % to {100 * ok[-1]:.0f} %"
+            + low
+        )
+    if b.warning is not None and np.any(b.warning > 0):
+        w = b.warning
+        worst = int(np.max(w))
+        name = WARNING_NAMES[worst] if worst < len(WARNING_NAMES) else str(worst)
+        first = float(b.t_s[int(np.argmax(w > 0))])
+        facts.append(
+            f"the autopilot warned from {first:.1f} s, worst level {name} "
+            f"({int(np.sum(w == worst))} of {len(w)} samples)"
+        )
+    return facts
 
 
 class Assumed(str):
@@ -306,6 +370,8 @@ __all__ = [
     "BatterySeries",
     "FlightLog",
     "Table",
+    "autopilot_notes",
+    "battery_facts",
     "battery_name",
     "hold",
     "need",

@@ -22,30 +22,79 @@ from packpilot.errors import InputError
 from packpilot.io.flightlog import F64, BatterySeries, FlightLog, battery_name, need, quiet
 
 TOPIC = "battery_status"
+STATUS_TOPIC = "vehicle_status"
 FAKE_CELL_TOL_V = 2e-3
-"""Cells within this of voltage / cell_count at every sample are PX4's fill, not measurements."""
+"""Cells within this of voltage_v / cell_count or of voltage_filtered_v / cell_count at every
+sample are PX4's fill, not measurements (PX4 fills from the filtered voltage: 218 mV from
+voltage_v / n on a real log)."""
+NAV_STATES = {
+    0: "MANUAL", 1: "ALTCTL", 2: "POSCTL", 3: "AUTO_MISSION", 4: "AUTO_LOITER", 5: "AUTO_RTL",
+    6: "POSITION_SLOW", 10: "ACRO", 12: "DESCEND", 13: "TERMINATION", 14: "OFFBOARD",
+    15: "STAB", 17: "AUTO_TAKEOFF", 18: "AUTO_LAND", 19: "AUTO_FOLLOW_TARGET",
+    20: "AUTO_PRECLAND", 21: "ORBIT", 22: "AUTO_VTOL_TAKEOFF",
+}  # fmt: skip
+"""PX4's ``vehicle_status.nav_state`` names (numbers not listed are named by number)."""
 
 
 def _load(path: Path) -> Any:
     pyulog: Any = need("pyulog", "pyulog", "a PX4 ULog")
     try:
         with quiet():
-            return pyulog.ULog(str(path), [TOPIC])
+            return pyulog.ULog(str(path), [TOPIC, STATUS_TOPIC])
     except Exception as err:  # the parser raises many kinds on a damaged file
         raise InputError(
             f"{path}: not a readable ULog file ({type(err).__name__}: {err})"
         ) from None
 
 
+def _check_whole(path: Path) -> None:
+    """Walk the messages (uint16 size, uint8 type, body) after the 16-byte header: a file
+    cut inside a message is refused in one line (pyulog reads such a file silently)."""
+    data = path.read_bytes()
+    pos = 16
+    while pos + 3 <= len(data):
+        (size,) = struct.unpack_from("<H", data, pos)
+        pos += 3 + size
+    if pos != len(data):
+        raise InputError(
+            f"{path}: truncated: the file ends inside a ULog message at byte {len(data)}"
+        )
+
+
 def read_ulog(path: Path) -> FlightLog:
     """Every ``battery_status`` instance of the log, in ``multi_id`` order."""
     ulog = _load(path)
+    _check_whole(path)
     sets = sorted((d for d in ulog.data_list if d.name == TOPIC), key=lambda d: d.multi_id)
     if not sets:
-        raise InputError(f"{path}: no {TOPIC} topic in the ULog (no battery data)")
+        raise InputError(
+            f"{path}: a valid ULog without battery data: it has no {TOPIC} topic "
+            f"(topics: {', '.join(sorted({d.name for d in ulog.data_list})) or 'none read'})"
+        )
     t0 = float(ulog.start_timestamp)
     batteries = [_battery(path, k, d.multi_id, d.data, t0) for k, d in enumerate(sets)]
-    return FlightLog(path=path, format="PX4 ULog", batteries=batteries)
+    info = getattr(ulog, "msg_info_dict", {})
+    who = " ".join(
+        str(info[k]) for k in ("sys_name", "ver_hw", "ver_sw") if info.get(k) not in (None, "")
+    )
+    return FlightLog(
+        path=path, format="PX4 ULog", batteries=batteries, modes=_modes(ulog, t0),
+        autopilot=who or None,
+    )  # fmt: skip
+
+
+def _modes(ulog: Any, t0_us: float) -> tuple[tuple[float, str], ...]:
+    """Each change of ``vehicle_status.nav_state``: when and to what."""
+    for d in ulog.data_list:
+        if d.name == STATUS_TOPIC and "nav_state" in d.data and d.multi_id == 0:
+            t = (np.asarray(d.data["timestamp"], dtype=np.float64) - t0_us) / 1e6
+            nav = np.asarray(d.data["nav_state"]).astype(int)
+            keep = np.append(True, np.diff(nav) != 0)
+            return tuple(
+                (float(tt), NAV_STATES.get(int(n), f"nav_state {int(n)}"))
+                for tt, n in zip(t[keep], nav[keep], strict=True)
+            )
+    return ()
 
 
 def _field(data: Mapping[str, Any], name: str) -> F64 | None:
@@ -91,12 +140,15 @@ def _battery(
         soc = soc if np.isfinite(soc).any() else None
     count, cells = _cells(col, v, notes)
     present = col.get("connected")
+    serial = col.get("serial_number")
+    sn = str(int(serial[-1])) if serial is not None and serial.size and serial[-1] > 0 else None
     return BatterySeries(
         name=battery_name(k), source=f"{TOPIC} instance {multi_id}",
         t_s=(t_us[keep] - t0_us) / 1e6, voltage_v=v, current_a=current, temp_c=temp,
         cells_v=cells, cell_count=count, soc=soc,
         present=None if present is None else (present != 0).astype(np.float64),
-        notes=tuple(notes),
+        notes=tuple(notes), discharged_mah=col.get("discharged_mah"),
+        warning=col.get("warning"), serial_number=sn,
     )  # fmt: skip
 
 
@@ -117,9 +169,13 @@ def _cells(col: Mapping[str, F64], v: F64, notes: list[str]) -> tuple[int | None
         notes.append("voltage_cell_v is empty: no per-cell voltages")
         return count, None
     filled = np.abs(cells - (v / count)[:, None]) <= FAKE_CELL_TOL_V
+    vf = col.get("voltage_filtered_v")
+    if vf is not None:
+        filled |= np.abs(cells - (vf / count)[:, None]) <= FAKE_CELL_TOL_V
     if np.all(filled | ~ok):
+        what = "voltage_v or voltage_filtered_v" if vf is not None else "voltage_v"
         notes.append(
-            f"voltage_cell_v holds voltage_v / {count} in every cell (PX4 fills it so for a "
+            f"voltage_cell_v holds {what} / {count} in every cell (PX4 fills it so for a "
             "battery that cannot measure cells): not taken as cell voltages"
         )
         return count, None

@@ -1,0 +1,391 @@
+"""Fit an equivalent-circuit cell to logged flights: capacity, the initial state of charge of
+each log, R0, R1 / tau1 (a second RC pair only where the data resolve it), the OCV from the
+chemistry's default (corrected where the logs rest at several states of charge) and, when the
+logs span temperatures, an Arrhenius law for the resistances.
+
+Bounded least squares (``scipy.optimize.least_squares``, trust region) on log-scaled
+parameters (a resistance of 2 mOhm and one of 200 mOhm are equally far from a start), from
+several starts, keeping the best. Uncertainty from the Jacobian at the optimum
+(``s^2 (J^T J)^-1``, relative for the log-scaled ones). A parameter is flagged *not
+identifiable* — and said so in the output — when it sits on a bound, when its relative
+uncertainty exceeds :data:`MAX_REL_UNCERTAINTY`, when a time constant is shorter than two
+logging periods (the branch has settled before the next sample: R0 and R1 merge), or, for the
+capacity, when the logs swing the state of charge by less than :data:`MIN_SOC_SWING`.
+
+Pure: arrays in, a :class:`FitResult` out; no I/O (the CLI reads logs and writes files).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from packpilot.errors import InputError
+from packpilot.model.fit.profile import F64, EcmValues, Profile, predict
+
+MIN_SOC_SWING = 0.30
+"""Below this swing of the state of charge the capacity is flagged not identifiable."""
+MAX_REL_UNCERTAINTY = 1.0
+"""A log-scaled parameter whose one-sigma relative uncertainty exceeds this is not identified."""
+TAU_MIN_PERIODS = 2.0
+"""A time constant below this many logging periods is flagged not identifiable."""
+MIN_TEMP_SPAN_K = 10.0
+"""Logs must span this much temperature before a resistance-temperature law is fitted."""
+REST_A_PER_AH = 0.02
+"""A rest: cell current below C/50 ..."""
+REST_MIN_S = 60.0
+"""... for at least this long; its last sample is a point of the OCV curve."""
+SECOND_RC_GAIN = 0.10
+"""A second RC pair is kept only when it lowers the RMSE by at least this share."""
+BOUNDS = {
+    "r0_ohm": (1e-4, 1.0),
+    "r1_ohm": (1e-5, 1.0),
+    "tau1_s": (0.05, 3000.0),
+    "r2_ohm": (1e-5, 1.0),
+    "tau2_s": (1.0, 20000.0),
+    "b_k": (0.0, 8000.0),
+}
+"""Bounds per cell: resistances 0.1 mOhm .. 1 Ohm, time constants 50 ms .. 50 min."""
+UNITS = {"capacity_ah": "Ah", "r0_ohm": "Ohm", "r1_ohm": "Ohm", "tau1_s": "s",
+         "r2_ohm": "Ohm", "tau2_s": "s", "b_k": "K"}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FitParam:
+    name: str
+    value: float
+    unit: str
+    rel_uncertainty: float
+    """One-sigma relative uncertainty (absolute for the initial SOC and b_k)."""
+    identifiable: bool = True
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Window:
+    """The data the fitted set holds for."""
+
+    soc_min: float
+    soc_max: float
+    current_min_a: float
+    current_max_a: float
+    temp_min_c: float | None
+    temp_max_c: float | None
+    duration_s: float
+    samples: int
+
+
+@dataclass(frozen=True)
+class FitResult:
+    params: dict[str, FitParam]
+    soc0: dict[str, FitParam]
+    values: EcmValues
+    ocv_soc: F64
+    ocv_v: F64
+    ocv_note: str
+    rmse_v: float
+    window: Window
+    assumptions: list[str]
+    notes: list[str]
+    fit_time_s: float
+    n_rc: int
+
+    def flags(self) -> list[str]:
+        """Every 'not identifiable' with its reason."""
+        out = [f"{p.name}: not identifiable ({p.reason})" for p in self.params.values()
+               if not p.identifiable]  # fmt: skip
+        out += [f"{p.name}: not identifiable ({p.reason})" for p in self.soc0.values()
+                if not p.identifiable]  # fmt: skip
+        return out
+
+
+@dataclass
+class _Layout:
+    """The parameter vector: log-scaled positives, then b_k (linear), then each log's SOC0."""
+
+    names: list[str]
+    logs: list[str]
+    lo: list[float] = field(default_factory=list)
+    hi: list[float] = field(default_factory=list)
+
+    def values(self, x: F64, t_ref_c: float) -> tuple[EcmValues, list[float]]:
+        p = {n: (x[k] if n == "b_k" else math.exp(x[k])) for k, n in enumerate(self.names)}
+        rc = [(p["r1_ohm"], p["tau1_s"])]
+        if "r2_ohm" in p:
+            rc.append((p["r2_ohm"], p["tau2_s"]))
+        soc0 = [float(v) for v in x[len(self.names) :]]
+        vals = EcmValues(p["capacity_ah"], p["r0_ohm"], tuple(rc), p.get("b_k", 0.0), t_ref_c)
+        return vals, soc0
+
+
+def _layout(n_rc: int, law: bool, q_bounds: tuple[float, float], logs: list[str]) -> _Layout:
+    names = ["capacity_ah", "r0_ohm", "r1_ohm", "tau1_s"]
+    names += ["r2_ohm", "tau2_s"] if n_rc == 2 else []
+    names += ["b_k"] if law else []
+    lay = _Layout(names, logs)
+    for n in names:
+        lo, hi = q_bounds if n == "capacity_ah" else BOUNDS[n]
+        lay.lo.append(lo if n == "b_k" else math.log(lo))
+        lay.hi.append(hi if n == "b_k" else math.log(hi))
+    for _ in logs:
+        lay.lo.append(0.0)
+        lay.hi.append(1.05)
+    return lay
+
+
+def _soc_from_ocv(v: float, ocv_soc: F64, ocv_v: F64) -> float:
+    """The SOC whose OCV is v (the OCV table increases with SOC)."""
+    return float(np.clip(np.interp(v, ocv_v, ocv_soc), 0.0, 1.0))
+
+
+def _guess_capacity(profiles: Sequence[Profile], ocv_soc: F64, ocv_v: F64) -> float:
+    """Charge drawn over the SOC change the voltages suggest (a start, not an answer)."""
+    guesses = []
+    for p in profiles:
+        s0 = _soc_from_ocv(float(p.voltage_v[0]), ocv_soc, ocv_v)
+        s1 = _soc_from_ocv(float(p.voltage_v[-1] + 0.01 * p.current_a[-1]), ocv_soc, ocv_v)
+        drawn = float(p.drawn_ah[-1])
+        if drawn > 0 and s0 - s1 > 0.05:
+            guesses.append(drawn / (s0 - s1))
+        elif drawn > 0:
+            guesses.append(drawn / 0.3)
+    return float(np.median(guesses)) if guesses else 5.0
+
+
+def _residuals(x: F64, lay: _Layout, profs: Sequence[Profile], ocv: tuple[F64, F64],
+               t_ref_c: float) -> F64:  # fmt: skip
+    vals, soc0 = lay.values(x, t_ref_c)
+    parts = [predict(p, vals, s, *ocv)[0] - p.voltage_v for p, s in zip(profs, soc0, strict=True)]
+    return np.concatenate(parts)
+
+
+def _starts(lay: _Layout, q0: float, soc_starts: list[float], n_rc: int,
+            prev: F64 | None) -> list[F64]:  # fmt: skip
+    combos = [(1.0, 0.01, 0.005, 20.0), (0.6, 0.03, 0.01, 5.0), (1.7, 0.005, 0.002, 100.0),
+              (1.0, 0.02, 0.02, 1.0)]  # fmt: skip
+    out = []
+    for qf, r0, r1, tau in combos:
+        x = [math.log(q0 * qf), math.log(r0), math.log(r1), math.log(tau)]
+        if n_rc == 2:
+            x += [math.log(r1), math.log(tau * 20.0)]
+        if "b_k" in lay.names:
+            x.append(2000.0)
+        out.append(np.array(x + soc_starts))
+    if prev is not None:
+        out.insert(0, prev)
+    lo, hi = np.array(lay.lo), np.array(lay.hi)
+    return [np.clip(x, lo + 1e-9, hi - 1e-9) for x in out]
+
+
+def _solve(lay: _Layout, profs: Sequence[Profile], ocv: tuple[F64, F64], t_ref_c: float,
+           starts: list[F64]) -> tuple[F64, F64, F64]:  # fmt: skip
+    """(x, residuals, jacobian) of the best start."""
+    best = None
+    for x0 in starts:
+        r = least_squares(
+            _residuals, x0, bounds=(lay.lo, lay.hi), args=(lay, profs, ocv, t_ref_c),
+            x_scale="jac", max_nfev=400, xtol=1e-10, ftol=1e-10,
+        )  # fmt: skip
+        if best is None or r.cost < best.cost:
+            best = r
+    assert best is not None
+    return best.x, best.fun, best.jac
+
+
+def _uncertainty(res: F64, jac: F64) -> F64:
+    m, p = jac.shape
+    s2 = float(res @ res) / max(m - p, 1)
+    cov = np.linalg.pinv(jac.T @ jac) * s2
+    out: F64 = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return out
+
+
+def _params(lay: _Layout, x: F64, sig: F64, period_s: float, swing: float
+            ) -> tuple[dict[str, FitParam], dict[str, FitParam]]:  # fmt: skip
+    out: dict[str, FitParam] = {}
+    for k, n in enumerate(lay.names):
+        value = float(x[k]) if n == "b_k" else math.exp(x[k])
+        rel = float(sig[k]) if n == "b_k" else math.expm1(min(float(sig[k]), 700.0))
+        reasons = []
+        edge = 1e-3 * max(1.0, abs(lay.hi[k] - lay.lo[k]))
+        if x[k] - lay.lo[k] < edge or lay.hi[k] - x[k] < edge:
+            reasons.append("at a bound")
+        if n != "b_k" and rel > MAX_REL_UNCERTAINTY:
+            reasons.append(f"uncertainty {100 * rel:.0f} %")
+        if n.startswith("tau") and value < TAU_MIN_PERIODS * period_s:
+            reasons.append(
+                f"{value:.2g} s is below {TAU_MIN_PERIODS:g} logging periods ({period_s:.3g} s)"
+            )
+        if n == "capacity_ah" and swing < MIN_SOC_SWING:
+            reasons.append(f"SOC swing {100 * swing:.0f} % < {100 * MIN_SOC_SWING:.0f} %")
+        out[n] = FitParam(n, value, UNITS[n], rel, not reasons, "; ".join(reasons))
+    _merge_flags(out, period_s)
+    soc0 = {}
+    for j, log in enumerate(lay.logs):
+        k = len(lay.names) + j
+        edge = x[k] - lay.lo[k] < 1e-3 or lay.hi[k] - x[k] < 1e-3
+        soc0[log] = FitParam(f"soc0[{log}]", float(x[k]), "", float(sig[k]), not edge,
+                             "at a bound" if edge else "")  # fmt: skip
+    return out, soc0
+
+
+def _merge_flags(out: dict[str, FitParam], period_s: float) -> None:
+    """When tau1 is below two logging periods the RC branch has settled by the next sample:
+    the data see R0 + R1 (the resistance a pulse shows), not how it splits."""
+    tau = out["tau1_s"]
+    if tau.value >= TAU_MIN_PERIODS * period_s:
+        return
+    total = out["r0_ohm"].value + out["r1_ohm"].value
+    why = f"merges with R1 (tau1 below two logging periods): R0 + R1 = {1000 * total:.2f} mOhm"
+    for n in ("r0_ohm", "r1_ohm"):
+        p = out[n]
+        reason = "; ".join(x for x in (p.reason, why) if x)
+        out[n] = FitParam(p.name, p.value, p.unit, p.rel_uncertainty, False, reason)
+
+
+def _rests(p: Profile, capacity_ah: float) -> list[int]:
+    """Last sample of each rest (|I| below C/50 for REST_MIN_S or longer)."""
+    quiet = np.abs(p.current_a) < REST_A_PER_AH * capacity_ah
+    ends = []
+    start = None
+    for k, q in enumerate(np.append(quiet, False)):
+        if q and start is None:
+            start = k
+        elif not q and start is not None:
+            if p.t_s[k - 1] - p.t_s[start] >= REST_MIN_S:
+                ends.append(k - 1)
+            start = None
+    return ends
+
+
+def _ocv_correction(profs: Sequence[Profile], vals: EcmValues, soc0: list[float],
+                    ocv: tuple[F64, F64]) -> tuple[tuple[F64, F64], str]:  # fmt: skip
+    """A linear correction of the default OCV from rest points at >= 2 SOC 10 % apart."""
+    pts = []
+    for p, s in zip(profs, soc0, strict=True):
+        v, soc = predict(p, vals, s, *ocv)
+        pts += [(soc[k], p.voltage_v[k] - v[k]) for k in _rests(p, vals.capacity_ah)]
+    if len(pts) < 2 or np.ptp([q[0] for q in pts]) < 0.1:
+        return ocv, (
+            f"chemistry default (rest points at {len(pts)} SOC: at least two 10 % apart are "
+            "needed to correct it)"
+        )
+    s_arr, dv = np.array(pts).T
+    c1, c0 = np.polyfit(s_arr, dv, 1)
+    corrected = ocv[1] + c0 + c1 * ocv[0]
+    return (ocv[0], corrected), (
+        f"chemistry default corrected by {1000 * c0:+.1f} mV {1000 * c1:+.1f} mV x SOC from "
+        f"{len(pts)} rest points (SOC {s_arr.min():.2f}..{s_arr.max():.2f})"
+    )
+
+
+def _window(profs: Sequence[Profile], vals: EcmValues, soc0: list[float], ocv: tuple[F64, F64],
+            ) -> Window:  # fmt: skip
+    socs = np.concatenate([predict(p, vals, s, *ocv)[1] for p, s in zip(profs, soc0, strict=True)])
+    cur = np.concatenate([p.current_a for p in profs])
+    temps = [p.temp_c for p in profs if p.temp_c is not None]
+    tt = np.concatenate(temps) if temps else None
+    return Window(
+        float(socs.min()), float(socs.max()), float(cur.min()), float(cur.max()),
+        None if tt is None else float(tt.min()), None if tt is None else float(tt.max()),
+        float(sum(p.t_s[-1] - p.t_s[0] for p in profs)), int(sum(len(p.t_s) for p in profs)),
+    )  # fmt: skip
+
+
+def fit(
+    profiles: Sequence[Profile],
+    ocv_soc: F64,
+    ocv_v: F64,
+    *,
+    max_rc: int = 2,
+    ref_temp_c: float = 25.0,
+) -> FitResult:
+    """Fit one cell model to every profile at once (one capacity and resistance set, one
+    initial SOC per profile)."""
+    t0 = time.process_time()
+    profs = list(profiles)
+    if not profs:
+        raise InputError("fit: no profile to fit")
+    for p in profs:
+        if len(p.t_s) < 20:
+            raise InputError(f"fit: {p.name}: {len(p.t_s)} samples; at least 20 are needed")
+    notes: list[str] = []
+    assumptions: list[str] = []
+    temps = [p.temp_c for p in profs if p.temp_c is not None]
+    span = float(np.ptp(np.concatenate(temps))) if temps else 0.0
+    law = span >= MIN_TEMP_SPAN_K
+    t_ref = float(np.mean(np.concatenate(temps))) if temps else ref_temp_c
+    if not law:
+        assumptions.append(
+            f"resistances hold at {t_ref:.1f} degC (reference temperature): the logs "
+            + (f"span {span:.1f} K of temperature" if temps else "carry no temperature")
+            + f", a resistance-temperature law needs {MIN_TEMP_SPAN_K:g} K"
+        )
+    ocv = (np.asarray(ocv_soc, dtype=np.float64), np.asarray(ocv_v, dtype=np.float64))
+    q0 = _guess_capacity(profs, *ocv)
+    drawn = max(float(np.max(p.drawn_ah)) for p in profs)
+    q_bounds = (max(q0 / 20.0, drawn * 0.5, 1e-3), q0 * 20.0)
+    socs = [_soc_from_ocv(float(p.voltage_v[0] + 0.01 * p.current_a[0]), *ocv) for p in profs]
+    names = [p.name for p in profs]
+    period = float(np.median([p.period_s for p in profs]))
+
+    lay = _layout(1, law, q_bounds, names)
+    x, res, jac = _solve(lay, profs, ocv, t_ref, _starts(lay, q0, socs, 1, None))
+    vals, soc0 = lay.values(x, t_ref)
+    ocv, ocv_note = _ocv_correction(profs, vals, soc0, ocv)
+    if not ocv_note.startswith("chemistry default ("):
+        x, res, jac = _solve(lay, profs, ocv, t_ref, [x])
+    n_rc = 1
+    if max_rc >= 2:
+        x, res, jac, lay, n_rc = _maybe_second_rc(lay, x, res, jac, profs, ocv, t_ref, law,
+                                                  q_bounds, names, period, notes)  # fmt: skip
+    vals, soc0 = lay.values(x, t_ref)
+    swing = max(np.ptp(predict(p, vals, s, *ocv)[1]) for p, s in zip(profs, soc0, strict=True))
+    params, soc0p = _params(lay, x, _uncertainty(res, jac), period, float(swing))
+    return FitResult(
+        params=params, soc0=soc0p, values=vals, ocv_soc=ocv[0], ocv_v=ocv[1], ocv_note=ocv_note,
+        rmse_v=float(np.sqrt(np.mean(res**2))), window=_window(profs, vals, soc0, ocv),
+        assumptions=assumptions, notes=notes, fit_time_s=time.process_time() - t0, n_rc=n_rc,
+    )  # fmt: skip
+
+
+def _maybe_second_rc(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequence[Profile],
+                     ocv: tuple[F64, F64], t_ref: float, law: bool,
+                     q_bounds: tuple[float, float], names: list[str], period: float,
+                     notes: list[str]) -> tuple[F64, F64, F64, _Layout, int]:  # fmt: skip
+    """Keep a second RC pair only where the data resolve it: a clear RMSE gain, a time
+    constant well apart from the first and both identified."""
+    lay2 = _layout(2, law, q_bounds, names)
+    base = list(x[:4])
+    tails = list(x[4:])
+    starts = []
+    for f in (10.0, 50.0):
+        x0 = np.array([*base, x[2] - math.log(2.0), x[3] + math.log(f), *tails])
+        starts.append(np.clip(x0, np.array(lay2.lo) + 1e-9, np.array(lay2.hi) - 1e-9))
+    x2, res2, jac2 = _solve(lay2, profs, ocv, t_ref, starts)
+    rmse1 = float(np.sqrt(np.mean(res**2)))
+    rmse2 = float(np.sqrt(np.mean(res2**2)))
+    sig = _uncertainty(res2, jac2)
+    p2, _ = _params(lay2, x2, sig, period, 1.0)
+    taus = sorted((p2["tau1_s"].value, p2["tau2_s"].value))
+    resolved = (
+        rmse2 < (1.0 - SECOND_RC_GAIN) * rmse1
+        and taus[1] > 3.0 * taus[0]
+        and all(p2[n].identifiable for n in ("r1_ohm", "tau1_s", "r2_ohm", "tau2_s"))
+    )
+    if resolved:
+        notes.append(f"second RC pair kept: RMSE {1000 * rmse1:.1f} -> {1000 * rmse2:.1f} mV")
+        return x2, res2, jac2, lay2, 2
+    notes.append(
+        f"second RC pair not resolved by the data (RMSE {1000 * rmse1:.2f} mV with one pair, "
+        f"{1000 * rmse2:.2f} mV with two): one pair kept"
+    )
+    return x, res, jac, lay, 1
+
+
+__all__ = ["FitParam", "FitResult", "Window", "fit"]
