@@ -7,9 +7,14 @@ callback (the campaign stores them at once).
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import logging
 import math
+import os
 import re
+import signal
+import threading
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -114,12 +119,17 @@ def _run_distributed(
     as_completed: Any = importlib.import_module("distributed").as_completed
 
     futures = [client.submit(run_batch, cfg, b, fail, pure=False) for b in batches]
+    interrupted = False
     try:
         for fut in as_completed(futures):
             done(fut.result())
             fut.release()  # the rows are on disk; free the worker's copy
+    except KeyboardInterrupt:
+        interrupted = True  # the cluster is torn down (ours) or the client closed (theirs)
+        raise
     finally:
-        client.cancel([f for f in futures if not f.done()])
+        if not interrupted:
+            client.cancel([f for f in futures if not f.done()])
 
 
 @contextmanager
@@ -128,7 +138,7 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
     Client, LocalCluster = dist.Client, dist.LocalCluster
     if scheduler == "processes":
         dask: Any = importlib.import_module("dask")
-        with warnings.catch_warnings(), dask.config.set(QUIET_WORKER_CONFIG):
+        with warnings.catch_warnings(), dask.config.set(QUIET_WORKER_CONFIG), _no_sigint():
             # The scheduler's small HTTP server moves off :8787 if taken; nothing to report.
             warnings.filterwarnings("ignore", message="Port .* is already in use")
             cluster = LocalCluster(
@@ -141,9 +151,15 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
         client = Client(cluster)
         try:
             yield client
-        finally:
+        except KeyboardInterrupt:
+            _close_quietly(client, cluster)
+            raise
+        except BaseException:
             client.close()
             cluster.close()
+            raise
+        client.close()
+        cluster.close()
     else:
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
@@ -153,6 +169,42 @@ def _client_for(scheduler: str, workers: int) -> Iterator[Any]:
             yield client
         finally:
             client.close()
+
+
+@contextmanager
+def _no_sigint() -> Iterator[None]:
+    """SIGINT ignored while the cluster spawns its worker processes, so they inherit that: a
+    Ctrl-C in the terminal (sent to the whole process group) then reaches only this process,
+    which stops the campaign and closes the cluster, instead of every worker dying with its
+    own traceback and the nannies warning about it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _close_quietly(client: Any, cluster: Any) -> None:
+    """After Ctrl-C: end the worker processes at once (their unfinished batches are lost
+    anyway; killed, they cannot log a cancelled task or a lost scheduler), then close the
+    client and the cluster with short timeouts, distributed's own logging silenced (workers
+    torn down mid-task is what was asked for, not news)."""
+    logging.getLogger("distributed").setLevel(logging.CRITICAL + 1)
+    for name in list(logging.root.manager.loggerDict):
+        if name.startswith("distributed."):
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+    for nanny in list(getattr(cluster, "workers", {}).values()):
+        pid = getattr(getattr(getattr(nanny, "process", None), "process", None), "pid", None)
+        if isinstance(pid, int):
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+    with contextlib.suppress(Exception):
+        client.close(timeout=1)
+    with contextlib.suppress(Exception):
+        cluster.close(timeout=1)
 
 
 def choose_scheduler(cfg: ScenarioConfig, n_runs: int, workers: int) -> str:
