@@ -156,6 +156,8 @@ def test_ctrl_c_on_the_process_cluster_is_quick_quiet_and_counts_what_it_kept(
     proc = subprocess.Popen(
         [*CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True, env=_env(),
+        # as from a terminal: pytest-xdist's workers ignore SIGINT and a child inherits that
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )  # fmt: skip
     parts = Path(str(out) + ".parts")
     deadline = time.monotonic() + 180

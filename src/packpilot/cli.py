@@ -196,7 +196,7 @@ def simulate(
         cfg = _with_can(_load(path, duration), can_interface, can_channel, can_log)
         _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
-        result = _run_interruptible(cfg, path, db, progress)
+        result = _run_interruptible(cfg, path, db, progress, (report, plot, trace_csv))
         _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report, db,
                        started)  # fmt: skip
         return _summarise(result, cfg.model_dump(mode="json"), as_json, categories)
@@ -245,10 +245,15 @@ def _with_can(
 
 
 def _run_interruptible(
-    cfg: ScenarioConfig, path: Path, db: Path | None, progress: bool | None
+    cfg: ScenarioConfig,
+    path: Path,
+    db: Path | None,
+    progress: bool | None,
+    outputs: tuple[Path | None, ...] = (),
 ) -> Result:
     """The run; Ctrl-C ends it with a message and exit code 130 (a ``--db`` run is stamped
-    ``interrupted``, with every sample up to that point)."""
+    ``interrupted``, with every sample up to that point). The message names the ``outputs``
+    (report, plot, CSV) that were asked for and are therefore not written."""
     from packpilot.sim.runner import Runner
 
     runner = _named(path, lambda: Runner(cfg, progress=progress))
@@ -264,6 +269,9 @@ def _run_interruptible(
         t_s = runner.steps_done * cfg.sim.dt_s
         kept = f"; {db} holds the run up to there, status 'interrupted'" if db else ""
         typer.echo(f"interrupted at t = {t_s:.1f} s{kept}", err=True)
+        missing = [str(p) for p in outputs if p is not None]
+        if missing:
+            typer.echo(f"not written: {', '.join(missing)} (the run did not finish)", err=True)
         raise typer.Exit(code=EXIT_INTERRUPTED) from None
 
 
@@ -609,7 +617,7 @@ def replay_flight_cmd(
         from packpilot.replay.common import LogOptions
         from packpilot.replay.config import load_replay_config
         from packpilot.replay.flight import replay_flight
-        from packpilot.replay.flight_report import write_flight_report
+        from packpilot.report.flight import write_flight_page
 
         if report is not None:
             _check_outputs(report=report)
@@ -618,7 +626,7 @@ def replay_flight_cmd(
         fr = replay_flight(log, prot, seq, LogOptions(None, assume_temp_c, cells))  # type: ignore[arg-type]
         _print_summary(fr.summary, as_json)
         if report is not None:
-            write_flight_report(fr, report)
+            write_flight_page(fr, report)  # the run report's zoomable charts
             if not as_json:
                 typer.echo(f"wrote {report}")
 
