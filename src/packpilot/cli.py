@@ -899,10 +899,11 @@ def dashboard(
         dash.start()
         with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C / SIGTERM: the normal way out
             dash.serve()
-        st = dash.live.status()
+        st = dash.live.status()  # the run on show now: the page may have started another
         if st["kind"] == "live" and st["state"] != "idle":
             why = f": {st['error']}" if st["error"] and st["state"] == "error" else ""
-            typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why}", err=True)
+            what = st["scenario"] + (f", {st['source']}" if st.get("source") else "")
+            typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why} ({what})", err=True)
 
     _guard(go)
 

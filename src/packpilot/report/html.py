@@ -348,7 +348,7 @@ body { font: 15px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, "DejaVu San
        color: var(--fg); margin: 0; background: #fff; }
 header { background: var(--bg2); border-bottom: 1px solid var(--line); padding: 1rem 1.5rem; }
 header h1 { margin: 0 0 .2rem; font-size: 1.5rem; }
-header .sub { margin: 0; color: var(--muted); }
+header .sub { margin: 0; color: var(--muted); overflow-wrap: anywhere; }
 nav { margin-top: .6rem; display: flex; flex-wrap: wrap; gap: .4rem 1rem; }
 nav a { color: var(--accent); text-decoration: none; font-weight: 600; }
 main { max-width: 1040px; margin: 0 auto; padding: 0 1.5rem 2rem; }
