@@ -48,22 +48,30 @@ def _has_data(x: NDArray[np.float64]) -> bool:
     return bool(np.isfinite(x).any())
 
 
+UNDRAWN_KINDS = frozenset({"BalancingUpdated", "SocCorrected"})
+"""Routine kinds counted in the legend but not drawn: the demo's 136 balancing updates drew a
+grey curtain over every panel (the dashboard's charts leave them out too)."""
+
+
 def _plot_events(result: Result, axes: list[Axes], scale: float) -> list[Line2D]:
     """Vertical lines on every panel, one colour per kind; legend handles returned."""
-    events = [e for e in result.events if np.isfinite(e.t_s)]
-    if not events:
+    every = [e for e in result.events if np.isfinite(e.t_s)]
+    if not every:
         return []
-    counts = Counter(e.kind for e in events)
+    counts = Counter(e.kind for e in every)
+    events = [e for e in every if e.kind not in UNDRAWN_KINDS]
     colors = {k: _EVENT_COLORS[i % len(_EVENT_COLORS)] for i, k in enumerate(counts)}
     alpha = 0.8 if len(events) <= 50 else 0.35
     for e in events:
         x = e.t_s / scale
         for ax in axes:
             ax.axvline(x, color=colors[e.kind], lw=0.9, ls=":", alpha=alpha, zorder=1)
-    if len(events) <= _MAX_EVENT_LABELS:
+    if events and len(events) <= _MAX_EVENT_LABELS:
         _label_events(result, events, axes[0], scale, colors)
     return [
         Line2D([], [], color=colors[k], ls=":", lw=1.2, label=f"{k} ({n})")
+        if k not in UNDRAWN_KINDS
+        else Line2D([], [], color="none", ls="none", label=f"{k} ({n}, not drawn)")
         for k, n in counts.items()
     ]
 
