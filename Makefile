@@ -26,8 +26,11 @@ $(TEST_STAMP): $(STAMP) pyproject.toml
 	$(PY) -m pip install --quiet -e ".[test]"
 	touch $(TEST_STAMP)
 
+# Each demo starts a fresh telemetry file: a second `make demo` would otherwise append "run 2"
+# to the same database and title its report "run 2" (the older run is replaced, not kept).
 demo: $(STAMP)
 	mkdir -p $(OUT)
+	rm -f $(OUT)/demo.sqlite $(OUT)/demo.sqlite-wal $(OUT)/demo.sqlite-shm $(OUT)/demo_can.blf
 	@echo "demo: simulating the 90-minute UAV mission (about 100 s; the first run on a machine also compiles the kernels, saying so)" >&2
 	$(PY) -m packpilot.cli simulate examples/uav_mission.toml --progress \
 		--db $(OUT)/demo.sqlite --report $(OUT)/report.html --plot $(OUT)/demo.png \

@@ -87,11 +87,12 @@ def _default_sigint() -> None:
 
 def test_ctrl_c_exits_130_and_marks_the_run_interrupted(tmp_path: Path) -> None:
     db = tmp_path / "run.sqlite"
+    report, plot = tmp_path / "r.html", tmp_path / "r.png"
     proc = subprocess.Popen(
         # ten missions long: the whole 5,400 s mission runs in ~8 s, short enough that the
         # signal could arrive after the loop on a loaded machine (it did)
         [*CLI, "simulate", str(EXAMPLES / "uav_mission.toml"), "--db", str(db), "--no-progress",
-         "--duration", "54000"],
+         "--duration", "54000", "--report", str(report), "--plot", str(plot)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
         # as from a terminal: pytest-xdist's workers ignore SIGINT and a child inherits that
         # (Python then installs no KeyboardInterrupt handler): in CI every Ctrl-C was ignored
@@ -112,6 +113,9 @@ def test_ctrl_c_exits_130_and_marks_the_run_interrupted(tmp_path: Path) -> None:
     assert proc.returncode == 130, (out, err)
     assert "Traceback" not in err
     assert re.search(r"interrupted at t = [\d.]+ s", err), err
+    # the outputs asked for are named as not written (#29: the report's absence went unsaid)
+    assert f"not written: {report}, {plot} (the run did not finish)" in err, err
+    assert not report.exists() and not plot.exists()
     with sqlite3.connect(db) as conn:
         (status,) = conn.execute("SELECT status FROM runs").fetchone()
     assert status == "interrupted"
@@ -223,6 +227,9 @@ def test_make_demo_installs_only_the_package_and_test_adds_the_extras() -> None:
     assert '-e ".[test]"' in blocks["$(TEST_STAMP)"][1]
     demo = blocks["demo"][1]
     assert "--progress" in demo and ">&2" in demo  # progress and what is going on, on stderr
+    # a second `make demo` starts a fresh database: its report is "run 1" again, not "run 2"
+    fresh = demo.index("rm -f $(OUT)/demo.sqlite $(OUT)/demo.sqlite-wal $(OUT)/demo.sqlite-shm")
+    assert fresh < demo.index("--db $(OUT)/demo.sqlite")
 
 
 def test_installed_examples_are_found_by_name(
@@ -239,3 +246,30 @@ def test_installed_examples_are_found_by_name(
     monkeypatch.chdir(tmp_path)
     assert scenario_path(Path("only_installed")) == shared / "only_installed.toml"
     assert 'data-files]\n' in (ROOT / "pyproject.toml").read_text()
+
+
+def test_the_cross_charge_figure_is_the_same_in_the_docs_and_the_run() -> None:
+    """README and docs/replay.md quote uav_dual_parallel's cross-charge: the figure the run
+    prints (#29: they said 50 A and 40 A, the run 39.5 A)."""
+    proc = cli("simulate", str(EXAMPLES / "uav_dual_parallel.toml"), "--json", "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    peak = json.loads(proc.stdout)["peak_cross_current_a"]
+    figure = f"{peak:.1f} A cross-charge"
+    for doc in (ROOT / "README.md", ROOT / "docs" / "replay.md"):
+        text = doc.read_text(encoding="utf-8")
+        found = set(re.findall(r"(\d+(?:\.\d)?) A cross-charge", text))
+        assert found == {f"{peak:.1f}"}, (doc.name, found, figure)
+
+
+def test_the_tours_commands_name_files_a_step_creates() -> None:
+    """Every file the README's tour reads (a --can-log or a report's database) is written by
+    an earlier step of the tour or by `make demo` (#29: `--can-log run.blf` named a file no
+    step creates)."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    tour = text[text.index("## A short tour") : text.index("## On a real pack")]
+    made = {"out/demo.sqlite", "out/demo_can.blf", "out/report.html"}  # make demo
+    for line in tour.splitlines():
+        cmd = line.split("#", 1)[0]  # a hint in a comment counts too: it is read as advice
+        for read in re.findall(r"--can-log (\S+)", line) + re.findall(r"report (\S+\.sqlite)", cmd):
+            assert read in made, (read, line)
+        made.update(re.findall(r"--(?:db|out|plot|report) (\S+)", cmd))

@@ -138,3 +138,14 @@ def test_figure_png_base64() -> None:
     text = figure_png_base64(fig, dpi=50)
     assert text.isascii()
     assert png_size(base64.b64decode(text)) == (500, 450)
+
+
+def test_routine_balancing_updates_are_counted_not_drawn() -> None:
+    """#29: the demo's 136 BalancingUpdated lines covered every panel in grey."""
+    evs = [Event(float(t), "BalancingUpdated", 0) for t in range(0, 600, 5)]
+    evs.append(Event(300.0, "ProtectionTripped", 1, "UV"))
+    fig = run_figure(synthetic_result(events=evs))
+    for ax in fig.get_axes()[:4]:
+        assert sum(1 for ln in ax.get_lines() if ln.get_linestyle() == ":") == 1
+    names = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+    assert names == ["BalancingUpdated (120, not drawn)", "ProtectionTripped (1)"]

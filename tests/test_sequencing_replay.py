@@ -68,7 +68,8 @@ def test_r2_standby_joins_when_the_fast_voltages_meet(tmp_path: Path) -> None:
     # R2 switches the joiner's charge FET in the same period, and it stays on.
     chg1 = _col(res, "chg_1")
     assert set(chg1[first:]) == {1} and set(chg1[:first]) == {0}
-    assert res.summary["joins"] == [{"t_s": ts[first], "battery": 1, "rule": "R2"}]
+    # the battery as the log names it (a numbered log: "1"), its position in "index"
+    assert res.summary["joins"] == [{"t_s": ts[first], "battery": "1", "index": 1, "rule": "R2"}]
 
 
 @pytest.mark.parametrize(("dt", "debounce"), [(0.05, 0.02), (0.05, 0.1), (0.01, 0.02), (0.3, 0.02)])
@@ -95,14 +96,15 @@ def test_r3_charge_fet_on_within_t_on_of_diode_conduction(
     on1 = chg1.index(1)
     assert ts[on1] - ts[seen1] <= cfg.t_on + 1e-9
     assert _col(res, "state_1")[on1] == "DISCHARGING"
-    assert {"t_s": ts[on1], "battery": 1, "rule": "R3"} in res.summary["joins"]  # type: ignore[operator]
+    join = {"t_s": ts[on1], "battery": "1", "index": 1, "rule": "R3"}
+    assert join in res.summary["joins"]  # type: ignore[operator]
     assert res.summary["max_diode_conduction_s"] <= cfg.t_on + 1e-9  # type: ignore[operator]
     if dt < cfg.t_on:
         assert ts[on1] - ts[seen1] >= min(debounce, cfg.t_on - dt) - 1e-9
     # R3 outranks the charge limit: at zero load battery 0 (fast 24.2 V) would push far more
     # than 2.5 A into battery 1 (23.1 V): reported once as a risk.
     risk = res.summary["cross_current_risk"]
-    assert isinstance(risk, list) and [(r["t_s"], r["battery"]) for r in risk] == [(ts[on1], 1)]
+    assert isinstance(risk, list) and [(r["t_s"], r["index"]) for r in risk] == [(ts[on1], 1)]
 
 
 def test_r3_debounce_ignores_a_single_spike(tmp_path: Path) -> None:
@@ -165,7 +167,9 @@ def test_reverse_current_opens_the_charge_fet(tmp_path: Path) -> None:
     # The reverse cut opens the charge FET in the same period; the battery stays admitted.
     assert _col(res, "state_1")[k] == "DISCHARGING"
     assert set(_col(res, "chg_1")[k:]) == {0}
-    assert res.summary["reverse_current"] == [{"t_s": 2.0, "battery": 1, "current_a": -2.0}]
+    assert res.summary["reverse_current"] == [
+        {"t_s": 2.0, "battery": "1", "index": 1, "current_a": -2.0}
+    ]
 
 
 def test_hot_insertion_with_present_columns(tmp_path: Path) -> None:

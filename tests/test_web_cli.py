@@ -173,3 +173,43 @@ def test_unsafe_or_bad_serving_options_are_one_line_errors(tmp_path: Path) -> No
         assert r.returncode == 2, (args, r.stderr)
         assert r.stderr.startswith("error: ") and needle in r.stderr, (args, r.stderr)
         assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
+
+
+def test_ctrl_c_names_the_run_on_show_after_the_page_switched(tmp_path: Path) -> None:
+    """Started with one scenario, switched from the page to an example: Ctrl-C's last line
+    names the example that was running, not the scenario the command line named (#29)."""
+    proc = cli(str(EXAMPLE), "--port", "0", "--speed", "2")
+    try:
+        out = lines(proc)
+        first = out.get(timeout=60)
+        m = re.search(r"on (http://127\.0\.0\.1:\d+/)", first)
+        assert m, first
+        url = m.group(1)
+        with urllib.request.urlopen(url, timeout=5) as resp:
+            page = resp.read().decode()
+        token = re.search(r'name="packpilot-token" content="([^"]+)"', page)
+        assert token
+        req = urllib.request.Request(
+            url + "api/start", data=json.dumps({"example": "uav_dual_parallel"}).encode(),
+            headers={"Content-Type": "application/json", "X-PackPilot-Token": token.group(1)},
+            method="POST",
+        )  # fmt: skip
+        with urllib.request.urlopen(req, timeout=120) as resp:
+            assert resp.status == 200
+        deadline = time.monotonic() + 60.0
+        st = get_json(url + "api/status")
+        while st["t_s"] <= 0.5 and time.monotonic() < deadline:
+            time.sleep(0.1)
+            st = get_json(url + "api/status")
+        assert st["source"] == "example uav_dual_parallel" and st["state"] == "running"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(15) == 0
+        rest = "".join(out.get(timeout=5) for _ in range(out.qsize() or 1))
+        last = rest.strip().splitlines()[-1]
+        want = r"run stopped at t = \d+\.\d s \(.*example uav_dual_parallel\)$"
+        assert re.search(want, last), rest
+        assert "smart_battery" not in last
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import base64
 import os
+import re
 import threading
 import time
 import tomllib
@@ -122,13 +123,17 @@ def test_controls_schematic_and_cell_bars_on_a_live_run(
         v = [x[0] for x in card]
         assert [x[1] for x in card] == [k == int(np.argmin(v)) for k in range(6)], card
         assert [x[2] for x in card] == [k == int(np.argmax(v)) for k in range(6)], card
-    heights = js(
+    # drawn to scale on the cell set's absolute window (the axis the card ticks)
+    scale = js(
         browser,
-        "[...document.querySelectorAll('.panel.bat')[0]"
-        ".querySelectorAll('.cellbar .fill')].map(f => f.clientHeight)",
+        "(() => { const c = document.querySelectorAll('.panel.bat')[0].querySelector('.cellbars');"
+        " return [Number(c.dataset.axisLo), Number(c.dataset.axisHi), [...c.children].map(b =>"
+        " [b.children[0].getBoundingClientRect().height, b.getBoundingClientRect().height -"
+        " parseFloat(getComputedStyle(b).paddingTop)])]; })()",
     )
-    lo = int(np.argmin([x[0] for x in bars[0]]))
-    assert heights[lo] == min(heights) and max(heights) > heights[lo] + 10  # drawn to scale
+    a_lo, a_hi, hs = scale
+    for (v, _, _), (h, track) in zip(bars[0], hs, strict=True):
+        assert abs(h - (v - a_lo) / (a_hi - a_lo) * track) <= 1.0, (v, h, track, a_lo, a_hi)
     # --- headline: a flight load on both batteries has a time to go
     assert js(browser, "document.getElementById('hl-go').textContent") != "—"
     # --- pause from the page holds the run
@@ -155,7 +160,13 @@ def test_controls_schematic_and_cell_bars_on_a_live_run(
     t0 = live.status()["t_s"]
     time.sleep(1.0)
     assert live.status()["t_s"] - t0 > 15.0  # ~50 s of flight per second now
-    # --- the event filter
+    # --- the event filter: "important" by default, then "all"
+    assert js(browser, "document.getElementById('filter-severity').value") == "important"
+    js(
+        browser,
+        "(() => { const v = document.getElementById('filter-severity'); v.value = 'info';"
+        " v.dispatchEvent(new Event('change')); })()",
+    )
     n_all = int(browser.body()["eventsShown"])
     assert n_all > 0
     js(
@@ -232,9 +243,13 @@ def test_starting_an_example_from_the_page(
     assert "evtol_charging" in opts and "uav_mission" in opts
     js(
         browser,
-        "(() => { document.getElementById('example-select').value = 'evtol_charging';"
+        "(() => { const s = document.getElementById('example-select');"
+        " s.value = 'evtol_charging'; s.dispatchEvent(new Event('change'));"
         " document.getElementById('btn-start').click(); })()",
     )
+    # the run on show is running: the page asks before replacing it
+    if not js(browser, "document.getElementById('confirm-start').hidden"):
+        js(browser, "document.getElementById('btn-confirm-start').click()")
     deadline = time.monotonic() + 60.0
     source = "document.getElementById('source').textContent"
     while js(browser, source) != "(example evtol_charging)":
@@ -248,6 +263,18 @@ def test_starting_an_example_from_the_page(
     assert js(browser, "document.querySelector('[data-part=charger]') !== null")
     names = js(browser, "[...document.querySelectorAll('#pack-svg text')].map(t => t.textContent)")
     assert any(n.endswith("(aux)") for n in names), names
+    # the charging stage is said in words, not as a bare "S40"
+    browser.wait(
+        "[...document.querySelectorAll('.panel.bat .line')].some(l =>"
+        " l.textContent.includes('charging'))",
+        30.0,
+    )
+    stages = js(
+        browser,
+        "[...document.querySelectorAll('.panel.bat .line')].filter(l =>"
+        " l.textContent.includes('charging')).map(l => l.textContent)",
+    )
+    assert stages and not any(re.search(r"charging\s*S\d0\s*$", x) for x in stages), stages
     time.sleep(1.0)
     shot(browser, "dashboard_evtol.png", tmp_path)
 
@@ -307,6 +334,11 @@ def test_a_recording_scrubs_with_balancing_marks(
     assert [b[1] for b in bars].index(True) == int(np.argmin(gv))
     assert [b[2] for b in bars].index(True) == int(np.argmax(gv))
     # events after the scrubbed moment are hidden; the table says how many of all
+    js(
+        browser,
+        "(() => { const v = document.getElementById('filter-severity'); v.value = 'info';"
+        " v.dispatchEvent(new Event('change')); })()",
+    )
     shown = js(browser, "[...document.querySelectorAll('#events tbody tr')].length")
     assert shown == sum(1 for e in raw.events if e.t_s <= t) < len(raw.events)
     # moving the scrubber elsewhere changes the bars: nothing balances at 60 s

@@ -208,7 +208,7 @@ def simulate(
         cfg = _with_can(_load(path, duration), can_interface, can_channel, can_log)
         _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
-        result = _run_interruptible(cfg, path, db, progress)
+        result = _run_interruptible(cfg, path, db, progress, (report, plot, trace_csv))
         with _saying("writing the outputs and the verdict", bool(progress)):
             _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report,
                            db, started)  # fmt: skip
@@ -283,10 +283,15 @@ def _with_can(
 
 
 def _run_interruptible(
-    cfg: ScenarioConfig, path: Path, db: Path | None, progress: bool | None
+    cfg: ScenarioConfig,
+    path: Path,
+    db: Path | None,
+    progress: bool | None,
+    outputs: tuple[Path | None, ...] = (),
 ) -> Result:
     """The run; Ctrl-C ends it with a message and exit code 130 (a ``--db`` run is stamped
-    ``interrupted``, with every sample up to that point)."""
+    ``interrupted``, with every sample up to that point). The message names the ``outputs``
+    (report, plot, CSV) that were asked for and are therefore not written."""
     from packpilot.sim.runner import Runner
 
     runner = _named(path, lambda: Runner(cfg, progress=progress))
@@ -302,6 +307,9 @@ def _run_interruptible(
         t_s = runner.steps_done * cfg.sim.dt_s
         kept = f"; {db} holds the run up to there, status 'interrupted'" if db else ""
         typer.echo(f"interrupted at t = {t_s:.1f} s{kept}", err=True)
+        missing = [str(p) for p in outputs if p is not None]
+        if missing:
+            typer.echo(f"not written: {', '.join(missing)} (the run did not finish)", err=True)
         raise typer.Exit(code=EXIT_INTERRUPTED) from None
 
 
@@ -694,7 +702,7 @@ def replay_flight_cmd(
         from packpilot.replay.common import LogOptions
         from packpilot.replay.config import load_replay_config
         from packpilot.replay.flight import replay_flight
-        from packpilot.replay.flight_report import write_flight_report
+        from packpilot.report.flight import write_flight_page
 
         if report is not None:
             _check_outputs(report=report)
@@ -711,7 +719,7 @@ def replay_flight_cmd(
         fr = replay_flight(log, prot, seq, LogOptions(None, assume_temp_c, cells), pair)  # type: ignore[arg-type]
         _print_summary(fr.summary, as_json)
         if report is not None:
-            write_flight_report(fr, report)
+            write_flight_page(fr, report)  # the run report's zoomable charts
             if not as_json:
                 typer.echo(f"wrote {report}")
 
@@ -896,12 +904,25 @@ def campaign(
     duration: Annotated[float | None, typer.Option(help="override sim.duration_s")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
     no_progress: Annotated[bool, typer.Option("--no-progress", help="no progress bar")] = False,
+    fail_on: Annotated[str | None, typer.Option(help=CAMPAIGN_FAIL_ON_HELP)] = None,
+    plot: Annotated[
+        Path | None, typer.Option(help="also write histograms of every varying column (.png)")
+    ] = None,
 ) -> None:
-    """Monte-Carlo campaign: N closed-loop runs over parameter spreads (Dask), to Parquet."""
+    """Monte-Carlo campaign: N closed-loop runs over parameter spreads (Dask), to Parquet.
 
-    def go() -> None:
+    Exit codes: 0 done, 2 bad input, 3 --fail-on matched in some run, 130 interrupted.
+    """
+
+    def go() -> int:
         from packpilot import campaign as cp
+        from packpilot.sim.verdict import parse_fail_on
 
+        categories = parse_fail_on(fail_on) if fail_on is not None else []
+        if plot is not None and plot.suffix.lower() != ".png":
+            from packpilot.errors import InputError
+
+            raise InputError(f"--plot {plot}: the histograms are a PNG; give a .png name")
         path = scenario_path(config)
         target = out if out is not None else Path(f"{path.stem}_campaign.parquet")
         check_campaign_out(target)
@@ -925,11 +946,9 @@ def campaign(
                     on_progress=progress,
                 )
         except KeyboardInterrupt:
-            typer.echo(
-                f"interrupted: finished runs kept; rerun with --resume --out {target}", err=True
-            )
-            raise typer.Exit(code=130) from None
-        png = cp.plot_histograms(report.table, target.with_suffix(".png"))
+            typer.echo(cp.interrupted_note(target, runs), err=True)
+            _exit_now(EXIT_INTERRUPTED)
+        png = cp.plot_histograms(report.table, plot) if plot is not None else None
         if as_json:
             typer.echo(json.dumps(cp.report_to_dict(report, png), default=_json_default))
         else:
@@ -937,8 +956,33 @@ def campaign(
             typer.echo(
                 f"wrote {report.out} ({report.table.num_rows} runs)" + (f", {png}" if png else "")
             )
+        hits = cp.fail_on_runs(report.table, categories)
+        if hits:
+            said = ", ".join(f"{c} in {n} run(s)" for c, n in hits.items())
+            typer.echo(f"fail-on: {said} (exit code {EXIT_FAIL_ON})", err=True)
+            return EXIT_FAIL_ON
+        return 0
 
-    _guard(go)
+    code = _guard(go)
+    if code:
+        raise typer.Exit(code=code)
+
+
+def _exit_now(code: int) -> None:
+    """Exit at once, skipping the interpreter's teardown. After Ctrl-C in a campaign every kept
+    run is already on disk (part files, renamed into place) and the cluster is closed; what is
+    left is Dask's threads winding down, measured at ~3 s of nothing (#29)."""
+    import os
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+CAMPAIGN_FAIL_ON_HELP = (
+    "exit with code 3 when some run had an alarm of one of these categories (comma-separated),"
+    " as simulate --fail-on; e.g. overdischarge"
+)
 
 
 def _warn_identical(
@@ -1076,10 +1120,11 @@ def dashboard(
         dash.start()
         with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C / SIGTERM: the normal way out
             dash.serve()
-        st = dash.live.status()
+        st = dash.live.status()  # the run on show now: the page may have started another
         if st["kind"] == "live" and st["state"] != "idle":
             why = f": {st['error']}" if st["error"] and st["state"] == "error" else ""
-            typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why}", err=True)
+            what = st["scenario"] + (f", {st['source']}" if st.get("source") else "")
+            typer.echo(f"run {st['state']} at t = {st['t_s']:.1f} s{why} ({what})", err=True)
 
     _guard(go)
 

@@ -54,11 +54,13 @@ from packpilot.campaign.spreads import (
 )
 from packpilot.campaign.store import ID_COLUMNS, META_KEY, ResultStore, campaign_meta
 from packpilot.campaign.summary import (
+    fail_on_runs,
     plot_histograms,
     print_summary,
     report_to_dict,
     rich_progress,
     summarize,
+    verdict_counts,
 )
 from packpilot.config import ScenarioConfig
 from packpilot.errors import InputError
@@ -214,6 +216,36 @@ def run_campaign(
     )
 
 
+def kept_runs(out: Path) -> int:
+    """How many distinct runs an interrupted campaign left on disk (``out`` and its parts),
+    read without the identity check: this only counts them."""
+    import pyarrow.parquet as pq
+
+    files = [out] if out.exists() else []
+    parts = out.with_name(out.name + ".parts")
+    if parts.is_dir():
+        files += sorted(parts.glob("part-*.parquet"))
+    seen: set[int] = set()
+    for f in files:
+        try:
+            seen.update(int(r) for r in pq.read_table(f, columns=["run"]).column("run").to_pylist())
+        except Exception:  # a file being written when Ctrl-C came: not kept
+            continue
+    return len(seen)
+
+
+def interrupted_note(out: Path, runs: int) -> str:
+    """What Ctrl-C during a campaign leaves, said truthfully: how many finished runs are kept
+    (batches are stored whole, so runs of an unfinished batch are lost)."""
+    n = kept_runs(out)
+    if n == 0:
+        return f"interrupted: no batch of runs had finished; nothing kept (of {runs} runs)"
+    return (
+        f"interrupted: {n} of {runs} runs finished and kept; rerun with --resume --out {out}"
+        " to compute the rest"
+    )
+
+
 __all__ = [
     "FAIL_ENV",
     "ID_COLUMNS",
@@ -229,8 +261,11 @@ __all__ = [
     "choose_scheduler",
     "default_batch",
     "draw_run",
+    "fail_on_runs",
     "fail_runs_from_env",
     "flatten_metrics",
+    "interrupted_note",
+    "kept_runs",
     "make_draws",
     "parse_spreads",
     "plot_histograms",
@@ -244,4 +279,5 @@ __all__ = [
     "stack_overrides",
     "summarize",
     "unsupported_reason",
+    "verdict_counts",
 ]

@@ -5,6 +5,12 @@ scheduling overhead stays small, and the batch steps its runs together through t
 (P = len(draws)). A failing run (exception or a non-finite metric) becomes a row with
 ``status="error"``, its error text and its drawn parameters; it never stops the campaign.
 
+Every ok row carries the run's verdict as ``simulate`` would give it (``verdict``: OK,
+WARNING, ALARM, FAULT; ``alarms``: its alarm categories, comma-separated, the names
+``--fail-on`` takes; ``overdischarged_at_end``): the event counts give the event alarms, and
+:class:`~packpilot.sim.verdict.BatchPhysics` folds the physics checks (over-discharge,
+cross-charge, load loss) over the batch step by step, since a campaign keeps no trace.
+
 Hidden test knob: the environment variable ``PACKPILOT_CAMPAIGN_FAIL_RUNS="3,7"`` (read by the
 process that drives the campaign, then shipped to the workers) makes those run indices raise
 at their first control step — a deliberately failing run.
@@ -21,11 +27,14 @@ from dataclasses import asdict
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from packpilot.campaign.spreads import Draw
 from packpilot.config import ScenarioConfig
+from packpilot.contract.severity import Severity
 from packpilot.errors import InputError
 from packpilot.sim.loop import ClosedLoop, n_steps
+from packpilot.sim.verdict import BatchPhysics, PhysicsLimits, counted_verdict
 
 _log = logging.getLogger(__name__)
 
@@ -58,8 +67,14 @@ def _non_finite(flat: Mapping[str, Any]) -> list[str]:
     return [k for k, v in flat.items() if isinstance(v, float) and not math.isfinite(v)]
 
 
-def _row(draw: Draw, metrics: Mapping[str, Any], wall_s: float) -> dict[str, Any]:
-    """A finished run's Parquet row: drawn parameters, status, flattened metrics."""
+def _row(
+    draw: Draw,
+    metrics: Mapping[str, Any],
+    wall_s: float,
+    physics: tuple[list[tuple[str, Severity]], bool] = ([], False),
+) -> dict[str, Any]:
+    """A finished run's Parquet row: drawn parameters, status, its verdict (the word, the
+    alarm categories, whether it ended over-discharged), flattened metrics."""
     row: dict[str, Any] = asdict(draw)
     flat = flatten_metrics(metrics)
     bad = _non_finite(flat)
@@ -67,6 +82,9 @@ def _row(draw: Draw, metrics: Mapping[str, Any], wall_s: float) -> dict[str, Any
     if bad:
         row["error"] = "non-finite metric(s): " + ", ".join(bad)
     row["wall_time_s"] = wall_s
+    alarms, ended_over = physics
+    word, cats = counted_verdict(metrics.get("events") or {}, alarms)
+    row.update(verdict=word, alarms=",".join(cats), overdischarged_at_end=ended_over)
     row.update(flat)
     return row
 
@@ -104,23 +122,40 @@ def run_batch_loop(
     loop = ClosedLoop.of(cfg, n_packs=len(draws), overrides=stack_overrides(draws))
     failed = np.array([d.run in fail_runs for d in draws], np.bool_)
     loop.metrics.stop(failed)
+    names = [b.name for b in cfg.pack.batteries]
+    watch = BatchPhysics(
+        PhysicsLimits.of_config(cfg.model_dump(mode="json"), names),
+        len(draws),
+        loop.plant.pack.string_cell_starts,
+    )
     dt = cfg.sim.dt_s
     try:
         for k in range(n_steps(cfg)):
             if not loop.running:
                 break
-            loop.step(k, dt)
+            live = loop.metrics.live.copy()  # a pack stopping at this step still counts it
+            rec = loop.step(k, dt)
+            _watch_step(watch, loop, rec.iv, live)
     finally:
         loop.close()
     wall = (time.perf_counter() - t0) / len(draws)
-    names = [b.name for b in cfg.pack.batteries]
     rows = []
     for p, d in enumerate(draws):
         if failed[p]:
             rows.append(_error_row(d, _deliberate_failure(d.run), wall))
         else:
-            rows.append(_row(d, loop.metrics.of(p, wall, names), wall))
+            rows.append(_row(d, loop.metrics.of(p, wall, names), wall, watch.of(p)))
     return rows
+
+
+def _watch_step(watch: BatchPhysics, loop: ClosedLoop, iv: Any, live: NDArray[np.bool_]) -> None:
+    """Fold the step just taken into the batch's physics checks (the plant's truth)."""
+    pack = loop.plant.pack
+    soc, _ = pack.cell_states()
+    watch.feed(
+        live, iv.cell_v, soc, pack.capacity_ah, iv.string_a, iv.load_demand_a, iv.load_a,
+        iv.charger_a, loop.cfg.sim.dt_s,
+    )  # fmt: skip
 
 
 def _error_row(draw: Draw, err: BaseException, wall_s: float) -> dict[str, Any]:

@@ -53,9 +53,13 @@ def _table_from_rows(rows: Sequence[Mapping[str, Any]], meta: Mapping[str, Any])
     return table.replace_schema_metadata({META_KEY: json.dumps(meta).encode()})
 
 
+VERDICT_COLUMNS: tuple[str, ...] = ("verdict", "alarms", "overdischarged_at_end")
+"""Each ok run's verdict (see :mod:`packpilot.campaign.execute`), right after the ids."""
+
+
 def _order_columns(names: Sequence[str]) -> list[str]:
-    ids = [c for c in ID_COLUMNS if c in names]
-    rest = [c for c in names if c not in ID_COLUMNS and not c.startswith("events_")]
+    ids = [c for c in (*ID_COLUMNS, *VERDICT_COLUMNS) if c in names]
+    rest = [c for c in names if c not in ids and not c.startswith("events_")]
     events = sorted(c for c in names if c.startswith("events_"))
     return ids + rest + events
 

@@ -18,10 +18,45 @@ if TYPE_CHECKING:
     from packpilot.campaign import CampaignReport
 
 
+VERDICT_ORDER = ("OK", "WARNING", "ALARM", "FAULT")
+
+
+def verdict_counts(table: pa.Table) -> dict[str, Any]:
+    """How many ok runs got each verdict, how many had an alarm of each category, and how many
+    ended over-discharged: the campaign's answer to "did the runs go well", the same verdict
+    ``simulate`` gives one run (``failures`` counts only runs that could not be computed)."""
+    out: dict[str, Any] = {"verdicts": dict.fromkeys(VERDICT_ORDER, 0), "categories": {},
+                           "overdischarged_at_end": 0}  # fmt: skip
+    if table.num_rows == 0 or "verdict" not in table.column_names:
+        return out
+    status = table.column("status").to_pylist()
+    verdicts = table.column("verdict").to_pylist()
+    alarms = table.column("alarms").to_pylist()
+    ended = table.column("overdischarged_at_end").to_pylist()
+    cats: dict[str, int] = {}
+    for st, v, a, e in zip(status, verdicts, alarms, ended, strict=True):
+        if st != "ok" or v is None:
+            continue
+        out["verdicts"][v] = out["verdicts"].get(v, 0) + 1
+        for c in (a or "").split(","):
+            if c:
+                cats[c] = cats.get(c, 0) + 1
+        out["overdischarged_at_end"] += bool(e)
+    out["categories"] = dict(sorted(cats.items(), key=lambda kv: (-kv[1], kv[0])))
+    return out
+
+
+def fail_on_runs(table: pa.Table, categories: list[str]) -> dict[str, int]:
+    """For ``campaign --fail-on``: how many ok runs had an alarm of each listed category (only
+    the categories some run had)."""
+    counts = verdict_counts(table)["categories"]
+    return {c: counts[c] for c in categories if counts.get(c)}
+
+
 def _numeric_columns(table: pa.Table) -> list[str]:
     import pyarrow as pa
 
-    skip = {"run", "seed"}
+    skip = {"run", "seed", "overdischarged_at_end"}
     return [
         f.name
         for f in table.schema
@@ -124,6 +159,7 @@ def report_to_dict(report: CampaignReport, png: Path | None = None) -> dict[str,
         "workers": report.workers,
         "batch": report.batch,
         "engine": report.engine,
+        **verdict_counts(report.table),
         "summary": {
             r["metric"]: {k: r[k] for k in ("n", "p5", "p50", "p95")} for r in report.summary
         },
@@ -144,9 +180,27 @@ def print_summary(report: CampaignReport, console: Any = None) -> None:
         cells = ["-" if r[k] is None else f"{r[k]:.4g}" for k in ("p5", "p50", "p95")]
         table.add_row(r["metric"], *cells)
     con.print(table)
+    vc = verdict_counts(report.table)
     con.print(
-        f"failures: {report.failures}   computed: {report.computed}   skipped: {report.skipped}"
-    )
+        "verdicts: " + ", ".join(f"{v} {n}" for v, n in vc["verdicts"].items())
+        + f"  (of {sum(vc['verdicts'].values())} computed runs)",
+        markup=False, highlight=False,
+    )  # fmt: skip
+    cats = vc["categories"]
+    con.print(
+        "alarms: "
+        + (", ".join(f"{c} in {n} run(s)" for c, n in cats.items()) if cats else "none"),
+        markup=False, highlight=False,
+    )  # fmt: skip
+    con.print(
+        f"over-discharged at the end: {vc['overdischarged_at_end']} run(s)",
+        markup=False, highlight=False,
+    )  # fmt: skip
+    con.print(
+        f"failed to compute: {report.failures}   computed: {report.computed}"
+        f"   skipped: {report.skipped}",
+        markup=False, highlight=False,
+    )  # fmt: skip
     con.print(
         f"{report.runs_per_s:.2f} runs/s ({report.scheduler}, {report.workers} worker(s),"
         f" batch {report.batch}, {report.engine})"

@@ -121,15 +121,15 @@ def _sequencing_lines(log: LogTable, res: ReplayResult, names: list[str]) -> lis
     for k, name in enumerate(names):
         lines += _fet_lines(log, res, k, name)
     for j in s["joins"]:  # type: ignore[attr-defined]
-        lines.append(f"{names[j['battery']]} joins at {j['t_s']:.1f} s by {j['rule']}")
+        lines.append(f"{names[j['index']]} joins at {j['t_s']:.1f} s by {j['rule']}")
     for r in s["reverse_current"]:  # type: ignore[attr-defined]
         lines.append(
-            f"{names[r['battery']]}: reverse current {r['current_a']:.1f} A at {r['t_s']:.1f} s:"
+            f"{names[r['index']]}: reverse current {r['current_a']:.1f} A at {r['t_s']:.1f} s:"
             " its charge FET opened"
         )
     risks: list[dict[str, float]] = s["cross_current_risk"]  # type: ignore[assignment]
     for k, name in enumerate(names):
-        mine = [r for r in risks if r["battery"] == k]
+        mine = [r for r in risks if r["index"] == k]
         if mine:
             when = ", ".join(
                 f"{r['t_s']:.1f} s ({r['predicted_a']:.1f} A)" for r in mine[:MAX_RUNS]

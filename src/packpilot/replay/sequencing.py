@@ -169,20 +169,14 @@ def replay(
         rows.append(row)
         for ev in out.events:
             kinds[ev.kind] += 1
+            # the battery by its name in the log, as the headlines name it (index alongside)
+            who = {"battery": _name(names, ev.battery), "index": ev.battery}
             if ev.kind == "BatteryJoined":
-                joins.append({"t_s": ev.t_s, "battery": ev.battery, "rule": ev.data.get("reason")})
+                joins.append({"t_s": ev.t_s, **who, "rule": ev.data.get("reason")})
             elif ev.kind == "ReverseCurrent":
-                reverse.append(
-                    {"t_s": ev.t_s, "battery": ev.battery, "current_a": ev.data.get("current_a")}
-                )
+                reverse.append({"t_s": ev.t_s, **who, "current_a": ev.data.get("current_a")})
             elif ev.kind == "CrossCurrentRisk":
-                risk.append(
-                    {
-                        "t_s": ev.t_s,
-                        "battery": ev.battery,
-                        "predicted_a": ev.data.get("predicted_a"),
-                    }
-                )
+                risk.append({"t_s": ev.t_s, **who, "predicted_a": ev.data.get("predicted_a")})
             elif ev.kind == "DiodeBypassed":
                 c = ev.data.get("conduction_s")
                 if isinstance(c, float):
@@ -202,6 +196,13 @@ def replay(
         "config": config.model_dump(mode="json"),
     }
     return ReplayResult(columns=columns, rows=rows, summary=summary)
+
+
+def _name(names: list[str], k: int | None) -> str | None:
+    """Battery ``k`` as the log names it (``A``, ``B``; a numbered log's ``0``, ``1``)."""
+    if k is None or not 0 <= k < len(names):
+        return None
+    return names[k]
 
 
 __all__ = ["replay"]

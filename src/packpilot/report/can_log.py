@@ -166,18 +166,38 @@ def _tables(stats: CanLogStats) -> str:
     return table(None, kv, cls="kv") + table(head, rows, cls="counts")
 
 
+RATE_WINDOW_MIN_S = 10.0
+RATE_POINTS_MAX = 1500
+
+
+def rate_window_s(span_s: float) -> float:
+    """The averaging window of the rate chart: a whole number of seconds, at least 10 s and
+    about 1/300 of the log. A window much longer than a frame period turns "0, 1, 2 frames in
+    this bin" (a 1 Hz message counted in 1 s bins: a solid band) into its steady rate."""
+    return float(max(RATE_WINDOW_MIN_S, math.ceil(span_s / 300.0)))
+
+
 def _rate_chart(stats: CanLogStats, store: Store) -> Chart:
-    """Frames per second of each id over time (bins of at least 1 s)."""
+    """Frames per second of each id over time: frames in the trailing window (see
+    :func:`rate_window_s`) divided by its length, on at most ``RATE_POINTS_MAX`` points."""
     all_t = np.concatenate([np.asarray(s.times) for s in stats.ids.values()])
     t0, t1 = float(all_t.min()), float(all_t.max())
-    width = max(1.0, (t1 - t0) / 2000.0)
-    edges = np.arange(t0, t1 + 2 * width, width)
-    x_key = store.add_raw("can/t", edges[:-1], 1e-3)
-    chart = Chart("can-rate", "CAN frames per second, per id", "1/s", height=150, x_key=x_key)
-    for k, s in enumerate(sorted(stats.ids.values(), key=lambda x: x.arbitration_id)):
-        counts, _ = np.histogram(np.asarray(s.times), bins=edges)
-        key = store.add_raw(f"can/{s.arbitration_id}", counts / width)
-        chart.series.append(Series(key, s.name, battery_color(k + 3), step=True))
+    window = rate_window_s(t1 - t0)
+    step = max((t1 - t0) / RATE_POINTS_MAX, 0.1)
+    x = np.arange(t0 + window, t1 + step, step) if t1 - t0 > window else np.array([t1])
+    x_key = store.add_raw("can/t", x, 1e-3)
+    title = f"CAN frames per second, per id (mean over the last {window:g} s)"
+    chart = Chart("can-rate", title, "1/s", height=150, x_key=x_key)
+    ids = sorted(stats.ids.values(), key=lambda x: x.arbitration_id)
+    top = 0.0
+    for k, s in enumerate(ids):
+        times = np.sort(np.asarray(s.times))
+        n = np.searchsorted(times, x, side="right") - np.searchsorted(times, x - window, "right")
+        key = store.add_raw(f"can/{s.arbitration_id}", n / min(window, max(t1 - t0, 1e-9)))
+        # ids at the same rate draw the same line: later ones dashed, so each stays visible
+        chart.series.append(Series(key, s.name, battery_color(k + 3), dash=k > 0, width=1.6))
+        top = max(top, float(n.max(initial=0)) / min(window, max(t1 - t0, 1e-9)))
+    chart.y_range = (0.0, max(top, 1e-3) * 1.2)  # from 0: a missed frame is a small dip
     return chart
 
 

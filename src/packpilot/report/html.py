@@ -353,7 +353,7 @@ body { font: 15px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, "DejaVu San
        color: var(--fg); margin: 0; background: #fff; }
 header { background: var(--bg2); border-bottom: 1px solid var(--line); padding: 1rem 1.5rem; }
 header h1 { margin: 0 0 .2rem; font-size: 1.5rem; }
-header .sub { margin: 0; color: var(--muted); }
+header .sub { margin: 0; color: var(--muted); overflow-wrap: anywhere; }
 nav { margin-top: .6rem; display: flex; flex-wrap: wrap; gap: .4rem 1rem; }
 nav a { color: var(--accent); text-decoration: none; font-weight: 600; }
 main { max-width: 1040px; margin: 0 auto; padding: 0 1.5rem 2rem; }
@@ -402,8 +402,9 @@ span.bad { color: #b3261e; font-weight: 600; }
 .warn { background: #fdf0d5; border-left: 4px solid #d08a00; padding: .4rem .7rem; }
 .badge { display: inline-block; padding: 0 .45rem; border-radius: .6rem; font-size: .85rem;
          font-weight: 600; background: #e1e5eb; }
-.badge.ok { background: #e1e5eb; } /* the run completed: how it went is the verdict's */
-.badge.error, .badge.running, .badge.interrupted { background: #f8d9d6; color: #8a1c12; }
+.runstate { color: var(--muted); font-size: .85rem; }
+.badge.error, .badge.running, .badge.interrupted, .badge.stopped, .badge.aborted
+  { background: #f8d9d6; color: #8a1c12; }
 .badge.verdict-ok, .verdict.ok { background: #d6f0dc; color: #135d27; }
 .badge.verdict-warning, .verdict.warning { background: #fdf0d5; color: #7a4d00; }
 .badge.verdict-alarm, .badge.verdict-fault, .verdict.alarm, .verdict.fault
@@ -415,6 +416,21 @@ span.bad { color: #b3261e; font-weight: 600; }
 .sev.warning { color: #8a5a00; }
 pre { background: var(--bg2); padding: .6rem; overflow: auto; font-size: .78rem; }
 footer { color: var(--muted); font-size: .8rem; text-align: center; padding: 1rem; }
+code { overflow-wrap: anywhere; }
+/* a phone: the page never scrolls sideways; a wide table scrolls inside itself */
+@media (max-width: 700px) {
+  header, .zoombar { padding-left: .75rem; padding-right: .75rem; }
+  main { padding: 0 .75rem 2rem; }
+  table { display: block; max-width: 100%; overflow-x: auto; }
+  .kpis { grid-template-columns: repeat(auto-fill, minmax(130px, 1fr)); }
+  .u-legend { display: block; }
+  .cols > div { min-width: 0; max-width: 100%; }
+  table.alarms { display: block; }
+  table.alarms thead { display: none; }
+  table.alarms tr { display: block; border-bottom: 1px solid var(--line); padding: .3rem 0; }
+  table.alarms td { display: inline-block; border: 0; padding: 0 .5rem 0 0; }
+  table.alarms td:nth-child(5) { display: block; }
+}
 """
 
 
@@ -474,6 +490,14 @@ def _sections(result: Result, info: RunInfo, verdict: Verdict, page: S.Page) -> 
     return body
 
 
+def _run_meta(info: RunInfo, result: Result) -> str:
+    """``<meta name="packpilot-run" content="demo.sqlite#1">`` when the run is recorded: the
+    dashboard opening that recording finds this page by it, whatever the page is called."""
+    if info.db is None or result.run_id is None:
+        return ""
+    return f'<meta name="packpilot-run" content="{esc(Path(info.db).name)}#{result.run_id}">'
+
+
 def build_html(result: Result, info: RunInfo | None = None) -> str:
     """The whole report page as one string."""
     info = info or RunInfo()
@@ -483,9 +507,15 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
     name = info.config_name or "run"
     run = f"run {result.run_id}" if result.run_id is not None else "in-memory run"
     status = info.status or "unknown"
-    badge = f'<span class="badge {esc(status)}" title="run status">run {esc(status)}</span>'
     word = verdict.word
-    badge += f' <span class="badge verdict-{esc(word.lower())}">{esc(word)}</span>'
+    badge = f'<span class="badge verdict-{esc(word.lower())}" title="verdict">{esc(word)}</span>'
+    # The verdict says how the run went; a run that completed needs no second badge (a
+    # coloured "run ok" beside a WARNING reads as a contradiction). Only a run that did not
+    # complete says so, in red.
+    if status == "ok":
+        badge += ' <span class="runstate" title="run status">run completed</span>'
+    else:
+        badge += f' <span class="badge {esc(status)}" title="run status">run {esc(status)}</span>'
     when = fmt_date(info.started_at) if info.started_at else ""
     sub = " · ".join(x for x in (esc(name), esc(run), badge, esc(when)) if x)
     nav = "".join(f'<a href="#{s}">{esc(SECTION_TITLES[s])}</a>' for s in body)
@@ -504,6 +534,7 @@ def build_html(result: Result, info: RunInfo | None = None) -> str:
     return (
         "<!DOCTYPE html>\n"
         '<html lang="en"><head><meta charset="utf-8">'
+        f"{_run_meta(info, result)}"
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
         f"<title>PackPilot report: {esc(name)} ({esc(run)})</title>"
         f"<style>{_CSS}</style></head>\n<body>"

@@ -29,6 +29,9 @@ class RunInfo:
     versions: Mapping[str, str] = field(default_factory=dict)
     can_log: str | None = None
     """A CAN log (.blf / .asc) of the run; None: the one the config names (``can.log``), if any."""
+    db: str | None = None
+    """The telemetry file the run is recorded in (the page names it, with the run id, in its
+    ``packpilot-run`` meta, so the dashboard finds the report of a recording it opens)."""
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any], **kw: Any) -> RunInfo:
@@ -116,6 +119,7 @@ def run_info_from_db(db_path: Path | str, run_id: int | None = None) -> RunInfo:
         finished_at=row["finished_at"],
         source=str(db_path),
         versions=row["versions"] if isinstance(row["versions"], Mapping) else {},
+        db=str(db_path),
     )
 
 

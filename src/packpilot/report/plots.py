@@ -11,6 +11,7 @@ import base64
 import io
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -47,22 +48,30 @@ def _has_data(x: NDArray[np.float64]) -> bool:
     return bool(np.isfinite(x).any())
 
 
+UNDRAWN_KINDS = frozenset({"BalancingUpdated", "SocCorrected"})
+"""Routine kinds counted in the legend but not drawn: the demo's 136 balancing updates drew a
+grey curtain over every panel (the dashboard's charts leave them out too)."""
+
+
 def _plot_events(result: Result, axes: list[Axes], scale: float) -> list[Line2D]:
     """Vertical lines on every panel, one colour per kind; legend handles returned."""
-    events = [e for e in result.events if np.isfinite(e.t_s)]
-    if not events:
+    every = [e for e in result.events if np.isfinite(e.t_s)]
+    if not every:
         return []
-    counts = Counter(e.kind for e in events)
+    counts = Counter(e.kind for e in every)
+    events = [e for e in every if e.kind not in UNDRAWN_KINDS]
     colors = {k: _EVENT_COLORS[i % len(_EVENT_COLORS)] for i, k in enumerate(counts)}
     alpha = 0.8 if len(events) <= 50 else 0.35
     for e in events:
         x = e.t_s / scale
         for ax in axes:
             ax.axvline(x, color=colors[e.kind], lw=0.9, ls=":", alpha=alpha, zorder=1)
-    if len(events) <= _MAX_EVENT_LABELS:
+    if events and len(events) <= _MAX_EVENT_LABELS:
         _label_events(result, events, axes[0], scale, colors)
     return [
         Line2D([], [], color=colors[k], ls=":", lw=1.2, label=f"{k} ({n})")
+        if k not in UNDRAWN_KINDS
+        else Line2D([], [], color="none", ls="none", label=f"{k} ({n}, not drawn)")
         for k, n in counts.items()
     ]
 
@@ -109,6 +118,26 @@ def _label_events(
         label.set_in_layout(False)  # a long label must not squeeze the panels
 
 
+def _range_on_batteries(ax: Axes, t: Any, tr: Any) -> None:
+    """The voltage panel spans the batteries, not a bus that dropped to 0 V (which would squash
+    them into a thin band); where the bus is off that scale it is shaded grey and labelled."""
+    from packpilot.report.charts import spans
+    from packpilot.report.sections import battery_v_range
+
+    volts = tr.channel("voltage_v")
+    rng = battery_v_range(np.asarray(volts, dtype=np.float64))
+    if rng is None:
+        return
+    ax.set_ylim(*rng)
+    if not _has_data(tr.bus_v):
+        return
+    with np.errstate(invalid="ignore"):
+        off = (tr.bus_v < rng[0]) | (tr.bus_v > rng[1])
+    found = spans(np.asarray(t, dtype=np.float64), off)
+    for k, (a, b) in enumerate(found):
+        ax.axvspan(a, b, color="0.6", alpha=0.3, lw=0, label="bus off scale" if k == 0 else None)
+
+
 def run_figure(result: Result) -> Figure:
     """The standard four-panel figure of a run (also embedded in the HTML report)."""
     tr = result.trace
@@ -133,6 +162,7 @@ def run_figure(result: Result) -> Figure:
         ax_t.plot(t, tr.channel("temp_c")[:, b], color=color, lw=1.2, label=name)
     if _has_data(tr.bus_v):
         ax_v.plot(t, tr.bus_v, color="k", lw=0.8, ls="--", label="bus")
+    _range_on_batteries(ax_v, t, tr)
     if _has_data(tr.load_a) and np.nanmax(np.abs(tr.load_a)) > 0:
         ax_i.plot(t, tr.load_a, color="k", lw=0.8, ls="--", label="load")
     # Demand only when it differs from what was delivered: that gap is an unsupplied load.

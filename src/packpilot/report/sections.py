@@ -131,6 +131,7 @@ def batteries(page: Page) -> str:
     v = Chart("voltage", "Battery voltage and bus (V)", "V", marks=marks)
     v.series = [Series(page.bat("voltage_v", b), names[b], battery_color(b)) for b in main]
     v.series.append(Series(page.pack("bus_v"), "bus", PACK_COLOR, dash=True, width=1.0))
+    v_caption = _range_on_batteries(v, page.t, tr.channel("voltage_v")[:, main], tr.bus_v)
     i = Chart("current", "Current, + = discharge (A)", "A", height=200, marks=marks)
     i.series = [Series(page.bat("current_a", b), names[b], battery_color(b)) for b in main]
     if np.nanmax(np.abs(tr.load_a), initial=0.0) > 0:
@@ -154,7 +155,8 @@ def batteries(page: Page) -> str:
     temp.series = [
         Series(page.bat("temp_c", b), names[b], battery_color(b)) for b in range(len(names))
     ]
-    parts = [page.chart(v), page.chart(i), page.chart(soc), page.chart(cell), page.chart(temp)]
+    parts = [page.chart(v, v_caption), page.chart(i), page.chart(soc), page.chart(cell),
+             page.chart(temp)]  # fmt: skip
     if aux:
         va = Chart("aux-voltage", "Auxiliary battery voltage (V)", "V", height=130)
         va.series = [Series(page.bat("voltage_v", b), names[b], battery_color(b)) for b in aux]
@@ -166,6 +168,42 @@ def batteries(page: Page) -> str:
             " (amber) of the verdict.</p>",
         )
     return "".join(parts)
+
+
+BUS_OFF_SCALE_COLOR = "#9aa3af"
+
+
+def battery_v_range(volts: F64, pad: float = 0.06) -> tuple[float, float] | None:
+    """The voltage axis of the battery chart: the batteries' own range plus a margin (None
+    without a finite value), so a bus that drops to 0 V cannot squash them into a thin band."""
+    finite = volts[np.isfinite(volts)]
+    if finite.size == 0:
+        return None
+    lo, hi = float(finite.min()), float(finite.max())
+    margin = max(pad * (hi - lo), 0.05)
+    return lo - margin, hi + margin
+
+
+def _range_on_batteries(chart: Chart, t: F64, volts: F64, bus_v: F64) -> str:
+    """Fix the chart's axis on the batteries; the times the bus leaves it are shaded grey and
+    named in the caption (the bus itself is drawn, clipped, over the same axis)."""
+    rng = battery_v_range(volts)
+    if rng is None:
+        return ""
+    chart.y_range = rng
+    with np.errstate(invalid="ignore"):
+        off = (bus_v < rng[0]) | (bus_v > rng[1])
+    found = spans(t, off)
+    if not found:
+        return ""
+    chart.bands.extend((a, b, BUS_OFF_SCALE_COLOR) for a, b in found)
+    low = float(np.nanmin(bus_v[off])) if np.isfinite(bus_v[off]).any() else math.nan
+    when = ", ".join(f"{fmt_time(a)}–{fmt_time(b)}" for a, b in found[:4])
+    more = f" and {len(found) - 4} more" if len(found) > 4 else ""
+    return (
+        f"The axis spans the batteries ({rng[0]:.1f}–{rng[1]:.1f} V). Shaded grey: the bus"
+        f" was off this scale (down to {low:.1f} V) at {when}{more}."
+    )
 
 
 # --------------------------------------------------------------------------- switches

@@ -412,6 +412,94 @@ def _run_lengths(cond: B1, dt: F64, carry_s: float) -> F64:
     return np.where(cond, run, 0.0)
 
 
+class BatchPhysics:
+    """The physics checks of :class:`PhysicsWatch` for P packs stepped together (a campaign
+    batch), folded step by step without a trace: per pack, which conditions were ever seen and
+    which still stand after its last step. Same conditions and thresholds as
+    :class:`PhysicsWatch`, so a campaign run's verdict matches the run's own (``simulate``)."""
+
+    def __init__(self, limits: PhysicsLimits, n_packs: int, starts: NDArray[np.int64]) -> None:
+        self.limits = limits
+        self.starts = starts
+        S = len(limits.names)
+        self._v_min = np.array(limits.cell_v_min, dtype=np.float64)
+        self._traction = np.array(limits.traction, dtype=np.bool_)
+        shape = (n_packs, S)
+        # seen / standing, per check: cell below minimum, SOC below 0, cross-charge, load loss
+        self.seen = {k: np.zeros(shape, np.bool_) for k in ("cell", "soc", "cross", "xdsg")}
+        self.on = {k: np.zeros(shape, np.bool_) for k in ("cell", "soc", "cross", "xdsg")}
+        self._xdsg_run_s = np.zeros(shape)
+        """Per pack and string: how long its cross-discharge has lasted (as PhysicsWatch)."""
+        self.seen["load"] = np.zeros((n_packs, 1), np.bool_)
+        self.on["load"] = np.zeros((n_packs, 1), np.bool_)
+
+    def feed(
+        self, live: B1, cell_v: F64, soc: F64, cap_ah: F64, string_a: F64, demand_a: F64,
+        load_a: F64, charger_a: F64, dt_s: float,
+    ) -> None:  # fmt: skip
+        """One step of every pack (cells ``(P, C)``, strings ``(P, S)``); stopped packs
+        (``live`` false) keep what they had."""
+        st = self.starts
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cell_min = np.minimum.reduceat(cell_v, st, axis=1)
+            full = np.minimum.reduceat(cap_ah, st, axis=1)
+            soc_s = np.minimum.reduceat(soc * cap_ah, st, axis=1) / full
+            # the same battery-to-battery split and thresholds as PhysicsWatch.feed, with the
+            # packs as rows: current into a battery above its charge limit whatever the charger
+            # does; a battery feeding its siblings while the charger delivers, for long
+            into_s, out_s = _battery_to_battery(string_a, self._traction, charger_a)
+            cross = self._traction[None, :] & (into_s > self.limits.charge_c * full)
+            charging = (charger_a > CHARGER_IDLE_A)[:, None] & self._traction[None, :]
+            raw = charging & (out_s > CROSS_DISCHARGE_A) & live[:, None]
+            self._xdsg_run_s = np.where(raw, self._xdsg_run_s + dt_s, 0.0)
+            short = demand_a - load_a
+            lost = short > np.maximum(LOAD_LOSS_REL * demand_a, LOAD_LOSS_ABS_A)
+        now = {
+            "cell": cell_min < self._v_min[None, :],
+            "soc": soc_s < 0.0,
+            "cross": cross,
+            "xdsg": raw & (self._xdsg_run_s > CROSS_DISCHARGE_S),
+            "load": lost[:, None],
+        }
+        for k, cond in now.items():
+            cond = cond & live[:, None]
+            self.seen[k] |= cond
+            self.on[k] = np.where(live[:, None], cond, self.on[k])
+
+    def of(self, p: int) -> tuple[list[tuple[str, Severity]], bool]:
+        """Pack ``p``'s physics alarms as (category, severity), and whether it ended the run
+        over-discharged (a cell below its minimum or a battery below 0 % SOC at its last step)."""
+        out: list[tuple[str, Severity]] = []
+        if self.seen["cell"][p].any():
+            out.append(("overdischarge", Severity.ALARM))
+        elif self.seen["soc"][p].any():
+            out.append(("overdischarge", Severity.WARNING))
+        if self.seen["cross"][p].any() or self.seen["xdsg"][p].any():
+            out.append(("crosscharge", Severity.ALARM))
+        if self.seen["load"][p].any():
+            out.append(("unsupplied", Severity.ALARM))
+        ended = bool(self.on["cell"][p].any() or self.on["soc"][p].any())
+        return out, ended
+
+
+def counted_verdict(
+    event_counts: Mapping[str, int], physics: Iterable[tuple[str, Severity]]
+) -> tuple[str, list[str]]:
+    """A run's verdict word and alarm categories from its event counts by kind and its physics
+    alarms: what a campaign row keeps of a run (no trace, no event times)."""
+    worst = Severity.INFO
+    cats: set[str] = set()
+    for kind, n in event_counts.items():
+        row = row_of(kind)
+        if n and row.severity > Severity.INFO:
+            worst = max(worst, row.severity)
+            cats.add(row.category or "unknown")
+    for cat, sev in physics:
+        worst = max(worst, sev)
+        cats.add(cat)
+    return VERDICTS[worst], sorted(cats)
+
+
 # --------------------------------------------------------------------------- a run
 
 
@@ -460,11 +548,13 @@ def parse_fail_on(text: str) -> list[str]:
 __all__ = [
     "CATEGORIES",
     "Alarm",
+    "BatchPhysics",
     "EventAlarms",
     "PhysicsLimits",
     "PhysicsWatch",
     "RunWatch",
     "Verdict",
+    "counted_verdict",
     "fail_on",
     "parse_fail_on",
     "run_verdict",

@@ -12,6 +12,7 @@ turns NaN and ±inf into None (JSON has no NaN).
 from __future__ import annotations
 
 import bisect
+import functools
 import math
 import re
 import threading
@@ -111,6 +112,24 @@ def event_dict(index: int, e: Event, topology: Topology) -> dict[str, Any]:
     )
 
 
+@functools.cache
+def cell_window(cell: str) -> tuple[float | None, float | None]:
+    """A cell set's voltage window (minimum, maximum); times the cells in series in a group,
+    the fixed axis of the page's per-group bars, so a 49 mV spread looks like 49 mV of a
+    1.2 V window, not like 5:1. ``(None, None)`` when the set cannot be loaded (the page then
+    falls back to a round window around the groups' own voltages)."""
+    from packpilot.model.cell import load_parameter_file, load_parameter_set
+
+    try:
+        if cell.endswith((".json", ".toml", ".npz")) or "/" in cell:
+            prm = load_parameter_file(Path(cell))
+        else:
+            prm = load_parameter_set(cell)
+        return float(prm.v_min_v), float(prm.v_max_v)
+    except (PackPilotError, OSError, ValueError):
+        return None, None
+
+
 def pack_layout(config: Mapping[str, Any] | None, names: Sequence[str]) -> dict[str, Any]:
     """What the page's pack schematic draws: each battery's role, switch kind and group count,
     and whether the pack has a charger, a load and balancers (from the run's config)."""
@@ -123,12 +142,16 @@ def pack_layout(config: Mapping[str, Any] | None, names: Sequence[str]) -> dict[
     for n in names:
         b = by_name.get(n, {})
         sw = (b.get("switch") or {}).get("kind", default_switch)
+        lo, hi = cell_window(str(b.get("cell") or pack.get("cell") or "uav_5ah"))
+        n_cells = b.get("cells_per_group") or 1  # a group's cells are in series
         batteries.append(
             {
                 "name": n,
                 "role": b.get("role") or "traction",
                 "switch": sw,
                 "series_groups": b.get("series_groups"),
+                "group_v_min": lo * n_cells if config is not None and lo is not None else None,
+                "group_v_max": hi * n_cells if config is not None and hi is not None else None,
             }
         )
     load = cfg.get("load") or {}

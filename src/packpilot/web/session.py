@@ -95,14 +95,44 @@ class Library:
         return candidate.resolve()
 
 
+REPORT_META = "packpilot-run"
+"""``<meta name="packpilot-run" content="FILE#RUN">``: which recorded run a report shows (the
+report writes it when it knows its telemetry file)."""
+MAX_SCANNED = 200
+"""At most this many ``*.html`` files beside a recording are looked into for its report."""
+
+
+def _report_run(path: Path) -> str | None:
+    """The ``packpilot-run`` meta of an HTML file's head, if any (only the first 4 kB read)."""
+    import re
+
+    try:
+        with path.open("r", encoding="utf-8", errors="replace") as f:
+            head = f.read(4096)
+    except OSError:
+        return None
+    m = re.search(r'<meta name="packpilot-run" content="([^"]*)"', head)
+    return m.group(1) if m else None
+
+
 def existing_report(db: Path, run_id: int | None) -> Path | None:
-    """A report written beside a recording under ``packpilot report``'s default names
-    (``run.html``, ``run_3.html``), if there is one."""
+    """The report of a recorded run beside its file: first under ``packpilot report``'s
+    default names (``run.html``, ``run_3.html``), then any ``*.html`` there whose
+    ``packpilot-run`` meta names this file and run, whatever it is called (``make demo``
+    writes ``report.html`` beside ``demo.sqlite``)."""
     names = [db.stem + ".html"] if run_id is None else [f"{db.stem}_{run_id}.html"]
     names += [db.stem + ".html"]
     for n in names:
         p = db.with_name(n)
         if p.is_file():
+            return p
+    if run_id is None:
+        return None
+    want = f"{db.name}#{run_id}"
+    for k, p in enumerate(sorted(db.parent.glob("*.html"))):
+        if k >= MAX_SCANNED:
+            break
+        if p.is_file() and _report_run(p) == want:
             return p
     return None
 
@@ -243,10 +273,32 @@ class Session:
             self.report_path = path
         live.set_report("/report")
 
+    def current_example(self) -> str | None:
+        """The shipped example on show (started by name, or its file named on the command
+        line), so the page's picker shows it rather than the first name in the list."""
+        if self.recording is not None:
+            return None
+        source = self.live.source or ""
+        if source.startswith("example "):
+            name = source.removeprefix("example ")
+            return name if name in self.library.examples else None
+        if not source:
+            return None
+        try:
+            here = Path(source).resolve()
+        except (OSError, RuntimeError):
+            return None
+        for name, path in self.library.examples.items():
+            if path.resolve() == here:
+                return name
+        return None
+
     def catalog(self) -> dict[str, Any]:
-        """What the page's pickers offer."""
+        """What the page's pickers offer, and the example on show (``current``, or None)."""
+        can_start = self.make_runner is not None
         return {
-            "examples": sorted(self.library.examples) if self.make_runner is not None else [],
+            "examples": sorted(self.library.examples) if can_start else [],
+            "current": self.current_example() if can_start else None,
             "recordings": self.library.recordings(),
             "runs_dir": str(self.library.runs_dir) if self.library.runs_dir else None,
         }

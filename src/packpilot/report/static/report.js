@@ -11,6 +11,7 @@
   var DATA = JSON.parse(document.getElementById("pp-data").textContent);
   var charts = {};
   var groups = {};
+  var zoomed = {};  // group -> [min, max] the user zoomed it to (null: the whole run)
   var cache = {};
   var drawn = 0;
   var total = 0;
@@ -137,19 +138,26 @@
   }
 
   function onScale(u, key) {
-    if (key !== "x" || syncing) { return; }
+    // uPlot sets each chart's scale while building it: only a scale change after that (a
+    // zoom) moves the group, else a chart on its own time axis (the CAN rates, which start
+    // at the first frame) would narrow every other chart as the page loads
+    if (key !== "x" || syncing || !u.ppReady) { return; }
+    var eps = (u.ppX[1] - u.ppX[0]) * 1e-6;
+    var full = u.scales.x.min <= u.ppX[0] + eps && u.scales.x.max >= u.ppX[1] - eps;
+    // a chart showing its whole range puts the others on theirs (a chart on its own time
+    // axis, like the CAN rates from the first frame, must not narrow the rest); a zoom
+    // puts every chart of the group on the same span
     syncing = true;
     var group = groups[u.ppGroup] || [];
     group.forEach(function (o) {
-      if (o !== u && (o.scales.x.min !== u.scales.x.min || o.scales.x.max !== u.scales.x.max)) {
-        o.setScale("x", { min: u.scales.x.min, max: u.scales.x.max });
-      }
+      if (o === u) { return; }
+      var lo = full ? o.ppX[0] : u.scales.x.min, hi = full ? o.ppX[1] : u.scales.x.max;
+      if (o.scales.x.min !== lo || o.scales.x.max !== hi) { o.setScale("x", { min: lo, max: hi }); }
     });
     syncing = false;
+    zoomed[u.ppGroup] = full ? null : [u.scales.x.min, u.scales.x.max];
     var label = document.querySelector('[data-range="' + u.ppGroup + '"]');
-    if (label && u.ppX) {
-      var eps = (u.ppX[1] - u.ppX[0]) * 1e-6;
-      var full = u.scales.x.min <= u.ppX[0] + eps && u.scales.x.max >= u.ppX[1] - eps;
+    if (label) {
       label.textContent = full ? "whole run" : fmtT(u.scales.x.min) + " – " + fmtT(u.scales.x.max);
     }
   }
@@ -180,7 +188,7 @@
       yAxis.values = function (u, vals) { return vals.map(fmtNum); };
     }
     return {
-      width: Math.max(320, el.clientWidth),
+      width: Math.max(240, el.clientWidth),
       height: spec.height,
       scales: { x: { time: false, range: function (u, min, max) { return [min, max]; } }, y: y },
       axes: [{ incrs: TIME_INCRS, values: function (u, vals) { return vals.map(fmtTick); } }, yAxis],
@@ -207,14 +215,10 @@
       var u = new uPlot(options(spec, el, x), data, el.querySelector(".plot"));
       u.ppGroup = spec.group;
       u.ppX = [x[0], x[x.length - 1]];
+      u.ppReady = true;
       (groups[spec.group] = groups[spec.group] || []).push(u);
-      var others = groups[spec.group].filter(function (o) { return o !== u; });
-      if (others.length) {  // join a group already zoomed in
-        var o = others[0];
-        if (o.scales.x.min > u.ppX[0] || o.scales.x.max < u.ppX[1]) {
-          u.setScale("x", { min: o.scales.x.min, max: o.scales.x.max });
-        }
-      }
+      var z = zoomed[spec.group];
+      if (z) { u.setScale("x", { min: z[0], max: z[1] }); }  // join a group already zoomed in
       charts[spec.id] = u;
       el.setAttribute("data-state", "drawn");
       drawn++;
@@ -263,7 +267,7 @@
       pending = setTimeout(function () {
         Object.keys(charts).forEach(function (id) {
           var u = charts[id], el = u.root.parentElement.parentElement;
-          u.setSize({ width: Math.max(320, el.clientWidth), height: u.height });
+          u.setSize({ width: Math.max(240, el.clientWidth), height: u.height });
         });
       }, 150);
     });

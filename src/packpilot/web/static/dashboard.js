@@ -89,7 +89,7 @@ function connect() {
 function setConn(on) {
   const c = $("conn");
   c.className = "conn " + (on ? "on" : "off");
-  c.textContent = on ? "live" : "offline";
+  c.textContent = on ? "connected" : "offline"; // not "live": a recording is connected too
 }
 
 function onHello(msg) {
@@ -113,6 +113,10 @@ function onHello(msg) {
   const kindLabel = { recorded: "recording", attached: "attached (read-only)" }[S.kind] || "live";
   $("kind").textContent = kindLabel;
   $("source").textContent = msg.source ? "(" + msg.source + ")" : "";
+  $("schematic-note").textContent = "(bus, switches, charger, load; " + ({
+    recorded: "at the time on the scrubber", attached: "as its writer records it" }[S.kind]
+    || "live") + ")";
+  hideConfirm();
   document.title = "PackPilot " + kindLabel + " — " + msg.scenario;
   $("pace-controls").hidden = S.kind === "attached"; // nothing here paces a run it only reads
   $("btn-pause").hidden = S.kind !== "live";
@@ -122,6 +126,7 @@ function onHello(msg) {
   $("report-link").hidden = true;
   showSpeed(S.kind === "recorded" ? 10 : S.speed); // a recording plays at 10x by default
   document.querySelector("#events tbody").textContent = "";
+  countEvents(); // "0" is a count too: data-events-shown is always there
   const fb = $("filter-battery");
   const keep = fb.value;
   fb.length = 2;
@@ -242,10 +247,28 @@ async function loadCatalog() {
     if (!r.ok) return;
     cat = await r.json();
   } catch (_) { return; }
-  fillSelect($("example-select"), cat.examples || []);
+  fillExamples($("example-select"), cat.examples || [], cat.current || null);
   $("example-pick").hidden = $("btn-start").hidden = !(cat.examples || []).length;
   fillSelect($("recording-select"), cat.recordings || []);
   $("recording-pick").hidden = $("btn-open").hidden = !(cat.recordings || []).length;
+}
+
+// The example picker shows the example on show (not the first name in the list); when what is
+// on show is not an example, a placeholder, so *start* cannot start something by accident.
+function fillExamples(sel, names, current) {
+  sel.textContent = "";
+  if (!current || !names.includes(current))
+    sel.append(new Option(S.kind === "live" ? "(choose an example)" : "(choose one)", ""));
+  for (const n of names) sel.append(new Option(n, n));
+  sel.value = current && names.includes(current) ? current : "";
+  S.currentExample = current;
+  syncStart();
+}
+
+function syncStart() {
+  const v = $("example-select").value;
+  $("btn-start").disabled = !v;
+  $("btn-start").textContent = v && v === S.currentExample ? "restart" : "start";
 }
 
 function fillSelect(sel, names) {
@@ -262,10 +285,28 @@ $("speed-select").addEventListener("change", () => {
   const v = Number($("speed-select").value);
   if (S.kind === "live") act("/api/speed", { speed: v }, "speed");
 });
+// Starting an example replaces the run on show: a running (or paused) live run is only
+// replaced after the user confirms it, next to the button.
+function startChosen() {
+  const ex = $("example-select").value;
+  hideConfirm();
+  if (ex) act("/api/start", { example: ex, speed: Number($("speed-select").value) || 0 }, "start " + ex);
+}
+function hideConfirm() { $("confirm-start").hidden = true; }
+$("example-select").addEventListener("change", () => { hideConfirm(); syncStart(); });
 $("btn-start").addEventListener("click", () => {
   const ex = $("example-select").value;
-  if (ex) act("/api/start", { example: ex, speed: Number($("speed-select").value) || 0 }, "start " + ex);
+  if (!ex) return;
+  const busy = S.kind === "live" && (S.state === "running" || S.state === "starting");
+  if (!busy) { startChosen(); return; }
+  $("confirm-text").textContent = $("scenario").textContent + " is " +
+    (S.paused ? "paused" : "running") + " (" + fmtTime(S.latest ? S.latest.t_s : NaN) +
+    "): stop it and start " + ex + "?";
+  $("confirm-start").hidden = false;
+  $("btn-cancel-start").focus();
 });
+$("btn-confirm-start").addEventListener("click", startChosen);
+$("btn-cancel-start").addEventListener("click", hideConfirm);
 $("btn-open").addEventListener("click", () => {
   const rec = $("recording-select").value;
   if (rec) act("/api/open", { recording: rec }, "open " + rec);
@@ -367,6 +408,10 @@ function switchState(on, diodeA) {
   return on ? "on" : Math.abs(diodeA || 0) > 0.01 ? "diode" : "off";
 }
 
+// Two geometries: wide (charger left and load right of the batteries, on the bus) and compact
+// for a phone (charger and load above the bus, narrower battery columns), so the drawing is
+// scaled down little and its text stays readable at 390 px.
+const COMPACT_PX = 560;
 function buildSchematic() {
   const root = $("schematic");
   root.textContent = "";
@@ -374,70 +419,74 @@ function buildSchematic() {
   const L = S.layout;
   if (!L || !L.batteries || !L.batteries.length) return;
   const n = L.batteries.length;
-  const colW = 150, left = L.charger ? 150 : 40, right = L.load ? 150 : 40;
-  const W = left + n * colW + right, H = 250, busY = 34;
+  const compact = (root.clientWidth || 1000) < COMPACT_PX;
+  const top = compact && (L.charger || L.load);
+  const colW = compact ? 104 : 150;
+  const left = compact ? 12 : L.charger ? 150 : 40, right = compact ? 12 : L.load ? 150 : 40;
+  const W = Math.max(left + n * colW + right, top ? 300 : 0);
+  const busY = top ? 84 : 34, dy = busY - 34, H = 250 + dy;
+  const bx = compact ? (W - n * colW) / 2 : left; // batteries centred under the bus
   const g = svg("svg", { viewBox: "0 0 " + W + " " + H, width: W, height: H, role: "img",
-    "aria-label": "pack schematic", id: "pack-svg" });
-  g.append(svg("line", { x1: 20, y1: busY, x2: W - 20, y2: busY, class: "bus" }));
-  const busV = svg("text", { x: 24, y: busY - 10, class: "lbl" }, "bus");
+    "aria-label": "pack schematic", id: "pack-svg", "data-layout": compact ? "compact" : "wide" });
+  g.append(svg("line", { x1: 12, y1: busY, x2: W - 12, y2: busY, class: "bus" }));
+  // the bus's voltage: left above the bus, or (compact, with boxes above) between the boxes
+  const busV = svg("text", top ? { x: W / 2, y: busY - 10, class: "lbl mid" }
+    : { x: 16, y: busY - 10, class: "lbl" }, "bus");
   g.append(busV);
-  const parts = { busV, bats: [] };
-  if (L.charger) {
-    g.append(svg("line", { x1: 75, y1: busY, x2: 75, y2: 90, class: "wire" }));
-    const box = svg("rect", { x: 25, y: 90, width: 100, height: 46, rx: 6, class: "part",
-      "data-part": "charger", "data-state": "off" });
-    g.append(box, svg("text", { x: 75, y: 108, class: "lbl mid" }, "charger"));
-    const txt = svg("text", { x: 75, y: 126, class: "val mid" }, "—");
-    g.append(txt);
-    parts.charger = { box, txt };
-  }
-  if (L.load) {
-    const x = W - 75;
-    g.append(svg("line", { x1: x, y1: busY, x2: x, y2: 90, class: "wire" }));
-    const box = svg("rect", { x: x - 50, y: 90, width: 100, height: 46, rx: 6, class: "part",
-      "data-part": "load", "data-state": "off" });
-    g.append(box, svg("text", { x, y: 108, class: "lbl mid" }, "load"));
-    const txt = svg("text", { x, y: 126, class: "val mid" }, "—");
-    g.append(txt);
-    parts.load = { box, txt };
-  }
+  const parts = { busV, bats: [], compact };
+  const box = (what, cx, y0) => {
+    g.append(svg("line", { x1: cx, y1: top ? y0 + 46 : busY, x2: cx, y2: top ? busY : y0, class: "wire" }));
+    const r = svg("rect", { x: cx - 66, y: y0, width: 132, height: 46, rx: 6, class: "part",
+      "data-part": what, "data-state": "off" });
+    const txt = svg("text", { x: cx, y: y0 + 36, class: "val mid" }, "—");
+    g.append(r, svg("text", { x: cx, y: y0 + 18, class: "lbl mid" }, what), txt);
+    return { box: r, txt };
+  };
+  if (L.charger) parts.charger = box("charger", top ? 78 : 75, top ? 8 : 90);
+  if (L.load) parts.load = box("load", top ? W - 78 : W - 75, top ? 8 : 90);
   L.batteries.forEach((b, i) => {
-    const cx = left + i * colW + colW / 2;
+    const cx = bx + i * colW + colW / 2;
     const aux = b.role === "aux";
-    g.append(svg("line", { x1: cx, y1: busY, x2: cx, y2: 150, class: "wire" }));
+    g.append(svg("line", { x1: cx, y1: busY, x2: cx, y2: 150 + dy, class: "wire" }));
     const p = { name: b.name, fets: {} };
     if (aux) g.append(svg("text", { x: cx + 8, y: busY + 16, class: "lbl" }, "DC/DC ↓"));
     if (b.switch === "relay") {
-      const box = svg("rect", { x: cx - 34, y: 70, width: 68, height: 50, rx: 4, class: "fet",
+      const r = svg("rect", { x: cx - 34, y: 70 + dy, width: 68, height: 50, rx: 4, class: "fet",
         "data-relay": b.name, "data-state": "open" });
-      const blade = svg("line", { x1: cx - 14, y1: 104, x2: cx + 14, y2: 86, class: "blade" });
-      g.append(box, blade, svg("text", { x: cx, y: 116, class: "lbl mid small" }, "relay"));
-      p.relay = { box, blade, cx };
+      const blade = svg("line", { x1: cx - 14, y1: 104 + dy, x2: cx + 14, y2: 86 + dy, class: "blade" });
+      g.append(r, blade, svg("text", { x: cx, y: 116 + dy, class: "lbl mid small" }, "relay"));
+      p.relay = { box: r, blade, cx, dy };
     } else {
-      for (const [k, y] of [["DSG", 62], ["CHG", 100]]) {
-        const box = svg("rect", { x: cx - 30, y, width: 60, height: 30, rx: 4, class: "fet",
+      for (const [k, y] of [["DSG", 62 + dy], ["CHG", 100 + dy]]) {
+        const r = svg("rect", { x: cx - 30, y, width: 60, height: 30, rx: 4, class: "fet",
           "data-fet": b.name + ":" + k, "data-state": "off" });
-        g.append(box, svg("text", { x: cx, y: y + 20, class: "lbl mid small" }, k));
-        p.fets[k] = box;
+        g.append(r, svg("text", { x: cx, y: y + 20, class: "lbl mid small" }, k));
+        p.fets[k] = r;
       }
     }
-    const cell = svg("rect", { x: cx - 45, y: 150, width: 90, height: 78, rx: 6, class: "bat",
-      "data-battery": b.name });
+    const half = compact ? 48 : 45;
+    const cell = svg("rect", { x: cx - half, y: 150 + dy, width: 2 * half, height: 78, rx: 6,
+      class: "bat", "data-battery": b.name });
     cell.style.stroke = COLORS[i % COLORS.length];
-    const fill = svg("rect", { x: cx - 41, y: 224, width: 82, height: 0, class: "socfill" });
+    const fill = svg("rect", { x: cx - half + 4, y: 224 + dy, width: 2 * half - 8, height: 0, class: "socfill" });
     g.append(cell, fill,
-      svg("rect", { x: cx - 12, y: 144, width: 24, height: 6, class: "terminal" }),
-      svg("text", { x: cx, y: 170, class: "lbl mid strong" }, b.name + (aux ? " (aux)" : "")));
-    const v = svg("text", { x: cx, y: 190, class: "val mid" }, "—");
-    const a = svg("text", { x: cx, y: 208, class: "val mid" }, "—");
+      svg("rect", { x: cx - 12, y: 144 + dy, width: 24, height: 6, class: "terminal" }),
+      svg("text", { x: cx, y: 170 + dy, class: "lbl mid strong" }, b.name + (aux ? " (aux)" : "")));
+    const v = svg("text", { x: cx, y: 190 + dy, class: "val mid" }, "—");
+    const a = svg("text", { x: cx, y: 208 + dy, class: "val mid" }, "—");
     g.append(v, a);
-    Object.assign(p, { fill, v, a, cx });
+    Object.assign(p, { fill, v, a, cx, dy });
     parts.bats.push(p);
   });
   root.append(g);
   S.sch = parts;
   renderSchematic();
 }
+
+window.addEventListener("resize", () => {
+  const compact = ($("schematic").clientWidth || 1000) < COMPACT_PX;
+  if (S.sch && S.sch.compact !== compact) buildSchematic();
+});
 
 function setState(node, state) {
   node.setAttribute("data-state", state);
@@ -462,14 +511,14 @@ function renderSchematic() {
     if (p.relay) {
       const closed = b.chg_on > 0.5 && b.dsg_on > 0.5;
       setState(p.relay.box, closed ? "closed" : "open");
-      p.relay.blade.setAttribute("y2", closed ? "104" : "86");
+      p.relay.blade.setAttribute("y2", String((closed ? 104 : 86) + p.relay.dy));
     } else {
       setState(p.fets.DSG, switchState(b.dsg_on > 0.5, b.dsg_diode_a));
       setState(p.fets.CHG, switchState(b.chg_on > 0.5, b.chg_diode_a));
     }
     const soc = isNum(b.soc) ? Math.max(0, Math.min(1, b.soc)) : 0;
     p.fill.setAttribute("height", String(70 * soc));
-    p.fill.setAttribute("y", String(224 - 70 * soc));
+    p.fill.setAttribute("y", String(224 + p.dy - 70 * soc));
     p.v.textContent = fmt(b.voltage_v, 2, "V");
     const cur = b.current_a;
     p.a.textContent = isNum(cur) ? (cur > 0.05 ? "↑ " : cur < -0.05 ? "↓ " : "") +
@@ -500,7 +549,10 @@ function buildCards() {
     const socbar = el("div", "socbar");
     const socfill = el("div");
     socbar.append(socfill);
+    const plot = el("div", "cellplot");
+    const axis = el("div", "cellaxis");
     const bars = el("div", "cellbars");
+    plot.append(axis, bars);
     const cellsLine = el("div", "line");
     const switches = el("div", "line");
     const prot = el("div", "line");
@@ -509,9 +561,9 @@ function buildCards() {
     details.append(el("summary", null, "all controller status"));
     const table = el("table");
     details.append(table);
-    card.append(h, nums, socbar, bars, cellsLine, switches, prot, extra, details);
+    card.append(h, nums, socbar, plot, cellsLine, switches, prot, extra, details);
     root.append(card);
-    return { cells, socfill, bars, cellsLine, switches, prot, extra, table, details };
+    return { cells, socfill, bars, axis, cellsLine, switches, prot, extra, table, details };
   });
 }
 
@@ -522,14 +574,45 @@ function pill(label, on, diode) {
 }
 
 // Per-cell (series group) voltage bars, diyBMS style: the lowest and highest group marked,
-// a group the equalizer is moving charge in/out of marked as balancing.
+// a group the equalizer is moving charge in/out of marked as balancing. The bars stand on an
+// absolute axis, the cell set's voltage window times the group's cells in series (layout
+// group_v_min..group_v_max, widened to any group outside it), with its voltages ticked on the left: a 49 mV spread looks like 49 mV of a
+// 1.2 V window. Each bar's voltage is written above it, horizontally, on the card's white (never
+// on a coloured fill); where the bars are too narrow for that, in the tooltip only.
+const BAR_LABEL_MIN_PX = 30;
+function cellAxis(i, vals) {
+  const own = S.layout && S.layout.batteries[i] ? S.layout.batteries[i] : {};
+  let lo = own.group_v_min, hi = own.group_v_max;
+  const vlo = Math.min(...vals), vhi = Math.max(...vals);
+  if (!isNum(lo) || !isNum(hi) || hi <= lo) { // unknown cell set: a round window around the cells
+    lo = Math.floor(vlo * 10 - 1) / 10;
+    hi = Math.ceil(vhi * 10 + 1) / 10;
+  }
+  return { lo: Math.min(lo, Math.floor(vlo * 20) / 20), hi: Math.max(hi, Math.ceil(vhi * 20) / 20) };
+}
+
+function renderAxis(c, ax) {
+  const key = ax.lo + ":" + ax.hi;
+  if (c.axis.dataset.key === key) return;
+  c.axis.dataset.key = key;
+  c.axis.textContent = "";
+  for (const f of [0, 0.5, 1]) {
+    const v = ax.lo + f * (ax.hi - ax.lo);
+    const t = el("span", "tick", v.toFixed(f === 0.5 ? 2 : 1));
+    t.style.bottom = (100 * f).toFixed(1) + "%";
+    c.axis.append(t);
+  }
+  c.axis.title = "group voltage (V): the cell set's window " + ax.lo.toFixed(2) + "–" + ax.hi.toFixed(2) + " V";
+  c.bars.dataset.axisLo = String(ax.lo);
+  c.bars.dataset.axisHi = String(ax.hi);
+}
+
 function renderCellBars(c, b, i) {
   // group_v is padded with NaN up to the pack's largest battery: show this one's groups only
   const own = S.layout && S.layout.batteries[i] ? S.layout.batteries[i].series_groups : null;
   let gv = (b.group_v || []).map((v) => (isNum(v) ? v : null));
   if (isNum(own)) gv = gv.slice(0, own);
   else while (gv.length && gv[gv.length - 1] === null) gv.pop();
-  c.bars.classList.toggle("dense", gv.length > 16);
   const vals = gv.filter((v) => v !== null);
   const st = b.status || {};
   if (c.bars.childElementCount !== gv.length) {
@@ -543,10 +626,13 @@ function renderCellBars(c, b, i) {
       c.bars.append(bar);
     });
   }
+  const barW = gv.length ? (c.bars.clientWidth - 2 * (gv.length - 1)) / gv.length : 0;
+  c.bars.classList.toggle("dense", barW > 0 && barW < BAR_LABEL_MIN_PX);
+  c.bars.classList.toggle("sparse-no", gv.length > 16);
   if (!vals.length) return;
+  const ax = cellAxis(i, vals);
+  renderAxis(c, ax);
   const lo = Math.min(...vals), hi = Math.max(...vals);
-  const span = Math.max(hi - lo, 0.1);
-  const base = lo - 0.25 * span, top = hi + 0.15 * span;
   // a spread under 0.1 mV has no lowest or highest group worth pointing at
   const marked = vals.length > 1 && hi - lo >= 1e-4;
   const iLo = marked ? gv.indexOf(lo) : -1, iHi = marked ? gv.indexOf(hi) : -1;
@@ -560,7 +646,8 @@ function renderCellBars(c, b, i) {
     bar.dataset.v = v === null ? "" : v.toFixed(4);
     bar.title = "group " + (k + 1) + ": " + fmt(v, 3, "V") + (bal ? " · balancing " +
       (eq * 1000).toFixed(0) + " mA" : "");
-    bar.children[0].style.height = v === null ? "0" : (100 * (v - base) / (top - base)).toFixed(1) + "%";
+    const f = v === null ? 0 : Math.max(0, Math.min(1, (v - ax.lo) / (ax.hi - ax.lo)));
+    bar.children[0].style.height = (100 * f).toFixed(2) + "%";
     bar.children[1].textContent = v === null ? "—" : v.toFixed(3);
   });
 }
@@ -627,7 +714,7 @@ function renderCards() {
     }
     const bits = [];
     if ("seq_state" in st) bits.push(["sequencing", st.seq_state]);
-    if ("chg_stage" in st) bits.push(["charging", st.chg_stage]);
+    if ("chg_stage" in st) bits.push(["charging", stageText(st.chg_stage)]);
     if ("eq_fault" in st && st.eq_fault) bits.push(["equalizer", "fault"]);
     c.extra.textContent = "";
     for (const [k, v] of bits) c.extra.append(el("span", "k", k), el("span", null, fmtAny(v) + "  "));
@@ -642,10 +729,29 @@ function renderCards() {
   });
 }
 
+// The staged-charging stages (docs/staged_charging.md) in words: "S40" alone means nothing to
+// someone who has not read the spec.
+const STAGE_MEANING = {
+  idle: "not docked", rest: "docked, resting before measuring",
+  hold: "docked, no battery can be charged now",
+  S20: "S20: charging the lowest battery up to the next",
+  S30: "S30: charging two voltage levels together",
+  S40: "S40: all level, charging in bounded steps",
+  top_off: "top-off at constant voltage", complete: "charge complete", fault: "charging fault",
+};
+function stageText(v) {
+  return v === null || v === undefined ? "—" : STAGE_MEANING[v] || String(v);
+}
+
 // ------------------------------------------------------------------ events + metrics
+// "important" (the default): warnings and worse, plus the routine events that change what the
+// pack is doing (mode, stage, joins); the routine balancing updates, which are most of a
+// run's events, only under "all".
 function passes(e) {
-  const min = SEVERITY[$("filter-severity").value] || 0;
-  if ((SEVERITY[e.severity] || 0) < min) return false;
+  const f = $("filter-severity").value;
+  if (f === "important") {
+    if ((SEVERITY[e.severity] || 0) < 1 && !INFO_KINDS.test(e.kind)) return false;
+  } else if ((SEVERITY[e.severity] || 0) < (SEVERITY[f] || 0)) return false;
   const fb = $("filter-battery").value;
   if (fb === "-" && e.battery_name) return false;
   if (fb !== "*" && fb !== "-" && e.battery_name !== fb) return false;
