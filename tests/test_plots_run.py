@@ -149,3 +149,16 @@ def test_routine_balancing_updates_are_counted_not_drawn() -> None:
         assert sum(1 for ln in ax.get_lines() if ln.get_linestyle() == ":") == 1
     names = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
     assert names == ["BalancingUpdated (120, not drawn)", "ProtectionTripped (1)"]
+
+
+def test_voltage_panel_spans_the_batteries_when_the_bus_drops() -> None:
+    """#29: demo.png ran from 0 to 25 V because the bus dropped to 0 V twice."""
+    res = synthetic_result()
+    res.trace.bus_v[100:120] = 0.0
+    fig = run_figure(res)
+    ax_v = fig.get_axes()[0]
+    lo, hi = ax_v.get_ylim()
+    volts = res.trace.channel("voltage_v")
+    assert float(np.nanmin(volts)) - 0.5 < lo < float(np.nanmin(volts))
+    assert float(np.nanmax(volts)) < hi < float(np.nanmax(volts)) + 0.5
+    assert "bus off scale" in [t.get_text() for t in ax_v.get_legend().get_texts()]

@@ -100,6 +100,8 @@ def test_flight_text_summary_and_report(tmp_path: Path) -> None:
                               "--report", str(out), "--parallel", "A,B"])  # fmt: skip
     assert res.exit_code == 0, res.output
     assert "headlines:" in res.stdout and "  - B: sequencing would have kept" in res.stdout
+    # the sequencing summary names B as the headlines do (#29: it said "battery 1")
+    assert re.search(r"cross_current_risk \(t_s [\d.]+, battery B, index 1", res.stdout)
     assert f"wrote {out}" in res.stdout
     page = out.read_text()
     # the run report's zoomable charts (#29): none for a battery without temperature, the

@@ -123,6 +123,7 @@ function onHello(msg) {
   $("scrub-controls").hidden = S.kind !== "recorded";
   $("scrub").max = String(Math.max(S.duration, 1e-3));
   $("scrub").value = $("scrub").max;
+  $("scrub-t").textContent = S.kind === "recorded" ? "end / " + fmtTime(S.duration) : "—";
   $("report-link").hidden = true;
   showSpeed(S.kind === "recorded" ? 10 : S.speed); // a recording plays at 10x by default
   document.querySelector("#events tbody").textContent = "";
