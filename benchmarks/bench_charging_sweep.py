@@ -118,7 +118,12 @@ def run(small: bool = False, workers: int | None = None) -> list[dict[str, Any]]
     cases = SMALL if small else [(n, s, d) for n in COUNTS for s in SPREADS_V for d in DOCKS_A]
     w = workers if workers is not None else min(len(cases), os.cpu_count() or 1)
     if w <= 1:
-        return [_case(c) for c in cases]
+        rows = []
+        for c in cases:
+            rows.append(_case(c))
+            print("  ", {k: rows[-1][k] for k in ("n", "spread_v", "dock_a",
+                  "longest_discharge_s", "max_discharge_a", "all_full")}, flush=True)  # fmt: skip
+        return rows
     with ProcessPoolExecutor(max_workers=w) as pool:
         return list(pool.map(_case, cases))
 
