@@ -26,10 +26,14 @@ def cfg() -> ScenarioConfig:
 
 
 def run(
-    cfg: ScenarioConfig, end_s: float, act: object = None, opts: RuntimeOptions | None = None
+    cfg: ScenarioConfig, end_s: float, act: object = None, opts: RuntimeOptions | None = None,
+    proxy: object = None,
 ) -> tuple[Lockstep, list]:
-    """Lock-step to ``end_s``; ``act(hil, bus, t)`` after each period's telemetry."""
+    """Lock-step to ``end_s``; ``act(hil, bus, t)`` after each period's telemetry;
+    ``proxy(hil, frames, t)`` rewrites the twin's frames on the wire."""
     ls = lockstep(cfg, opts or RuntimeOptions())
+    if proxy is not None:
+        ls.hil.proxies.append(proxy)  # type: ignore[arg-type]
     bus = can.Bus(interface="virtual", channel=ls.bms.opts.channel)
     if act is not None:
         ls.hil.hooks.append(lambda h, t: act(h, bus, t))  # type: ignore[operator]
@@ -70,14 +74,20 @@ def test_limits_drop_to_zero_on_a_trip(cfg: ScenarioConfig) -> None:
     """Both batteries report 62 degC from 100 s: the over-temperature discharge trip (60 degC)
     → discharge limit 0 A, the protection bit, discharge enable off at the inverter."""
 
-    def hot(h: Hil, bus: can.BusABC, t: float) -> None:
-        if t >= 100.0:
-            for k in range(2):
+    def hot(h: Hil, out: list[can.Message], t: float) -> list[can.Message]:
+        """The nodes' own state frames (their alive counter intact: an intruder's frame
+        with another counter is dropped since #26) rewritten to 62 degC."""
+        if t < 100.0:
+            return out
+        for j, m in enumerate(out):
+            if m.arbitration_id in (0x310, 0x311):
+                k = m.arbitration_id - 0x310
                 r = report(h.m.bat, k)
                 r.temp_c = 62.0
-                bus.send(bc.encode_battery(k, r, 0, t)[2])  # the state frame, after the node's
+                out[j] = bc.encode_battery(k, r, h.counter - 1, t)[2]
+        return out
 
-    _ls, frames = run(cfg, 110.0, hot)
+    _ls, frames = run(cfg, 110.0, proxy=hot)
     before = limits_at(frames, 95.0, 100.0)
     assert before[-1]["DischargeCurrentLimit"] > 0
     after = limits_at(frames, 106.0, 110.0)
