@@ -244,6 +244,37 @@ def test_a_stalled_client_loses_frames_the_others_do_not() -> None:
             tx.close()
 
 
+def test_a_client_that_never_reads_its_replies_is_disconnected_and_memory_stays_bounded() -> None:
+    """Issue #26: a client that sends without ever reading grew the hub without bound (its
+    ``< error >`` replies were queued unconditionally: 190 MB in 13 s). Every byte for a client
+    now goes through one send queue capped at ``max_pending_bytes``; replies it does not read
+    disconnect it, while a well-behaved client on the same hub is served throughout."""
+    with CanHub("127.0.0.1", 0, max_pending_bytes=4096) as hub:
+        reader = client(hub)
+        tx = raw(hub)
+        joined(hub)
+        junk = socket.socket()
+        junk.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        junk.connect(("127.0.0.1", hub.port))
+        junk.settimeout(5)
+        peak = 0
+        try:
+            with pytest.raises(OSError):  # reset by the hub
+                for _ in range(2000):
+                    junk.sendall(b"< x >" * 2000)  # each one answered '< error ... >'
+                    queued = [c.writer.transport.get_write_buffer_size() for c in hub._clients]
+                    peak = max(peak, *queued)
+            assert hub.stats.disconnected == 1
+            assert peak <= 4096 + 256
+            tx.sendall(b"< send 123 1 AA >")
+            got = reader.recv(2.0)
+            assert got is not None and got.arbitration_id == 0x123  # the others still served
+        finally:
+            junk.close()
+            reader.shutdown()
+            tx.close()
+
+
 def test_receivers_on_socketcand_get_every_pending_frame_in_one_drain(hub: CanHub) -> None:
     """python-can filters ``socketcand`` in software and its ``recv(timeout=0)`` gives up at
     the first frame a filter drops, so the runtime passes no filter there (as on

@@ -82,7 +82,7 @@ def test_ctrl_c_stops_the_run_and_the_server(tmp_path: Path) -> None:
 def test_bad_arguments_are_one_line_errors(tmp_path: Path) -> None:
     (tmp_path / "bad.sqlite").write_text("not a database", encoding="utf-8")
     for args, needle in (
-        (["--speed", "-1"], "--speed -1.0: must be >= 0"),
+        (["--speed", "-1"], "--speed -1.0: must be 0.."),
         (["--port", "70000"], "--port 70000: must be 0..65535"),
         (["--db", str(tmp_path / "no" / "dir.sqlite")], "does not exist"),
         (["--db", str(tmp_path / "bad.sqlite")], "not a PackPilot telemetry database"),

@@ -301,11 +301,6 @@ class ChargingConfig(Strict):
         for name in (*VOLTAGE_FIELDS, "charger_current_limit_a", "termination_current_a"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"{name} must be a finite number")
-        if self.voltage_basis == "cell" and self.v_sat_v > CELL_V_MAX_V:
-            raise ValueError(
-                f"v_sat_v ({self.v_sat_v} V per cell) must be at most {CELL_V_MAX_V} V with "
-                "voltage_basis = 'cell'"
-            )
         if self.eps_eq_v >= self.delta_v1_v:
             raise ValueError(
                 f"eps_eq_v ({self.eps_eq_v}) must be smaller than delta_v1_v ({self.delta_v1_v})"

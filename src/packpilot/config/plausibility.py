@@ -123,12 +123,12 @@ class PlausibilityConfig(Strict):
             if name in ("stuck_time_s", "stuck_temp_time_s"):
                 if v is not None and not (_finite(v) and 0.0 < v <= most):
                     raise ValueError(
-                        f"{name} must be > 0 and <= {most:g} s, or omitted to switch it off; "
+                        f"{name} must be > 0 s and <= {most:g} s, or omitted to switch it off; "
                         f"got {v}"
                     )
                 continue
             if not (_finite(v) and 0.0 <= v <= most):
-                raise ValueError(f"{name} must be within 0..{most:g}, got {v}")
+                raise ValueError(f"{name} must be a finite value >= 0 and <= {most:g}, got {v}")
         return self
 
     @classmethod

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.config.base import MAX_TIME_S
-from packpilot.config.scenario import LOAD_R_OHM, MAX_CURRENT_A, MAX_POWER_W
+from packpilot.config.base import MAX_CURRENT_A, MAX_TIME_S
+from packpilot.config.scenario import LOAD_R_OHM, MAX_POWER_W
 from packpilot.errors import InputError, read_text
 
 Array = NDArray[np.float64]

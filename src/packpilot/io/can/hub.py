@@ -23,7 +23,11 @@ it has shown it read its last ``< ok >`` (it sent a frame) or :data:`JOIN_DELAY_
 Bad input never stops the hub: what does not parse (a message, bytes outside ``< >``) is
 counted in :attr:`HubStats.malformed` and skipped; a bad handshake request is answered
 ``< error ... >`` (python-can fails its open with that text). A client that cannot keep up
-loses frames (``dropped``), as a node with a full receive queue does: memory stays bounded.
+loses frames (``dropped``), as a node with a full receive queue does, and a client that does
+not read the hub's replies to its own requests (``< ok >``, ``< error >``; one that sent junk
+without reading got 190 MB queued in 13 s) is disconnected (``disconnected``): every byte the
+hub queues for a client goes through one send queue capped at ``max_pending_bytes``, so memory
+stays bounded whatever a client does.
 
 Security: the protocol has no authentication and whoever connects can put frames on the bus —
 on a real pack, switch commands. So the hub listens on 127.0.0.1 and refuses any other address
@@ -76,6 +80,8 @@ class HubStats:
     malformed: int = 0
     dropped: int = 0
     """Deliveries skipped because the receiving client was too far behind."""
+    disconnected: int = 0
+    """Clients closed because they did not read the replies to their own requests."""
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -240,7 +246,7 @@ class CanHub:
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
         self.stats.connections += 1
-        writer.write(b"< hi >")
+        self._reply(client, b"< hi >")
         sock = writer.get_extra_info("socket")
         try:
             while data := await reader.read(READ_CHUNK):
@@ -266,7 +272,7 @@ class CanHub:
             return None
         if words == ["rawmode"] and not client.raw:
             client.raw = True
-            client.writer.write(b"< ok >")
+            self._reply(client, b"< ok >")
             if self._loop is not None:
                 self._loop.call_later(self.join_delay_s, self._join, client)
             return None
@@ -278,10 +284,10 @@ class CanHub:
     def _open(self, client: _Client, words: list[str]) -> None:
         if len(words) == 2 and words[0] == "open" and _CHANNEL.fullmatch(words[1]):
             client.channel = words[1]
-            client.writer.write(b"< ok >")
+            self._reply(client, b"< ok >")
             return
         self.stats.malformed += 1
-        client.writer.write(b"< error expected: open CHANNEL (letters, digits, _ . -) >")
+        self._reply(client, b"< error expected: open CHANNEL (letters, digits, _ . -) >")
 
     def _join(self, client: _Client) -> None:
         """From now on ``client`` receives its channel's frames."""
@@ -299,11 +305,29 @@ class CanHub:
         now = time.time()
         payload = "".join(format_frame(f, now) for f in frames).encode("ascii")
         for peer in peers:
-            if peer.writer.transport.get_write_buffer_size() > self.max_pending_bytes:
+            if peer.writer.transport.is_closing():
+                continue
+            if self._queued(peer) > self.max_pending_bytes:  # beyond by one payload at most
                 self.stats.dropped += len(frames)
                 continue
             self.stats.frames_out += len(frames)  # counted before it can arrive
             peer.writer.write(payload)
+
+    def _queued(self, client: _Client) -> int:
+        """Bytes waiting in ``client``'s send queue (the transport's buffer)."""
+        return client.writer.transport.get_write_buffer_size()
+
+    def _reply(self, client: _Client, data: bytes) -> None:
+        """A reply to the client's own request; a client so far behind that it would not fit
+        is not reading what it asks for: it is disconnected (frames to it are only dropped)."""
+        tr = client.writer.transport
+        if tr.is_closing():
+            return
+        if self._queued(client) > self.max_pending_bytes:
+            self.stats.disconnected += 1
+            tr.abort()
+            return
+        client.writer.write(data)
 
     def _leave(self, client: _Client) -> None:
         self._clients.discard(client)
