@@ -12,6 +12,7 @@ from __future__ import annotations
 import gc
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from itertools import compress
 from typing import Any
 
 import numpy as np
@@ -152,12 +153,20 @@ class _Measured:
         self.name = name
 
 
-def _changed_slots(row: F64, last: F64) -> set[int]:
-    """Status slots (columns of ``row``) whose numbers differ from ``last`` in any battery,
-    bit for bit (so NaN equals NaN, and 0.0 differs from -0.0: a superset of what renders
-    differently)."""
-    diff = row.view(np.int64) != last.view(np.int64)
-    return set(np.flatnonzero(diff.any(axis=0)).tolist())
+class _Layout:
+    """What rendering a status row needs, built once per trace: each channel's slot, kind and
+    labels, the key order, and whether a row of batteries already is its spread over the
+    strings (traction batteries are strings 0..B-1, no aux)."""
+
+    def __init__(self, channels: Sequence[tuple[int, Any, Any]], topology: Topology, n_b: int):
+        self.slot = {ch.name: (slot, ch.kind, labels) for slot, ch, labels in channels}
+        self.topology = topology
+        self.same = topology.traction == tuple(range(topology.n_strings)) and (
+            n_b == topology.n_strings
+        )
+
+    def spread(self, vals: list[Any]) -> list[StatusValue]:
+        return vals if self.same else self.topology.spread(vals)  # type: ignore[return-value]
 
 
 class StatusRow(Mapping[str, list[StatusValue]]):
@@ -169,33 +178,40 @@ class StatusRow(Mapping[str, list[StatusValue]]):
     def __init__(
         self,
         values: F64,
-        channels: Sequence[tuple[int, Any, Any]],
-        topology: Topology,
+        layout: _Layout,
         foreign: dict[str, list[StatusValue]] | None,
         changed: tuple[str, ...] | None,
     ) -> None:
         self._values = values
-        self._topology = topology
+        self._layout = layout
         self._foreign = foreign or {}
-        self._slot = {ch.name: (slot, ch.kind, labels) for slot, ch, labels in channels}
-        keys = dict.fromkeys(self._foreign)
-        keys.update(dict.fromkeys(self._slot))
-        self._order = list(keys)
         self.changed = changed
 
     def __getitem__(self, key: str) -> list[StatusValue]:
-        hit = self._slot.get(key)
+        lay = self._layout
+        hit = lay.slot.get(key)
         if hit is None:
-            return self._topology.spread(self._foreign[key])  # type: ignore[return-value]
+            return lay.topology.spread(self._foreign[key])  # type: ignore[return-value]
         slot, kind, labels = hit
-        vals = [field_value(float(x), kind, labels) for x in self._values[:, slot]]
-        return self._topology.spread(vals)  # type: ignore[return-value]
+        col: list[float] = self._values[:, slot].tolist()  # the floats float(x) gives
+        if kind == "f":
+            return lay.spread(col)
+        if kind == "o":
+            return lay.spread([None if x != x else x for x in col])
+        return lay.spread([field_value(x, kind, labels) for x in col])
+
+    def _keys(self) -> list[str]:
+        if not self._foreign:
+            return list(self._layout.slot)
+        keys = dict.fromkeys(self._foreign)
+        keys.update(dict.fromkeys(self._layout.slot))
+        return list(keys)
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self._order)
+        return iter(self._keys())
 
     def __len__(self) -> int:
-        return len(self._order)
+        return len(self._keys())
 
 
 class TraceStatus(Mapping[str, list[Sequence[StatusValue]]]):
@@ -294,8 +310,9 @@ class TraceBuffer:
         self.status = np.zeros((capacity, n_b, n_status + len(MEASURED)))
         self.foreign: list[dict[str, list[StatusValue]]] = []
         """Per step, the status of Python parts (P = 1 only)."""
+        self._layout = _Layout(self.channels, topology, n_b)
         self._keys = [ch.name for _, ch, _ in self.channels]
-        self._key_slot = [slot for slot, _, _ in self.channels]
+        self._key_slot = np.array([slot for slot, _, _ in self.channels], np.int64)
         self._bank: Any = None
         self._bank_ordered = False
         self._last_sampled: F64 | None = None
@@ -399,15 +416,13 @@ class TraceBuffer:
         last = self._last_sampled
         changed: tuple[str, ...] | None = None
         if last is not None and last.shape == row.shape:
-            slots = _changed_slots(row, last)
-            changed = tuple(
-                self._keys[j] for j in range(len(self._keys)) if self._key_slot[j] in slots
-            )
+            moved = (row.view(np.int64) != last.view(np.int64)).any(axis=0)
+            changed = tuple(compress(self._keys, moved[self._key_slot].tolist()))
         foreign = self.foreign[n] if self.foreign else None
         if foreign is not None:
             changed = None  # a Python part's status: no numbers to compare, read it all
         self._last_sampled = row
-        status = StatusRow(row, self.channels, self.topology, foreign, changed)
+        status = StatusRow(row, self._layout, foreign, changed)
         return StepSample(
             step=int(self.step[n]),
             t_s=float(sc[0]),
