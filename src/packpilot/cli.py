@@ -289,7 +289,8 @@ def _run_interruptible(
     ``interrupted``, with every sample up to that point)."""
     from packpilot.sim.runner import Runner
 
-    runner = _named(path, lambda: Runner(cfg, progress=progress))
+    with _saying("building the pack and the BMS", bool(progress)):
+        runner = _named(path, lambda: Runner(cfg, progress=progress))
     try:
         if db is None:
             return runner.run()
