@@ -22,6 +22,8 @@ ORDER = [
     "bench_cell",
     "bench_loop",
     "bench_core",
+    "bench_user_run",
+    "bench_compile",
     "bench_protection",
     "bench_sequencing",
     "bench_charging",
@@ -362,7 +364,7 @@ def _faults_headlines(rows: list[dict[str, Any]]) -> list[Headline]:
     ]
 
 
-ACCEPTANCE = ("bench_core", "bench_campaign")
+ACCEPTANCE = ("bench_core", "bench_user_run", "bench_compile", "bench_campaign")
 """Modules whose rows with a ``goal`` are issue #14's acceptance figures."""
 
 
@@ -391,6 +393,8 @@ _HEADLINES: dict[str, Callable[[list[dict[str, Any]]], list[Headline]]] = {
     "bench_equalization": _equalization_headlines,
     "bench_core": _core_headlines,
     "bench_campaign": _campaign_headlines,
+    "bench_user_run": lambda rows: _acceptance_headlines("bench_user_run", rows),
+    "bench_compile": lambda rows: _acceptance_headlines("bench_compile", rows),
 }
 
 

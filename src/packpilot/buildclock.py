@@ -50,7 +50,7 @@ class _BuildClock(nb_event.Listener):
 
 
 _CLOCK = _BuildClock()
-nb_event.register("numba:compiler_lock", _CLOCK)
+nb_event.register("numba:compiler_lock", _CLOCK)  # type: ignore[no-untyped-call]
 
 
 def build_seconds() -> float:
@@ -200,11 +200,11 @@ def announce_compiles(stream: IO[str], every_s: float = 1.0) -> Iterator[None]:
     """While the block runs, say on ``stream`` whenever a kernel is compiled (see
     :class:`_Announcer`); silent when everything comes from the cache."""
     ann = _Announcer(stream, every_s)
-    nb_event.register("numba:compile", ann)
+    nb_event.register("numba:compile", ann)  # type: ignore[no-untyped-call]
     try:
         yield
     finally:
-        nb_event.unregister("numba:compile", ann)
+        nb_event.unregister("numba:compile", ann)  # type: ignore[no-untyped-call]
         ann.close()
 
 

@@ -294,7 +294,8 @@ def _run_interruptible(
     (report, plot, CSV) that were asked for and are therefore not written."""
     from packpilot.sim.runner import Runner
 
-    runner = _named(path, lambda: Runner(cfg, progress=progress))
+    with _saying("building the pack and the BMS", bool(progress)):
+        runner = _named(path, lambda: Runner(cfg, progress=progress))
     try:
         if db is None:
             return runner.run()

@@ -67,14 +67,13 @@ _clear = kernel_inline(clear_commands)
 """The contract's "no opinion anywhere", compiled into the step."""
 
 
-def _fused(
-    has_prot: bool, has_seq: bool, has_chg: bool, has_eq: bool, has_lim: bool, has_pl: bool,
-    has_soc: bool, has_sup: bool,
-) -> Any:  # fmt: skip
-    """The fused step of a core with these parts. Each ``has_*`` is a constant of the compiled
-    function (a closure variable): numba prunes the branches of absent methods before typing
-    them, so a scenario compiles only the rules it runs; every variant is cached on disk
-    under its own key. Interpreted, the same function runs with the same flags."""
+def _fused(has: tuple[bool, ...]) -> Any:
+    """The fused step of a core with these parts (``has``: a flag per method of ``_ORDER``,
+    then the supervisor). Each ``has_*`` is a constant of the compiled function (a closure
+    variable): numba prunes the branches of absent methods before typing them, so a scenario
+    compiles only the rules it runs; every variant is cached on disk under its own key.
+    Interpreted, the same function runs with the same flags."""
+    has_prot, has_seq, has_chg, has_eq, has_lim, has_pl, has_soc, has_sup = has
 
     def core_step(f: Any, i: Any, h: Any, c: Any, b: Any, lay: Any, d: Any, dt_s: float) -> int:
         """One step of every pack of the core in the arena; returns the number of events."""
@@ -170,7 +169,7 @@ def step_for(methods: frozenset[str], supervised: bool) -> Any:
     unknown = methods - COMPILED
     if unknown:
         raise ValueError(f"the fused step has no branch for {sorted(unknown)}")
-    return _fused(*(name in methods for name in _ORDER), supervised)
+    return _fused((*(name in methods for name in _ORDER), supervised))
 
 
 core_step = step_for(COMPILED, True)

@@ -10,8 +10,9 @@ gets one :class:`StepSample` per step built from the same row.
 from __future__ import annotations
 
 import gc
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from itertools import compress
 from typing import Any
 
 import numpy as np
@@ -40,10 +41,11 @@ def _row(
     k: int, p: int, starts: Any, group_table: Any, cell_v: F64, soc: F64, temp: F64, cap: F64,
     chg_on: Any, dsg_on: Any, welded: Any, fet_shorted: Any, battery_v: F64, string_a: F64,
     chg_d: F64, dsg_d: F64, bal_w: F64, group_v: F64, status: F64, out_bat: F64,
-    out_group: F64, out_status: F64,
+    out_group: F64, out_status: F64, m_v: F64, m_a: F64, m_t: F64, m_soc: F64,
 ) -> None:  # fmt: skip
     """Row ``k`` of the trace: pack ``p``'s truth after the step (``Runner._sample`` order);
-    the gates as the hardware really is (``Pack.effective_gates``)."""
+    the gates as the hardware really is (``Pack.effective_gates``); then the core's status
+    slots and, after them, what the BMS measured (:data:`MEASURED`, ``m_*`` shaped (P, B))."""
     S = starts.shape[0]
     C = cell_v.shape[1]
     for s in range(S):
@@ -75,9 +77,20 @@ def _row(
         for g in range(group_table.shape[1]):
             gi = group_table[s, g]
             out_group[k, s, g] = group_v[p, gi] if gi >= 0 else np.nan
+    n_core = status.shape[2]
     for i in range(status.shape[1]):
-        for j in range(status.shape[2]):
+        for j in range(n_core):
             out_status[k, i, j] = status[p, i, j]
+    if m_v.shape[0] > p:
+        for i in range(min(out_status.shape[1], m_v.shape[1])):
+            out_status[k, i, n_core] = m_v[p, i]
+            out_status[k, i, n_core + 1] = m_a[p, i]
+            out_status[k, i, n_core + 2] = m_t[p, i]
+            out_status[k, i, n_core + 3] = m_soc[p, i]
+
+
+_NO_MEASUREMENT = (np.zeros((0, 0)),) * 4
+"""``_row``'s measured arrays when there are none (their slots are then NaN)."""
 
 
 @contextmanager
@@ -140,6 +153,121 @@ class _Measured:
         self.name = name
 
 
+class _Layout:
+    """What rendering a status row needs, built once per trace: each channel's slot, kind and
+    labels, the key order, and whether a row of batteries already is its spread over the
+    strings (traction batteries are strings 0..B-1, no aux)."""
+
+    def __init__(self, channels: Sequence[tuple[int, Any, Any]], topology: Topology, n_b: int):
+        self.slot = {ch.name: (slot, ch.kind, labels) for slot, ch, labels in channels}
+        self.topology = topology
+        self.same = topology.traction == tuple(range(topology.n_strings)) and (
+            n_b == topology.n_strings
+        )
+
+    def spread(self, vals: list[Any]) -> list[StatusValue]:
+        return vals if self.same else self.topology.spread(vals)  # type: ignore[return-value]
+
+
+class StatusRow(Mapping[str, list[StatusValue]]):
+    """The status channels of one step, rendered when read (a value per string, as
+    ``Topology.spread`` lays it out), from a copy of the step's numbers: the same values
+    the whole dict used to hold. ``changed`` names, in order, the channels whose numbers
+    changed since the previous sample (``None``: unknown, every channel may have)."""
+
+    def __init__(
+        self,
+        values: F64,
+        layout: _Layout,
+        foreign: dict[str, list[StatusValue]] | None,
+        changed: tuple[str, ...] | None,
+    ) -> None:
+        self._values = values
+        self._layout = layout
+        self._foreign = foreign or {}
+        self.changed = changed
+
+    def __getitem__(self, key: str) -> list[StatusValue]:
+        lay = self._layout
+        hit = lay.slot.get(key)
+        if hit is None:
+            return lay.topology.spread(self._foreign[key])  # type: ignore[return-value]
+        slot, kind, labels = hit
+        col: list[float] = self._values[:, slot].tolist()  # the floats float(x) gives
+        if kind == "f":
+            return lay.spread(col)
+        if kind == "o":
+            return lay.spread([None if x != x else x for x in col])
+        return lay.spread([field_value(x, kind, labels) for x in col])
+
+    def _keys(self) -> list[str]:
+        if not self._foreign:
+            return list(self._layout.slot)
+        keys = dict.fromkeys(self._foreign)
+        keys.update(dict.fromkeys(self._layout.slot))
+        return list(keys)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._keys())
+
+    def __len__(self) -> int:
+        return len(self._keys())
+
+
+class TraceStatus(Mapping[str, list[Sequence[StatusValue]]]):
+    """The status channels of a whole trace, a channel rendered (labels, ``None``, booleans)
+    only when it is first read, then kept. Rendering every channel of every row cost as much
+    per step as the whole BMS (25 us per row of uav_mission), for a run whose caller may read
+    none of them (``packpilot simulate`` without outputs reads only what the verdict needs).
+    Same keys, order and values as the dict built eagerly before."""
+
+    def __init__(
+        self,
+        values: F64,
+        channels: Sequence[tuple[int, Any, Any]],
+        topology: Topology,
+        foreign: Sequence[dict[str, list[StatusValue]]],
+    ) -> None:
+        self._values = values
+        self._topology = topology
+        self._slot = {ch.name: (slot, ch.kind, labels) for slot, ch, labels in channels}
+        self._foreign: dict[str, list[Sequence[StatusValue]]] = {}
+        for row in foreign:
+            for key, vals in row.items():
+                self._foreign.setdefault(key, []).append(topology.spread(vals))  # type: ignore[arg-type]
+        keys = dict.fromkeys(self._foreign)
+        keys.update(dict.fromkeys(self._slot))
+        self._order = list(keys)
+        self._done: dict[str, list[Sequence[StatusValue]]] = {}
+
+    def __getitem__(self, key: str) -> list[Sequence[StatusValue]]:
+        done = self._done.get(key)
+        if done is not None:
+            return done
+        hit = self._slot.get(key)
+        if hit is None:
+            return self._foreign[key]
+        slot, kind, labels = hit
+        topo = self._topology
+        with _gc_paused():
+            rows = _render_column(self._values[:, :, slot], kind, labels)
+            # Traction batteries are strings 0..B-1 with no aux: a row already is its spread.
+            same_layout = topo.traction == tuple(range(topo.n_strings))
+            if not (same_layout and self._values.shape[1] == topo.n_strings):
+                rows = [topo.spread(row) for row in rows]  # type: ignore[misc]
+        self._done[key] = rows  # type: ignore[assignment]
+        return rows  # type: ignore[return-value]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._order)
+
+    def __len__(self) -> int:
+        return len(self._order)
+
+    def __repr__(self) -> str:
+        return repr(dict(self.items()))
+
+
 class TraceBuffer:
     """The trace of pack ``p`` of a run, in blocks that double as they fill, up to
     ``max_rows`` rows; past that, decimated (:data:`MAX_TRACE_ROWS`). ``stride`` is the step
@@ -182,8 +310,37 @@ class TraceBuffer:
         self.status = np.zeros((capacity, n_b, n_status + len(MEASURED)))
         self.foreign: list[dict[str, list[StatusValue]]] = []
         """Per step, the status of Python parts (P = 1 only)."""
+        self._layout = _Layout(self.channels, topology, n_b)
+        self._keys = [ch.name for _, ch, _ in self.channels]
+        self._key_slot = np.array([slot for slot, _, _ in self.channels], np.int64)
+        self._bank: Any = None
+        self._bank_ordered = False
+        self._last_sampled: F64 | None = None
+        """The status numbers of the last :meth:`sample` (what ``changed`` compares with)."""
 
     _ARRAYS = ("scalars", "step", "battery", "group_v", "status")
+
+    def _cell_states(self) -> tuple[F64, F64]:
+        """``Pack.cell_states()`` without its copies when one bank holds every cell in order
+        (the common pack): its state arrays, viewed (packs, cells)."""
+        pack = self.pack
+        banks = pack.banks
+        if len(banks) == 1:
+            bank = banks[0]
+            if bank is not self._bank:
+                n = pack.n_packs * pack.n_cells
+                self._bank = bank
+                self._bank_ordered = bool(
+                    bank.idx.shape == (n,) and np.array_equal(bank.idx, np.arange(n))
+                )
+            if self._bank_ordered:
+                shape = (pack.n_packs, pack.n_cells)
+                return bank.state.soc.reshape(shape), bank.state.temp_c.reshape(shape)
+        return pack.cell_states()
+
+    def _measured(self, m: MeasArrays) -> tuple[F64, F64, F64, F64]:
+        bat = m.bat
+        return bat.voltage_v, bat.current_a, bat.temp_c, bat.soc
 
     def _grow(self) -> None:
         size = min(2 * self.step.shape[0], self.max_rows + 1)
@@ -219,7 +376,7 @@ class TraceBuffer:
         if self.n == self.step.shape[0]:
             self._grow()
         pack, p, n = self.pack, self.p, self.n
-        soc, temp = pack.cell_states()
+        soc, temp = self._cell_states()
         self.step[n] = k
         sc = self.scalars[n]
         sc[0] = iv.t_s
@@ -230,15 +387,10 @@ class TraceBuffer:
             pack.capacity_ah, pack.chg_on, pack.dsg_on, pack.welded, pack.fet_shorted,
             iv.battery_v, iv.string_a, iv.chg_diode_a,
             iv.dsg_diode_a, iv.balancer_in_w, iv.group_v, status, self.battery, self.group_v,
-            self.status,
+            self.status, *(_NO_MEASUREMENT if m is None else self._measured(m)),
         )  # fmt: skip
-        measured = self.status[n, :, self.n_core :]
         if m is None:
-            measured.fill(np.nan)
-        else:
-            bat, p = m.bat, self.p
-            for j, (_, field) in enumerate(MEASURED):
-                measured[:, j] = getattr(bat, field)[p, : measured.shape[0]]
+            self.status[n, :, self.n_core :].fill(np.nan)
         if foreign is not None:
             del self.foreign[n:]
             self.foreign.append(foreign)
@@ -254,18 +406,23 @@ class TraceBuffer:
         """Rows the trace holds now: the kept ones and the latest step."""
         return self.n + self._pending
 
-    def _status_row(self, n: int) -> dict[str, list[StatusValue]]:
-        out: dict[str, list[StatusValue]] = {}
-        if self.foreign:
-            out.update(self.foreign[n])
-        for slot, ch, labels in self.channels:
-            vals = [field_value(float(x), ch.kind, labels) for x in self.status[n, :, slot]]
-            out[ch.name] = vals
-        return out
-
     def sample(self, n: int) -> StepSample:
-        """Row ``n`` as the recorders' unit of telemetry."""
+        """Row ``n`` as the recorders' unit of telemetry. Its status is a :class:`StatusRow`:
+        a channel is rendered only when read, and it names the channels whose numbers
+        changed since the previous sample (``changed``), so a recorder that stores changes
+        (SQLite) reads only those instead of every channel of every step."""
         sc = self.scalars[n]
+        row = self.status[n].copy()
+        last = self._last_sampled
+        changed: tuple[str, ...] | None = None
+        if last is not None and last.shape == row.shape:
+            moved = (row.view(np.int64) != last.view(np.int64)).any(axis=0)
+            changed = tuple(compress(self._keys, moved[self._key_slot].tolist()))
+        foreign = self.foreign[n] if self.foreign else None
+        if foreign is not None:
+            changed = None  # a Python part's status: no numbers to compare, read it all
+        self._last_sampled = row
+        status = StatusRow(row, self._layout, foreign, changed)
         return StepSample(
             step=int(self.step[n]),
             t_s=float(sc[0]),
@@ -276,7 +433,7 @@ class TraceBuffer:
             charger_a=float(sc[5]),
             battery=self.battery[n].copy(),
             group_v=self.group_v[n].copy(),
-            status={k: self.topology.spread(v) for k, v in self._status_row(n).items()},  # type: ignore[misc]
+            status=status,
         )
 
     def trace(self) -> Trace:
@@ -284,22 +441,9 @@ class TraceBuffer:
         n = self.rows
         if n == 0:
             raise ValueError("a trace needs at least one sample")
-        names = [ch.name for _, ch, _ in self.channels]
-        status: dict[str, list[Sequence[StatusValue]]] = {}
-        if self.foreign:
-            for row in self.foreign[:n]:
-                for key, vals in row.items():
-                    status.setdefault(key, []).append(self.topology.spread(vals))  # type: ignore[arg-type]
-        topo = self.topology
-        # Traction batteries are strings 0..B-1 with no aux: a row already is its spread.
-        same_layout = topo.traction == tuple(range(topo.n_strings))
-        with _gc_paused():
-            for (slot, ch, labels), name in zip(self.channels, names, strict=True):
-                rows = _render_column(self.status[:n, :, slot], ch.kind, labels)
-                if same_layout and self.status.shape[1] == topo.n_strings:
-                    status[name] = rows  # type: ignore[assignment]
-                else:
-                    status[name] = [topo.spread(row) for row in rows]  # type: ignore[misc]
+        status = TraceStatus(
+            self.status[:n].copy(), self.channels, self.topology, self.foreign[:n]
+        )
         sc = self.scalars[:n]
         return Trace(
             t_s=sc[:, 0].copy(),
@@ -316,4 +460,4 @@ class TraceBuffer:
         )
 
 
-__all__ = ["TraceBuffer"]
+__all__ = ["StatusRow", "TraceBuffer", "TraceStatus"]

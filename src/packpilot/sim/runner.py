@@ -9,6 +9,7 @@ into metrics. Its controller is the scenario's core by default; any scalar
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -188,6 +189,14 @@ class _Progress:
         self.enabled = enabled and (lines or sys.stderr.isatty())
         self.lines = lines
         self.t0 = time.perf_counter()
+        self.done = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._beat: threading.Thread | None = None
+        if self.enabled and lines:
+            # Lines also while a step takes long (the first one loads the compiled kernels).
+            self._beat = threading.Thread(target=self._heartbeat, daemon=True)
+            self._beat.start()
         self.bar: Any = None
         self.task: Any = None
         self.next_at = max(1, -(-total // 10))
@@ -198,6 +207,7 @@ class _Progress:
         if not self.enabled:
             return
         if self.lines:
+            self.done = done  # what the heartbeat says while a step takes long
             # A line per tenth of the run, and at least every LINE_EVERY_S (``make demo``
             # never leaves its reader more than 2 s without output).
             if done >= self.next_at or time.perf_counter() - self.last_line >= LINE_EVERY_S:
@@ -212,15 +222,22 @@ class _Progress:
         self.bar.update(self.task, completed=done)
 
     def _line(self, done: int) -> None:
-        self.next_at = -(-(done * 10 // self.total + 1) * self.total // 10)  # ceil
-        self.last_line = time.perf_counter()
-        wall = self.last_line - self.t0
-        print(
-            f"simulating: {100 * done // self.total:3d} %"
-            f" ({done}/{self.total} steps, {wall:.0f} s)",
-            file=sys.stderr,
-            flush=True,
-        )
+        with self._lock:
+            self.done = done
+            self.next_at = -(-(done * 10 // self.total + 1) * self.total // 10)  # ceil
+            self.last_line = time.perf_counter()
+            wall = self.last_line - self.t0
+            print(
+                f"simulating: {100 * done // self.total:3d} %"
+                f" ({done}/{self.total} steps, {wall:.0f} s)",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    def _heartbeat(self) -> None:
+        while not self._stop.wait(LINE_EVERY_S / 3):
+            if time.perf_counter() - self.last_line >= LINE_EVERY_S:
+                self._line(self.done)
 
     def _start(self) -> None:
         from rich.console import Console
@@ -238,6 +255,9 @@ class _Progress:
         self.task = self.bar.add_task("simulating", total=self.total)
 
     def close(self) -> None:
+        self._stop.set()
+        if self._beat is not None:
+            self._beat.join()
         if self.bar is not None:
             self.bar.stop()
 

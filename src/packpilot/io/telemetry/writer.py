@@ -248,12 +248,19 @@ class SQLiteRecorder:
 
         Most channels (stage, mode, tripped flags) change a few times per run; writing every
         step made status the bulk of the rows. Readers forward-fill (see docs/telemetry.md).
+        A ``status`` with a ``changed`` attribute (the channels whose numbers changed since
+        the previous sample) is read only there: rendering every channel of every step cost
+        as much as the whole BMS step.
         """
         kinds = self._status_kinds
         prev = self._status_prev
         prev_seq = self._status_prev_seq
         rows = self._status_rows
-        for channel, seq in status.items():
+        # A status that names the channels whose numbers changed since the previous sample
+        # (sim/record.py:StatusRow) is read only there: the others would compare equal below.
+        changed: Sequence[str] | None = getattr(status, "changed", None)
+        items = status.items() if changed is None else ((c, status[c]) for c in changed)
+        for channel, seq in items:
             values = tuple(seq)
             # Whole-tuple compare in C first: an unchanged channel costs one comparison. It
             # treats 1 == 1.0 == True as unchanged, so a change of type alone is not recorded.
