@@ -81,6 +81,20 @@ def test_small_soc_swing_flags_the_capacity() -> None:
     assert not cap.identifiable and "SOC swing" in cap.reason
 
 
+def test_capacity_the_data_cannot_see_stays_off_its_bounds() -> None:
+    """A real 110 s flight with a 3 % SOC swing: without the weak prior the capacity ran to its
+    upper bound (31 Ah for a 4.2 Ah pack) and the held-out part went worse than a straight
+    line; with it the capacity stays near what the voltages suggest, still flagged."""
+    from packpilot.replay.fitlogs import profiles_from_logs
+
+    profs, _ = profiles_from_logs([REAL / "ardupilot_3x_mechanical_fail.log"], 4, None)
+    v = fit_and_validate(profs, UAV.ocv_soc, UAV.ocv_table_v)
+    cap = v.result.params["capacity_ah"]
+    assert not cap.identifiable and "SOC swing" in cap.reason
+    assert "at a bound" not in cap.reason and cap.value < 15.0
+    assert v.checks[0].skill > 0.0
+
+
 def test_a_second_rc_pair_only_where_resolved() -> None:
     """One-RC plant: the second pair is not kept, and the notes say why."""
     prof = synthetic_log(Truth(), 1.0, noise_v=NOISE_V, seconds=900)

@@ -222,3 +222,31 @@ def test_cells_derive_min_cell_v_only_where_missing_and_say_so(tmp_path: Path) -
     t = _flight(str(LOGS / "px4_one_battery.ulg"), "--cells", "6", "--assume-temp-c", "0")
     assert any("--cells 6 not used" in n for n in t["notes"])  # type: ignore[attr-defined]
     assert any("--assume-temp-c 0 not used" in n for n in t["notes"])  # type: ignore[attr-defined]
+
+
+def test_the_autopilots_own_judgement_is_carried(tmp_path: Path) -> None:
+    """A PX4 battery that reports warning = emergency in every sample, remaining falling to 0:
+    the headlines say so next to PackPilot's verdict, with the autopilot's mAh."""
+    from packpilot.io.flightlog.ulog import write_ulog
+
+    samples = [
+        {"timestamp": 1_000_000 * k, "voltage_v": 22.0 - 0.01 * k, "current_a": 10.0,
+         "current_average_a": 10.0, "discharged_mah": 10.0 / 3.6 * k,
+         "remaining": max(0.0, 0.2 - 0.002 * k), "temperature": 20.0,
+         "voltage_cell_v": [0.0] * 14, "cell_count": 6, "connected": True, "id": 0,
+         "warning": 3}
+        for k in range(120)
+    ]  # fmt: skip
+    log = tmp_path / "warned.ulg"
+    write_ulog(log, [samples], start_us=0)
+    s = _flight(str(log))
+    heads = s["headlines"]
+    assert isinstance(heads, list)
+    warned = [h for h in heads if "the autopilot warned" in h]
+    assert warned == [
+        "A: the autopilot warned from 0.0 s, worst level emergency (120 of 120 samples)"
+    ]
+    notes = s["notes"]
+    assert isinstance(notes, list)
+    assert any("331 mAh discharged" in n for n in notes), notes  # 10 A for 119 s
+    assert any("remaining went from 20 % to 0 %" in n for n in notes), notes

@@ -40,6 +40,11 @@ REST_A_PER_AH = 0.02
 """A rest: cell current below C/50 ..."""
 REST_MIN_S = 60.0
 """... for at least this long; its last sample is a point of the OCV curve."""
+CAPACITY_PRIOR_LOG_SD = 0.7
+"""The capacity's weak prior: log-normal about the guess from the voltages, one sigma a factor
+of 2 — one residual of the size of the voltage noise per 0.7 in log capacity, negligible against
+thousands of samples that see the capacity, decisive only where the SOC barely moves (then the
+capacity is flagged not identifiable anyway, and it no longer runs to a bound)."""
 SECOND_RC_GAIN = 0.10
 """A second RC pair is kept only when it lowers the RMSE by at least this share."""
 BOUNDS = {
@@ -112,6 +117,9 @@ class _Layout:
     logs: list[str]
     lo: list[float] = field(default_factory=list)
     hi: list[float] = field(default_factory=list)
+    prior: tuple[float, float] = (0.0, 0.0)
+    """(log capacity the voltages suggest, weight in V per unit of log): a weak prior that
+    holds the capacity where the data say nothing (see CAPACITY_PRIOR_LOG_SD)."""
 
     def values(self, x: F64, t_ref_c: float) -> tuple[EcmValues, list[float]]:
         p = {n: (x[k] if n == "b_k" else math.exp(x[k])) for k, n in enumerate(self.names)}
@@ -138,6 +146,12 @@ def _layout(n_rc: int, law: bool, q_bounds: tuple[float, float], logs: list[str]
     return lay
 
 
+def _noise(profs: Sequence[Profile]) -> float:
+    """A robust scale of the sample-to-sample voltage scatter (at least 1 mV)."""
+    d = np.concatenate([np.diff(p.voltage_v) for p in profs])
+    return max(float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0)), 1e-3)
+
+
 def _soc_from_ocv(v: float, ocv_soc: F64, ocv_v: F64) -> float:
     """The SOC whose OCV is v (the OCV table increases with SOC)."""
     return float(np.clip(np.interp(v, ocv_v, ocv_soc), 0.0, 1.0))
@@ -161,6 +175,8 @@ def _residuals(x: F64, lay: _Layout, profs: Sequence[Profile], ocv: tuple[F64, F
                t_ref_c: float) -> F64:  # fmt: skip
     vals, soc0 = lay.values(x, t_ref_c)
     parts = [predict(p, vals, s, *ocv)[0] - p.voltage_v for p, s in zip(profs, soc0, strict=True)]
+    if lay.prior[1] > 0.0:
+        parts.append(np.array([lay.prior[1] * (x[0] - lay.prior[0])]))
     return np.concatenate(parts)
 
 
@@ -334,7 +350,9 @@ def fit(
     names = [p.name for p in profs]
     period = float(np.median([p.period_s for p in profs]))
 
+    prior = (math.log(q0), _noise(profs) / CAPACITY_PRIOR_LOG_SD)
     lay = _layout(1, law, q_bounds, names)
+    lay.prior = prior
     x, res, jac = _solve(lay, profs, ocv, t_ref, _starts(lay, q0, socs, 1, None))
     vals, soc0 = lay.values(x, t_ref)
     ocv, ocv_note = _ocv_correction(profs, vals, soc0, ocv)
@@ -361,6 +379,7 @@ def _maybe_second_rc(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequence[P
     """Keep a second RC pair only where the data resolve it: a clear RMSE gain, a time
     constant well apart from the first and both identified."""
     lay2 = _layout(2, law, q_bounds, names)
+    lay2.prior = lay.prior
     base = list(x[:4])
     tails = list(x[4:])
     starts = []
