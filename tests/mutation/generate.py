@@ -44,16 +44,13 @@ class Target:
 
 _RULES = ("limits", "plausibility", "charging", "protection", "sequencing", "supervisor", "soc",
           "equalization")  # fmt: skip
+_CAN_RULES = ("judge", "_judge_sequence", "_delay", "_fresh", "_present", "_docked",
+              "_dock_doubt", "explained")  # fmt: skip
 TARGETS: list[Target] = [
     *(Target(m, f"src/packpilot/control/{m}/rules.py") for m in _RULES),
     Target("commands", "src/packpilot/control/commands.py"),
     Target("battery", "src/packpilot/control/battery.py"),
-    Target(
-        "can",
-        "src/packpilot/io/can/plant.py",
-        ("judge", "_judge_sequence", "_delay", "_fresh", "_present", "_docked", "_dock_doubt",
-         "explained"),
-    ),  # fmt: skip
+    Target("can", "src/packpilot/io/can/plant.py", _CAN_RULES),
 ]
 """Every rules module: the eight control methods' rules, the shared command helpers, the
 battery facts, and the runtime's freshness / dock judgement (the rest of plant.py is codec
@@ -196,9 +193,8 @@ class _Finder(ast.NodeVisitor):
             self.visit(stmt)
 
     def visit_AnnAssign(self, node: ast.AnnAssign) -> None:
-        if self.depth:  # a local with a type; the annotation is not code
-            if node.value is not None:
-                self.visit(node.value)
+        if self.depth and node.value is not None:  # a typed local; the annotation is no code
+            self.visit(node.value)
 
     def visit_Subscript(self, node: ast.Subscript) -> None:
         self.visit(node.value)
