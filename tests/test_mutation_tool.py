@@ -18,6 +18,7 @@ from tests.mutation.generate import (
     mutants_of_source,
     sample,
 )
+from tests.mutation.mutants import TESTS
 
 TINY = textwrap.dedent('''\
     """A tiny rules module: one of each operator."""
@@ -144,7 +145,7 @@ def test_every_rules_module_yields_compiling_mutants() -> None:
     assert {m.module for m in muts} >= {"limits", "plausibility", "charging", "protection",
                                         "sequencing", "supervisor", "soc", "equalization",
                                         "commands", "battery", "can"}  # fmt: skip
-    assert all(m.module in run.TESTS for m in muts)
+    assert all(m.module in TESTS for m in muts)
     sources = {m.path: (run.ROOT / m.path).read_text() for m in muts}
     assert all(compiles(m, sources[m.path]) for m in sample(muts, 40, seed=0))  # ~1 s each
 
@@ -165,7 +166,7 @@ def tiny_tree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     (tmp_path / "src" / "tiny.py").write_text(TINY)
     (tmp_path / "tests").mkdir()
     (tmp_path / "tests" / "test_tiny.py").write_text(TINY_TESTS)
-    monkeypatch.setitem(run.TESTS, "tiny", ["tests/test_tiny.py"])
+    monkeypatch.setitem(TESTS, "tiny", ["tests/test_tiny.py"])
     return tmp_path
 
 
