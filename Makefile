@@ -69,19 +69,30 @@ test: $(TEST_STAMP) browser
 	echo "PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider"; \
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider
 
-# Mutation testing (#18 §1): every hand-listed mutant of a safety rule (tests/mutation/mutants.py)
-# against its module's behavioural tests, interpreted (NUMBA_DISABLE_JIT=1), on a private copy
-# of the tree; kill rate per module on stdout and in $(OUT)/mutation.json / mutation.md.
+# Mutation testing (#18 §1, #26 item 4): every hand-listed mutant of a safety rule
+# (tests/mutation/mutants.py) plus a seeded random sample of MUTATE_N tool-generated mutants of
+# every rules module (tests/mutation/generate.py; docs/mutation.md) against each module's
+# behavioural tests, interpreted (NUMBA_DISABLE_JIT=1), on a private copy of the tree; kill rate
+# per module on stdout and in $(OUT)/mutation.json / .md (hand-listed) and
+# $(OUT)/mutation_generated.json / .md (generated). A generated mutant takes 10 s - 2 min on
+# one core: MUTATE_N=24 is ~10-15 min on 2 cores; MUTATE_SEED picks another sample.
 MUTATE_JOBS ?= 2
+MUTATE_N ?= 24
+MUTATE_SEED ?= 26
 mutate: $(TEST_STAMP)
-	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.mutation.run --jobs $(MUTATE_JOBS) --out $(OUT)
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.mutation.run --jobs $(MUTATE_JOBS) --out $(OUT) \
+		--generated $(MUTATE_N) --seed $(MUTATE_SEED)
 	$(PY) -m tests.mutation.web  # the dashboard's access rules (#18 §5), about a minute
 
 # Property soak (#18 §2): every Hypothesis property under the `nightly` profile (tests/budget.py:
-# at least 10,000 examples each, CI budget x 50). Hours, not minutes; not part of `make test`.
+# at least 10,000 examples each, CI budget x 50), then every generated mutant of every rules
+# module (#26 item 4; ~3,400 mutants, about a day on 2 cores; $(OUT)/mutation_generated.*).
+# Hours, not minutes; not part of `make test`.
 soak: $(TEST_STAMP)
 	HYPOTHESIS_PROFILE=nightly PYBAMM_DISABLE_TELEMETRY=true \
 		$(PY) -m pytest -n 2 -q -p no:cacheprovider -m hypothesis
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.mutation.run --no-hand --all-generated \
+		--jobs $(MUTATE_JOBS) --out $(OUT)
 
 # Fault injection over the CAN runtime (#26): every fault of tests/fault_suite.py (lock-step
 # `run` against `hil` on a real python-can bus; the slow ones included: frozen loaded battery,

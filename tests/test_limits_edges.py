@@ -8,12 +8,14 @@ however long the row has been active.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 
-from packpilot.control.limits import DEFAULT_ROWS, LimitRow
-from tests.test_limits_helpers import CAP, Driver, healthy, with_value
+from packpilot.contract.bms import Measurements
+from packpilot.control.limits import DEFAULT_ROWS, LimitRow, LimitsConfig, LimitsController
+from tests.test_limits_helpers import CAP, Driver, healthy, pack, with_value
 
 ROWS = list(enumerate(DEFAULT_ROWS))
 IDS = [f"{r.limit}-{r.tier}" for r in DEFAULT_ROWS]
@@ -110,3 +112,21 @@ def test_a_derate_row_scales_its_published_limit(
         out = d.step(healthy(current_a=current_a))
     assert d.ctl.is_active(0, k) and d.ctl.active_tier(0, limit) == "derate"
     assert out.status[channel] == [pytest.approx(0.5 * table_a)]
+
+
+@pytest.mark.parametrize(
+    ("nominal_ah", "limit_a"),
+    [((CAP,), 15.0 * CAP), ((0.5,), 7.5), ((0.0,), 37.5), ((-1.0,), 37.5), ((math.nan,), 37.5)],
+)
+def test_the_c_rate_limit_uses_the_nominal_capacity_else_the_reported_one(
+    nominal_ah: tuple[float, ...], limit_a: float
+) -> None:
+    """A C-rate becomes amperes with the pack's nominal capacity; only a nominal capacity that
+    is not a positive number (absent, 0, negative) falls back to the battery's reported full
+    capacity (control/battery.py; generated mutants d21b5f02f9, 6088d9ca6c, e8d489c81f,
+    855fac0ef1, 0a77656af5). At
+    3.7 V / 25 degC the discharge table allows 15 C."""
+    info = dataclasses.replace(pack(1), capacity_ah=nominal_ah)
+    ctl = LimitsController(LimitsConfig(), info)
+    meas = Measurements(t_s=0.0, batteries=(healthy(full_capacity_ah=2.5),), bus_v=22.2)
+    assert ctl.step(meas, 0.1).status["limit_dsg_a"] == [pytest.approx(limit_a)]

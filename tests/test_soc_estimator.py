@@ -223,3 +223,41 @@ def test_an_ocv_table_beyond_zero_and_one_is_clamped() -> None:
     empty = healthy(current_a=0.0, min_cell_v=3.0, max_cell_v=3.0)
     e.update(meas(1.0, full, empty), 1.0)  # initialised from the OCV
     assert e.soc == (1.0, 0.0)
+
+
+def test_the_initialising_sample_is_not_also_counted() -> None:
+    """The first sample sets the SOC from the OCV; its current belongs to the time before the
+    estimator existed, so that tick counts no charge (generated mutant 3a56847a33)."""
+    e = est()
+    first = healthy(current_a=5.0, min_cell_v=3.95, max_cell_v=3.95)  # OCV table: SOC 0.75
+    e.update(meas(0.0, first, first), 360.0)  # counted, it would be 0.75 - 0.1 (5 Ah)
+    assert e.soc == (pytest.approx(0.75, abs=1e-12), pytest.approx(0.75, abs=1e-12))
+
+
+@pytest.mark.parametrize("dt_s", [math.nan, -1.0, 0.0])
+def test_a_bad_tick_length_counts_no_charge(dt_s: float) -> None:
+    """A NaN, negative or zero ``dt_s`` counts nothing (not a default tick; generated mutant
+    47bc5aaba2)."""
+    e = est(soc0=(0.5, 0.5))
+    bm = healthy(current_a=18.0)  # 18 A over a 1 s default tick would be -0.001 of 5 Ah
+    e.update(meas(1.0, bm, bm), dt_s)
+    assert e.soc == (0.5, 0.5)
+
+
+def test_a_reinserted_battery_rests_a_full_period_from_its_return() -> None:
+    """Removal resets the rest clock and its next correction time: a battery back after a swap
+    is corrected rest_time_s after its return, not at the schedule of its earlier rest
+    (generated mutant 59d73c3db6)."""
+    e = est(soc0=(0.2, 0.2), blend=0.5)
+    rest = healthy(current_a=0.0, min_cell_v=3.95, max_cell_v=3.95)  # OCV: SOC 0.75
+    gone = healthy(current_a=0.0, min_cell_v=3.95, max_cell_v=3.95, present=False)
+    for k in range(60):
+        e.update(meas(k + 1.0, rest, rest), 1.0)
+    assert e.soc[0] == pytest.approx(0.475)  # one correction; the next one was due at 120 s
+    e.update(meas(61.0, gone, rest), 1.0)
+    events = []
+    for k in range(60):
+        _, ev = e.update(meas(62.0 + k, rest, rest), 1.0)
+        events += [x for x in ev if x.battery == 0]
+    assert e.soc[0] == pytest.approx(0.6125)  # corrected 60 s after its return
+    assert len(events) == 1

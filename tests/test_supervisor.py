@@ -247,3 +247,57 @@ def test_init_lasts_init_time_s() -> None:
         sup.step(Measurements(t_s=k * 0.1, batteries=(_bat(24.0),), bus_v=24.0), 0.1)
         modes.append(sup.mode)
     assert modes[:9] == [Mode.INIT] * 9 and modes[-1] is Mode.IDLE
+
+
+def test_an_empty_bus_seeds_by_voltage_whatever_the_battery_order() -> None:
+    """The seed group is chosen over the candidates sorted by voltage, not in battery order:
+    90 and 91.5 V (the lowest of two equal groups) close, 100 and 101 V wait (generated mutants
+    6cd4f03bc4, 9927d7a5ba, 33049ab188: the insertion sort broken); each refusal names the
+    limit and its widest distance to the group."""
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(4), methods=[_CloseAll()])
+    bats = (_bat(101.0), _bat(90.0), _bat(100.0), _bat(91.5))
+    out = sup.step(Measurements(t_s=0.0, batteries=bats, bus_v=0.0), 0.1)
+    assert out.commands.chg_on == (False, True, False, True)
+    refused = [e for e in out.events if e.kind == "CommandRefused"]
+    assert sorted(e.battery for e in refused) == [0, 2]
+    assert all(e.data["join_limit_v"] == 3.0 for e in refused)  # (mutant c337ef2cd4)
+    # the widest distance to the group on the bus (mutant d503ce3d6b: vi + first)
+    assert {e.battery: e.data["spread_v"] for e in refused} == {0: 11.0, 2: 10.0}
+
+
+def test_each_admitted_battery_widens_the_span_the_next_must_fit() -> None:
+    """On a bus at 100 V, 102 V joins (2 V); 98 V would be within 3 V of 100 alone but 4 V from
+    102, which is now on the bus too: refused (generated mutant af0c930021)."""
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(3), methods=[_CloseAll()])
+    bats = (_bat(100.0, closed=True), _bat(102.0), _bat(98.0))
+    out = sup.step(Measurements(t_s=0.0, batteries=bats, bus_v=100.0), 0.1)
+    assert out.commands.chg_on == (True, True, False)
+    assert [e.battery for e in out.events if e.kind == "CommandRefused"] == [2]
+
+
+def test_a_new_attempt_after_the_method_gave_up_is_logged_again() -> None:
+    """A refusal is logged once per episode; the episode ends when nothing asks to close, so
+    the next attempt is logged again (generated mutant 2cb2737e46)."""
+
+    class _Toggle:
+        close = True
+
+        def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+            n = len(meas.batteries)
+            on = (True,) * n if self.close else (False,) * n
+            return ControlOutput(Commands(chg_on=on, dsg_on=on))
+
+    method = _Toggle()
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(2), methods=[method])
+
+    def refused(t: float) -> list[int | None]:
+        bats = (_bat(100.0, closed=True), _bat(110.0))
+        out = sup.step(Measurements(t_s=t, batteries=bats, bus_v=100.0), 0.1)
+        return [e.battery for e in out.events if e.kind == "CommandRefused"]
+
+    assert refused(0.0) == [1]
+    assert refused(0.1) == []  # the same episode
+    method.close = False
+    assert refused(0.2) == []
+    method.close = True
+    assert refused(0.3) == [1]  # a new episode

@@ -483,6 +483,20 @@ TESTS: dict[str, list[str]] = {
         "_the_pack_charges",
     ],
     "soc": ["tests/test_soc_estimator.py"],
+    # shared helpers (#26 item 4: generated mutants only): every method's commands and events
+    # go through control/commands.py, capacity / conduction through control/battery.py
+    "commands": [
+        "tests/test_limits_controller.py",
+        "tests/test_limits_edges.py",
+        "tests/test_sequencing_controller.py",
+        "tests/test_charging_controller.py",
+    ],
+    "battery": [
+        "tests/test_limits_controller.py",
+        "tests/test_limits_edges.py",
+        "tests/test_plausibility_monitor.py",
+        "tests/test_plausibility_edges.py",
+    ],
     "equalization": [
         "tests/test_equalization_controller.py",
         "tests/test_equalization_core.py",
