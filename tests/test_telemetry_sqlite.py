@@ -542,3 +542,34 @@ def test_samples_committed_counts_what_a_reader_can_see(tmp_path: Path) -> None:
         assert samples_committed(db) == 1
     finally:
         rec.close()
+
+
+def test_reading_a_run_back_holds_no_row_list_of_the_whole_run(tmp_path: Path) -> None:
+    """Issue #26 §3: ``load_run`` fetched every row as Python tuples before filling its arrays
+    (a 1-day run: 2.4 GB peak for ``packpilot report``, 0.6 GB since). Rows now go into
+    preallocated arrays in blocks: the reader's peak allocation stays within 2.5 times the
+    arrays it returns."""
+    import tracemalloc
+
+    from packpilot.contract.record import BATTERY_CHANNELS, StepSample
+    from packpilot.io.telemetry import SQLiteRecorder, load_run
+
+    n, n_c = 60_000, len(BATTERY_CHANNELS)
+    db = tmp_path / "long.sqlite"
+    with SQLiteRecorder(db, flush_every=5000) as rec:
+        rec.start({}, ["A", "B"])
+        bat, grp = np.full((2, n_c), 3.7), np.full((2, 6), 3.7)
+        for k in range(n):
+            rec.record(StepSample(k, k * 0.1, 22.2, 10.0, 10.0, 0.0, 0.0, bat, grp))
+        rec.finish({})
+    tracemalloc.start()
+    try:
+        result = load_run(db)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    tr = result.trace
+    arrays = sum(a.nbytes for a in vars(tr).values() if isinstance(a, np.ndarray))
+    assert len(tr.t_s) == n and tr.battery.shape == (n, 2, n_c)
+    # measured: 46.6 MB peak for 26 MB of arrays; 147.6 MB before (the rows as tuples)
+    assert peak < 2.5 * arrays, (peak / 1e6, arrays / 1e6)

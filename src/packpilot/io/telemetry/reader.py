@@ -278,35 +278,42 @@ Samples = tuple[
 def _samples(conn: sqlite3.Connection, rid: int, n_b: int, after: int) -> Samples:
     """Steps, pack matrix, battery and group arrays and aux of the samples after ``after``."""
     n_c = len(BATTERY_CHANNELS)
-    pack = conn.execute(
+    width = 1 + len(PACK_COLUMNS)
+    (count,) = conn.execute(
+        "SELECT COUNT(*) FROM pack_samples WHERE run_id = ? AND step > ?", (rid, after)
+    ).fetchone()  # the same snapshot as the rows below (one read transaction)
+    pm = np.empty((count, width), dtype=np.float64)
+    cur = conn.execute(
         f"SELECT step, {', '.join(PACK_COLUMNS)} FROM pack_samples WHERE run_id = ?"
         " AND step > ? ORDER BY step",
         (rid, after),
-    ).fetchall()
-    pm = _float_matrix(pack, 1 + len(PACK_COLUMNS))
-    steps = np.array([r[0] for r in pack], dtype=np.int64)
-    n_s = len(steps)
+    )
+    n_s = 0
+    while pack := cur.fetchmany(ROWS_PER_FETCH):
+        if n_s + len(pack) > len(pm):  # not in one snapshot after all: grow
+            pm = np.concatenate([pm, np.empty((n_s + len(pack) - len(pm), width))])
+        pm[n_s : n_s + len(pack)] = _float_matrix(pack, width)
+        n_s += len(pack)
+    pm = pm[:n_s]
+    steps = pm[:, 0].astype(np.int64)  # step numbers are exact in float64 (< 2^53)
 
-    bat_rows = conn.execute(
+    battery = np.full((n_s, n_b, n_c), np.nan)
+    max_groups = (
+        conn.execute(
+            "SELECT COALESCE(MAX(LENGTH(group_v)), 0) FROM battery_samples"
+            " WHERE run_id = ? AND step > ?",
+            (rid, after),
+        ).fetchone()[0]
+        // 8
+    )
+    group_v = np.full((n_s, n_b, max_groups), np.nan)
+    cur = conn.execute(
         f"SELECT step, battery, {', '.join(BATTERY_CHANNELS)}, group_v FROM battery_samples"
         " WHERE run_id = ? AND step > ? ORDER BY step, battery",
         (rid, after),
-    ).fetchall()
-    battery = np.full((n_s, n_b, n_c), np.nan)
-    max_groups = max((len(r[-1]) // 8 for r in bat_rows), default=0)
-    group_v = np.full((n_s, n_b, max_groups), np.nan)
-    if bat_rows:
-        si = np.searchsorted(steps, np.array([r[0] for r in bat_rows], dtype=np.int64))
-        bi = np.array([r[1] for r in bat_rows], dtype=np.int64)
-        battery[si, bi, :] = _float_matrix([r[2:-1] for r in bat_rows], n_c)
-        blobs = [r[-1] for r in bat_rows]
-        if all(len(b) == 8 * max_groups for b in blobs):
-            gm = np.frombuffer(b"".join(blobs), dtype="<f8").reshape(len(blobs), max_groups)
-            group_v[si, bi, :] = gm
-        else:
-            for j, blob in enumerate(blobs):
-                g = np.frombuffer(blob, dtype="<f8")
-                group_v[si[j], bi[j], : len(g)] = g
+    )
+    while bat_rows := cur.fetchmany(ROWS_PER_FETCH):  # blocks: no list of every row at once
+        _fill_battery(bat_rows, steps, battery, group_v, max_groups)
 
     aux_rows = conn.execute(
         f"SELECT step, {', '.join(BATTERY_CHANNELS)} FROM aux_samples WHERE run_id = ?"
@@ -319,6 +326,33 @@ def _samples(conn: sqlite3.Connection, rid: int, n_b: int, after: int) -> Sample
         ai = np.searchsorted(steps, np.array([r[0] for r in aux_rows], dtype=np.int64))
         aux[ai, :] = _float_matrix([r[1:] for r in aux_rows], n_c)
     return steps, pm, battery, group_v, aux
+
+
+ROWS_PER_FETCH = 20_000
+"""Battery rows converted per block: Python tuples of a whole 1-day run (1.7 M rows) took
+about 1 GB before the arrays were filled."""
+
+
+def _fill_battery(
+    rows: list[tuple[Any, ...]],
+    steps: NDArray[np.int64],
+    battery: NDArray[np.float64],
+    group_v: NDArray[np.float64],
+    max_groups: int,
+) -> None:
+    """One block of battery rows into the preallocated arrays."""
+    n_c = battery.shape[2]
+    si = np.searchsorted(steps, np.array([r[0] for r in rows], dtype=np.int64))
+    bi = np.array([r[1] for r in rows], dtype=np.int64)
+    battery[si, bi, :] = _float_matrix([r[2:-1] for r in rows], n_c)
+    blobs = [r[-1] for r in rows]
+    if all(len(b) == 8 * max_groups for b in blobs):
+        gm = np.frombuffer(b"".join(blobs), dtype="<f8").reshape(len(blobs), max_groups)
+        group_v[si, bi, :] = gm
+    else:
+        for j, blob in enumerate(blobs):
+            g = np.frombuffer(blob, dtype="<f8")
+            group_v[si[j], bi[j], : len(g)] = g
 
 
 def samples_committed(path: Path | str) -> int:
