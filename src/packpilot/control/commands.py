@@ -9,12 +9,6 @@ Merging is the left fold of the controllers' outputs in their run order ("off wi
 * balancer currents, the aux relay and the aux DC/DC take the latest opinion.
 
 A controller writes each of its opinions once per step (call a ``put_*`` once per battery).
-
-Every helper here is inlined into its caller at numba IR level (``kernel_inline``): compiled as
-functions of their own, numba typed a reason code (a module constant) as a literal and built
-one specialisation per code, battery literal and caller type (``emit`` alone had 21 cached
-signatures); inlined, none is compiled on its own. Called from Python (a scalar part merged
-into the core) they compile as usual.
 """
 
 from __future__ import annotations
@@ -24,26 +18,26 @@ import math
 import numpy as np
 
 from packpilot.contract.arrays import CmdArrays, EventBuf
-from packpilot.jit import kernel_inline
+from packpilot.jit import kernel
 
 # ------------------------------------------------------------------------------ commands
 
 
-@kernel_inline
+@kernel
 def put_chg(cmd: CmdArrays, p: int, i: int, on: bool) -> None:
     """Charge path of battery ``i`` of pack ``p``: AND with earlier opinions."""
     old = cmd.chg_on[p, i]
     cmd.chg_on[p, i] = 1 if on and old != 0 else 0
 
 
-@kernel_inline
+@kernel
 def put_dsg(cmd: CmdArrays, p: int, i: int, on: bool) -> None:
     """Discharge path of battery ``i`` of pack ``p``: AND with earlier opinions."""
     old = cmd.dsg_on[p, i]
     cmd.dsg_on[p, i] = 1 if on and old != 0 else 0
 
 
-@kernel_inline
+@kernel
 def put_charger(cmd: CmdArrays, p: int, voltage_v: float, current_a: float, enable: bool) -> None:
     """Charger setpoint: the latest wins, but off if any commanding controller said off."""
     if cmd.charger_set[p] and not (cmd.charger_enable[p] and enable):
@@ -57,31 +51,31 @@ def put_charger(cmd: CmdArrays, p: int, voltage_v: float, current_a: float, enab
     cmd.charger_set[p] = True
 
 
-@kernel_inline
+@kernel
 def put_charger_off(cmd: CmdArrays, p: int) -> None:
     put_charger(cmd, p, 0.0, 0.0, False)
 
 
-@kernel_inline
+@kernel
 def put_balancer(cmd: CmdArrays, p: int, i: int, g: int, current_a: float) -> None:
     """Equalizer current into group ``g`` of battery ``i`` (the latest controller's row wins;
     call :func:`claim_balancer` first so groups it leaves out read 0)."""
     cmd.balancer_a[p, i, g] = current_a
 
 
-@kernel_inline
+@kernel
 def claim_balancer(cmd: CmdArrays, p: int) -> None:
     """Start this controller's balancer opinion for pack ``p``: every group 0 A."""
     cmd.balancer_a[p].fill(0.0)
     cmd.balancer_set[p] = True
 
 
-@kernel_inline
+@kernel
 def put_aux_relay(cmd: CmdArrays, p: int, closed: bool) -> None:
     cmd.aux_relay[p] = 1 if closed else 0
 
 
-@kernel_inline
+@kernel
 def put_aux_charge(cmd: CmdArrays, p: int, current_a: float) -> None:
     cmd.aux_charge_set[p] = True
     cmd.aux_charge_a[p] = current_a
@@ -90,7 +84,7 @@ def put_aux_charge(cmd: CmdArrays, p: int, current_a: float) -> None:
 # ------------------------------------------------------------------------------ events
 
 
-@kernel_inline
+@kernel
 def emit(ev: EventBuf, p: int, src: int, code: int, battery: int, t_s: float) -> int:
     """Append an event; returns the row to write its numbers into (``ev.val[k, slot]``).
 
@@ -116,18 +110,18 @@ def emit(ev: EventBuf, p: int, src: int, code: int, battery: int, t_s: float) ->
 # ------------------------------------------------------------------------------ numbers
 
 
-@kernel_inline
+@kernel
 def finite(x: float) -> bool:
     return math.isfinite(x)
 
 
-@kernel_inline
+@kernel
 def fmin(a: float, b: float) -> float:
     """Python's ``min(a, b)``: the first argument on ties and NaN comparisons."""
     return b if b < a else a
 
 
-@kernel_inline
+@kernel
 def fmax(a: float, b: float) -> float:
     """Python's ``max(a, b)``: the first argument on ties and NaN comparisons."""
     return b if b > a else a
