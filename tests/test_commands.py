@@ -1,0 +1,28 @@
+"""The core's "off wins" merge of switch opinions (control/commands.py, #26 item 4: a generated
+mutant that let a later "on" undo an earlier "off" survived every method's tests)."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from packpilot.contract.arrays import NO_OPINION, cmd_arrays
+from packpilot.contract.bms import Commands
+from packpilot.control.core import put_commands
+
+
+@pytest.mark.parametrize("path", ["chg_on", "dsg_on"])
+@pytest.mark.parametrize("opinions", list(itertools.product([True, False, None], repeat=3)))
+def test_off_wins_whatever_the_order_of_the_opinions(
+    path: str, opinions: tuple[bool | None, ...]
+) -> None:
+    """A path is on only when someone asked for on and nobody asked for off, in any order and
+    however many times (generated mutants 1192ca841c, b8f94ccb4e: ``old != 0`` -> ``old != 1``)."""
+    cmd = cmd_arrays(1, 2, 1)
+    for on in opinions:
+        put_commands(cmd, 0, Commands(**{path: (on, True)}))
+    said = [o for o in opinions if o is not None]
+    want = NO_OPINION if not said else int(all(said))
+    assert int(getattr(cmd, path)[0, 0]) == want
+    assert int(getattr(cmd, path)[0, 1]) == 1  # three "on" in a row stay on
