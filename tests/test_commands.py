@@ -26,3 +26,13 @@ def test_off_wins_whatever_the_order_of_the_opinions(
     want = NO_OPINION if not said else int(all(said))
     assert int(getattr(cmd, path)[0, 0]) == want
     assert int(getattr(cmd, path)[0, 1]) == 1  # three "on" in a row stay on
+
+
+def test_a_balancer_opinion_replaces_the_earlier_one_and_leaves_out_groups_at_zero() -> None:
+    """The latest controller's balancer rows win; groups (and batteries) it leaves out read
+    0 A, not an earlier controller's current (generated mutant d474d81462: claim fills 1 A)."""
+    cmd = cmd_arrays(1, 2, 3)
+    put_commands(cmd, 0, Commands(balancer_a=((0.1, 0.2, 0.3), (0.4, 0.5, 0.6))))
+    put_commands(cmd, 0, Commands(balancer_a=((0.05,),)))
+    assert cmd.balancer_a[0].tolist() == [[0.05, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    assert bool(cmd.balancer_set[0])
