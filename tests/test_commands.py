@@ -21,7 +21,9 @@ def test_off_wins_whatever_the_order_of_the_opinions(
     however many times (generated mutants 1192ca841c, b8f94ccb4e: ``old != 0`` -> ``old != 1``)."""
     cmd = cmd_arrays(1, 2, 1)
     for on in opinions:
-        put_commands(cmd, 0, Commands(**{path: (on, True)}))
+        pair = (on, True)
+        c = Commands(chg_on=pair) if path == "chg_on" else Commands(dsg_on=pair)
+        put_commands(cmd, 0, c)
     said = [o for o in opinions if o is not None]
     want = NO_OPINION if not said else int(all(said))
     assert int(getattr(cmd, path)[0, 0]) == want
