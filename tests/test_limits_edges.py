@@ -13,7 +13,7 @@ import math
 
 import pytest
 
-from packpilot.contract.bms import Measurements
+from packpilot.contract.bms import CLOSED, Measurements, SwitchKind, SwitchState
 from packpilot.control.limits import DEFAULT_ROWS, LimitRow, LimitsConfig, LimitsController
 from tests.test_limits_helpers import CAP, Driver, healthy, pack, with_value
 
@@ -130,3 +130,33 @@ def test_the_c_rate_limit_uses_the_nominal_capacity_else_the_reported_one(
     ctl = LimitsController(LimitsConfig(), info)
     meas = Measurements(t_s=0.0, batteries=(healthy(full_capacity_ah=2.5),), bus_v=22.2)
     assert ctl.step(meas, 0.1).status["limit_dsg_a"] == [pytest.approx(limit_a)]
+
+
+@pytest.mark.parametrize(
+    ("full_ah", "limit_a"), [(0.5, 7.5), (0.0, math.nan), (-1.0, math.nan), (math.inf, math.nan)]
+)
+def test_an_unknown_capacity_publishes_an_unknown_limit(full_ah: float, limit_a: float) -> None:
+    """No nominal capacity and a reported full capacity that is not a positive finite number:
+    the limit is NaN (unknown), never 0 A, negative or infinite (generated mutants 942f3e18ae,
+    34edf6e1e1, 04cc3e190d, 253073a3e2, 78a27d12a4, ebe7631e8f)."""
+    info = dataclasses.replace(pack(1), capacity_ah=(math.nan,))
+    ctl = LimitsController(LimitsConfig(), info)
+    meas = Measurements(t_s=0.0, batteries=(healthy(full_capacity_ah=full_ah),), bus_v=22.2)
+    assert ctl.step(meas, 0.1).status["limit_dsg_a"] == [pytest.approx(limit_a, nan_ok=True)]
+
+
+def test_a_relay_conducts_only_with_both_feedbacks_closed() -> None:
+    """The pack limit is N x the smallest limit of the N batteries that conduct: a relay whose
+    feedback is half closed (charge on, discharge off, or the reverse) conducts neither way,
+    unlike a MOSFET pair (control/battery.py ``conducts``; generated mutants a08e2ca1dc,
+    85d534c192)."""
+    for half in (SwitchState(chg_on=False, dsg_on=True), SwitchState(chg_on=True, dsg_on=False)):
+        ctl = LimitsController(LimitsConfig(), pack(2, SwitchKind.RELAY))
+        bms = (healthy(switch=CLOSED), healthy(switch=half))
+        ctl.step(Measurements(t_s=0.0, batteries=bms, bus_v=22.2), 0.1)
+        assert ctl.pack_limit_dsg_a == pytest.approx(15.0 * CAP)  # one battery, not two
+        assert ctl.pack_limit_chg_a == pytest.approx(ctl.limit_chg_a[0])
+    ctl = LimitsController(LimitsConfig(), pack(2))  # a MOSFET pair: its discharge FET decides
+    bms = (healthy(switch=CLOSED), healthy(switch=SwitchState(chg_on=False, dsg_on=True)))
+    ctl.step(Measurements(t_s=0.0, batteries=bms, bus_v=22.2), 0.1)
+    assert ctl.pack_limit_dsg_a == pytest.approx(2 * 15.0 * CAP)

@@ -247,7 +247,7 @@ def test_a_bad_tick_length_counts_no_charge(dt_s: float) -> None:
 def test_a_reinserted_battery_rests_a_full_period_from_its_return() -> None:
     """Removal resets the rest clock and its next correction time: a battery back after a swap
     is corrected rest_time_s after its return, not at the schedule of its earlier rest
-    (generated mutant 59d73c3db6)."""
+    (generated mutants 59d73c3db6, 2ae4277705)."""
     e = est(soc0=(0.2, 0.2), blend=0.5)
     rest = healthy(current_a=0.0, min_cell_v=3.95, max_cell_v=3.95)  # OCV: SOC 0.75
     gone = healthy(current_a=0.0, min_cell_v=3.95, max_cell_v=3.95, present=False)
@@ -256,8 +256,42 @@ def test_a_reinserted_battery_rests_a_full_period_from_its_return() -> None:
     assert e.soc[0] == pytest.approx(0.475)  # one correction; the next one was due at 120 s
     e.update(meas(61.0, gone, rest), 1.0)
     events = []
-    for k in range(60):
+    for k in range(59):
         _, ev = e.update(meas(62.0 + k, rest, rest), 1.0)
         events += [x for x in ev if x.battery == 0]
+    assert e.soc[0] == pytest.approx(0.475) and not events  # (mutant 2ae4277705: after 1 s)
+    _, ev = e.update(meas(121.0, rest, rest), 1.0)
     assert e.soc[0] == pytest.approx(0.6125)  # corrected 60 s after its return
-    assert len(events) == 1
+    assert [x.battery for x in ev if x.battery == 0] == [0]
+
+
+@pytest.mark.parametrize("cut", [math.nan, 0.1, 0.5])
+def test_an_unknown_or_load_current_restarts_the_whole_rest(cut: float) -> None:
+    """A rest is 60 s of known current below ``rest_current_a``: one sample of unknown current,
+    or of a current at or above it, restarts both the rest clock and the correction schedule
+    (generated mutants 22953693fe, df8cacd066, 3b8a79f88b, 3808912b19, 75200311fa,
+    3c33695500, f3fdfa0689)."""
+    e = est(soc0=(0.2, 0.2), blend=0.5)
+    rest = healthy(current_a=0.0, min_cell_v=3.95, max_cell_v=3.95)  # OCV: SOC 0.75
+    blip = healthy(current_a=cut, min_cell_v=3.95, max_cell_v=3.95)
+    for k in range(60):
+        e.update(meas(k + 1.0, rest, rest), 1.0)
+    assert e.soc[0] == pytest.approx(0.475)  # the first correction; the next one due at 120 s
+    before = e.soc[0] - (0.0 if math.isnan(cut) else cut / 3600.0 / 5.0)
+    e.update(meas(61.0, blip, rest), 1.0)
+    for k in range(59):
+        out = e.step(meas(62.0 + k, rest, rest), 1.0)
+        assert e.soc[0] == pytest.approx(before)  # no correction before 60 s of new rest
+    assert out.status["soc_rest_s"][0] == pytest.approx(59.0)
+    e.update(meas(121.0, rest, rest), 1.0)
+    assert e.soc[0] == pytest.approx(0.5 * before + 0.5 * 0.75)
+
+
+def test_an_unknown_cell_voltage_during_a_rest_holds_the_estimate() -> None:
+    """Due for a correction but the cell voltage is unknown: no blend with NaN; the estimate
+    holds and the correction is retried (generated mutant 588605600e)."""
+    e = est(soc0=(0.2, 0.2))
+    blind = healthy(current_a=0.0, min_cell_v=math.nan, max_cell_v=math.nan)
+    for k in range(61):
+        e.update(meas(k + 1.0, blind, blind), 1.0)
+    assert e.soc == (0.2, 0.2)

@@ -486,6 +486,7 @@ TESTS: dict[str, list[str]] = {
     # shared helpers (#26 item 4: generated mutants only): every method's commands and events
     # go through control/commands.py, capacity / conduction through control/battery.py
     "commands": [
+        "tests/test_commands.py",
         "tests/test_limits_controller.py",
         "tests/test_limits_edges.py",
         "tests/test_sequencing_controller.py",

@@ -1,0 +1,40 @@
+"""The core's "off wins" merge of switch opinions (control/commands.py, #26 item 4: a generated
+mutant that let a later "on" undo an earlier "off" survived every method's tests)."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from packpilot.contract.arrays import NO_OPINION, cmd_arrays
+from packpilot.contract.bms import Commands
+from packpilot.control.core import put_commands
+
+
+@pytest.mark.parametrize("path", ["chg_on", "dsg_on"])
+@pytest.mark.parametrize("opinions", list(itertools.product([True, False, None], repeat=3)))
+def test_off_wins_whatever_the_order_of_the_opinions(
+    path: str, opinions: tuple[bool | None, ...]
+) -> None:
+    """A path is on only when someone asked for on and nobody asked for off, in any order and
+    however many times (generated mutants 1192ca841c, b8f94ccb4e: ``old != 0`` -> ``old != 1``)."""
+    cmd = cmd_arrays(1, 2, 1)
+    for on in opinions:
+        pair = (on, True)
+        c = Commands(chg_on=pair) if path == "chg_on" else Commands(dsg_on=pair)
+        put_commands(cmd, 0, c)
+    said = [o for o in opinions if o is not None]
+    want = NO_OPINION if not said else int(all(said))
+    assert int(getattr(cmd, path)[0, 0]) == want
+    assert int(getattr(cmd, path)[0, 1]) == 1  # three "on" in a row stay on
+
+
+def test_a_balancer_opinion_replaces_the_earlier_one_and_leaves_out_groups_at_zero() -> None:
+    """The latest controller's balancer rows win; groups (and batteries) it leaves out read
+    0 A, not an earlier controller's current (generated mutant d474d81462: claim fills 1 A)."""
+    cmd = cmd_arrays(1, 2, 3)
+    put_commands(cmd, 0, Commands(balancer_a=((0.1, 0.2, 0.3), (0.4, 0.5, 0.6))))
+    put_commands(cmd, 0, Commands(balancer_a=((0.05,),)))
+    assert cmd.balancer_a[0].tolist() == [[0.05, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    assert bool(cmd.balancer_set[0])
