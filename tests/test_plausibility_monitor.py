@@ -340,9 +340,9 @@ def test_none_in_merged_commands_keeps_the_previous_state() -> None:
 def test_config_validation() -> None:
     with pytest.raises(ConfigError, match=r"plausibility: cell_v_range must be"):
         PlausibilityConfig.load({"cell_v_range": [5.0, 1.0]})
-    with pytest.raises(ConfigError, match=r"stuck_time_s must be > 0 and <= 3600 s"):
+    with pytest.raises(ConfigError, match=r"stuck_time_s must be > 0 s"):
         PlausibilityConfig.load({"stuck_time_s": 0.0})
-    with pytest.raises(ConfigError, match=r"switch_delay_s must be within 0..60"):
+    with pytest.raises(ConfigError, match=r"switch_delay_s must be a finite value >= 0"):
         PlausibilityConfig.load({"switch_delay_s": -1})
     assert PlausibilityConfig.load({"stuck_temp_time_s": None}).stuck_temp_time_s is None
 
