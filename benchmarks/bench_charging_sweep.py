@@ -71,7 +71,7 @@ def scenario(n: int, spread_v: float, dock_a: float) -> dict[str, Any]:
     data["charging"].update(
         {"charger_current_limit_a": dock_a, "termination_current_a": min(2.0, 0.05 * dock_a)}
     )
-    need_s = n * 0.8 * CAPACITY_AH * 3600.0 / dock_a + 3 * 3600.0
+    need_s = n * 1.0 * CAPACITY_AH * 3600.0 / dock_a + 3 * 3600.0  # from empty, + CV tail
     data["sim"].update({"dt_s": 2.0, "duration_s": need_s, "progress": False})
     return data
 

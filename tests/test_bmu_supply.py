@@ -272,3 +272,39 @@ def test_closed_loop_the_dock_brings_a_browned_out_bmu_back_and_the_pack_charges
     k = int(np.searchsorted(res.trace.t_s, out)) + 1
     j = int(np.searchsorted(res.trace.t_s, back))
     assert not res.trace.channel("chg_on")[k:j].any()  # every switch open while down
+
+
+def test_the_dock_alone_restarts_the_bmu_with_the_aux_battery_still_empty() -> None:
+    """The restart comes from the dock's supply itself, not from the charge its aux path puts
+    in (``dock_aux_charge_a = 0``): the aux battery stays empty, the BMU is powered anyway, and
+    it draws nothing from the aux battery."""
+    pack = docked_browned_out(dock_aux_charge_a=0.0)
+    pack.step(2.0, "none", np.zeros(1))
+    assert pack.bmu_on[0] and pack.bmu_changed[0]
+    assert aux_soc(pack) <= 1e-6  # still empty
+    pack.step(2.0, "none", np.zeros(1))
+    assert pack.bmu_on[0] and aux_soc(pack) >= 0.0
+
+
+def test_closed_loop_a_browned_out_bmu_logs_no_stage_while_docked() -> None:
+    """``dock_powers_bmu = false`` (no dock path), the aux battery nearly empty: the BMU
+    browns out undocked (~2 min); the dock connects at 200 s and cannot bring it back. Nothing
+    of the BMU runs, so the charging method logs no stage it cannot act on (before issue #24:
+    idle -> rest -> S20 with every switch held open) and sends no heartbeat (no charge)."""
+    import tomllib
+
+    from packpilot.config import parse_config
+    from packpilot.sim.runner import Runner
+
+    data = tomllib.loads(EXAMPLE.read_text())
+    for b in data["pack"]["batteries"]:
+        if b.get("role") == "aux":
+            b["soc0"] = 0.002
+    data["aux"]["dock_powers_bmu"] = False
+    data["charger"]["connect_s"] = 200.0
+    data["sim"].update({"dt_s": 1.0, "duration_s": 400.0, "progress": False})
+    res = Runner(parse_config(data), progress=False).run()
+    out = next(e.t_s for e in res.events if e.kind == "BmuBrownOut")
+    assert 30.0 < out < 200.0
+    assert [e.kind for e in res.events if e.t_s > out] == []
+    assert res.trace.charger_a.max() < 0.01  # no heartbeat ever reached the dock

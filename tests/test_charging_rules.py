@@ -106,7 +106,10 @@ def test_an_overvoltage_battery_is_latched_out_as_overvoltage() -> None:
 def test_s20_runs_until_its_lowest_battery_reaches_vr1() -> None:
     """S20 charges the first level up to Vr1 = V2 - d1: it ends when the *lowest* connected
     battery gets there, not the highest (which would leave the others short of the level)."""
-    toy, ctrl = frozen([80.0, 80.4, 90.0], CFG_R)
+    # a 100 A dock: the join of the 90 V battery would be fit (item 3's gate lets S30 follow
+    # as soon as S20 ends), so only S20's own exit holds it
+    cfg = ChargingConfig(r_comp_initial_ohm=0.05, charger_current_limit_a=100.0)
+    toy, ctrl = frozen([80.0, 80.4, 90.0], cfg)
     outs = run(ctrl, toy.measure(), 5)
     assert outs[-1].status["chg_stage"][0] == "S20"
     assert outs[-1].commands.chg_on == (True, True, False)
