@@ -35,9 +35,10 @@ MAX_T_MAX_S = 86_400.0
 MIN_T_MAX_S = 0.001
 """Shortest t_max: one millisecond, the unit of the exact accumulation (``t_max_s = 1e-12``
 rounded to 0 ms and divided by zero when the table was compiled)."""
-MAX_PARAMETERS = 64
+MAX_PARAMETERS = 256
 MAX_ROWS = 256
-"""Most parameters and table rows a protection section may hold (the spec's grid has 9)."""
+"""Most parameters and table rows a protection section may hold (the spec's grid has 9;
+``packpilot calibrate protection`` writes one parameter per corner of its grid, 121 by default)."""
 MAX_COVERAGE_CELLS = 200_000
 """Most (cell of the axis grid x row) pairs the exact coverage check may visit: the grid
 grows as the product of the breakpoints of every axis; beyond this the check (and the table
