@@ -163,8 +163,10 @@ class Runner:
             metrics = (
                 loop.metrics.of(0, wall, self.pack.names) if buf.rows else {"wall_time_s": wall}
             )
-            if self.recorder is not None:
-                self.recorder.finish(metrics, status=status)
+            if self.recorder is not None:  # the build time travels with the run, kept apart
+                self.recorder.finish(
+                    {**metrics, "build_time_s": built - self._build0}, status=status
+                )
         return Result(
             battery_names=list(self.pack.names),
             trace=buf.trace(),

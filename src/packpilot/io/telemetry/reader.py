@@ -253,7 +253,8 @@ class RunTail:
             aux=aux,
         )
         metrics = json.loads(metrics_j) if metrics_j else {}
-        result = Result(list(self.names), trace, events, metrics, run_id=rid)
+        build_s = float(metrics.pop("build_time_s", 0.0))  # reported apart from the metrics
+        result = Result(list(self.names), trace, events, metrics, run_id=rid, build_time_s=build_s)
         return Chunk(result, steps, _run_status(conn, rid))
 
 
