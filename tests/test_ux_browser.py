@@ -346,7 +346,8 @@ def flight_report(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from packpilot.report.flight import write_flight_page
 
     fr = replay_flight(EXAMPLES / "logs" / "px4_two_batteries.ulg", ProtectionConfig(),
-                       SequencingConfig(), LogOptions(assume_temp_c=25.0))  # fmt: skip
+                       SequencingConfig(), LogOptions(assume_temp_c=25.0),
+                       parallel=("A", "B"))  # fmt: skip  # the sample's two packs were in parallel
     out = tmp_path_factory.mktemp("flight") / "flight.html"
     write_flight_page(fr, out)
     return out
