@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from packpilot.campaign import (
@@ -20,8 +21,10 @@ from packpilot.campaign import (
 )
 from packpilot.campaign.execute import _row
 from packpilot.config import ScenarioConfig, load_config, parse_config
+from packpilot.contract.record import BATTERY_CHANNELS
 from packpilot.errors import InputError
 from packpilot.sim.runner import Runner
+from packpilot.sim.verdict import PhysicsLimits, PhysicsWatch
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 SPREAD = parse_spreads("capacity=5%,r0=10%,soc0=0.05,ambient_c=-10:35")
@@ -55,8 +58,22 @@ def _example(name: str, duration_s: float | None = None) -> ScenarioConfig:
 
 
 def _single(cfg: ScenarioConfig, draw: Draw) -> dict[str, Any]:
+    """The run alone, its row built as a campaign builds it, with the physics alarms that the
+    single run's own trace shows (``PhysicsWatch``, what ``simulate``'s verdict reads)."""
     res = Runner(cfg, progress=False, pack_overrides=draw.pack_overrides()).run()
-    return _row(draw, res.metrics, 0.0)
+    names = [b.name for b in cfg.pack.batteries]
+    limits = PhysicsLimits.of_config(cfg.model_dump(mode="json"), names)
+    watch = PhysicsWatch(limits)
+    tr = res.trace
+    watch.feed(tr.t_s, tr.battery, tr.load_demand_a, tr.load_a, tr.charger_a)
+    alarms = [(a.category, a.severity) for a in watch.alarms()]
+    ch = {c: i for i, c in enumerate(BATTERY_CHANNELS)}
+    last = tr.battery[-1] if len(tr.t_s) else np.full((len(names), len(ch)), np.nan)
+    ended = bool(
+        np.any(last[:, ch["min_cell_v"]] < np.array(limits.cell_v_min))
+        or np.any(last[:, ch["soc"]] < 0.0)
+    )
+    return _row(draw, res.metrics, 0.0, (alarms, ended))
 
 
 def _same(a: Any, b: Any) -> bool:
