@@ -99,7 +99,7 @@ soak: $(TEST_STAMP)
 # 30 s of 10x frame load, a frame flood) as a table on stdout, then the fault tests (the CI
 # subset, kill -9 of `run --db --can-log` through the CAN hub, the older bus faults). Needs the
 # test extras installed (`make test` once); never runs pip.
-faults:
+faults: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.fault_suite
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -q -p no:cacheprovider \
 		tests/test_runtime_fault_suite.py tests/test_runtime_faults.py
