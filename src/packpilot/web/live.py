@@ -552,6 +552,12 @@ class DashboardRecorder:
             self.live.on_finish(metrics, state)
 
 
+CATCH_UP_S = 0.5
+"""How far behind its pace a live run may fall before the pace restarts from the present step
+(a kernel compiled at the first step took tens of seconds, and the run then raced through its
+whole length in a burst that the page never showed)."""
+
+
 def pacing_hook(live: LiveRun) -> Callable[[Any, float], None]:
     """Runner hook: hold simulated time to ``live.speed`` × wall time, hold still while
     paused, raise when asked to stop.
@@ -579,6 +585,9 @@ def pacing_hook(live: LiveRun) -> Callable[[Any, float], None]:
         if not origin or origin[2] != epoch:
             origin[:] = [now, t_s, epoch]
         ahead = origin[0] + (t_s - origin[1]) / speed - now
+        if ahead < -CATCH_UP_S:  # behind (a first-run compile, a slow step): pace from here,
+            origin[:] = [now, t_s, epoch]  # do not race through the run to catch up
+            return
         if ahead > 0.002 and live.wait_control(epoch, ahead) and live.stop_requested.is_set():
             raise RunStopped(stopped.format(t_s))
 
