@@ -12,6 +12,7 @@ from __future__ import annotations
 import html
 import io
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -147,13 +148,44 @@ def _facts_table(fr: FlightReplay) -> str:
     )
 
 
-def flight_html(fr: FlightReplay) -> str:
-    """The page: verdict lines first, then what the log lacks, then the figures."""
+def summary_blocks(fr: FlightReplay, box_class: str, note_class: str) -> list[str]:
+    """What both flight pages open with: the verdict lines, the open-loop caveat, what the log
+    lacks or assumed, the log's facts (this static page and ``report.flight``'s zoomable one)."""
     s = fr.summary
     tripped = any(r.summary["tripped"] for r in fr.protection.values())
     heads = s["headlines"]
     assert isinstance(heads, list)
     lacks = [*s["assumed"], *s["notes"]]  # type: ignore[misc]
+    return [
+        f"<div class='{box_class}{' trip' if tripped else ''}' id='verdict'>"
+        f"<ul>{_li(heads)}</ul></div>",
+        f"<p class='{note_class}'>Open loop: the log's measurements are as flown; these are the"
+        " commands PackPilot would have given from them, not a re-flown flight.</p>",
+        "<h2>What the log lacks, and what was assumed</h2>",
+        f"<ul class='lacks' id='lacks'>{_li(lacks) or '<li>nothing</li>'}</ul>",
+        _facts_table(fr),
+    ]
+
+
+def protection_blocks(
+    fr: FlightReplay, figure: Callable[[int, str, ReplayResult], str]
+) -> list[str]:
+    """One section per battery: its protection replay drawn by ``figure(k, name, result)``, or
+    why it was not replayed."""
+    out: list[str] = []
+    for k, name in enumerate(fr.batteries):
+        res = fr.protection.get(name)
+        title = f"Protection, battery {html.escape(name or '')}".rstrip(", ")
+        if res is None:
+            out.append(f"<h2>{title}</h2><p>not replayed: {html.escape(fr.skipped[name])}</p>")
+            continue
+        out += [f"<h2>{title}</h2>", figure(k, name, res)]
+    return out
+
+
+def flight_html(fr: FlightReplay) -> str:
+    """The page: verdict lines first, then what the log lacks, then the figures."""
+    s = fr.summary
     parts = [
         "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
         "<title>PackPilot flight replay</title>",
@@ -162,21 +194,11 @@ def flight_html(fr: FlightReplay) -> str:
         f"<p class='muted'>{html.escape(str(s['log']))} · {html.escape(str(s['source']))} · "
         f"{s['rows']} rows · {float(s['duration_s']):.1f} s · batteries "  # type: ignore[arg-type]
         f"{html.escape(', '.join(b or 'battery' for b in fr.batteries))}</p>",
-        f"<div class='verdict{' trip' if tripped else ''}' id='verdict'>"
-        f"<ul>{_li(heads)}</ul></div>",
-        "<p class='muted'>Open loop: the log's measurements are as flown; these are the commands "
-        "PackPilot would have given from them, not a re-flown flight.</p>",
-        "<h2>What the log lacks, and what was assumed</h2>",
-        f"<ul class='lacks' id='lacks'>{_li(lacks) or '<li>nothing</li>'}</ul>",
-        _facts_table(fr),
+        *summary_blocks(fr, "verdict", "muted"),
+        *protection_blocks(
+            fr, lambda k, name, res: _protection_figure(fr, name, res, COLORS[k % len(COLORS)])
+        ),
     ]
-    for k, name in enumerate(fr.batteries):
-        res = fr.protection.get(name)
-        title = f"Protection, battery {html.escape(name or '')}".rstrip(", ")
-        if res is None:
-            parts.append(f"<h2>{title}</h2><p>not replayed: {html.escape(fr.skipped[name])}</p>")
-            continue
-        parts += [f"<h2>{title}</h2>", _protection_figure(fr, name, res, COLORS[k % len(COLORS)])]
     if fr.sequencing is not None:
         parts += ["<h2>Parallel discharge sequencing</h2>", _sequencing_figure(fr, fr.sequencing)]
     parts.append("</body></html>")

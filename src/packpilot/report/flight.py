@@ -18,7 +18,7 @@ import numpy as np
 
 from packpilot.replay.common import ReplayResult
 from packpilot.replay.flight import FlightReplay
-from packpilot.replay.flight_report import _facts_table, _li
+from packpilot.replay.flight_report import protection_blocks, summary_blocks
 from packpilot.report.charts import Chart, Series, Store
 from packpilot.report.fmt import esc
 from packpilot.report.html import _CSS, _asset
@@ -141,27 +141,11 @@ def flight_page(fr: FlightReplay) -> str:
     s = fr.summary
     t = np.asarray(fr.log.columns["t_s"], dtype=float)
     page = _Charts(t)
-    tripped = any(r.summary["tripped"] for r in fr.protection.values())
-    heads = s["headlines"]
-    assert isinstance(heads, list)
-    lacks = [*s["assumed"], *s["notes"]]  # type: ignore[misc]
     names = ", ".join(b or "battery" for b in fr.batteries)
     body = [
-        f"<div class='verdict-box{' trip' if tripped else ''}' id='verdict'>"
-        f"<ul>{_li(heads)}</ul></div>",
-        "<p class='note'>Open loop: the log's measurements are as flown; these are the commands"
-        " PackPilot would have given from them, not a re-flown flight.</p>",
-        "<h2>What the log lacks, and what was assumed</h2>",
-        f"<ul class='lacks' id='lacks'>{_li(lacks) or '<li>nothing</li>'}</ul>",
-        _facts_table(fr),
+        *summary_blocks(fr, "verdict-box", "note"),
+        *protection_blocks(fr, lambda k, name, res: _protection(page, fr, k, name, res)),
     ]
-    for k, name in enumerate(fr.batteries):
-        res = fr.protection.get(name)
-        title = f"Protection, battery {html.escape(name or '')}".rstrip(", ")
-        if res is None:
-            body.append(f"<h2>{title}</h2><p>not replayed: {html.escape(fr.skipped[name])}</p>")
-            continue
-        body += [f"<h2>{title}</h2>", _protection(page, fr, k, name, res)]
     if fr.sequencing is not None:
         body += ["<h2>Parallel discharge sequencing</h2>", _sequencing(page, fr, fr.sequencing)]
     sub = (
