@@ -12,8 +12,9 @@ the maximum of each bucket of :func:`bucket_size` samples of every battery chann
 and the load (so a peak or a cut-off is never lost), the first NaN of a bucket (a gap stays a
 gap), and every switch, body-diode and status change up to :data:`CHANGES_PER_BUCKET` per
 bucket, all series together (beyond it, shared out rarest series first and thinned evenly), so
-the kept samples are at most a fixed number per bucket and the buckets a fixed number. Buckets start at multiples of their size and blocks hold
-whole buckets, so the choice does not depend on how the run was cut into blocks.
+the kept samples are at most a fixed number per bucket and the buckets a fixed number. Buckets
+start at multiples of their size and blocks hold whole buckets, so the choice does not depend on
+how the run was cut into blocks.
 """
 
 from __future__ import annotations
