@@ -5,9 +5,11 @@ One file that opens anywhere, offline, years later: the charting library (uPlot,
 package data under ``report/static/uplot``), the chart script and the data are inline; there is
 no external URL. The tables (verdict, KPIs, figures, events) need no script; the charts do (any
 current browser). Built from a :class:`Result`, so ``simulate --report`` needs no database and
-``report`` reads one with ``load_run``. The series are packed at full resolution (long runs are
-thinned, see ``report/charts.py``) and the event table is capped, so a 10-hour run still makes a
-small file quickly.
+``report`` reads one with ``report/stream.py`` (a run of up to ``charts.FULL_RES_MAX`` samples
+whole, a longer one in blocks: exact figures folded by ``report/digest.py``, a min/max-decimated
+trace for the charts, memory bounded whatever the run's length). The series are packed at full
+resolution (long runs are thinned, see ``report/charts.py``) and the event table is capped, so a
+10-hour run still makes a small file quickly.
 """
 
 from __future__ import annotations
@@ -22,15 +24,14 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
 from packpilot.contract.severity import Severity, row_of
 from packpilot.errors import InputError
 from packpilot.report import sections as S
 from packpilot.report.can_log import can_section
+from packpilot.report.digest import CHANGES_PER_BUCKET as DECIMATED_CHANGES
+from packpilot.report.digest import RunDigest
 from packpilot.report.fmt import (
     METRIC_DOC,
     esc,
@@ -44,7 +45,7 @@ from packpilot.report.fmt import (
 )
 from packpilot.report.info import RunInfo, run_info_from_db
 from packpilot.report.style import ALARM_COLOR
-from packpilot.sim.verdict import Verdict, run_verdict
+from packpilot.sim.verdict import Verdict
 
 SECTION_IDS: tuple[str, ...] = (
     "verdict",
@@ -125,11 +126,10 @@ def _verdict(verdict: Verdict) -> str:
     return head + table(header, rows, cls="alarms", raw=True)
 
 
-def _kpis(result: Result, info: RunInfo, verdict: Verdict) -> str:
+def _kpis(result: Result, digest: RunDigest, verdict: Verdict) -> str:
     """The headline numbers, as tiles: what a reader checks before anything else."""
     m = result.metrics
-    t = result.trace.t_s
-    span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    span = digest.span_s
     n_alarm = sum(1 for a in verdict.alarms if a.severity >= Severity.ALARM)
     n_warn = sum(1 for a in verdict.alarms if a.severity == Severity.WARNING)
     tiles: list[tuple[str, str, str]] = [
@@ -151,7 +151,7 @@ def _kpis(result: Result, info: RunInfo, verdict: Verdict) -> str:
     tile("max_temp_c", "hottest cell", "°C")
     tile("peak_cross_current_a", "peak cross current", "A")
     tile("load_unsupplied_s", "load unsupplied", "s")
-    soc = result.trace.channel("soc")[-1] if len(t) else []
+    soc = digest.extreme("end_soc") if digest.n else []
     for name, x in zip(result.battery_names, soc, strict=False):
         if math.isfinite(float(x)):
             tiles.append((f"{fmt_num(100.0 * float(x))} %", f"SOC of {name} at the end", ""))
@@ -164,13 +164,12 @@ def _kpis(result: Result, info: RunInfo, verdict: Verdict) -> str:
     return f'<div class="kpis" id="kpis">{body}</div>'
 
 
-def _summary(result: Result, info: RunInfo, verdict: Verdict) -> str:
-    tr = result.trace
-    n_s = len(tr.t_s)
+def _summary(result: Result, info: RunInfo, verdict: Verdict, digest: RunDigest) -> str:
+    n_s = digest.n
     names = result.battery_names
     roles = info.roles(names)
-    span = float(tr.t_s[-1] - tr.t_s[0]) if n_s > 1 else 0.0
-    dt = float(np.median(np.diff(tr.t_s))) if n_s > 1 else math.nan
+    span = digest.span_s
+    dt = digest.dt_median() if n_s > 1 else math.nan
     bats = ", ".join(
         n + (" (aux)" if r == "aux" else "") for n, r in zip(names, roles, strict=True)
     )
@@ -214,7 +213,7 @@ def _summary(result: Result, info: RunInfo, verdict: Verdict) -> str:
         if scalar_rows
         else '<p class="note">No metrics recorded (the run did not finish).</p>'
     )
-    batt_tbl = _battery_table(result, info, per_battery)
+    batt_tbl = _battery_table(result, info, digest, per_battery)
     cfg = ""
     if info.config is not None:
         text = json.dumps(info.config, indent=2, default=str)
@@ -229,9 +228,19 @@ def _summary(result: Result, info: RunInfo, verdict: Verdict) -> str:
             " it did not finish normally (it failed, or its process stopped while recording),"
             " so what follows covers only what was recorded.</p>"
         )
+    if digest.decimated:
+        warn += (
+            f'<p class="note" id="decimated">Charts decimated: {digest.decimated:,} points per'
+            " bucket, min/max kept (and the switch and status changes, up to"
+            f" {DECIMATED_CHANGES} per bucket in all, rarest first): {len(result.trace.t_s):,}"
+            f" of {n_s:,} samples."
+            " The verdict, the summary, the per-battery and switch tables and the events count"
+            " every sample; the method sections' figures are computed from the charted"
+            " samples.</p>"
+        )
     return (
         warn
-        + _kpis(result, info, verdict)
+        + _kpis(result, digest, verdict)
         + '<div class="cols"><div><h3>Run</h3>'
         + run_tbl
         + "</div><div><h3>Metrics</h3>"
@@ -242,29 +251,14 @@ def _summary(result: Result, info: RunInfo, verdict: Verdict) -> str:
     )
 
 
-def _battery_table(result: Result, info: RunInfo, extra: list[tuple[str, list[Any]]]) -> str:
-    tr = result.trace
+def _battery_table(
+    result: Result, info: RunInfo, digest: RunDigest, extra: list[tuple[str, list[Any]]]
+) -> str:
+    """Per battery figures over every sample (from the digest: a long run is never held)."""
     names = result.battery_names
-    if len(tr.t_s) == 0:
+    if digest.n == 0:
         return '<p class="note">No samples recorded.</p>'
-    t = tr.t_s
-    dt = np.diff(t, append=t[-1] + (t[-1] - t[-2] if len(t) > 1 else 0.0))
-
-    def col(name: str) -> NDArray[np.float64]:
-        return tr.channel(name)
-
-    def nanext(f: Any, x: NDArray[np.float64]) -> float:
-        return float(f(x)) if np.isfinite(x).any() else math.nan
-
-    def first_finite(x: NDArray[np.float64]) -> float:
-        f = x[np.isfinite(x)]
-        return float(f[0]) if f.size else math.nan
-
-    def last_finite(x: NDArray[np.float64]) -> float:
-        f = x[np.isfinite(x)]
-        return float(f[-1]) if f.size else math.nan
-
-    cur, soc, v = col("current_a"), col("soc"), col("voltage_v")
+    ext = digest.extreme
     roles = info.roles(names)
     kinds = info.switch_kinds(names)
     rows: list[tuple[str, ...]] = []
@@ -272,21 +266,19 @@ def _battery_table(result: Result, info: RunInfo, extra: list[tuple[str, list[An
         rows.append(("role", *[r or "–" for r in roles]))
     if any(k is not None for k in kinds):
         rows.append(("switch", *[k or "–" for k in kinds]))
-    n = len(names)
-    out_ah = [float(np.nansum(np.clip(cur[:, b], 0, None) * dt)) / 3600.0 for b in range(n)]
-    in_ah = [float(np.nansum(np.clip(-cur[:, b], 0, None) * dt)) / 3600.0 for b in range(n)]
+    out_ah, in_ah = digest.charge_ah()
     stats: list[tuple[str, list[float]]] = [
-        ("SOC at start (%)", [100 * first_finite(soc[:, b]) for b in range(n)]),
-        ("SOC at end (%)", [100 * last_finite(soc[:, b]) for b in range(n)]),
-        ("voltage min (V)", [nanext(np.nanmin, v[:, b]) for b in range(n)]),
-        ("voltage max (V)", [nanext(np.nanmax, v[:, b]) for b in range(n)]),
-        ("cell voltage min (V)", [nanext(np.nanmin, col("min_cell_v")[:, b]) for b in range(n)]),
-        ("cell voltage max (V)", [nanext(np.nanmax, col("max_cell_v")[:, b]) for b in range(n)]),
-        ("peak discharge current (A)", [max(0.0, nanext(np.nanmax, cur[:, b])) for b in range(n)]),
-        ("peak charge current (A)", [max(0.0, -nanext(np.nanmin, cur[:, b])) for b in range(n)]),
+        ("SOC at start (%)", [100 * x for x in ext("soc_first")]),
+        ("SOC at end (%)", [100 * x for x in ext("soc_last")]),
+        ("voltage min (V)", ext("v_min")),
+        ("voltage max (V)", ext("v_max")),
+        ("cell voltage min (V)", ext("cmin")),
+        ("cell voltage max (V)", ext("cmax")),
+        ("peak discharge current (A)", [max(0.0, x) for x in ext("i_max")]),
+        ("peak charge current (A)", [max(0.0, -x) for x in ext("i_min")]),
         ("charge out (Ah)", out_ah),
         ("charge in (Ah)", in_ah),
-        ("max temperature (°C)", [nanext(np.nanmax, col("temp_c")[:, b]) for b in range(n)]),
+        ("max temperature (°C)", ext("temp_max")),
     ]
     rows += [(label, *[fmt_num(x) for x in vals]) for label, vals in stats]
     for key, vals in extra:
@@ -476,7 +468,7 @@ def _alarm_marks(verdict: Verdict) -> list[tuple[float, str, str]]:
 def _sections(result: Result, info: RunInfo, verdict: Verdict, page: S.Page) -> dict[str, str]:
     """Every section's body, in page order."""
     page.marks.extend(_alarm_marks(verdict))
-    body = {"verdict": _verdict(verdict), "summary": _summary(result, info, verdict)}
+    body = {"verdict": _verdict(verdict), "summary": _summary(result, info, verdict, page.digest)}
     for key, (_, build) in S.METHODS.items():
         if info.enabled(key):
             body[key] = build(page)
@@ -498,11 +490,14 @@ def _run_meta(info: RunInfo, result: Result) -> str:
     return f'<meta name="packpilot-run" content="{esc(Path(info.db).name)}#{result.run_id}">'
 
 
-def build_html(result: Result, info: RunInfo | None = None) -> str:
-    """The whole report page as one string."""
+def build_html(result: Result, info: RunInfo | None = None, digest: RunDigest | None = None) -> str:
+    """The whole report page as one string. ``digest``: the figures of every sample when
+    ``result`` carries a decimated trace (:func:`report_from_db` of a long run); without it
+    they are computed from ``result`` itself."""
     info = info or RunInfo()
-    verdict = run_verdict(result, info.config)
-    page = S.Page(result, info)
+    digest = digest or RunDigest.of_result(result, info.config)
+    verdict = digest.verdict()
+    page = S.Page(result, info, digest)
     body = _sections(result, info, verdict, page)
     name = info.config_name or "run"
     run = f"run {result.run_id}" if result.run_id is not None else "in-memory run"
@@ -558,10 +553,15 @@ def check_report_path(out_path: Path | str) -> Path:
     return out
 
 
-def write_report(result: Result, out_path: Path | str, info: RunInfo | None = None) -> Path:
+def write_report(
+    result: Result,
+    out_path: Path | str,
+    info: RunInfo | None = None,
+    digest: RunDigest | None = None,
+) -> Path:
     """Write the report of an in-memory run (``simulate --report``)."""
     out = check_report_path(out_path)
-    page = build_html(result, info)
+    page = build_html(result, info, digest)
     try:
         out.write_text(page, encoding="utf-8")
     except OSError as err:
@@ -579,16 +579,16 @@ def report_from_db(
     ``can_log``, its CAN section reads that log (else the one the run's config names)."""
     import dataclasses
 
-    from packpilot.io.telemetry import load_run
+    from packpilot.report.stream import read_run
 
     check_report_path(out_path)
     if can_log is not None and not Path(can_log).is_file():
         raise InputError(f"--can-log {can_log}: no such file")
-    result = load_run(db_path, run_id)
+    result, digest = read_run(db_path, run_id)
     info = run_info_from_db(db_path, result.run_id)
     if can_log is not None:
         info = dataclasses.replace(info, can_log=str(can_log))
-    return write_report(result, out_path, info)
+    return write_report(result, out_path, info, digest)
 
 
 __all__ = [

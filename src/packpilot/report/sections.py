@@ -25,6 +25,7 @@ from packpilot.report.channels import (
     status_channels,
 )
 from packpilot.report.charts import Chart, Series, Store, sample_indices, spans
+from packpilot.report.digest import RunDigest
 from packpilot.report.fmt import esc, fmt_num, fmt_time, table
 from packpilot.report.info import RunInfo
 from packpilot.report.style import ALARM_COLOR, battery_color, unit_of
@@ -39,14 +40,20 @@ PACK_COLOR = "#222222"
 class Page:
     """One report being built: the run, its packed series and the charts drawn so far."""
 
-    def __init__(self, result: Result, info: RunInfo) -> None:
+    def __init__(self, result: Result, info: RunInfo, digest: RunDigest | None = None) -> None:
         self.result = result
         self.info = info
+        self.digest = digest or RunDigest.of_result(result, info.config)
+        """The figures of every sample (``result`` may carry a decimated trace)."""
         self.t = result.trace.t_s
         self.names = result.battery_names
         self.roles = info.roles(self.names)
         self.traction = [b for b, r in enumerate(self.roles) if r != "aux"]
-        self.store = Store(sample_indices(result) if len(self.t) else np.zeros(0, np.intp))
+        if self.digest.decimated:  # already thinned while it was read: draw what was kept
+            idx = np.arange(len(self.t), dtype=np.intp)
+        else:
+            idx = sample_indices(result) if len(self.t) else np.zeros(0, np.intp)
+        self.store = Store(idx)
         self.tkey = self.store.add("t", self.t, 1e-3) if len(self.t) else ""
         self.channels = status_channels(result)
         self.charts: dict[str, Chart] = {}
@@ -134,11 +141,12 @@ def batteries(page: Page) -> str:
     v_caption = _range_on_batteries(v, page.t, tr.channel("voltage_v")[:, main], tr.bus_v)
     i = Chart("current", "Current, + = discharge (A)", "A", height=200, marks=marks)
     i.series = [Series(page.bat("current_a", b), names[b], battery_color(b)) for b in main]
-    if np.nanmax(np.abs(tr.load_a), initial=0.0) > 0:
+    digest = page.digest  # over every sample, not only the charted ones
+    if digest.load_any:
         i.series.append(Series(page.pack("load_a"), "load", PACK_COLOR, dash=True, width=1.0))
-    if not np.allclose(tr.load_demand_a, tr.load_a, rtol=1e-6, atol=1e-6, equal_nan=True):
+    if not digest.demand_is_load:
         i.series.append(Series(page.pack("load_demand_a"), "load demand", "#888888", dash=True))
-    if np.nanmax(np.abs(tr.charger_a), initial=0.0) > 0:
+    if digest.charger_any:
         i.series.append(Series(page.pack("charger_a"), "charger", "#6b8e23", dash=True))
     soc = Chart("soc", "State of charge (%)", "%", marks=marks)
     soc.series = [
@@ -216,10 +224,10 @@ def switches(page: Page) -> str:
         return '<p class="note">No samples were recorded in this run.</p>'
     names = page.names
     kinds = page.info.switch_kinds(names) if page.info.config is not None else [None] * len(names)
-    chg, dsg = tr.channel("chg_on"), tr.channel("dsg_on")
+    digest = page.digest  # the table counts every sample; the chart draws the kept ones
     lanes: list[tuple[int, str, str, str | None]] = []  # battery, label, state key, diode
     for b, name in enumerate(names):
-        same = bool(np.array_equal(chg[:, b], dsg[:, b], equal_nan=True))
+        same = digest.same_paths(b)
         if kinds[b] == "relay":
             lanes.append((b, f"{name} relay", "dsg_on", None))
         elif kinds[b] is None and same:
@@ -244,26 +252,20 @@ def switches(page: Page) -> str:
                 states=("off", "on"),
             )
         )
-        if diode is not None:
+        if diode is not None and digest.diode_conducted(diode[:3], b):
             on = np.abs(np.nan_to_num(tr.channel(diode)[:, b])) > 1e-6
-            if on.any():
-                d = np.where(on, 0.0, np.nan)
-                chart.series.append(
-                    Series(page.store.add(f"{diode}-on/{b}", d, 1.0), f"{label} diode",
-                           DIODE_COLOR, width=5.0, offset=level, states=("conducting",))
-                )  # fmt: skip
-    rows = []
-    for b, name in enumerate(names):
-        c, d = chg[:, b], dsg[:, b]
-        rows.append(
-            (
-                name,
-                fmt_num(100.0 * float(np.nanmean(c > 0.5))),
-                fmt_num(100.0 * float(np.nanmean(d > 0.5))),
-                str(int(np.count_nonzero(np.diff(c) != 0))),
-                str(int(np.count_nonzero(np.diff(d) != 0))),
-            )
-        )
+            d = np.where(on, 0.0, np.nan)
+            chart.series.append(
+                Series(page.store.add(f"{diode}-on/{b}", d, 1.0), f"{label} diode",
+                       DIODE_COLOR, width=5.0, offset=level, states=("conducting",))
+            )  # fmt: skip
+    on_chg, on_dsg = digest.on_share("chg"), digest.on_share("dsg")
+    n_chg, n_dsg = digest.changes("chg"), digest.changes("dsg")
+    rows = [
+        (name, fmt_num(100.0 * on_chg[b]), fmt_num(100.0 * on_dsg[b]), str(n_chg[b]),
+         str(n_dsg[b]))
+        for b, name in enumerate(names)
+    ]  # fmt: skip
     head = ("battery", "CHG on (% of samples)", "DSG on (% of samples)", "CHG changes",
             "DSG changes")  # fmt: skip
     return page.chart(

@@ -6,7 +6,8 @@ writer is still at it (``packpilot run --db``, ``simulate --db`` in another proc
 *followed*: ``kind`` is ``attached``, and :meth:`Recording.poll` feeds the rows committed since
 the last poll (the writer commits about once a second). The dashboard only reads the file: it
 cannot pause, steer or stop the run it follows. The chart history is the LiveRun's bounded
-overview; the scrubber reads the full-rate trace kept here, in the blocks it was read in.
+overview; the scrubber reads the full-rate sample it needs back from the file, one block of
+:data:`SCRUB_BLOCK` samples at a time, so memory does not grow with the run's length.
 """
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ import bisect
 import sqlite3
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from packpilot.contract.bms import Event
+from packpilot.contract.bms import Event, StatusValue
 from packpilot.contract.record import StepSample, Trace
 from packpilot.errors import InputError
 from packpilot.io.telemetry.reader import Chunk, RunTail
@@ -49,43 +51,55 @@ def _section(config: dict[str, Any], name: str) -> dict[str, Any]:
     return got if isinstance(got, dict) else {}
 
 
-def _read(tail: RunTail) -> Chunk:
+def _read(tail: RunTail, max_steps: int | None = None) -> Chunk:
     try:
-        return tail.read()
+        return tail.read(max_steps)
     except sqlite3.Error as err:  # a file changed under us, a locked or damaged page
         raise InputError(f"{tail.path}: cannot read ({err})") from None
 
 
+SCRUB_BLOCK = 4096
+"""Samples read at a time: the page is fed block by block and the scrubber reads back the one
+block that holds the asked time, so the dashboard never holds a run's full-rate trace (a 1-day
+run held that way took 0.93 GB, issue #26 §3)."""
+
+
+@dataclass(frozen=True)
+class _Block:
+    """Where one block of samples is in the file: enough to read it again (:meth:`RunTail.seek`)."""
+
+    start: int
+    """Index of its first sample in the run."""
+    n: int
+    t_first: float
+    position: tuple[int, dict[str, list[StatusValue]]]
+
+
 class Recording:
     """One recorded run: ``live`` for the page, :meth:`at` for the scrubber, :meth:`poll`
-    while its writer is still running (``following``)."""
+    while its writer is still running (``following``).
+
+    The run is read in blocks of :data:`SCRUB_BLOCK` samples, each fed to the page's
+    :class:`LiveRun` (whose history and checks are bounded) and then dropped; what stays per
+    block is where it starts in the file and the forward-filled status there, so the
+    scrubber reads back just the block it needs. Memory: the LiveRun, the events and a few
+    numbers per block, not the trace."""
 
     def __init__(self, path: Path, run_id: int | None = None, max_points: int = 2000) -> None:
         try:
             tail = RunTail(path, run_id)
         except sqlite3.Error as err:
             raise InputError(f"{path}: cannot read ({err})") from None
-        try:
-            first = _read(tail)
-        except BaseException:
-            tail.close()
-            raise
-        self.following = first.status == "running"
-        self.ended: str | None = None
-        """The status the followed run ended with (None while followed, or if reading failed)."""
-        if not self.following:
-            tail.close()
-            if len(first.steps) == 0:
-                raise InputError(f"{path}: run {tail.run_id} has no samples")
         self._tail = tail
         self.path = path
         self.run_id = tail.run_id
         self.names = list(tail.names)
         self.events: list[Event] = []
-        self._traces: list[Trace] = []
-        self._steps: list[NDArray[np.int64]] = []
-        self._starts: list[int] = []
-        self._t_s: NDArray[np.float64] = np.empty(0)
+        self._blocks: list[_Block] = []
+        self._n = 0
+        self._t_head: list[float] = []  # the run's first two sample times (its step)
+        self._t_last = float("nan")
+        self._cache: tuple[int, Trace, NDArray[np.int64]] | None = None
         self._lock = threading.Lock()
         config = tail.config
         sim = _section(config, "sim")
@@ -97,34 +111,57 @@ class Recording:
             speed=0.0,
             max_points=max_points,
             battery_names=self.names,
-            kind="attached" if self.following else "recorded",
+            kind="recorded",
             source=f"{path.name}, run {self.run_id}",
             db=str(path),
         )
         self.live.run_id = self.run_id
         self.live.on_start(self.names, config)
-        self._add(first)
-        if not self.following:
-            self.live.duration_s = float(self._t_s[-1]) + (dt_s or self._dt_guess())
-            self._end(first)
+        try:
+            last = self._read_blocks()
+        except BaseException:
+            tail.close()
+            raise
+        self.following = last.status == "running"
+        self.ended: str | None = None
+        """The status the followed run ended with (None while followed, or if reading failed)."""
+        if self.following:
+            self.live.kind = "attached"
+        else:
+            tail.close()
+            if self._n == 0:
+                raise InputError(f"{path}: run {tail.run_id} has no samples")
+            self.live.duration_s = self._t_last + (dt_s or self._dt_guess())
+            self._end(last)
 
     def _dt_guess(self) -> float:
-        return float(self._t_s[1] - self._t_s[0]) if len(self._t_s) > 1 else 0.0
+        return self._t_head[1] - self._t_head[0] if len(self._t_head) > 1 else 0.0
 
     @property
     def n_samples(self) -> int:
-        return len(self._t_s)
+        return self._n
 
-    def _add(self, chunk: Chunk) -> None:
-        """Keep a block of new rows for the scrubber and feed it to the page's run."""
+    def _read_blocks(self) -> Chunk:
+        """Read and feed what was committed since the last read, a block at a time; the last
+        block's chunk (its status is the run's)."""
+        while True:
+            position = self._tail.position()
+            chunk = _read(self._tail, SCRUB_BLOCK)
+            self._add(chunk, position)
+            if len(chunk.steps) < SCRUB_BLOCK:
+                return chunk
+
+    def _add(self, chunk: Chunk, position: tuple[int, dict[str, list[StatusValue]]]) -> None:
+        """Note where a block of new rows is and feed it to the page's run."""
         tr = chunk.result.trace
-        if len(chunk.steps):
+        n = len(chunk.steps)
+        if n:
             with self._lock:
-                self._starts.append(len(self._t_s))
-                self._traces.append(tr)
-                self._steps.append(chunk.steps)
-                self._t_s = np.concatenate([self._t_s, tr.t_s])
-            for k in range(len(chunk.steps)):
+                self._blocks.append(_Block(self._n, n, float(tr.t_s[0]), position))
+                self._n += n
+                self._t_last = float(tr.t_s[-1])
+                self._t_head.extend(tr.t_s[: 2 - len(self._t_head)].tolist())
+            for k in range(n):
                 self.live.on_sample(_row(tr, chunk.steps, k))
         if chunk.result.events:
             with self._lock:
@@ -144,13 +181,12 @@ class Recording:
         if not self.following:
             return False
         try:
-            chunk = _read(self._tail)
+            chunk = self._read_blocks()
         except InputError as err:
             self.following = False
             self._tail.close()
             self.live.fail(str(err))
             return False
-        self._add(chunk)
         if chunk.status != "running":
             self.following = False
             self._tail.close()
@@ -164,28 +200,56 @@ class Recording:
             self.following = False
             self._tail.close()
 
+    def _block(self, j: int) -> tuple[Trace, NDArray[np.int64]]:
+        """Block ``j`` read again from the file (the last one read is kept)."""
+        with self._lock:
+            cached, block = self._cache, self._blocks[j]
+        if cached is not None and cached[0] == j:
+            return cached[1], cached[2]
+        try:
+            tail = RunTail(self.path, self.run_id)
+        except sqlite3.Error as err:
+            raise InputError(f"{self.path}: cannot read ({err})") from None
+        try:
+            tail.seek(*block.position)
+            chunk = _read(tail, block.n)
+        finally:
+            tail.close()
+        if len(chunk.steps) != block.n:
+            raise InputError(f"{self.path}: run {self.run_id} changed under the dashboard")
+        with self._lock:
+            self._cache = (j, chunk.result.trace, chunk.steps)
+        return chunk.result.trace, chunk.steps
+
     def sample(self, k: int) -> StepSample:
         """Row ``k`` of the trace as the StepSample it was recorded from."""
-        j = bisect.bisect_right(self._starts, k) - 1
-        return _row(self._traces[j], self._steps[j], k - self._starts[j])
+        with self._lock:
+            j = bisect.bisect_right(self._blocks, k, key=lambda b: b.start) - 1
+            start = self._blocks[j].start
+        tr, steps = self._block(j)
+        return _row(tr, steps, k - start)
 
     def at(self, t_s: float) -> dict[str, Any]:
         """The full-rate sample at or just before ``t_s`` (clamped to the run), with the
         headline numbers then and how many events had happened by then."""
         with self._lock:
-            t_all, events = self._t_s, list(self.events)
-        if len(t_all) == 0:
+            n_blocks, events = len(self._blocks), list(self.events)
+            # 1 µs of slack: a step's time accumulated in floating point (4.999999 for 5.0)
+            j = bisect.bisect_right(self._blocks, t_s + 1e-6, key=lambda b: b.t_first) - 1
+            j = max(0, j)
+            start = self._blocks[j].start if n_blocks else 0
+        if n_blocks == 0:
             raise InputError(f"{self.path}: run {self.run_id} has no samples yet")
-        # 1 µs of slack: a step's time accumulated in floating point (4.999999 for 5.0)
-        found = int(np.searchsorted(t_all, t_s + 1e-6, side="right"))
-        k = max(0, min(len(t_all) - 1, found - 1))
-        s = self.sample(k)
+        tr, steps = self._block(j)
+        found = int(np.searchsorted(tr.t_s, t_s + 1e-6, side="right"))
+        i = max(0, min(len(tr.t_s) - 1, found - 1))
+        s = _row(tr, steps, i)
         summary = sample_summary(s, self.names)
-        t = float(t_all[k])
+        t = float(tr.t_s[i])
         n_events = sum(1 for e in events if not e.t_s > t)
         return jsonable_dict(
             {
-                "index": k,
+                "index": start + i,
                 "t_s": t,
                 "latest": summary,
                 "headline": headline(summary, self.live.topology.roles),

@@ -202,40 +202,69 @@ class RunTail:
     def close(self) -> None:
         self._conn.close()
 
-    def read(self) -> Chunk:
-        """The rows committed since the previous read."""
+    def count(self) -> int:
+        """Samples committed after the last read (all of them before the first)."""
+        (n,) = self._conn.execute(
+            "SELECT COUNT(*) FROM pack_samples WHERE run_id = ? AND step > ?",
+            (self.run_id, self._after_step),
+        ).fetchone()
+        return int(n)
+
+    def read(self, max_steps: int | None = None) -> Chunk:
+        """The rows committed since the previous read; with ``max_steps``, at most that many
+        samples (and the events up to the last of them), so a long run is read in blocks
+        whose memory does not grow with the run (the report's and the dashboard's reader)."""
         conn = self._conn
         conn.execute("BEGIN")
         try:
-            chunk = self._read(conn)
+            chunk = self._read(conn, max_steps)
         finally:
             conn.execute("COMMIT")
         if len(chunk.steps):
             self._after_step = int(chunk.steps[-1])
         return chunk
 
-    def _read(self, conn: sqlite3.Connection) -> Chunk:
+    def position(self) -> tuple[int, dict[str, list[StatusValue]]]:
+        """Where the next read starts: the last step read and the forward-filled status then
+        (a copy), so :meth:`seek` can come back here later (the dashboard's scrubber)."""
+        return self._after_step, {k: list(v) for k, v in self._status_state.items()}
+
+    def seek(self, after_step: int, status: dict[str, list[StatusValue]]) -> None:
+        """Read on from a :meth:`position` (samples only: events already read are skipped)."""
+        self._after_step = after_step
+        self._status_state = {k: list(v) for k, v in status.items()}
+        self._after_event = MAX_RUN_ID
+
+    def _read(self, conn: sqlite3.Connection, max_steps: int | None = None) -> Chunk:
         rid, after = self.run_id, self._after_step
         metrics_j, kinds_j = conn.execute(
             "SELECT metrics, status_kinds FROM runs WHERE id = ?", (rid,)
         ).fetchone()
-        steps, pm, battery, group_v, aux = _samples(conn, rid, len(self.names), after)
+        upto = _block_end(conn, rid, after, max_steps)
+        steps, pm, battery, group_v, aux = _samples(conn, rid, len(self.names), after, upto)
         kinds = {k: set(v) for k, v in json.loads(kinds_j or "{}").items()}
         status = _forward_fill_status(
             conn.execute(
                 "SELECT channel, step, battery, value FROM status_samples WHERE run_id = ?"
-                " AND step > ? ORDER BY channel, step, battery",
-                (rid, after),
+                " AND step > ? AND step <= ? ORDER BY channel, step, battery",
+                (rid, after, upto),
             ).fetchall(),
             steps,
             kinds,
             self._status_state,
         )
+        last_event = MAX_RUN_ID
+        if upto < MAX_RUN_ID and len(pm):  # a block: the events up to its last sample's time
+            (found,) = conn.execute(
+                "SELECT MAX(id) FROM events WHERE run_id = ? AND id > ? AND t_s <= ?",
+                (rid, self._after_event, float(pm[-1, 1])),
+            ).fetchone()
+            last_event = self._after_event if found is None else int(found)
         events = []
         for event_id, t_s, kind, b, message, data in conn.execute(
             "SELECT id, t_s, kind, battery, message, data FROM events WHERE run_id = ?"
-            " AND id > ? ORDER BY id",
-            (rid, self._after_event),
+            " AND id > ? AND id <= ? ORDER BY id",
+            (rid, self._after_event, last_event),
         ):
             self._after_event = event_id
             t = t_s if t_s is not None else math.nan
@@ -276,18 +305,36 @@ Samples = tuple[
 ]
 
 
-def _samples(conn: sqlite3.Connection, rid: int, n_b: int, after: int) -> Samples:
-    """Steps, pack matrix, battery and group arrays and aux of the samples after ``after``."""
+def _block_end(conn: sqlite3.Connection, rid: int, after: int, max_steps: int | None) -> int:
+    """The last step of a read of at most ``max_steps`` samples after ``after`` (unbounded:
+    :data:`MAX_RUN_ID`, also when fewer samples are left)."""
+    if max_steps is None:
+        return MAX_RUN_ID
+    if max_steps < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    row = conn.execute(
+        "SELECT step FROM pack_samples WHERE run_id = ? AND step > ? ORDER BY step"
+        " LIMIT 1 OFFSET ?",
+        (rid, after, max_steps - 1),
+    ).fetchone()
+    return MAX_RUN_ID if row is None else int(row[0])
+
+
+def _samples(
+    conn: sqlite3.Connection, rid: int, n_b: int, after: int, upto: int = MAX_RUN_ID
+) -> Samples:
+    """Steps, pack matrix, battery and group arrays and aux of the samples in (after, upto]."""
     n_c = len(BATTERY_CHANNELS)
     width = 1 + len(PACK_COLUMNS)
     (count,) = conn.execute(
-        "SELECT COUNT(*) FROM pack_samples WHERE run_id = ? AND step > ?", (rid, after)
+        "SELECT COUNT(*) FROM pack_samples WHERE run_id = ? AND step > ? AND step <= ?",
+        (rid, after, upto),
     ).fetchone()  # the same snapshot as the rows below (one read transaction)
     pm = np.empty((count, width), dtype=np.float64)
     cur = conn.execute(
         f"SELECT step, {', '.join(PACK_COLUMNS)} FROM pack_samples WHERE run_id = ?"
-        " AND step > ? ORDER BY step",
-        (rid, after),
+        " AND step > ? AND step <= ? ORDER BY step",
+        (rid, after, upto),
     )
     n_s = 0
     while pack := cur.fetchmany(ROWS_PER_FETCH):
@@ -302,24 +349,24 @@ def _samples(conn: sqlite3.Connection, rid: int, n_b: int, after: int) -> Sample
     max_groups = (
         conn.execute(
             "SELECT COALESCE(MAX(LENGTH(group_v)), 0) FROM battery_samples"
-            " WHERE run_id = ? AND step > ?",
-            (rid, after),
+            " WHERE run_id = ? AND step > ? AND step <= ?",
+            (rid, after, upto),
         ).fetchone()[0]
         // 8
     )
     group_v = np.full((n_s, n_b, max_groups), np.nan)
     cur = conn.execute(
         f"SELECT step, battery, {', '.join(BATTERY_CHANNELS)}, group_v FROM battery_samples"
-        " WHERE run_id = ? AND step > ? ORDER BY step, battery",
-        (rid, after),
+        " WHERE run_id = ? AND step > ? AND step <= ? ORDER BY step, battery",
+        (rid, after, upto),
     )
     while bat_rows := cur.fetchmany(ROWS_PER_FETCH):  # blocks: no list of every row at once
         _fill_battery(bat_rows, steps, battery, group_v, max_groups)
 
     aux_rows = conn.execute(
         f"SELECT step, {', '.join(BATTERY_CHANNELS)} FROM aux_samples WHERE run_id = ?"
-        " AND step > ? ORDER BY step",
-        (rid, after),
+        " AND step > ? AND step <= ? ORDER BY step",
+        (rid, after, upto),
     ).fetchall()
     aux: NDArray[np.float64] | None = None
     if aux_rows:
