@@ -626,7 +626,7 @@ def _replay(
 
 
 LogArg = Annotated[
-    Path, typer.Argument(help="log: CSV (simulate --trace-csv, packpilot import), .ulg, .bin, .log")
+    Path, typer.Argument(help="log: CSV (simulate --trace-csv, import), .ulg, .bin, .log, .tlog")
 ]
 ConfigOpt = Annotated[
     Path | None,
@@ -729,7 +729,7 @@ def replay_flight_cmd(
 
 @app.command("import")
 def import_cmd(
-    log: Annotated[Path, typer.Argument(help="flight log: PX4 .ulg, ArduPilot .bin or text .log")],
+    log: Annotated[Path, typer.Argument(help="flight log: .ulg, .bin, .log, .tlog")],
     out: Annotated[Path, typer.Option(help="CSV to write (PackPilot's log columns)")],
     assume_temp_c: AssumeTempOpt = None,
     cells: CellsOpt = None,
@@ -759,7 +759,7 @@ def import_cmd(
 @app.command("fit")
 def fit_cmd(
     logs: Annotated[
-        list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log) of one battery type")
+        list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log, .tlog) of one battery type")
     ],
     out: Annotated[
         Path | None, typer.Option(help="cell set to write (.json, what [pack] cell accepts)")
@@ -831,7 +831,7 @@ FleetDb = Annotated[Path, typer.Option(help="the fleet's SQLite file")]
 
 @fleet_app.command("add")
 def fleet_add_cmd(
-    logs: Annotated[list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log)")],
+    logs: Annotated[list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log, .tlog)")],
     db: FleetDb = Path("fleet.sqlite"),
     label: Annotated[
         str | None, typer.Option(help="the battery's label, when the log has no serial number")

@@ -204,7 +204,7 @@ class LoadConfig(_Strict):
     profile: str | None = Field(
         None,
         description="built-in profile (uav_flight, uav_hover, step), a CSV path, or a flight "
-        "log (.ulg, .bin, .log) whose batteries' total current or power is replayed",
+        "log (.ulg, .bin, .log, .tlog) whose batteries' total current or power is replayed",
     )
     repeat: bool = False
     v_min_v: NonNegFloat = Field(
@@ -590,7 +590,7 @@ def load_config(path: str | Path) -> ScenarioConfig:
     load = data.get("load")
     if isinstance(load, dict):
         prof = load.get("profile")
-        suffixes = (".csv", ".ulg", ".bin", ".log")  # a CSV profile or a flight log (#27)
+        suffixes = (".csv", ".ulg", ".bin", ".log", ".tlog")  # a CSV profile or a flight log (#27)
         if isinstance(prof, str) and prof.endswith(suffixes) and not Path(prof).is_absolute():
             load["profile"] = str((p.parent / prof).resolve())
     return parse_config(data, str(p))

@@ -282,7 +282,7 @@ def check_time(path: Path, t: NDArray[np.float64], lines: Sequence[int] | None =
         )
 
 
-FLIGHT_LOG_SUFFIXES = (".ulg", ".bin", ".log")
+FLIGHT_LOG_SUFFIXES = (".ulg", ".bin", ".log", ".tlog")
 """Suffixes read as flight logs (PX4 ULog, ArduPilot DataFlash binary and text); any other
 file is read as a CSV."""
 
