@@ -122,7 +122,14 @@ class BatteryConfig(_Strict):
     group_capacity_scale: list[Annotated[float, Field(gt=0, le=10)]] | None = None
     resistance_ohm: PosFloat | None = Field(
         None,
-        description="battery DC resistance (sum of cell R0 at 25 degC, 50 % SOC); scales the cells",
+        description="battery DC resistance (sum of cell R0 at resistance_temp_c and the initial "
+        "SOC, no current); scales the cells, whose set keeps its own temperature dependence",
+    )
+    resistance_temp_c: Annotated[float, Field(ge=-40, le=80, allow_inf_nan=False)] = Field(
+        25.0,
+        description="temperature at which resistance_ohm holds (a datasheet's or an "
+        "ohmmeter's: 25 degC); at another ambient the cells' resistance follows their set's "
+        "temperature law from this value",
     )
     cell_soc_spread: Annotated[float, Field(ge=0, le=0.2), AfterValidator(plus_zero)] = Field(
         0.0, description="uniform +- spread of cell SOC inside each group"
