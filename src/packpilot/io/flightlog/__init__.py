@@ -96,6 +96,9 @@ class FlightLog:
     """Flight-mode changes as the autopilot logged them: (t_s, mode name)."""
     autopilot: str | None = None
     """The autopilot and version the log names (e.g. ``ArduCopter V3.1``), when it does."""
+    texts: tuple[tuple[float, str], ...] = ()
+    """The autopilot's own battery messages (t_s, text), e.g. MAVLink STATUSTEXT
+    "Low Battery!", when the log carries them."""
 
     def table(self, *, cells: int | None = None, assume_temp_c: float | None = None) -> Table:
         """The batteries on the union of their sample times, each battery's latest value

@@ -209,6 +209,7 @@ def read_tlog(path: Path) -> FlightLog:
         path=path, format="MAVLink telemetry log", batteries=batteries,
         notes=tuple(_notes(raw, len(recs))), modes=tuple(raw.modes.get(main, [])),
         autopilot=raw.autopilots.get(main),
+        texts=tuple((t, s) for t, s in raw.texts if "batt" in s.lower()),
     )  # fmt: skip
 
 
