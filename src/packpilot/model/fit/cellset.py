@@ -51,8 +51,12 @@ def fitted_params(v: Validation, name: str, chemistry: str) -> CellParams:
 def temperature_law(b_k: float, t_ref_c: float, template: CellParams) -> tuple[Any, Any]:
     """(temperatures, factor on the fitted resistances): the fitted Arrhenius law when the logs
     spanned temperatures; otherwise the template's R0 temperature dependence (at 50 % SOC and no
-    current), normalised to 1 at the reference temperature — borrowed and said so in the notes.
-    A constant resistance would make the same pack no worse at -10 degC than at 25 degC."""
+    current) below the reference temperature, normalised to 1 there, and 1 above it — borrowed
+    and said so in the notes. A constant resistance made the same pack no worse at -10 degC
+    than at 25 degC. Not lowered above the reference: the logged packs warmed in flight by an
+    amount nobody logged, so the fitted value already holds for a warm pack; lowering it with
+    the closed loop's own heating made the same flight's replay 204 mV/cell RMSE off the log
+    (51 mV with the flat warm side) on underpowered.log."""
     if b_k > 0:
         f = np.exp(b_k * (1.0 / (LAW_TEMPS_C + 273.15) - 1.0 / (t_ref_c + 273.15)))
         return LAW_TEMPS_C, f
@@ -60,7 +64,7 @@ def temperature_law(b_k: float, t_ref_c: float, template: CellParams) -> tuple[A
     s0 = int(np.argmin(np.abs(template.rc_soc - 0.5)))
     temps = np.asarray(template.rc_temp_c, dtype=np.float64)
     r = np.asarray(template.r0_ohm, dtype=np.float64)[:, i0, s0]
-    return temps, r / float(np.interp(t_ref_c, temps, r))
+    return temps, np.maximum(r / float(np.interp(t_ref_c, temps, r)), 1.0)
 
 
 def _law_note(v: Validation, chemistry: str) -> list[str]:
@@ -68,10 +72,12 @@ def _law_note(v: Validation, chemistry: str) -> list[str]:
     if vals.b_k > 0:
         return []
     temps, f = temperature_law(0.0, vals.t_ref_c, load_parameter_set(chemistry))
-    at = ", ".join(f"x{float(np.interp(t, temps, f)):.2f} at {t:g} degC" for t in (-10.0, 40.0))
+    at = ", ".join(f"x{float(np.interp(t, temps, f)):.2f} at {t:g} degC" for t in (-10.0, 0.0))
     return [
-        f"temperature dependence: none in the logs; the file's resistances follow {chemistry}'s "
-        f"R0 temperature law from {vals.t_ref_c:.1f} degC ({at}): borrowed, not fitted"
+        f"temperature dependence: none in the logs; below {vals.t_ref_c:.1f} degC the file's "
+        f"resistances follow {chemistry}'s R0 temperature law ({at}): borrowed, not fitted; "
+        "above it they stay at the fitted values (the logged flights warmed their packs by an "
+        "unlogged amount)"
     ]
 
 
