@@ -9,11 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from packpilot.cli import app
 from packpilot.errors import InputError
 from packpilot.io.flightlog import read_flight_log
+from tests.budget import budget
 
 REAL = Path(__file__).resolve().parents[1] / "examples" / "logs" / "real"
 TLOG = REAL / "arducopter_dronekit_flight_battery.tlog"
@@ -141,3 +144,46 @@ def test_cut_corrupted_and_battery_less_tlogs_are_one_line(tmp_path: Path) -> No
         res = RUNNER.invoke(app, ["import", str(path), "--out", str(tmp_path / "z.csv")])
         assert res.exit_code == 2 and "Traceback" not in res.output
         assert "malformed" not in res.stderr
+
+
+def _head(n: int) -> bytes:
+    """The real log's first whole records up to about ``n`` bytes."""
+    from packpilot.io.flightlog.tlog import records
+
+    data = TLOG.read_bytes()
+    recs, _ = records(TLOG, data)
+    size = 0
+    for _, packet in recs:
+        if size >= n:
+            break
+        size += 8 + len(packet)
+    return data[:size]
+
+
+HEAD = _head(60_000)
+
+
+def read_flight_log_ok(tmp_path: Path) -> bool:
+    """The uncut head itself reads (so the fuzzer starts from a valid log)."""
+    p = tmp_path / "whole.tlog"
+    p.write_bytes(HEAD)
+    return len(read_flight_log(p).batteries) == 1
+
+
+@budget(60, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(cut=st.integers(0, 3000), junk=st.binary(max_size=64), at=st.integers(0, 60_000))
+def test_fuzzed_tlogs_read_or_refuse(tmp_path: Path, cut: int, junk: bytes, at: int) -> None:
+    """The real tlog cut short and with junk spliced in: read, or one clean InputError."""
+    if not cut and not junk:
+        assert read_flight_log_ok(tmp_path)
+    raw = HEAD[: len(HEAD) - cut]
+    p = tmp_path / "f.tlog"
+    p.write_bytes(raw[:at] + junk + raw[at:])
+    try:
+        table = read_flight_log(p).table(cells=3, assume_temp_c=20.0)
+    except InputError as err:
+        assert "\n" not in str(err) and str(err).startswith(str(p))
+        return
+    assert np.all(np.diff(table.columns["t_s"]) > 0)
+    for name, col in table.columns.items():
+        assert np.all(np.isfinite(col)), name
