@@ -38,6 +38,7 @@ SERIES = {
     "ardupilot_3x_underpowered.log": 3,  # 12.1 V
     "ardupilot_3x_tradheli_brownout.log": 3,  # 12.0 V
     "ardupilot_3x_nan.log": 4,
+    "arducopter_dronekit_flight_battery.tlog": 3,  # 12.28 V (4.09 V/cell)
 }
 
 
@@ -129,6 +130,12 @@ def _synthetic() -> list[dict[str, Any]]:
 
 
 def _batt_capacity(path: Path) -> str:
+    if path.suffix == ".tlog":
+        from packpilot.io.flightlog import read_flight_log
+
+        notes = " ".join(read_flight_log(path).notes)
+        t = re.search(r"BATT_CAPACITY parameter: ([0-9]+) mAh", notes)
+        return f"{t.group(1)} mAh" if t else ""
     if path.suffix != ".log":
         return ""
     m = re.search(r"^PARM, BATT_CAPACITY, ([0-9.]+)", path.read_text(errors="replace"), re.M)
@@ -145,7 +152,7 @@ def _real() -> list[dict[str, Any]]:
     uav = load_parameter_set("uav_5ah")
     rows = []
     for path in sorted(REAL.glob("*")):
-        if path.suffix not in (".ulg", ".bin", ".log"):
+        if path.suffix not in (".ulg", ".bin", ".log", ".tlog"):
             continue
         row: dict[str, Any] = {"log": path.name}
         t0 = time.process_time()

@@ -71,3 +71,52 @@ def test_cli_fleet_add_without_identity_is_one_line(tmp_path: Path) -> None:
     assert res.exit_code == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "--label" in lines[0]
+
+
+def test_cell_spread_trend_flags_the_battery_whose_cells_drift_apart(tmp_path: Path) -> None:
+    """Two 3-cell batteries, 16 flights each; D's cells drift apart (spread 8 -> 45 mV) in its
+    last 5 flights, E's stay within 8 mV: only D is flagged. A battery without real cells gets
+    no spread and no flag."""
+    import numpy as np
+
+    from packpilot.replay.fleet import cell_spread
+
+    db = tmp_path / "spread.sqlite"
+    con = connect(db)
+    for name in ("D", "E", "F"):
+        for k in range(16):
+            prof = synthetic_log(Truth(soc0=0.95), 1.0, seconds=300, seed=10 * k + ord(name))
+            d = 0.045 if name == "D" and k >= 11 else 0.008
+            cells = None if name == "F" else prof.voltage_v[:, None] + np.array([0.0, -d, 0.0])
+            store(con, flight_record(name, f"{name}{k}", f"{name}{k}", "A", prof, 3, "", cells))
+    con.close()
+    rows = {r["battery"]: r for r in report(db)}
+    spread = [f for f in rows["D"]["flags"] if "cell spread" in f]  # type: ignore[union-attr]
+    assert spread == ["cell spread growing: 8 -> 45 mV"], rows["D"]
+    assert not any("cell spread" in f for f in rows["E"]["flags"])  # type: ignore[union-attr]
+    assert rows["E"]["cell_spread_recent_mv"] == pytest.approx(8.0, abs=0.5)
+    assert rows["F"]["cell_spread_flights"] == 0 and rows["F"]["flags"] == []
+    # a glitched sample does not set the spread; one real cell is no spread
+    x = np.full((100, 2), 3.8)
+    x[50, 1] = 3.0
+    assert cell_spread(x) == pytest.approx(0.0)
+    assert cell_spread(np.full((10, 3), np.nan) + np.array([3.8, np.nan, np.nan])) is None
+
+
+def test_a_fleet_recorded_before_the_cell_spread_column_opens(tmp_path: Path) -> None:
+    db = tmp_path / "old.sqlite"
+    with sqlite3.connect(db) as con:
+        con.execute(
+            "CREATE TABLE flights (id INTEGER PRIMARY KEY, battery TEXT NOT NULL, log TEXT NOT "
+            "NULL, log_sha256 TEXT NOT NULL, log_battery TEXT NOT NULL, r0_ohm REAL, r0_rel REAL,"
+            " capacity_ah REAL, capacity_rel REAL, capacity_ok INTEGER, energy_wh REAL, "
+            "charge_ah REAL, lowest_cell_v REAL, peak_current_a REAL, max_temp_c REAL, warnings "
+            "TEXT, verdict TEXT, heldout_rmse_v REAL, UNIQUE (battery, log_sha256, log_battery))"
+        )
+        con.execute(
+            "INSERT INTO flights (battery, log, log_sha256, log_battery, r0_ohm, capacity_ah, "
+            "capacity_ok, lowest_cell_v, warnings) "
+            "VALUES ('old', 'x', 'x', 'A', 0.01, 5, 1, 3.5, '')"
+        )
+    rows = report(db)
+    assert rows[0]["battery"] == "old" and rows[0]["cell_spread_flights"] == 0

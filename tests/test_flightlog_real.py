@@ -29,6 +29,7 @@ IMPORTS = {
     "px4_sample_log_small.ulg": (40, {"A_voltage_v", "B_voltage_v", "A_soc", "B_current_a"}),
     "px4_sample_logging_tagged_and_default_params.ulg": (50, {"A_voltage_v", "A_soc"}),
     "px4_sample_px4_events.ulg": (150, {"A_voltage_v", "A_soc"}),
+    "arducopter_dronekit_flight_battery.tlog": (2800, {"A_voltage_v", "A_current_a", "A_soc"}),
 }
 REFUSED = {
     "ardupilot_4.6.2_truncated.bin": "truncated",
@@ -38,7 +39,7 @@ REFUSED = {
 
 def test_every_real_log_is_listed_in_the_manifest() -> None:
     manifest = (REAL / "MANIFEST.md").read_text()
-    files = {p.name for p in REAL.iterdir() if p.suffix in (".ulg", ".bin", ".log")}
+    files = {p.name for p in REAL.iterdir() if p.suffix in (".ulg", ".bin", ".log", ".tlog")}
     assert files == set(IMPORTS) | set(REFUSED)
     assert len(IMPORTS) >= 6
     for name in files:

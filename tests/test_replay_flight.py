@@ -124,14 +124,17 @@ def test_report_renders_in_chromium(tmp_path: Path) -> None:
     with chromium(tmp_path / "profile", 1100, 900) as cdp:
         open_page(cdp, page.resolve().as_uri())
         assert cdp.requests == [page.resolve().as_uri()], "the page loads nothing but itself"
-        assert cdp.eval("document.querySelectorAll('svg').length") == 3  # A, B, the pack
+        # A, B, the pack (the pilot section's voltage-against-current scatters are class sag)
+        assert cdp.eval("document.querySelectorAll('svg:not(.sag)').length") == 3
+        assert cdp.eval("document.querySelectorAll('svg.sag').length") == 2
         heads = cdp.eval("[...document.querySelectorAll('#verdict li')].map(e => e.textContent)")
         assert any("39.5 A flowing into B" in h for h in heads)
         lacks = cdp.eval("document.getElementById('lacks').textContent")
         assert "assumed (--assume-temp-c)" in lacks and "PX4 fills it so" in lacks
         # Every figure is laid out at a readable size inside the page's width.
         boxes = cdp.eval(
-            "[...document.querySelectorAll('svg')].map(e => {const r = e.getBoundingClientRect();"
+            "[...document.querySelectorAll('svg:not(.sag)')].map(e => {"
+            "const r = e.getBoundingClientRect();"
             " return [r.width, r.height, r.right];})"
         )
         width = cdp.eval("document.documentElement.clientWidth")

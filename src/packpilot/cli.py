@@ -626,7 +626,7 @@ def _replay(
 
 
 LogArg = Annotated[
-    Path, typer.Argument(help="log: CSV (simulate --trace-csv, packpilot import), .ulg, .bin, .log")
+    Path, typer.Argument(help="log: CSV (simulate --trace-csv, import), .ulg, .bin, .log, .tlog")
 ]
 ConfigOpt = Annotated[
     Path | None,
@@ -729,7 +729,7 @@ def replay_flight_cmd(
 
 @app.command("import")
 def import_cmd(
-    log: Annotated[Path, typer.Argument(help="flight log: PX4 .ulg, ArduPilot .bin or text .log")],
+    log: Annotated[Path, typer.Argument(help="flight log: .ulg, .bin, .log, .tlog")],
     out: Annotated[Path, typer.Option(help="CSV to write (PackPilot's log columns)")],
     assume_temp_c: AssumeTempOpt = None,
     cells: CellsOpt = None,
@@ -759,7 +759,7 @@ def import_cmd(
 @app.command("fit")
 def fit_cmd(
     logs: Annotated[
-        list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log) of one battery type")
+        list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log, .tlog) of one battery type")
     ],
     out: Annotated[
         Path | None, typer.Option(help="cell set to write (.json, what [pack] cell accepts)")
@@ -831,7 +831,7 @@ FleetDb = Annotated[Path, typer.Option(help="the fleet's SQLite file")]
 
 @fleet_app.command("add")
 def fleet_add_cmd(
-    logs: Annotated[list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log)")],
+    logs: Annotated[list[Path], typer.Argument(help="flight logs (.ulg, .bin, .log, .tlog)")],
     db: FleetDb = Path("fleet.sqlite"),
     label: Annotated[
         str | None, typer.Option(help="the battery's label, when the log has no serial number")
@@ -855,14 +855,17 @@ def fleet_report_cmd(
     db: FleetDb = Path("fleet.sqlite"),
     r0_rise: Annotated[float, typer.Option(help="flag R0 up by more than this share")] = 0.20,
     fade: Annotated[float, typer.Option(help="flag capacity down by more than this share")] = 0.10,
+    spread_rise: Annotated[
+        float, typer.Option(help="flag cell spread up by more than this (V)")
+    ] = 0.020,
     as_json: JsonOpt = False,
 ) -> None:
-    """One row per battery: flights, R0 first vs recent, capacity change, flags."""
+    """One row per battery: flights, R0 first vs recent, capacity and cell-spread change, flags."""
 
     def go() -> None:
         from packpilot.replay.fleet import report
 
-        rows = report(db, r0_rise, fade)
+        rows = report(db, r0_rise, fade, spread_rise)
         if as_json:
             typer.echo(json.dumps(rows))
             return
@@ -871,8 +874,11 @@ def fleet_report_cmd(
             typer.echo(
                 f"{r['battery']}: {r['flights']} flights, R0 {r['r0_first_mohm']:.2f} -> "
                 f"{r['r0_recent_mohm']:.2f} mOhm ({r['r0_change_pct']:+.0f} %), lowest cell "
-                f"{r['lowest_cell_v']:.2f} V: {flags}"
-            )
+                f"{r['lowest_cell_v']:.2f} V"
+                + (f", cell spread {r['cell_spread_first_mv']:.0f} -> "
+                   f"{r['cell_spread_recent_mv']:.0f} mV" if r.get("cell_spread_flights") else "")
+                + f": {flags}"
+            )  # fmt: skip
 
     _guard(go)
 
@@ -1069,6 +1075,10 @@ def dashboard(
     ] = None,
     max_websockets: Annotated[int, typer.Option(help="most live page connections at once")] = 32,
     max_connections: Annotated[int, typer.Option(help="most open HTTP connections at once")] = 64,
+    fleet: Annotated[
+        Path | None,
+        typer.Option(help="a fleet SQLite (packpilot fleet add) shown on the page /fleet"),
+    ] = None,
 ) -> None:
     """Run a scenario and watch it live in a browser, or open a recorded run (Ctrl-C stops)."""
 
@@ -1087,6 +1097,8 @@ def dashboard(
         check_option("--max-connections", max_connections, 1, 10_000)
         if runs_dir is not None and not runs_dir.is_dir():
             raise ConfigError(f"--runs-dir {runs_dir}: not a directory")
+        if fleet is not None and not fleet.is_file():
+            raise ConfigError(f"--fleet {fleet}: no such fleet database (packpilot fleet add)")
         if db is not None:
             _check_outputs(db=db)
         if report is not None:
@@ -1110,12 +1122,15 @@ def dashboard(
             host=host, port=port,
             recording=recording, run_id=run_id, library=library,
             make_runner=lambda p: _named(p, lambda: _runner(_load(p, duration))),
-            write_report=_dashboard_report(report), allow_remote=allow_remote, token=token,
+            write_report=_dashboard_report(report), fleet=fleet, allow_remote=allow_remote,
+            token=token,
             allowed_hosts=tuple(allowed_host or ()), max_websockets=max_websockets,
             max_connections=max_connections,
         )  # fmt: skip
         shown = dash.live.scenario
         typer.echo(f"dashboard for {shown} on {dash.open_url}  (Ctrl-C to stop)", err=True)
+        if fleet is not None:
+            typer.echo(f"fleet view: {dash.open_url.split('?')[0].rstrip('/')}/fleet", err=True)
         if dash.guard.remote:
             typer.echo(f"token: {dash.guard.token}  (every request needs it)", err=True)
         dash.start()

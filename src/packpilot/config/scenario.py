@@ -122,7 +122,14 @@ class BatteryConfig(_Strict):
     group_capacity_scale: list[Annotated[float, Field(gt=0, le=10)]] | None = None
     resistance_ohm: PosFloat | None = Field(
         None,
-        description="battery DC resistance (sum of cell R0 at 25 degC, 50 % SOC); scales the cells",
+        description="battery DC resistance (sum of cell R0 at resistance_temp_c and the initial "
+        "SOC, no current); scales the cells, whose set keeps its own temperature dependence",
+    )
+    resistance_temp_c: Annotated[float, Field(ge=-40, le=80, allow_inf_nan=False)] = Field(
+        25.0,
+        description="temperature at which resistance_ohm holds (a datasheet's or an "
+        "ohmmeter's: 25 degC); at another ambient the cells' resistance follows their set's "
+        "temperature law from this value",
     )
     cell_soc_spread: Annotated[float, Field(ge=0, le=0.2), AfterValidator(plus_zero)] = Field(
         0.0, description="uniform +- spread of cell SOC inside each group"
@@ -204,7 +211,7 @@ class LoadConfig(_Strict):
     profile: str | None = Field(
         None,
         description="built-in profile (uav_flight, uav_hover, step), a CSV path, or a flight "
-        "log (.ulg, .bin, .log) whose batteries' total current or power is replayed",
+        "log (.ulg, .bin, .log, .tlog) whose batteries' total current or power is replayed",
     )
     repeat: bool = False
     v_min_v: NonNegFloat = Field(
@@ -590,7 +597,7 @@ def load_config(path: str | Path) -> ScenarioConfig:
     load = data.get("load")
     if isinstance(load, dict):
         prof = load.get("profile")
-        suffixes = (".csv", ".ulg", ".bin", ".log")  # a CSV profile or a flight log (#27)
+        suffixes = (".csv", ".ulg", ".bin", ".log", ".tlog")  # a CSV profile or a flight log (#27)
         if isinstance(prof, str) and prof.endswith(suffixes) and not Path(prof).is_absolute():
             load["profile"] = str((p.parent / prof).resolve())
     return parse_config(data, str(p))

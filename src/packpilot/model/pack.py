@@ -260,10 +260,12 @@ class Pack:
             soc_spread = rng.uniform(-b.cell_soc_spread, b.cell_soc_spread, b.n_cells)
             soc[sl] = np.where(np.isnan(gsoc), base, gsoc) + soc_spread
             if b.resistance_ohm is not None:
-                # The stated DC resistance holds at the battery's initial state (mean SOC,
-                # ambient temperature, no current): what a datasheet or an ohmmeter reports.
+                # The stated DC resistance holds at its reference temperature (a datasheet's or
+                # an ohmmeter's, 25 degC by default) and the initial mean SOC, no current; at
+                # another ambient the cells follow their set's temperature law from there (it
+                # used to hold at the ambient: the same pack was no worse at -10 degC, #27).
                 ref = cellmod.initial_state(
-                    prm, 1, float(np.clip(soc[sl].mean(), 0, 1)), pc.ambient_c + b.ambient_offset_c
+                    prm, 1, float(np.clip(soc[sl].mean(), 0, 1)), b.resistance_temp_c
                 )
                 _, r0 = cellmod.thevenin(prm, ref, np.zeros(1), np.array([nominal]), np.ones(1))
                 rs[sl] = b.resistance_ohm / (b.n_cells * float(r0[0]))

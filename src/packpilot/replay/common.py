@@ -23,6 +23,7 @@ import re
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -139,6 +140,9 @@ class LogTable:
     hints: Mapping[str, str] = field(default_factory=dict)
     assumed: tuple[str, ...] = ()
     """What the user stated in place of what the log lacks, when the log was imported."""
+    flight: Any = None
+    """The parsed flight log (:class:`packpilot.io.flightlog.FlightLog`) when the log was one:
+    what the autopilot itself said (its charge counter, remaining, warnings, flight modes)."""
 
     def __len__(self) -> int:
         if self.n_rows >= 0:
@@ -282,7 +286,7 @@ def check_time(path: Path, t: NDArray[np.float64], lines: Sequence[int] | None =
         )
 
 
-FLIGHT_LOG_SUFFIXES = (".ulg", ".bin", ".log")
+FLIGHT_LOG_SUFFIXES = (".ulg", ".bin", ".log", ".tlog")
 """Suffixes read as flight logs (PX4 ULog, ArduPilot DataFlash binary and text); any other
 file is read as a CSV."""
 
@@ -299,6 +303,7 @@ def open_log(
         return LogTable(
             path=path, columns=table.columns, n_rows=table.n_rows, source=flight.format,
             notes=tuple(table.notes), hints=table.hints, assumed=tuple(table.assumed),
+            flight=flight,
         )  # fmt: skip
     return read_log(path, required, indexed=indexed)
 

@@ -10,8 +10,11 @@ same log twice keeps one record.
 Flags (``fleet report``): R0 up by more than ``r0_rise`` (20 %) — the median of the last
 :data:`RECENT` flights against the median of the first :data:`FIRST` — ; capacity down by more
 than ``fade`` (10 %) on the same comparison, counted only over flights whose capacity was
-identifiable; an outlier — a battery whose recent R0 is more than :data:`OUTLIER_MADS` robust
-deviations from the fleet's median of recent R0s (with three or more batteries).
+identifiable; the cell spread (highest minus lowest measured cell, 95th percentile over a
+flight; logs with real cells only) growing by more than ``spread_rise_v`` (20 mV) and by half
+again, first flights against recent ones; an outlier — a battery whose recent R0 is more than
+:data:`OUTLIER_MADS` robust deviations from the fleet's median of recent R0s (with three or
+more batteries).
 """
 
 from __future__ import annotations
@@ -44,10 +47,16 @@ CREATE TABLE IF NOT EXISTS flights (
   log_battery TEXT NOT NULL,
   r0_ohm REAL, r0_rel REAL, capacity_ah REAL, capacity_rel REAL, capacity_ok INTEGER,
   energy_wh REAL, charge_ah REAL, lowest_cell_v REAL, peak_current_a REAL, max_temp_c REAL,
-  warnings TEXT, verdict TEXT, heldout_rmse_v REAL,
+  warnings TEXT, verdict TEXT, heldout_rmse_v REAL, cell_spread_v REAL,
   UNIQUE (battery, log_sha256, log_battery)
 )
 """
+SPREAD_QUANTILE = 0.95
+"""A flight's cell spread: this quantile over its samples of (highest - lowest cell), so one
+glitched sample does not set it."""
+SPREAD_RISE_V = 0.020
+"""Flag a battery whose recent cell spread exceeds its first flights' by more than this
+(and by half again): cells drifting apart, a weak cell or a balancing problem."""
 
 
 @dataclass(frozen=True)
@@ -69,16 +78,37 @@ class FlightRecord:
     warnings: str
     verdict: str
     heldout_rmse_v: float
+    cell_spread_v: float | None = None
+    """Highest minus lowest cell (95th percentile over the flight); None without real cells."""
 
 
 def connect(db: Path) -> sqlite3.Connection:
     con = sqlite3.connect(db)
     con.execute(SCHEMA)
+    have = {row[1] for row in con.execute("PRAGMA table_info(flights)")}
+    if "cell_spread_v" not in have:  # a fleet recorded before the cell spread was kept
+        con.execute("ALTER TABLE flights ADD COLUMN cell_spread_v REAL")
+        con.commit()
     return con
 
 
+def cell_spread(cells_v: np.ndarray | None) -> float | None:
+    """A flight's cell spread from its measured cell voltages (samples, cells), or None when
+    the log has fewer than two real cells."""
+    if cells_v is None:
+        return None
+    real = cells_v[:, np.isfinite(cells_v).any(axis=0)]
+    if real.shape[1] < 2:
+        return None
+    rows = real[np.isfinite(real).all(axis=1)]
+    if not len(rows):
+        return None
+    return float(np.quantile(rows.max(axis=1) - rows.min(axis=1), SPREAD_QUANTILE))
+
+
 def flight_record(battery: str, log: str, sha: str, name: str, prof: Profile,
-                  series: int, warnings: str = "") -> FlightRecord:  # fmt: skip
+                  series: int, warnings: str = "",
+                  cells_v: np.ndarray | None = None) -> FlightRecord:  # fmt: skip
     """Fit one flight of one battery and summarise it."""
     cell = load_parameter_set("uav_5ah")
     v = fit_and_validate([prof], cell.ocv_soc, cell.ocv_table_v)
@@ -94,6 +124,7 @@ def flight_record(battery: str, log: str, sha: str, name: str, prof: Profile,
         peak_current_a=float(np.max(prof.current_a)),
         max_temp_c=None if prof.temp_c is None else float(np.max(prof.temp_c)),
         warnings=warnings, verdict=v.verdict, heldout_rmse_v=v.checks[0].rmse_v,
+        cell_spread_v=cell_spread(cells_v),
     )  # fmt: skip
 
 
@@ -138,7 +169,8 @@ def add_logs(db: Path, logs: Sequence[Path], label: str | None, cells: int | Non
                     ident = f"{label}-{b.name}"
                 prof, _ = battery_profile(path, b, cells)
                 series = b.cell_count or cells or 1
-                rec = flight_record(ident, str(path), sha, b.name, prof, series, _warnings(b))
+                rec = flight_record(ident, str(path), sha, b.name, prof, series, _warnings(b),
+                                    b.cells_v)  # fmt: skip
                 new = store(con, rec)
                 lines.append(
                     f"{path.name}:{b.name} -> {ident}: R0 {1000 * rec.r0_ohm:.2f} mOhm "
@@ -154,19 +186,20 @@ def _median(x: Sequence[float]) -> float:
     return float(np.median(np.asarray(x))) if len(x) else float("nan")
 
 
-def report(db: Path, r0_rise: float = 0.20, fade: float = 0.10) -> list[dict[str, object]]:
-    """One row per battery: flights, R0 and capacity trend, the flags."""
+def report(db: Path, r0_rise: float = 0.20, fade: float = 0.10,
+           spread_rise_v: float = SPREAD_RISE_V) -> list[dict[str, object]]:  # fmt: skip
+    """One row per battery: flights, R0, capacity and cell-spread trend, the flags."""
     if not db.exists():
         raise InputError(f"{db}: no such fleet database")
     con = connect(db)
     try:
         rows = con.execute(
-            "SELECT battery, r0_ohm, capacity_ah, capacity_ok, lowest_cell_v, warnings "
-            "FROM flights ORDER BY battery, id"
+            "SELECT battery, r0_ohm, capacity_ah, capacity_ok, lowest_cell_v, warnings, "
+            "cell_spread_v FROM flights ORDER BY battery, id"
         ).fetchall()
     finally:
         con.close()
-    by: dict[str, list[tuple[float, float, int, float, str]]] = {}
+    by: dict[str, list[tuple[float, float, int, float, str, float | None]]] = {}
     for bat, *rest in rows:
         by.setdefault(bat, []).append(tuple(rest))
     out: list[dict[str, object]] = []
@@ -188,10 +221,25 @@ def report(db: Path, r0_rise: float = 0.20, fade: float = 0.10) -> list[dict[str
             row["capacity_change_pct"] = 100 * (c1 / c0 - 1)
             if c1 < c0 * (1 - fade):
                 flags.append(f"capacity down {100 * (1 - c1 / c0):.0f} %")
+        flags += _spread_trend(row, [f[5] for f in fl if f[5] is not None], spread_rise_v)
         row["flags"] = flags
         out.append(row)
     _outliers(out)
     return out
+
+
+def _spread_trend(row: dict[str, object], spreads: list[float], rise_v: float) -> list[str]:
+    """The cell-spread trend over the flights that measured cells: first flights against
+    recent ones, as R0's; a flag when it grew by more than ``rise_v`` and by half again."""
+    if not spreads:
+        row["cell_spread_flights"] = 0
+        return []
+    first, recent = _median(spreads[:FIRST]), _median(spreads[-RECENT:])
+    row.update(cell_spread_flights=len(spreads), cell_spread_first_mv=1000 * first,
+               cell_spread_recent_mv=1000 * recent)  # fmt: skip
+    if len(spreads) > FIRST and recent > first + rise_v and recent > 1.5 * first:
+        return [f"cell spread growing: {1000 * first:.0f} -> {1000 * recent:.0f} mV"]
+    return []
 
 
 def _outliers(rows: list[dict[str, object]]) -> None:
@@ -207,8 +255,31 @@ def _outliers(rows: list[dict[str, object]]) -> None:
             flags.append(f"outlier: recent R0 {x:.2f} mOhm vs fleet median {med:.2f} mOhm")
 
 
+def flights(db: Path) -> dict[str, list[dict[str, object]]]:
+    """Every battery's flights in the order they were added (the fleet view's trend lines)."""
+    if not db.exists():
+        raise InputError(f"{db}: no such fleet database")
+    con = connect(db)
+    try:
+        cur = con.execute(
+            "SELECT battery, log, r0_ohm, r0_rel, capacity_ah, capacity_ok, lowest_cell_v, "
+            "cell_spread_v, verdict, warnings FROM flights ORDER BY battery, id"
+        )
+        names = [d[0] for d in cur.description]
+        out: dict[str, list[dict[str, object]]] = {}
+        for row in cur.fetchall():
+            rec = dict(zip(names, row, strict=True))
+            out.setdefault(str(rec.pop("battery")), []).append(rec)
+    finally:
+        con.close()
+    return out
+
+
 def report_json(rows: list[dict[str, object]]) -> str:
     return json.dumps(rows)
 
 
-__all__ = ["FlightRecord", "add_logs", "connect", "flight_record", "report", "store"]
+__all__ = [
+    "FlightRecord", "add_logs", "cell_spread", "connect", "flight_record", "flights", "report",
+    "store",
+]  # fmt: skip

@@ -28,6 +28,7 @@ from packpilot.control.sequencing import SequencingConfig
 from packpilot.errors import InputError
 from packpilot.replay import protection, sequencing
 from packpilot.replay.common import AUX, LogOptions, LogTable, ReplayResult, open_log
+from packpilot.replay.pilot import pilot_summary
 
 PARALLEL_MAX_SPREAD = 0.10
 """Largest relative difference of two batteries' median voltages over the first samples for a
@@ -215,6 +216,7 @@ def replay_flight(
         "log_facts": {n: _log_facts(log, n) for n in names if n},
         "assumed": assumed,
         "notes": list(log.notes),
+        "pilot": pilot_summary(log, names),
     }
     return FlightReplay(log, names, prot, skipped, seq, summary)
 

@@ -78,6 +78,7 @@ def _protection_figure(fr: FlightReplay, name: str, res: ReplayResult, color: st
     ax[3].axhline(100, color=TRIP, lw=0.8, ls=":")
     ax[3].set_ylabel("allowance %")
     ax[3].set_xlabel("time since log start (s)")
+    _mode_marks(fr, ax)
     trip = res.summary["trip_time_s"]
     if isinstance(trip, float):
         for a in ax:
@@ -87,6 +88,27 @@ def _protection_figure(fr: FlightReplay, name: str, res: ReplayResult, color: st
     for a in ax:
         a.grid(alpha=0.3)
     return _svg(fig)
+
+
+MODE_COLOR = "#888888"
+
+
+def flight_modes(fr: FlightReplay) -> list[tuple[float, str]]:
+    """The log's flight-mode changes (t_s, name), from the replay's summary."""
+    pilot = fr.summary.get("pilot")
+    if not isinstance(pilot, dict):
+        return []
+    return [(float(t), str(m)) for t, m in pilot["flight_modes"]]
+
+
+def _mode_marks(fr: FlightReplay, ax: object) -> None:
+    """Flight modes as thin grey lines on every axis, named on the first."""
+    axes = list(ax)  # type: ignore[call-overload]
+    for t, m in flight_modes(fr):
+        for a in axes:
+            a.axvline(t, color=MODE_COLOR, lw=0.6, ls=":")
+        axes[0].annotate(m, (t, 0.02), xycoords=("data", "axes fraction"), rotation=90,
+                         color="#666", fontsize=6, va="bottom")  # fmt: skip
 
 
 def _sequencing_figure(fr: FlightReplay, res: ReplayResult) -> str:
@@ -112,6 +134,7 @@ def _sequencing_figure(fr: FlightReplay, res: ReplayResult) -> str:
     ax[2].set_ylabel("FETs it would\ncommand (up = on)")
     ax[2].set_xlabel("time since log start (s)")
     ax[0].legend(loc="upper right", fontsize=8)
+    _mode_marks(fr, ax)
     for a in ax:
         a.grid(alpha=0.3)
     return _svg(fig)
@@ -148,6 +171,131 @@ def _facts_table(fr: FlightReplay) -> str:
     )
 
 
+SAG_POINTS = 1500
+"""Most samples the sag chart draws (every k-th beyond that)."""
+
+
+def _sag_svg(v: np.ndarray, i: np.ndarray, fit: dict[str, float], color: str) -> str:
+    """Voltage against current, the samples and the straight line through the loaded ones: a
+    small inline SVG (this chart has no time axis, so it is not one of the zoomable ones)."""
+    ok = np.isfinite(v) & np.isfinite(i)
+    v, i = v[ok], i[ok]
+    step = max(1, len(v) // SAG_POINTS)
+    v, i = v[::step], i[::step]
+    w, h, pad = 420, 240, 40
+    x0, x1 = min(0.0, float(i.min())), float(i.max()) * 1.05 or 1.0
+    y0, y1 = float(v.min()) - 0.05, float(v.max()) + 0.05
+
+    def px(a: float) -> float:
+        return pad + (a - x0) / (x1 - x0) * (w - pad - 10)
+
+    def py(a: float) -> float:
+        return h - pad + (a - y0) / (y1 - y0) * -(h - pad - 10)
+
+    dots = "".join(
+        f"<circle cx='{px(a):.1f}' cy='{py(b):.1f}' r='1.6'/>" for a, b in zip(i, v, strict=True)
+    )
+    r, v0 = fit["resistance_ohm"], fit["v0_v"]
+    xe = min(x1, (v0 - y0) / r) if r > 0 else x1  # the line ends where it leaves the chart
+    line = (f"<line x1='{px(x0):.1f}' y1='{py(v0 - r * x0):.1f}' x2='{px(xe):.1f}' "
+            f"y2='{py(v0 - r * xe):.1f}' stroke='#444' stroke-dasharray='4 3'/>")  # fmt: skip
+    axes = (
+        f"<line x1='{pad}' y1='{h - pad}' x2='{w - 10}' y2='{h - pad}' stroke='#888'/>"
+        f"<line x1='{pad}' y1='10' x2='{pad}' y2='{h - pad}' stroke='#888'/>"
+        f"<text x='{w / 2}' y='{h - 8}' text-anchor='middle'>current (A): {x0:.0f}..{x1:.0f}</text>"
+        f"<text x='12' y='{h / 2}' transform='rotate(-90 12 {h / 2})' text-anchor='middle'>"
+        f"voltage (V): {y0:.2f}..{y1:.2f}</text>"
+    )
+    return (
+        f"<svg class='sag' viewBox='0 0 {w} {h}' width='{w}' role='img' "
+        f"aria-label='voltage against current' style='max-width:100%;height:auto;font-size:11px'>"
+        f"{axes}<g fill='{color}' fill-opacity='0.45'>{dots}</g>{line}</svg>"
+    )
+
+
+def _pilot_table(fr: FlightReplay) -> str:
+    pilot = fr.summary.get("pilot")
+    if not isinstance(pilot, dict):
+        return ""
+    charge = pilot["charge"]
+    heads = {h.split(":", 1)[0]: h.split(": ", 1)[-1] for h in fr.summary["headlines"]  # type: ignore[attr-defined]
+             if ":" in h}  # fmt: skip
+
+    def mah(x: object) -> str:
+        return "–" if not isinstance(x, float) else f"{x:.0f} mAh"
+
+    def pct(x: object) -> str:
+        return "–" if not isinstance(x, float) else f"{100 * x:.0f} %"
+
+    rows = []
+    for name, a in charge.items():
+        diff = "–"
+        if isinstance(a["packpilot_mah"], float) and isinstance(a["autopilot_mah"], float):
+            diff = f"{a['packpilot_mah'] - a['autopilot_mah']:+.0f} mAh"
+        warn = "none"
+        if a["warning_worst"] is not None:
+            warn = f"{a['warning_worst']} from {a['warning_first_t_s']:.1f} s"
+        elif pilot.get("texts"):
+            (t0, first), n = pilot["texts"][0], len(pilot["texts"])
+            warn = f"'{first}' at {t0:.1f} s" + (f" ({n} battery messages)" if n > 1 else "")
+        rem = "–" if a["remaining_start"] is None else (
+            f"{pct(a['remaining_start'])} → {pct(a['remaining_end'])} "
+            f"(lowest {pct(a['remaining_lowest'])})")  # fmt: skip
+        rows.append(
+            f"<tr><td>{html.escape(name)}</td><td>{mah(a['packpilot_mah'])}</td>"
+            f"<td>{mah(a['autopilot_mah'])}</td><td>{diff}</td><td>{rem}</td>"
+            f"<td>{html.escape(warn)}</td><td>{html.escape(heads.get(name, '–'))}</td></tr>"
+        )
+    table = (
+        "<table id='pilot'><tr><th>battery</th><th>charge used (PackPilot, from the logged "
+        "current)</th><th>the autopilot's count</th><th>difference</th><th>the autopilot's "
+        "remaining</th><th>the autopilot's warnings</th><th>what PackPilot would have done"
+        "</th></tr>" + "".join(rows) + "</table>"
+    ) if rows else ""  # fmt: skip
+    return table
+
+
+def _modes_line(fr: FlightReplay) -> str:
+    pilot = fr.summary.get("pilot")
+    if not isinstance(pilot, dict) or not pilot["flight_modes"]:
+        return "<p id='modes'>Flight modes: not in the log.</p>"
+    shown = " → ".join(f"{html.escape(str(m))} {t:.1f} s" for t, m in pilot["flight_modes"])
+    return f"<p id='modes'>Flight modes (marked on the charts' time axis): {shown}</p>"
+
+
+def _sag_blocks(fr: FlightReplay) -> list[str]:
+    pilot = fr.summary.get("pilot")
+    if not isinstance(pilot, dict):
+        return []
+    out: list[str] = []
+    log = fr.log
+    for k, (name, fit) in enumerate(pilot["sag"].items()):
+        prefix = "" if name == "battery" and "voltage_v" in log.columns else f"{name}_"
+        if not isinstance(fit, dict):
+            out.append(f"<p>{html.escape(name)}: the log's current does not move enough to "
+                       "draw voltage against current.</p>")  # fmt: skip
+            continue
+        v, i = log.columns[f"{prefix}voltage_v"], log.columns[f"{prefix}current_a"]
+        out.append(
+            f"<p>{html.escape(name)}: the voltage sagged {fit['sag_at_peak_v']:.2f} V at the "
+            f"peak {fit['peak_a']:.1f} A; the straight line through {fit['samples']} loaded "
+            f"samples is V = {fit['v0_v']:.2f} V − {1000 * fit['resistance_ohm']:.1f} mΩ × I "
+            "(cells, wiring, connectors and the sensor together; one line is the flight's "
+            "average: a pack that warms sags less as it goes).</p>"
+            + _sag_svg(v, i, fit, COLORS[k % len(COLORS)])
+        )
+    return out
+
+
+def pilot_blocks(fr: FlightReplay) -> list[str]:
+    """The flight as the pilot saw it: charge used by both counts, the autopilot's remaining and
+    warnings next to what PackPilot would have done, the flight modes, the voltage sag."""
+    return [
+        "<h2>The flight as the pilot saw it</h2>", _pilot_table(fr), _modes_line(fr),
+        "<h3>Voltage sag against current</h3>", *_sag_blocks(fr),
+    ]  # fmt: skip
+
+
 def summary_blocks(fr: FlightReplay, box_class: str, note_class: str) -> list[str]:
     """What both flight pages open with: the verdict lines, the open-loop caveat, what the log
     lacks or assumed, the log's facts (this static page and ``report.flight``'s zoomable one)."""
@@ -164,6 +312,7 @@ def summary_blocks(fr: FlightReplay, box_class: str, note_class: str) -> list[st
         "<h2>What the log lacks, and what was assumed</h2>",
         f"<ul class='lacks' id='lacks'>{_li(lacks) or '<li>nothing</li>'}</ul>",
         _facts_table(fr),
+        *pilot_blocks(fr),
     ]
 
 
@@ -209,4 +358,4 @@ def write_flight_report(fr: FlightReplay, out: Path) -> None:
     out.write_text(flight_html(fr), encoding="utf-8")
 
 
-__all__ = ["flight_html", "write_flight_report"]
+__all__ = ["flight_html", "flight_modes", "pilot_blocks", "write_flight_report"]

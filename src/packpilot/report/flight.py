@@ -18,13 +18,14 @@ import numpy as np
 
 from packpilot.replay.common import ReplayResult
 from packpilot.replay.flight import FlightReplay
-from packpilot.replay.flight_report import protection_blocks, summary_blocks
+from packpilot.replay.flight_report import flight_modes, protection_blocks, summary_blocks
 from packpilot.report.charts import Chart, Series, Store
 from packpilot.report.fmt import esc
 from packpilot.report.html import _CSS, _asset
 from packpilot.report.style import ALARM_COLOR, battery_color
 
 CUT_COLOR = "#444444"
+MODE_COLOR = "#999999"
 
 
 def _col(res: ReplayResult, name: str) -> np.ndarray:
@@ -75,6 +76,7 @@ def _protection(page: _Charts, fr: FlightReplay, k: int, name: str, res: ReplayR
     color = battery_color(k)
     trip = res.summary["trip_time_s"]
     marks = [(float(trip), ALARM_COLOR, "would trip")] if isinstance(trip, float) else []
+    marks += _mode_marks(fr)
     ident = name or "battery"
     v = Chart(f"{ident}-cell", "Lowest cell and the cut-off it would apply (V)", "V", marks=marks)
     vmin = log.columns.get(f"{prefix}min_cell_v")
@@ -105,14 +107,21 @@ def _protection(page: _Charts, fr: FlightReplay, k: int, name: str, res: ReplayR
     return "".join(parts)
 
 
+def _mode_marks(fr: FlightReplay) -> list[tuple[float, str, str]]:
+    """The log's flight modes as the charts' vertical marks (the pilot's time axis)."""
+    return [(t, MODE_COLOR, m) for t, m in flight_modes(fr)]
+
+
 def _sequencing(page: _Charts, fr: FlightReplay, res: ReplayResult) -> str:
     """The pack: each battery's voltage and current, and the FETs sequencing would command."""
     log = fr.log
     n = len(fr.batteries)
-    v = Chart("seq-voltage", "Battery voltage, from the log (V)", "V")
-    i = Chart("seq-current", "Current, + = discharge, from the log (A)", "A", height=150)
+    modes = _mode_marks(fr)
+    v = Chart("seq-voltage", "Battery voltage, from the log (V)", "V", marks=modes)
+    i = Chart("seq-current", "Current, + = discharge, from the log (A)", "A", height=150,
+              marks=modes)  # fmt: skip
     fets = Chart("seq-fets", "FETs sequencing would command (solid: charge, dashed: discharge)",
-                 categories=["off", "on"], height=110)  # fmt: skip
+                 categories=["off", "on"], height=110, marks=modes)  # fmt: skip
     for k, name in enumerate(fr.batteries):
         c = battery_color(k)
         v.series.append(Series(page.store.add(f"{name}/v", log.columns[f"{name}_voltage_v"]),

@@ -19,7 +19,7 @@ from packpilot.errors import InputError
 from packpilot.io.flightlog import read_flight_log
 from packpilot.model.loads import LoadProfile
 
-SUFFIXES = (".ulg", ".bin", ".log")
+SUFFIXES = (".ulg", ".bin", ".log", ".tlog")
 NOTE = "negative demand in the log (charge flowing back) is taken as zero demand"
 
 

@@ -83,7 +83,7 @@ def load_profile(cfg: ScenarioConfig) -> loads.LoadProfile:
         return loads.constant(lc.kind, lc.value)
     if lc.profile.endswith(".csv"):
         return loads.from_csv(Path(lc.profile), repeat=lc.repeat)
-    if lc.profile.lower().endswith((".ulg", ".bin", ".log")):
+    if lc.profile.lower().endswith((".ulg", ".bin", ".log", ".tlog")):
         from packpilot.sim.flight_load import flight_load
 
         return flight_load(Path(lc.profile), lc.kind, lc.repeat)

@@ -43,7 +43,7 @@ B1 = NDArray[np.bool_]
 
 CATEGORIES: tuple[str, ...] = (
     "fault", "trip", "unsupplied", "overdischarge", "crosscharge", "limit", "refused",
-    "crosscurrent", "reserve", "unknown",
+    "crosscurrent", "reserve", "extrapolated", "unknown",
 )  # fmt: skip
 """Every category an alarm can have: what ``simulate --fail-on`` accepts."""
 
@@ -521,7 +521,26 @@ def run_verdict(result: Result, config: Mapping[str, Any] | None) -> Verdict:
     if len(tr.t_s):
         watch.physics.feed(tr.t_s, tr.battery, tr.load_demand_a, tr.load_a, tr.charger_a)
     watch.events.feed(result.events)
-    return watch.verdict()
+    return verdict_of([*watch.verdict().alarms, *_outside_fit(result, config)])
+
+
+def _outside_fit(result: Result, config: Mapping[str, Any] | None) -> list[Alarm]:
+    """A warning per battery on a fitted cell set that the run took beyond the range the set
+    was fitted on (:mod:`packpilot.sim.fit_range`): the answer there is extrapolated."""
+    from packpilot.sim.fit_range import excursions
+
+    tr = result.trace
+    found = excursions(config, result.battery_names, tr.t_s, tr.battery)
+    return [
+        Alarm(
+            t_s=rows[0][0], battery=name, kind="OutsideFit", category="extrapolated",
+            severity=Severity.WARNING, source="physics", count=len(rows),
+            cause="outside the fitted range: " + "; ".join(
+                f"{what} (from {t:.1f} s)" for t, what in rows
+            ),
+        )
+        for name, rows in found.items()
+    ]  # fmt: skip
 
 
 def fail_on(verdict: Verdict, categories: Iterable[str]) -> list[str]:

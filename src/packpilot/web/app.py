@@ -40,7 +40,7 @@ from packpilot.web.guard import (
 )
 from packpilot.web.guard import BodyLimitMiddleware as _BodyLimitMiddleware
 from packpilot.web.guard import GuardMiddleware as _GuardMiddleware
-from packpilot.web.live import CHART_CHANNELS, MAX_SPEED, LiveRun, SimThread
+from packpilot.web.live import CHART_CHANNELS, MAX_SPEED, LiveRun, SimThread, jsonable
 from packpilot.web.session import Library, NotAllowed, ReportWriter, RunnerFactory, Session
 
 STATIC = Path(__file__).resolve().parent / "static"
@@ -74,8 +74,9 @@ def _error(status: int, why: str) -> Response:
 
 
 def create_app(
-    target: LiveRun | Session, push_interval_s: float = 0.2, guard: Guard | None = None
-) -> FastAPI:
+    target: LiveRun | Session, push_interval_s: float = 0.2, guard: Guard | None = None,
+    fleet: Path | None = None,
+) -> FastAPI:  # fmt: skip
     """The dashboard app for a session (or one run, already running in a ``SimThread`` or
     about to). ``guard``: the access rules; default loopback with a fresh token."""
     if not push_interval_s > 0:
@@ -92,6 +93,7 @@ def create_app(
     page = (STATIC / "index.html").read_text(encoding="utf-8")
     _read_routes(app, session, rules, page)
     _control_routes(app, session, rules)
+    _fleet_routes(app, fleet)
 
     @app.websocket("/ws")
     async def ws(sock: WebSocket) -> None:
@@ -163,6 +165,34 @@ def _read_routes(app: FastAPI, session: Session, rules: Guard, page: str) -> Non
         if path is None or not path.is_file():
             return _error(404, "no report for this run")
         return FileResponse(path, media_type="text/html", headers={"Cache-Control": "no-store"})
+
+
+def _fleet_routes(app: FastAPI, fleet: Path | None) -> None:
+    """The fleet view (``--fleet``): battery health across flights, read-only."""
+
+    @app.get("/fleet", include_in_schema=False)
+    async def fleet_page() -> Response:
+        if fleet is None:
+            return _error(404, "no fleet: start the dashboard with --fleet fleet.sqlite")
+        from packpilot.web.fleet import FLEET_HEADERS
+        from packpilot.web.fleet import fleet_page as page
+
+        try:
+            text = await asyncio.to_thread(page, fleet)
+        except PackPilotError as err:
+            return _error(400, str(err))
+        return Response(text, media_type="text/html", headers=FLEET_HEADERS)
+
+    @app.get("/api/fleet")
+    async def fleet_json() -> Response:
+        if fleet is None:
+            return _error(404, "no fleet: start the dashboard with --fleet fleet.sqlite")
+        from packpilot.web.fleet import fleet_data
+
+        try:
+            return _json(jsonable(await asyncio.to_thread(fleet_data, fleet)))
+        except PackPilotError as err:
+            return _error(400, str(err))
 
 
 class _Gate:
@@ -387,6 +417,7 @@ class Dashboard:
         library: Library | None = None,
         make_runner: RunnerFactory | None = None,
         write_report: ReportWriter | None = None,
+        fleet: Path | None = None,
         allow_remote: bool = False,
         token: str | None = None,
         allowed_hosts: tuple[str, ...] = (),
@@ -428,7 +459,7 @@ class Dashboard:
             if callable(close):  # e.g. a CAN bus already open
                 close()
             raise
-        self.app = create_app(self.session, push_interval_s, self.guard)
+        self.app = create_app(self.session, push_interval_s, self.guard, fleet)
         self.host = host
         self.port = int(self.sock.getsockname()[1])
         self.server: Any = None

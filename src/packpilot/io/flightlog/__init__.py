@@ -96,6 +96,9 @@ class FlightLog:
     """Flight-mode changes as the autopilot logged them: (t_s, mode name)."""
     autopilot: str | None = None
     """The autopilot and version the log names (e.g. ``ArduCopter V3.1``), when it does."""
+    texts: tuple[tuple[float, str], ...] = ()
+    """The autopilot's own battery messages (t_s, text), e.g. MAVLink STATUSTEXT
+    "Low Battery!", when the log carries them."""
 
     def table(self, *, cells: int | None = None, assume_temp_c: float | None = None) -> Table:
         """The batteries on the union of their sample times, each battery's latest value
@@ -316,7 +319,7 @@ def _cells(
 
 def read_flight_log(path: Path) -> FlightLog:
     """A flight log by its suffix: ``.ulg`` PX4 ULog, ``.bin`` / ``.log`` ArduPilot
-    DataFlash (binary / text)."""
+    DataFlash (binary / text), ``.tlog`` MAVLink telemetry log (a ground station's)."""
     if not path.exists():
         raise InputError(f"{path}: log file not found")
     if not path.is_file():
@@ -330,7 +333,11 @@ def read_flight_log(path: Path) -> FlightLog:
         from packpilot.io.flightlog.dataflash import read_dataflash
 
         return read_dataflash(path, text=suffix == ".log")
-    raise InputError(f"{path}: not a flight log (.ulg, .bin or .log)")
+    if suffix == ".tlog":
+        from packpilot.io.flightlog.tlog import read_tlog
+
+        return read_tlog(path)
+    raise InputError(f"{path}: not a flight log (.ulg, .bin, .log or .tlog)")
 
 
 @contextlib.contextmanager

@@ -338,7 +338,8 @@ def fit(
     t_ref = float(np.mean(np.concatenate(temps))) if temps else ref_temp_c
     if not law:
         assumptions.append(
-            f"resistances hold at {t_ref:.1f} degC (reference temperature): the logs "
+            f"the fitted resistances are those at {t_ref:.1f} degC (reference temperature): "
+            "the logs "
             + (f"span {span:.1f} K of temperature" if temps else "carry no temperature")
             + f", a resistance-temperature law needs {MIN_TEMP_SPAN_K:g} K"
         )
