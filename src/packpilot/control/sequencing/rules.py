@@ -672,7 +672,7 @@ def _discharge_tick(
     if not any_d:
         diode = False
         for k in range(n):
-            if pres[k] and cur[k] > i_det:
+            if pres[k] and not held[p, k] and cur[k] > i_det:  # held: cannot conduct
                 diode = True
                 break
         if not diode:
