@@ -96,11 +96,14 @@ soak: $(TEST_STAMP)
 
 # Fault injection over the CAN runtime (#26): every fault of tests/fault_suite.py (lock-step
 # `run` against `hil` on a real python-can bus; the slow ones included: frozen loaded battery,
-# 30 s of 10x frame load, a frame flood) as a table on stdout, then the fault tests (the CI
+# 30 s of 10x frame load, a frame flood) as a table on stdout; the frame load and the floods
+# again in real time through the CAN hub (tests/fault_realtime.py: can-hub, run and the twin as
+# processes, a third node flooding; ~4 min of wall time); then the fault tests (the CI
 # subset, kill -9 of `run --db --can-log` through the CAN hub, the older bus faults). Needs the
 # test extras installed (`make test` once); never runs pip.
 faults: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.fault_suite
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.fault_realtime
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -q -p no:cacheprovider \
 		tests/test_runtime_fault_suite.py tests/test_runtime_faults.py
 

@@ -302,11 +302,7 @@ def faults() -> list[Fault]:
         Fault("standby B reads -8000 A for 10 s", 30.0, 40.0, 50.0,
               proxy=alter_meas(B, -8000.0), detect=("Fault:out_of_range",), bound_s=0.5 + DT),
         Fault("frozen telemetry of loaded A (counter too) 30 s", 100.0, 130.0, 140.0,
-              proxy=freeze(A), detect=("TelemetrySuspect",), bound_s=2 * DT, quick=False,
-              known="when A's stale fault clears (5 s after its frames advance) the reserve's "
-              "isolation ends and sequencing, which never left DISCHARGING, closes A's path "
-              "at once: A (rested, higher) pushes ~16 A into B for one period before B's "
-              "reverse cut; a sequencing rejoin through R2 is needed (not done)"),
+              proxy=freeze(A), detect=("TelemetrySuspect",), bound_s=2 * DT),
         Fault("frozen telemetry of standby B 30 s", 30.0, 60.0, 70.0, proxy=freeze(B),
               detect=("TelemetrySuspect",), bound_s=2 * DT),
         stale,

@@ -222,7 +222,7 @@ def test_a_listener_joins_after_the_delay() -> None:
 
 def test_a_stalled_client_loses_frames_the_others_do_not() -> None:
     """Memory stays bounded: beyond its queue a client that does not read is skipped."""
-    with CanHub("127.0.0.1", 0, max_pending_bytes=4096) as hub:
+    with CanHub("127.0.0.1", 0, max_pending_bytes=4096, bitrate=0) as hub:  # no rate cap
         stalled = raw(hub, rcvbuf=4096)
         reader = client(hub)
         tx = raw(hub)
@@ -242,6 +242,35 @@ def test_a_stalled_client_loses_frames_the_others_do_not() -> None:
             stalled.close()
             reader.shutdown()
             tx.close()
+
+
+def test_a_client_cannot_send_more_than_the_bus_carries() -> None:
+    """Issue #26, real time: a babbling client wrote 15,000 frames/s over TCP and, the hub
+    forwarding in arrival order, the telemetry waited behind seconds of its frames in every
+    other client's queue. A node on a real 500 kbit/s bus cannot send more than its bitrate
+    (and arbitration favours the telemetry): beyond 500 kbit/s (plus a 0.1 s burst) a
+    client's frames are refused and counted, another client's frames all pass."""
+    with CanHub("127.0.0.1", 0) as hub:
+        reader = client(hub)
+        flood, node = raw(hub), raw(hub)
+        joined(hub)
+        try:
+            t0 = time.monotonic()
+            for _ in range(20):
+                flood.sendall(b"< send 7F0 8 0 0 0 0 0 0 0 0 >" * 1000)  # 20,000 frames
+                node.sendall(b"< send 300 8 1 2 3 4 5 6 7 8 >")
+            elapsed = time.monotonic() - t0
+            got: dict[int, int] = {}
+            while (m := reader.recv(0.5)) is not None:
+                got[m.arbitration_id] = got.get(m.arbitration_id, 0) + 1
+            allowed = 500_000 * (0.1 + elapsed + 0.5) / 111  # burst + what the time allowed
+            assert got[0x300] == 20  # the well-behaved node lost nothing
+            assert got[0x7F0] <= allowed and got[0x7F0] + hub.stats.throttled == 20_000
+            assert hub.stats.throttled > 10_000
+        finally:
+            reader.shutdown()
+            flood.close()
+            node.close()
 
 
 def test_a_client_that_never_reads_its_replies_is_disconnected_and_memory_stays_bounded() -> None:

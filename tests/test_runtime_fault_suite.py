@@ -128,6 +128,27 @@ def test_frozen_telemetry_is_detected_within_two_periods(cfg: ScenarioConfig) ->
     assert_safe(o)
 
 
+def test_a_frozen_loaded_battery_rejoins_without_charging_its_sibling(
+    cfg: ScenarioConfig,
+) -> None:
+    """Loaded A's frames freeze for 30 s: A is isolated as a reserve (stale) while B carries
+    the flight alone; A rests and its voltage recovers, B's falls and polarises. Sequencing
+    sees the safety layer hold A open and stands A by (once; no rejoin while held), so when
+    the stale fault clears A comes back through its charge FET's body diode and rejoins by
+    R2 / R3 with B's charge FET opened first: nothing above B's charge limit flows into B
+    (before: sequencing still had A DISCHARGING with its charge FET on, the release closed
+    both A's FETs at once and A pushed 15.76 A into B, limit 9.7 A, for one period)."""
+    o = fs.measure(cfg, fault("frozen telemetry of loaded A"))
+    assert_safe(o)
+    assert o.max_charge_a <= 0.6  # not only below the limit: about nothing
+    held = [e for e in o.ls.bms.events if e.kind == "StateChanged" and e.battery == 0
+            and e.data.get("reason") == "held open by another layer"]  # fmt: skip
+    assert [round(e.t_s - o.fault.at_s, 1) for e in held] == [0.6]  # once, the step after
+    joins = [e.t_s for e in o.ls.bms.events if e.kind == "BatteryJoined" and e.battery == 0]
+    cleared = min(t for t in kinds(o, "FaultCleared", 0))
+    assert joins and min(joins) > cleared  # no rejoin while held
+
+
 def test_old_frames_interleaved_are_detected(cfg: ScenarioConfig) -> None:
     """B's frames of 10 s ago sent after its fresh ones for 8 s: their counters are behind,
     dropped, and B is not trusted within 2 periods (before #26: accepted, no event)."""

@@ -1337,6 +1337,10 @@ def can_hub(
             help="allow a non-loopback --host: whoever reaches it can send frames (no auth)",
         ),
     ] = False,
+    bitrate: Annotated[
+        float,
+        typer.Option(help="bit/s one client may send, as on a real bus (0: unlimited)"),
+    ] = 500_000,
 ) -> None:
     """A CAN bus over TCP on 127.0.0.1 for `run` and `hil` as two processes without vcan
     (socketcand's raw mode: --can-interface socketcand --can-arg host=.. --can-arg port=..).
@@ -1346,7 +1350,7 @@ def can_hub(
         from packpilot.io.can.hub import CanHub
 
         check_option("--port", port, 0, 65535)
-        hub = CanHub(host, port, allow_remote=allow_remote)
+        hub = CanHub(host, port, allow_remote=allow_remote, bitrate=bitrate)
         addr, bound = hub.start()
         _sigterm_interrupts()
         typer.echo(f"can-hub on {addr}:{bound}  (clients: --can-interface socketcand --can-arg"

@@ -375,8 +375,17 @@ SEQUENCING = [
        "if state[p, k] == CHARGING and dsg_on[p, k] and cur[k] > prm.i_rev:", "if False:",
        "charge mode: a battery feeding a charging sibling keeps its discharge FET on"),
     _m("sequencing", "close-out-dropped",
-       "if cmd.dsg_on[p, k] == 0 and not tp.relay[k]:", "if False:",
+       "if cmd.dsg_on[p, k] == 0 and not relay and not charge:", "if False:",
        "a tripped battery keeps its charge FET on (a sibling charges it through the diode)"),
+    _m("sequencing", "held-open-not-noted",
+       "held[p, k] = cmd.dsg_on[p, k] == 0 and st.dsg_on[p, k] and not relay",
+       "held[p, k] = False and not relay",
+       "#26: a battery another layer held open stays DISCHARGING and engaged; its release "
+       "closes both FETs at once and the rested battery charges its sibling above the limit"),
+    _m("sequencing", "held-open-stays-engaged",
+       "            _set(sw, ev, src, p, k, STANDBY, False, t, SET, R_HELD)\n",
+       "            pass\n",
+       "#26: a battery held open is not stood by: its release connects it directly"),
     _m("sequencing", "fail-safe-keeps-fets",
        "_set(sw, ev, src, p, k, new, False, t, SET, R_FAIL_SAFE)",
        "_set(sw, ev, src, p, k, DISCHARGING if present else OFF, True, t, SET, R_FAIL_SAFE)",
@@ -472,6 +481,8 @@ TESTS: dict[str, list[str]] = {
         "tests/test_fault_injection.py::test_a_tripped_battery_cannot_be_charged_by_the_reserve"
         "_that_replaces_it",
         "tests/test_runtime_fault_suite.py::test_a_standby_batterys_current_never_moves_the_other",
+        "tests/test_runtime_fault_suite.py::test_a_frozen_loaded_battery_rejoins_without"
+        "_charging_its_sibling",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],

@@ -312,6 +312,7 @@ class BmsRuntime:
         names = ("duplicates", "out_of_order", "resyncs", "suspect", "late", "present_glitches",
                  "dock_rejected")  # fmt: skip
         out.update({f"can_{k}": getattr(fr, k) for k in names})
+        out.update(self.plant.ages.summary())
         out["published_frames"] = self.publisher.sent
         if self.charger is not None:
             cc = self.charger.client.counters

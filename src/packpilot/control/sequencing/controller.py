@@ -59,11 +59,13 @@ REASON_LABELS: tuple[str, ...] = (
     "R1 inserted above bus",
     "R2",
     "R3",
+    "held open by another layer",
 )
 """Why a battery's state changed, by ``rules.R_*``; per-battery reasons follow
 (:func:`reason_labels`)."""
 assert len(REASON_LABELS) == rules.N_FIXED_REASONS
 assert REASON_LABELS[rules.R_R3] == "R3"
+assert REASON_LABELS[rules.R_HELD] == "held open by another layer"
 
 
 def reason_labels(n: int) -> tuple[str, ...]:
@@ -257,6 +259,7 @@ def build(
         v_ref_v=nan((P,)),
         zero_load_valid=no((P,)),
         fault=fault,
+        held=no(pb),
         ef=nan(b),
         g=nan(b),
         i_lim=nan(b),

@@ -149,7 +149,9 @@ R_R1_EMPTY = 7
 R_INSERTED_ABOVE = 8
 R_R2 = 9
 R_R3 = 10
-N_FIXED_REASONS = 11
+R_HELD = 11
+"""Another layer held the battery's discharge path open (:func:`_held_out`)."""
+N_FIXED_REASONS = 12
 
 PATH_CHG = 0
 PATH_DSG = 1
@@ -227,6 +229,11 @@ class SequencingState(NamedTuple):
     fault: F64
     """(P, N_FAULT) the last fail-safe reason: code (FAULT_*), then its numbers; kept after
     the fault clears (the FaultCleared event names it)."""
+    held: B1
+    """(P, B) another layer (protection, limits, plausibility, the supervisor) opened this
+    MOSFET-pair battery's discharge FET in the last step although sequencing commanded it on:
+    written by :func:`close_out_pack` from the final commands, read by the next step
+    (:func:`_held_out`). Never set for a relay battery (its STANDBY is open)."""
     # Scratch, (B,): values of the pack being stepped, nothing carried between steps (packs
     # are stepped one after the other; a State is never stepped by two threads at once).
     ef: F64
@@ -380,20 +387,21 @@ def _r1(
     """R1: within ``v_th`` of the highest -> DISCHARGING (not yet engaged), else STANDBY."""
     state = st.state
     conduct_since_s = st.conduct_since_s
+    held = st.held
     sw = Switches(state, st.chg_on, st.dsg_on)
     n = state.shape[1]
     have = False
     v_max = 0.0
     for k in range(n):
-        if pres[k] and (not have or volt[k] > v_max):
+        if pres[k] and not held[p, k] and (not have or volt[k] > v_max):
             v_max = volt[k]
             have = True
-    if not have:
-        return
     for k in range(n):
         if not pres[k]:
             continue
         new = DISCHARGING if v_max - volt[k] < prm.v_th else STANDBY
+        if held[p, k]:
+            new = STANDBY  # cannot discharge while another layer holds it open
         r = _set(sw, ev, src, p, k, new, False, t, SET_R1, reason)
         if r >= 0:
             ev.val[r, V_DATA] = volt[k]
@@ -429,6 +437,40 @@ def _diode_rule(
 
 
 # ------------------------------------------------------------------------------ discharge mode
+
+
+@kernel_inline
+def _held_out(st: SequencingState, ev: EventBuf, src: int, p: int, t: float) -> None:
+    """A battery another layer held open in the last step stands by (charge FET off).
+
+    Sequencing's commands are wishes: protection, the limits, plausibility (a stale or
+    implausible battery kept as a reserve) and the supervisor may open a path after it. A
+    battery whose discharge path was held open carried no current over that period (its
+    readings may be frozen or stale), and the OCVs of it and its siblings drift apart
+    meanwhile: it rested, they discharged and polarised. Had it stayed DISCHARGING with its
+    charge FET on, the step that releases it would connect it to the bus directly, and the
+    rested, higher battery would push the voltage difference over two resistances into an
+    engaged sibling (issue #26: 15.8 A into a 9.7 A-limited battery after a 35 s isolation).
+    In STANDBY it is released onto the bus through its charge FET's body diode (it can only
+    discharge) and rejoins as any standby battery does: R2 once the fast voltages meet, R3
+    with its hand-over once its diode carries current (the sibling it would charge is opened
+    in that period), the engage rule only with every zero-load prediction within the limit.
+    Over the held period its FETs did not conduct, whatever sequencing commanded. MOSFET
+    pairs only (``close_out_pack``): a relay has no diode, its STANDBY is open, and standing
+    a held relay battery by would withhold the reserve plausibility brings in when the last
+    trusted source trips; a relay's release stays a direct closure."""
+    state = st.state
+    held = st.held
+    sw = Switches(state, st.chg_on, st.dsg_on)
+    for k in range(state.shape[1]):
+        if not held[p, k]:
+            continue
+        st.was_c[k] = False
+        st.was_d[k] = False
+        st.conduct_since_s[p, k] = np.nan
+        st.rev_q_as[p, k] = 0.0
+        if state[p, k] == DISCHARGING:
+            _set(sw, ev, src, p, k, STANDBY, False, t, SET, R_HELD)
 
 
 @kernel_inline
@@ -550,6 +592,8 @@ def _discharge_tick(
     n = state.shape[1]
     i_det = prm.i_det
 
+    held = st.held
+    _held_out(st, ev, src, p, t)
     if not initialized[p]:
         _r1(prm, st, ev, src, p, volt, pres, t, R_R1_INIT)
         initialized[p] = True
@@ -577,7 +621,7 @@ def _discharge_tick(
         # the charge FET on only while discharge current flows.
         fed = 0.0
         for j in range(n):
-            if j != k and pres[j] and cur[j] > 0.0:
+            if j != k and pres[j] and not held[p, j] and cur[j] > 0.0:
                 fed += cur[j]
         if fed <= 0.0:
             rev_q_as[p, k] = 0.0
@@ -606,7 +650,7 @@ def _discharge_tick(
     # and the batteries v_th below it stand by in the same period, so none is charged.
     if n_inserted > 0:
         for k in range(n):
-            if not inserted[k]:
+            if not inserted[k] or held[p, k]:
                 continue
             v_ref = _max_discharging(state, p, volt)
             if math.isnan(v_ref) or volt[k] - v_ref < prm.v_th:
@@ -628,7 +672,7 @@ def _discharge_tick(
     if not any_d:
         diode = False
         for k in range(n):
-            if pres[k] and cur[k] > i_det:
+            if pres[k] and not held[p, k] and cur[k] > i_det:  # held: cannot conduct
                 diode = True
                 break
         if not diode:
@@ -643,7 +687,7 @@ def _discharge_tick(
     if not math.isnan(e_ref):
         m = 0
         for k in range(n):
-            if state[p, k] == STANDBY and pres[k]:
+            if state[p, k] == STANDBY and pres[k] and not held[p, k]:
                 order[m] = k
                 m += 1
         _sort_desc(order, m, ef)
@@ -1096,11 +1140,18 @@ def close_out_pack(st: SequencingState, tp: PackArrays, p: int, cmd: CmdArrays) 
     the command level: with its discharge FET off the battery cannot discharge, and a charge FET
     left on would let a sibling charge it through the discharge FET's body diode (a protection
     trip of the lower battery while a higher one takes over pushed 46 A into it for one period
-    before the reverse cut). Runs after every layer and the supervisor (``Method.after``)."""
-    if st.mode[p] == MODE_CHARGE:
-        return
+    before the reverse cut). Runs after every layer and the supervisor (``Method.after``).
+
+    Also notes, for the next step, which batteries another layer held open against
+    sequencing's command (``st.held``, :func:`_held_out`)."""
+    held = st.held
+    charge = st.mode[p] == MODE_CHARGE
     for k in range(st.state.shape[1]):
-        if cmd.dsg_on[p, k] == 0 and not tp.relay[k]:
+        relay = tp.relay[k]
+        # MOSFET pairs only: a relay in STANDBY is open (no diode), so standing a held relay
+        # battery by would withhold the reserve plausibility brings in make-before-break.
+        held[p, k] = cmd.dsg_on[p, k] == 0 and st.dsg_on[p, k] and not relay and not charge
+        if cmd.dsg_on[p, k] == 0 and not relay and not charge:
             put_chg(cmd, p, k, False)
 
 

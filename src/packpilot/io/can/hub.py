@@ -54,6 +54,11 @@ DEFAULT_PORT = 29536
 JOIN_DELAY_S = 0.2
 MAX_MESSAGE_CHARS = 256
 """A valid message is under 50 characters; a longer unfinished one is dropped as junk."""
+DEFAULT_BITRATE = 500_000
+"""bit/s a client's frames may take (``packpilot.dbc``'s bus): what one node can put on a
+real bus at all."""
+BURST_S = 0.1
+"""Bus time a client may send in one burst beyond its rate (a period's telemetry at once)."""
 MAX_PENDING_BYTES = 1 << 20
 """Output queued for one client beyond which frames to it are dropped (~25,000 frames)."""
 READ_CHUNK = 1 << 16
@@ -82,6 +87,8 @@ class HubStats:
     """Deliveries skipped because the receiving client was too far behind."""
     disconnected: int = 0
     """Clients closed because they did not read the replies to their own requests."""
+    throttled: int = 0
+    """Frames refused because their client sent more than the bus's bitrate carries."""
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -117,6 +124,13 @@ def format_frame(frame: Frame, t: float) -> str:
     ident = f"{frame.can_id:08X}" if frame.extended else f"{frame.can_id:03X}"
     sec, usec = divmod(round(t * 1e6), 1_000_000)
     return f"< frame {ident} {sec}.{usec:06d} {frame.data.hex().upper()} >"
+
+
+def frame_bits(frame: Frame) -> int:
+    """Bits ``frame`` occupies on a CAN bus: SOF, identifier, control, data, CRC, ACK, EOF and
+    the interframe space (47 + 8 per byte standard, 67 + 8 per byte extended; bit stuffing,
+    which depends on the content, left out: the rate is the bus's best case)."""
+    return (67 if frame.extended else 47) + 8 * len(frame.data)
 
 
 def split_messages(text: str) -> tuple[list[str], str, int]:
@@ -158,6 +172,9 @@ class _Client:
     channel: str | None = None
     raw: bool = False
     pending: str = field(default="", repr=False)
+    bits: float = 0.0
+    """Bus time the client may still use now (bits; a token bucket refilled at the bitrate)."""
+    refilled: float = 0.0
 
 
 class CanHub:
@@ -171,12 +188,17 @@ class CanHub:
         allow_remote: bool = False,
         join_delay_s: float = JOIN_DELAY_S,
         max_pending_bytes: int = MAX_PENDING_BYTES,
+        bitrate: float = DEFAULT_BITRATE,
     ) -> None:
+        """``bitrate``: bit/s one client may send (0: unlimited)."""
         check_bind(host, allow_remote)
         if not 0 <= port <= 65535:
             raise ConfigError(f"--port {port}: must be 0..65535 (0: any free port)")
         self.host, self.port, self.join_delay_s = host, port, join_delay_s
         self.max_pending_bytes = max_pending_bytes
+        if not (bitrate == 0 or 1e3 <= bitrate <= 1e7):
+            raise ConfigError(f"--bitrate {bitrate:g}: must be 0 (unlimited) or 1e3..1e7 bit/s")
+        self.bitrate = float(bitrate)
         self.stats = HubStats()
         self._clients: set[_Client] = set()
         self._channels: dict[str, set[_Client]] = {}
@@ -263,8 +285,38 @@ class CanHub:
         bodies, client.pending, junk = split_messages(client.pending + text)
         self.stats.malformed += junk
         frames = [f for body in bodies if (f := self._message(client, body.split())) is not None]
+        if frames and self.bitrate > 0:
+            frames = self._within_bitrate(client, frames)
         if frames:
             self._deliver(client, frames)
+
+    def _within_bitrate(self, client: _Client, frames: list[Frame]) -> list[Frame]:
+        """The frames of ``client`` a real bus at :attr:`bitrate` could have carried; the rest
+        are refused and counted (``throttled``).
+
+        A CAN node cannot put more on the bus than its bitrate, and on a saturated bus
+        arbitration gives every slot to the highest-priority frame waiting, so a babbling
+        low-priority node delays the others by one frame at most. The hub forwards in arrival
+        order (no arbitration), so without this a client writing 15,000 frames/s over TCP
+        buried the telemetry behind seconds of its frames in every other client's queue
+        (issue #26, real-time flood: telemetry 10-20 s old at the BMS). Per client, not per
+        channel: the well-behaved nodes' frames are never refused for another's flood."""
+        now = time.monotonic()
+        cap = self.bitrate * BURST_S
+        if client.refilled == 0.0:
+            client.bits = cap
+        else:
+            client.bits = min(cap, client.bits + (now - client.refilled) * self.bitrate)
+        client.refilled = now
+        keep = 0
+        for f in frames:
+            b = frame_bits(f)
+            if b > client.bits:
+                break
+            client.bits -= b
+            keep += 1
+        self.stats.throttled += len(frames) - keep
+        return frames[:keep] if keep < len(frames) else frames
 
     def _message(self, client: _Client, words: list[str]) -> Frame | None:
         if client.channel is None:

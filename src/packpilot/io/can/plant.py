@@ -112,6 +112,39 @@ class Freshness:
     dock_rejected: int = 0
 
 
+class FrameAges:
+    """How long frames waited between reaching the bus and being read (real time only): a
+    histogram of 1 ms bins up to 10 s plus the maximum, so a week-long run keeps 80 kB. The
+    latency the BMS sees, backlogs included (issue #26: a flood through the hub)."""
+
+    BIN_S = 1e-3
+    BINS = 10_000
+
+    def __init__(self) -> None:
+        self.hist = np.zeros(self.BINS + 1, np.int64)
+        self.max_s = 0.0
+
+    def add(self, d: float) -> None:
+        self.hist[min(int(d / self.BIN_S), self.BINS)] += 1
+        self.max_s = max(self.max_s, d)
+
+    def percentile_ms(self, q: float) -> float:
+        """The ``q``-th percentile (upper bin edge, ms); NaN with no frame counted."""
+        n = int(self.hist.sum())
+        if n == 0:
+            return math.nan
+        k = int(np.searchsorted(np.cumsum(self.hist), math.ceil(q / 100.0 * n)))
+        return min((k + 1) * self.BIN_S, self.max_s) * 1e3
+
+    def summary(self) -> dict[str, float]:
+        """Empty without a wall clock (lock-step, replay: no frame has an age)."""
+        if not self.hist.any():
+            return {}
+        return {"can_frame_age_p50_ms": self.percentile_ms(50),
+                "can_frame_age_p99_ms": self.percentile_ms(99),
+                "can_frame_age_max_ms": self.max_s * 1e3}  # fmt: skip
+
+
 PORT_EVENT_KINDS = (
     "TelemetrySuspect", "TelemetryTrusted", "TelemetryResync", "PresenceConfirmed",
     "DockRejected", "DockConfirmed", "SwitchTimeoutSeen",
@@ -235,6 +268,7 @@ class CanPlant:
         self.capacity_ah = capacity_ah
         self.has_charger = charger
         self.freshness = Freshness()
+        self.ages = FrameAges()
         self.wall: Callable[[], float] | None = None
         """The wall clock frames are stamped with (``time.time``), set by a real-time run:
         a frame then counts from when it reached the bus, not from when it was read."""
@@ -337,6 +371,7 @@ class CanPlant:
         d = now - ts
         if not 0.0 < d < 1e6:
             return 0.0
+        self.ages.add(d)
         if d > self.late_s:
             self.freshness.late += 1
         return d
