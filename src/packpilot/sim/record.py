@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from packpilot.contract.arrays import MeasArrays
 from packpilot.contract.bms import StatusValue
 from packpilot.contract.events import value as field_value
-from packpilot.contract.record import BATTERY_CHANNELS, StepSample, Trace
+from packpilot.contract.record import BATTERY_CHANNELS, StatusLayout, StepSample, Trace
 from packpilot.contract.topology import Topology
 from packpilot.jit import kernel
 from packpilot.model.pack import Interval, Pack
@@ -400,6 +400,19 @@ class TraceBuffer:
             if self.n > self.max_rows:
                 self._decimate()
         return n if self._pending else self.n - 1
+
+    def status_layout(self) -> StatusLayout:
+        """How a row of :attr:`status` reads as the status of a sample (:class:`StatusRow`'s
+        channels, in its order, laid out over the strings as it spreads them)."""
+        lay = self._layout
+        topo = self.topology
+        n_b = len(topo.traction)
+        positions = tuple(range(n_b)) if lay.same else tuple(topo.traction)
+        n_strings = n_b if lay.same else topo.n_strings
+        channels = tuple(
+            (name, slot, kind, labels) for name, (slot, kind, labels) in lay.slot.items()
+        )
+        return StatusLayout(channels, positions, n_strings)
 
     @property
     def rows(self) -> int:
