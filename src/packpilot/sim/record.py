@@ -315,6 +315,9 @@ class TraceBuffer:
         self._key_slot = np.array([slot for slot, _, _ in self.channels], np.int64)
         self._bank: Any = None
         self._bank_ordered = False
+        self._views: dict[int, tuple[F64, F64, F64, F64]] = {}
+        """id(soc array) -> (soc, temp, their (packs, cells) views): a view made once per
+        state buffer, not per step."""
         self._last_sampled: F64 | None = None
         """The status numbers of the last :meth:`sample` (what ``changed`` compares with)."""
 
@@ -334,8 +337,15 @@ class TraceBuffer:
                     bank.idx.shape == (n,) and np.array_equal(bank.idx, np.arange(n))
                 )
             if self._bank_ordered:
-                shape = (pack.n_packs, pack.n_cells)
-                return bank.state.soc.reshape(shape), bank.state.temp_c.reshape(shape)
+                st = bank.state
+                hit = self._views.get(id(st.soc))  # the plant swaps two state buffers
+                if hit is None or hit[0] is not st.soc or hit[1] is not st.temp_c:
+                    if len(self._views) > 4:
+                        self._views.clear()
+                    shape = (pack.n_packs, pack.n_cells)
+                    views = (st.soc.reshape(shape), st.temp_c.reshape(shape))
+                    hit = self._views[id(st.soc)] = (st.soc, st.temp_c, *views)
+                return hit[2], hit[3]
         return pack.cell_states()
 
     def _measured(self, m: MeasArrays) -> tuple[F64, F64, F64, F64]:
