@@ -60,7 +60,7 @@ def _tables(db: Path) -> dict[str, list[tuple[Any, ...]]]:
     conn = sqlite3.connect(db)
     try:
         out = {
-            t: conn.execute(f"SELECT * FROM {t} ORDER BY 1, 2, 3").fetchall()  # noqa: S608
+            t: conn.execute(f"SELECT * FROM {t} ORDER BY 1, 2, 3").fetchall()
             for t in ("pack_samples", "battery_samples", "aux_samples")
         }
         out["status_samples"] = conn.execute(
