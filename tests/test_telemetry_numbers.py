@@ -114,3 +114,41 @@ def test_a_run_mixing_samples_and_numbers_is_refused(tmp_path: Path) -> None:
             rec.record_numbers(
                 1, np.zeros(6), np.zeros((1, 13)), np.zeros((1, 1)), np.zeros((1, 1)), layout
             )
+
+
+@pytest.mark.parametrize("flush", [1, 3, 64])
+def test_every_kind_and_odd_number_gives_the_rows_of_record(tmp_path: Path, flush: int) -> None:
+    """Status numbers drawn from a pool of awkward values (NaN, -0.0 and 0.0, 1.2 and 1.7 that
+    render as the same int, label -1 as None), every kind, two batteries laid out over three
+    strings (an aux string in between): ``record_numbers`` stores the rows ``record`` stores
+    from the rendered samples."""
+    import numpy as np
+
+    from packpilot.contract.record import StatusLayout
+
+    labels = {"names": ["low", "high", "hot"]}
+    chans = (("f", 0, "f", labels), ("o", 1, "o", labels), ("i", 2, "i", labels),
+             ("b", 3, "b", labels), ("l", 4, "l:names", labels), ("m", 5, "m", labels))  # fmt: skip
+    layout = StatusLayout(chans, (0, 2), 3)
+    pool = np.array([np.nan, -0.0, 0.0, 1.0, 1.2, 1.7, 2.0, -1.0])
+    rng = np.random.default_rng(7)
+    rows = pool[rng.integers(0, len(pool), (120, 2, 6))]
+    rows[:, :, 2] = np.nan_to_num(rows[:, :, 2])  # an int channel never holds NaN
+    rows[:, :, 5] = np.abs(np.nan_to_num(rows[:, :, 5]))  # a battery set: a bit mask
+    rows[:40] = rows[0]  # a stretch where nothing moves
+    dbs = {}
+    for how in ("numbers", "samples"):
+        db = dbs[how] = tmp_path / f"{how}.sqlite"
+        with SQLiteRecorder(db, flush_every=flush) as rec:
+            rec.start({}, ["a", "b"])
+            for k, row in enumerate(rows):
+                bat, grp, sc = np.full((2, 13), float(k)), np.zeros((2, 1)), np.full(6, 0.5 * k)
+                if how == "numbers":
+                    rec.record_numbers(k, sc, bat, grp, row, layout)
+                else:
+                    rec.record(StepSample(k, *sc.tolist(), bat, grp, layout.render(row)))
+            rec.finish({})
+    got, want = _tables(dbs["numbers"]), _tables(dbs["samples"])
+    assert len(want["status_samples"]) > 120
+    for table in want:
+        assert got[table] == want[table], table

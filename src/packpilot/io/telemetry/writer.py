@@ -15,6 +15,7 @@ import platform
 import sqlite3
 import time
 from collections.abc import Mapping, Sequence
+from itertools import repeat
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -333,30 +334,58 @@ class SQLiteRecorder:
         cur: NDArray[np.float64], before: NDArray[np.float64], start: int,
     ) -> None:  # fmt: skip
         """Append the status rows of the entries whose numbers moved (``t``, ``c``, ``b``:
-        row, channel, battery, in row, channel, battery order as :meth:`_record_status`)."""
-        steps, rows, kinds = self._steps, self._status_rows, self._status_kinds
-        prev = self._status_prev
-        chans, pos = layout.channels, layout.positions
+        row, channel, battery). Kinds ``f``/``o`` (every moved entry is a change, the value
+        is the number, NaN stored as NULL) in bulk; the others rendered one by one and kept
+        only when the value a user reads changed (``i``: 1.2 -> 1.7 is no change)."""
+        chans = layout.channels
+        kinds = self._status_kinds
+        steps = np.asarray(self._steps[start : start + cur.shape[0]], np.int64)
+        pos = np.asarray(layout.positions, np.int64)
+        floatlike = np.array([kind in _FLOATLIKE for _, _, kind, _ in chans])[c]
+        names = np.array([name for name, _, _, _ in chans], dtype=object)
+        fl = np.nonzero(floatlike)[0]
+        if fl.size:
+            tf, cf, bf = t[fl], c[fl], b[fl]
+            xs = cur[tf, bf, cf]
+            vals = [None if x != x else x for x in xs.tolist()]
+            self._status_rows.extend(
+                zip(
+                    repeat(run_id), steps[tf].tolist(), pos[bf].tolist(),
+                    names[cf].tolist(), vals, strict=False,
+                )
+            )  # fmt: skip
+            nan = np.isnan(xs)
+            for ci in np.unique(cf).tolist():
+                name, _, kind, _ = chans[ci]
+                mine = cf == ci
+                if kind == "f" or (~nan[mine]).any():
+                    kinds[name].add("float")
+                if kind == "o" and nan[mine].any():
+                    kinds[name].add("none")
+        other = np.nonzero(~floatlike)[0]
+        if other.size:
+            self._store_rendered(run_id, chans, t[other], c[other], b[other], cur, before, steps)
+
+    def _store_rendered(
+        self, run_id: int, chans: Sequence[tuple[str, int, str, Any]], t: Any, c: Any, b: Any,
+        cur: NDArray[np.float64], before: NDArray[np.float64], steps: NDArray[np.int64],
+    ) -> None:  # fmt: skip
+        """The moved entries of the kinds a number is not the value of (``i``, ``b``, ``m``,
+        ``l:``): stored when the rendered value changed (same rule as :meth:`_record_status`)."""
+        assert self._num_layout is not None
+        pos = self._num_layout.positions
+        rows, kinds = self._status_rows, self._status_kinds
         xs = cur[t, b, c].tolist()
         ps = before[t, b, c].tolist()
         for ti, ci, bi, x, px in zip(t.tolist(), c.tolist(), b.tolist(), xs, ps, strict=True):
             name, _, kind, labels = chans[ci]
-            if kind == "f":
-                v: Any = None if x != x else x
-                stored, seen = v, "float"
-            elif kind == "o":
-                v = None if x != x else x
-                stored, seen = v, ("none" if v is None else "float")
-            else:
-                v = field_value(x, kind, labels)
-                p = field_value(px, kind, labels)
-                if type(v) is type(p) and (v == p or (v != v and p != p)):
-                    continue
-                stored, seen = _status_cell(v)
-            i = pos[bi]
-            prev[(name, i)] = v
+            v = field_value(x, kind, labels)
+            p = field_value(px, kind, labels)
+            if type(v) is type(p) and (v == p or (v != v and p != p)):
+                continue
+            stored, seen = _status_cell(v)
             kinds[name].add(seen)
-            rows.append((run_id, steps[start + ti], i, name, stored))
+            rows.append((run_id, int(steps[ti]), pos[bi], name, stored))
 
     def _record_status(self, run_id: int, step: int, status: Mapping[str, Sequence[Any]]) -> None:
         """Store a status value only when it differs from the last one stored (same type too).
