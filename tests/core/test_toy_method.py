@@ -151,3 +151,46 @@ def test_the_toy_does_nothing_above_its_cut() -> None:
         assert bool(plant.pack.dsg_on[0, 0])
     finally:
         loop.close()
+
+
+_SECOND_PROCESS = """
+import json, sys
+from packpilot.contract.bms import SwitchKind
+from packpilot.contract.topology import PackInfo
+from packpilot.control.core import Core, Part
+from packpilot.control.soc import METHOD as SOC
+from tests.core.test_toy_method import TOY, ToyConfig
+info = PackInfo(1, (2,), (3,), (SwitchKind.MOSFET_PAIR,), capacity_ah=(5.0,),
+                ocv_soc=(0.0, 1.0), ocv_v=(3.0, 4.2))
+core = Core([info], [Part.build(TOY, ToyConfig(), [info]), Part.build(SOC, None, [info])])
+core.step_batch(core.m, 0.1)
+k = core.step_kernel
+print(json.dumps({"file": k.py_func.__code__.co_filename, "hits": sum(k.stats.cache_hits.values()),
+                  "misses": sum(k.stats.cache_misses.values())}))
+"""
+
+
+def test_the_generated_step_is_compiled_once_and_loaded_from_the_cache(tmp_path: Path) -> None:
+    """The fused step of a composition is a file named by its digest: a second process finds
+    the same file and loads the compiled step from numba's cache instead of compiling it."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    if os.environ.get("NUMBA_DISABLE_JIT") == "1":
+        return  # nothing is compiled, nothing cached
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PACKPILOT_FUSED_DIR=str(tmp_path),
+               PYTHONPATH=os.pathsep.join([str(root / "src"), str(root)]))  # fmt: skip
+    runs = []
+    for _ in range(2):
+        out = subprocess.run(
+            [sys.executable, "-c", _SECOND_PROCESS], env=env, cwd=root, capture_output=True,
+            text=True, timeout=1200, check=True,
+        ).stdout  # fmt: skip
+        runs.append(json.loads(out.strip().splitlines()[-1]))
+    first, second = runs
+    assert first["file"] == second["file"] and Path(first["file"]).parent == tmp_path
+    assert first["misses"] == 1 and first["hits"] == 0  # compiled in the first process
+    assert second["hits"] == 1 and second["misses"] == 0  # loaded in the second
