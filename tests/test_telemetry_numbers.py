@@ -152,3 +152,32 @@ def test_every_kind_and_odd_number_gives_the_rows_of_record(tmp_path: Path, flus
     assert len(want["status_samples"]) > 120
     for table in want:
         assert got[table] == want[table], table
+
+
+@pytest.mark.parametrize("n", [0, 1, 63, 64, 65, 200])
+def test_multi_row_inserts_store_the_rows_of_executemany(tmp_path: Path, n: int) -> None:
+    """``_insert`` sends 64 rows per statement: the table holds exactly the rows (and their
+    SQLite types: NULL, INTEGER, REAL, TEXT) that one ``executemany`` of single rows gives."""
+    from packpilot.io.telemetry import writer
+    from packpilot.io.telemetry.schema import _SCHEMA, _STATUS_INSERT
+
+    values: list[Any] = [None, 1, 2.5, "charge", float("nan"), -0.0, True]
+    rows = [(1, k // 3, k % 3, f"ch{k % 5}", values[k % len(values)]) for k in range(n)]
+    got = []
+    for how in ("multi", "single"):
+        conn = sqlite3.connect(tmp_path / f"{how}.sqlite")
+        conn.executescript(_SCHEMA)
+        with conn:
+            if how == "multi":
+                writer._insert(conn, _STATUS_INSERT, rows)
+            else:
+                conn.executemany(_STATUS_INSERT, rows)
+        got.append(
+            conn.execute(
+                "SELECT run_id, step, battery, channel, value, typeof(value) FROM status_samples"
+                " ORDER BY step, channel, battery"
+            ).fetchall()
+        )
+        conn.close()
+    assert len(got[0]) == n
+    assert got[0] == got[1]
