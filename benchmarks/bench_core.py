@@ -419,14 +419,7 @@ def core_profile(n_packs: int, steps: int = 300, start: int = 250) -> dict[str, 
     """The fused core step per method (us per pack-step, wall, best of 5): the kernel with
     only that branch enabled, on a snapshot of the arena taken during the flight, minus the
     kernel with none enabled (clear + unpack + call); ``full`` is all of them."""
-    from packpilot.control.core_kernel import (
-        DIR_N_PARTS,
-        DIR_PARTS,
-        DIR_STRIDE,
-        DIR_SUP_PRM,
-        METHOD_IDS,
-        core_step,
-    )
+    from packpilot.control.core_kernel import DIR_N_PARTS, DIR_PARTS, DIR_STRIDE, DIR_SUP_PRM
 
     cfg = _cfg()
     dt = cfg.sim.dt_s
@@ -436,7 +429,7 @@ def core_profile(n_packs: int, steps: int = 300, start: int = 250) -> dict[str, 
     core = loop.core
     d0 = core.directory
     n_parts = int(d0[DIR_N_PARTS])
-    names = {v: k for k, v in METHOD_IDS.items()}
+    core_step = core.step_kernel
     saved = [a.copy() for a in core.arenas]
 
     def variant(keep: set[int], sup: bool) -> Any:
@@ -462,7 +455,7 @@ def core_profile(n_packs: int, steps: int = 300, start: int = 250) -> dict[str, 
     none = best(variant(set(), False))
     out = {"clear+unpack+call": none}
     for j in range(n_parts):
-        out[names[int(d0[DIR_PARTS + DIR_STRIDE * j])]] = best(variant({j}, False)) - none
+        out[core.parts[j].method.name] = best(variant({j}, False)) - none
     out["supervisor"] = best(variant(set(), True)) - none
     out["full"] = best(d0)
     for a, s in zip(core.arenas, saved, strict=True):

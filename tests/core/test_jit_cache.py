@@ -85,10 +85,15 @@ def test_editing_an_imported_module_recompiles_the_cached_kernel(
 def test_core_kernels_run_without_the_numba_runtime() -> None:
     """The core's kernels are compiled with ``_nrt`` off (no reference counting on arena
     views, docs/kernels.md); the plant's, which allocate, keep it."""
-    from packpilot.control import core_kernel
+    from packpilot.contract.bms import SwitchKind
+    from packpilot.contract.topology import PackInfo
+    from packpilot.control.core import Core, Part
+    from packpilot.control.sequencing import METHOD as SEQUENCING
     from packpilot.control.sequencing import rules as seq
     from packpilot.model import pack_kernel
 
-    for dispatcher in (core_kernel.core_step, seq.step_packs, seq.step_pack):
+    info = PackInfo(2, (1, 1), (1, 1), (SwitchKind.MOSFET_PAIR,) * 2)
+    core = Core([info], [Part.build(SEQUENCING, None, [info])])
+    for dispatcher in (core.step_kernel, seq.step_packs, seq.step_pack):
         assert dispatcher.targetoptions.get("_nrt") is False, dispatcher
     assert "_nrt" not in pack_kernel.segment_sums.targetoptions

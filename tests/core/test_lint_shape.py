@@ -28,7 +28,7 @@ def _decorator_name(node: ast.expr) -> str:
 
 def _defines_kernel(path: Path) -> bool:
     """A module-level function decorated as a kernel, or a kernel made by calling the decorator
-    (``core_kernel.step_for`` builds one fused step per set of methods: ``kernel(core_step)``)."""
+    (``arena``'s generated unpackers, ``kernel_inline(clear_commands)``)."""
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     decorated = any(
         isinstance(node, ast.FunctionDef)

@@ -4,6 +4,7 @@ control method's section has its own module here; :mod:`.base` holds what they s
 from packpilot.config.scenario import (
     FAULT_KINDS,
     METHODS,
+    PACKAGES,
     SAFETY,
     SECTIONS,
     SUPERVISED,
@@ -28,6 +29,7 @@ from packpilot.config.scenario import (
 __all__ = [
     "FAULT_KINDS",
     "METHODS",
+    "PACKAGES",
     "SAFETY",
     "SECTIONS",
     "SUPERVISED",

@@ -412,16 +412,20 @@ class FaultConfig(_Strict):
 
 @dataclass(frozen=True)
 class Section:
-    """Marks a field of :class:`ScenarioConfig` as the section of a control method
+    """Registers a field of :class:`ScenarioConfig` as the section of a control method
     (``role="method"``: runs when ``controller`` lists it, in that order) or of a safety layer
-    (``role="safety"``: runs, under the supervisor, when its section is present).
+    (``role="safety"``: runs, under the supervisor, when its section is present), run by the
+    compiled method of ``package`` (its ``METHOD``, or ``method_for(config, infos)``;
+    default ``packpilot.control.<field name>``).
 
-    The marked fields are the config layer's declaration of which sections exist: ``config``
-    sits below ``control`` and cannot read the registry, so :data:`METHODS` / :data:`SAFETY`
-    are derived from these fields, and :mod:`packpilot.control.registry` checks on import that
-    it registers exactly these names, roles and config models, in this order."""
+    This field is the **one registry line** of a method: :data:`METHODS` / :data:`SAFETY` /
+    :data:`PACKAGES` are derived from these fields, and so is
+    :mod:`packpilot.control.registry` (``config`` sits below ``control``: it names the package
+    as a string and never imports it). The core's fused step is generated from the parts a
+    scenario builds (:mod:`packpilot.control.core_kernel`), so nothing else lists methods."""
 
     role: Literal["method", "safety"]
+    package: str | None = None
 
 
 _METHOD = Section("method")
@@ -521,6 +525,15 @@ def _sections(role: str) -> dict[str, type[BaseModel]]:
     return out
 
 
+def _packages() -> dict[str, str]:
+    out: dict[str, str] = {}
+    for name, info in ScenarioConfig.model_fields.items():
+        for m in info.metadata:
+            if isinstance(m, Section):
+                out[name] = m.package or f"packpilot.control.{name}"
+    return out
+
+
 _METHOD_MODELS = _sections("method")
 _SAFETY_MODELS = _sections("safety")
 METHODS: tuple[str, ...] = tuple(_METHOD_MODELS)
@@ -533,6 +546,8 @@ SECTIONS: Mapping[str, type[BaseModel]] = MappingProxyType(
     {**_METHOD_MODELS, "supervisor": SupervisorConfig, **_SAFETY_MODELS}
 )
 """Every section a method, the supervisor or a safety layer reads -> its config model."""
+PACKAGES: Mapping[str, str] = MappingProxyType(_packages())
+"""Each method and safety layer -> the control package whose ``METHOD`` runs it."""
 
 
 MAX_FILE_BYTES = 1 << 20

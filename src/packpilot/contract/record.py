@@ -15,6 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.contract.bms import Event, StatusValue
+from packpilot.contract.events import Labels
+from packpilot.contract.events import value as field_value
 
 # Per-battery channels always present in a StepSample, in this order (SI units in the name).
 BATTERY_CHANNELS: tuple[str, ...] = (
@@ -53,6 +55,30 @@ class StepSample:
     """Controller status channels, one value per battery."""
     aux: NDArray[np.float64] | None = None
     """Auxiliary battery row (BATTERY_CHANNELS), if the pack has one."""
+
+
+@dataclass(frozen=True)
+class StatusLayout:
+    """How a row of status *numbers* (``(batteries, slots)``, as the core writes them) reads
+    as the status channels a :class:`StepSample` carries: each channel's name, slot, kind and
+    labels in output order (``packpilot.contract.events.value`` renders a number), and where
+    each battery's value sits in a channel's list (``Topology.spread``: ``positions[b]`` of
+    ``n_strings``, ``None`` elsewhere). :meth:`SQLiteRecorder.record_numbers` stores the same
+    rows from it without rendering every channel of every step."""
+
+    channels: tuple[tuple[str, int, str, Labels], ...]
+    positions: tuple[int, ...]
+    n_strings: int
+
+    def render(self, row: NDArray[np.float64]) -> dict[str, list[StatusValue]]:
+        """Every channel of one row as the status mapping of a sample."""
+        out: dict[str, list[StatusValue]] = {}
+        for name, slot, kind, labels in self.channels:
+            vals: list[StatusValue] = [None] * self.n_strings
+            for b, x in enumerate(row[:, slot].tolist()):
+                vals[self.positions[b]] = field_value(x, kind, labels)
+            out[name] = vals
+        return out
 
 
 class Recorder(Protocol):

@@ -49,16 +49,17 @@ from packpilot.contract.events import Labels, Source, render_one
 from packpilot.contract.topology import PackInfo
 from packpilot.control import commands as ck
 from packpilot.control.core_kernel import (
-    COMPILED,
     DIR_N_PARTS,
     DIR_PARTS,
     DIR_STRIDE,
     DIR_SUP_PRM,
     DIR_SUP_S0,
     DIR_SUP_ST,
-    METHOD_IDS,
+    Fusion,
+    Kind,
     StatusBuf,
-    step_for,
+    fused,
+    kind_of,
 )
 from packpilot.control.method import CompiledController, Method, StatusChannel, status_values
 from packpilot.control.supervisor import controller as sup_ctl
@@ -204,28 +205,46 @@ class Core:
         d = np.full(DIR_PARTS + DIR_STRIDE * len(self.parts), -1, np.int64)
         d[: len(fixed)] = rows[: len(fixed)]
         d[DIR_N_PARTS] = len(self.parts)
-        k = len(fixed)
+        kinds = self._kinds_of_parts()
         for x, (pr, sr_) in zip(self.compiled, parts, strict=True):
             x.prm, x.st = views[pr], views[sr_]
             if x.owner is not None:
                 x.owner.prm, x.owner.st = x.prm, x.st
             j = self.parts.index(x)
             d[DIR_PARTS + DIR_STRIDE * j : DIR_PARTS + DIR_STRIDE * (j + 1)] = (
-                METHOD_IDS.get(x.method.name, -1), rows[pr], rows[sr_], x.s0,
+                -1 if kinds is None else kinds.index(self._kind(x)), rows[pr], rows[sr_], x.s0,
             )  # fmt: skip
-            k += 2
         if sup is not None and sup_rows is not None:
             sup.prm, sup.st = views[sup_rows[0]], views[sup_rows[1]]
             d[DIR_SUP_PRM], d[DIR_SUP_ST] = rows[sup_rows[0]], rows[sup_rows[1]]
             d[DIR_SUP_S0] = sup.s0
         self.directory = d
-        self.fused = all(isinstance(x, Part) and x.method.name in COMPILED for x in self.parts)
-        """Every part is known to the one compiled step (else: part by part)."""
+        self.fused = kinds is not None
+        """Every part is a compiled method: the core steps in one compiled call (else: part
+        by part, from Python)."""
+        self.fusion: Fusion | None = None
         self.step_kernel: Any = None
         """The fused step of exactly these parts (compiles only their rules), when fused."""
-        if self.fused:
-            names = frozenset(x.method.name for x in self.compiled)
-            self.step_kernel = step_for(names, self.supervisor is not None)
+        if kinds is not None:
+            self.fusion = Fusion(tuple(kinds), self.supervisor is not None)
+            self.step_kernel = fused(self.fusion)
+
+    @staticmethod
+    def _kind(x: Part) -> Kind:
+        m = x.method
+        return kind_of(m.step_packs, type(x.prm), type(x.st), m.after)
+
+    def _kinds_of_parts(self) -> list[Kind] | None:
+        """The distinct methods of the parts, in order of first appearance (the fused step's
+        method ids), or None when a part cannot be fused (a Python controller)."""
+        kinds: list[Kind] = []
+        for x in self.parts:
+            if not isinstance(x, Part):
+                return None
+            kind = self._kind(x)
+            if kind not in kinds:
+                kinds.append(kind)
+        return kinds
 
     @property
     def compiled(self) -> list[Part]:
@@ -352,6 +371,8 @@ class Core:
 
     def python_status(self) -> dict[str, list[StatusValue]] | None:
         """The last step's status of the Python parts (``None`` when there are none)."""
+        if self.fused:  # every part compiled: no Python status (asked every step)
+            return None
         if len(self.compiled) == len(self.parts):
             return None
         out: dict[str, list[StatusValue]] = {}

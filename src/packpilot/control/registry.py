@@ -1,12 +1,13 @@
-"""The control methods and safety layers, each registered once: name -> role, config model,
-compiled method (or, while it is being moved to the core, its scalar controller), replay
-adapter.
+"""The control methods and safety layers: name -> role, config model, compiled method (or a
+scalar controller), replay adapter.
 
-Everything that needs the list of methods derives it from here: the core (its order, the
-branches it knows), ``sim/loop.py:build_core``, the ``packpilot replay`` commands. The typed
-sections of :class:`~packpilot.config.ScenarioConfig` are the config layer's own declaration of
-the same names (``config`` sits below ``control`` and cannot import this module); the check at
-the bottom makes an import fail unless both agree on names, roles, models and order.
+A method is registered by **one line**, its typed section in
+:class:`~packpilot.config.ScenarioConfig` (``name: Annotated[NameConfig | None, Section(role)]``,
+which names its control package); this module derives its entries from those sections and
+adds the optional ``packpilot replay`` adapters (:data:`REPLAYS`). Everything that needs the
+list of methods derives it from here: ``sim/loop.py:build_core``, the ``packpilot replay``
+commands, the report. The core's fused step is generated from the parts a core has
+(:mod:`packpilot.control.core_kernel`), so it lists no method either.
 """
 
 from __future__ import annotations
@@ -19,13 +20,6 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel
 
 from packpilot.config import scenario
-from packpilot.config.charging import ChargingConfig
-from packpilot.config.equalization import EqualizationConfig
-from packpilot.config.limits import LimitsConfig
-from packpilot.config.plausibility import PlausibilityConfig
-from packpilot.config.protection import ProtectionConfig
-from packpilot.config.sequencing import SequencingConfig
-from packpilot.config.soc import SocConfig
 from packpilot.contract.bms import Controller
 from packpilot.contract.topology import PackInfo
 from packpilot.control.method import Method
@@ -95,57 +89,49 @@ class Entry:
         return ctl
 
 
-REGISTRY: dict[str, Entry] = {
-    e.name: e
-    for e in (
-        Entry(
-            "protection", "method", ProtectionConfig, "packpilot.control.protection:METHOD",
-            Replay(
-                "packpilot.replay.protection:replay",
-                "Replay t_s,current_a,temp_c,min_cell_v through discharge protection.",
-            ),
-        ),
-        Entry(
-            "sequencing", "method", SequencingConfig, "packpilot.control.sequencing:METHOD",
-            Replay(
-                "packpilot.replay.sequencing:replay",
-                "Replay t_s,v_0..v_{N-1},i_0..i_{N-1} through parallel discharge sequencing.",
-            ),
-        ),
-        Entry("charging", "method", ChargingConfig, "packpilot.control.charging:METHOD"),
-        Entry(
-            "equalization", "method", EqualizationConfig, "packpilot.control.equalization:METHOD",
-            Replay(
-                "packpilot.replay.equalization:replay",
-                "Replay t_s,current_a,v_0..v_{M-1} through Newton-iterated equalization.",
-            ),
-        ),
-        Entry("limits", "safety", LimitsConfig, "packpilot.control.limits:METHOD"),
-        Entry(
-            "plausibility", "safety", PlausibilityConfig, "packpilot.control.plausibility:METHOD"
-        ),
-        Entry("soc", "safety", SocConfig, "packpilot.control.soc:METHOD"),
-    )
-}  # fmt: skip
+REPLAYS: dict[str, Replay] = {
+    "protection": Replay(
+        "packpilot.replay.protection:replay",
+        "Replay t_s,current_a,temp_c,min_cell_v through discharge protection.",
+    ),
+    "sequencing": Replay(
+        "packpilot.replay.sequencing:replay",
+        "Replay t_s,v_0..v_{N-1},i_0..i_{N-1} through parallel discharge sequencing.",
+    ),
+    "equalization": Replay(
+        "packpilot.replay.equalization:replay",
+        "Replay t_s,current_a,v_0..v_{M-1} through Newton-iterated equalization.",
+    ),
+}
+"""The ``packpilot replay NAME`` commands: a method with a log adapter in ``packpilot/replay``
+(optional; a method runs in every other command without one)."""
+
+
+def _entries() -> dict[str, Entry]:
+    """One entry per section :class:`~packpilot.config.ScenarioConfig` registers (its
+    :class:`~packpilot.config.scenario.Section` fields), in their order."""
+    roles: dict[str, Literal["method", "safety"]] = {
+        **dict.fromkeys(scenario.METHODS, "method"),
+        **dict.fromkeys(scenario.SAFETY, "safety"),
+    }
+    return {
+        name: Entry(
+            name,
+            role,
+            scenario.SECTIONS[name],
+            f"{scenario.PACKAGES[name]}:METHOD",
+            REPLAYS.get(name),
+        )
+        for name, role in roles.items()
+    }
+
+
+REGISTRY: dict[str, Entry] = _entries()
 """Methods run in the order a scenario lists them; safety layers after them, in this order."""
 
 METHODS: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.role == "method")
 SAFETY: tuple[str, ...] = tuple(n for n, e in REGISTRY.items() if e.role == "safety")
+if not set(REPLAYS) <= set(REGISTRY):
+    raise ImportError(f"replay adapters of unregistered methods: {set(REPLAYS) - set(REGISTRY)}")
 
-
-def _check_matches_config() -> None:
-    """The registry and the typed sections of ``ScenarioConfig`` name the same methods and
-    safety layers, in the same order, with the same config models."""
-    ours = {n: e.config for n, e in REGISTRY.items()}
-    theirs = {n: scenario.SECTIONS[n] for n in (*scenario.METHODS, *scenario.SAFETY)}
-    if (METHODS, SAFETY) != (scenario.METHODS, scenario.SAFETY) or ours != theirs:
-        raise ImportError(
-            "control.registry and the sections of config.ScenarioConfig disagree: "
-            f"registered {METHODS} + {SAFETY} with {ours}; "
-            f"the config declares {scenario.METHODS} + {scenario.SAFETY} with {theirs}"
-        )
-
-
-_check_matches_config()
-
-__all__ = ["METHODS", "REGISTRY", "SAFETY", "Entry", "Replay"]
+__all__ = ["METHODS", "REGISTRY", "REPLAYS", "SAFETY", "Entry", "Replay"]

@@ -13,7 +13,7 @@ import gc
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from itertools import compress
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from packpilot.contract.arrays import MeasArrays
 from packpilot.contract.bms import StatusValue
 from packpilot.contract.events import value as field_value
-from packpilot.contract.record import BATTERY_CHANNELS, StepSample, Trace
+from packpilot.contract.record import BATTERY_CHANNELS, StatusLayout, StepSample, Trace
 from packpilot.contract.topology import Topology
 from packpilot.jit import kernel
 from packpilot.model.pack import Interval, Pack
@@ -42,10 +42,21 @@ def _row(
     chg_on: Any, dsg_on: Any, welded: Any, fet_shorted: Any, battery_v: F64, string_a: F64,
     chg_d: F64, dsg_d: F64, bal_w: F64, group_v: F64, status: F64, out_bat: F64,
     out_group: F64, out_status: F64, m_v: F64, m_a: F64, m_t: F64, m_soc: F64,
+    step: int, t_s: float, bus_v: F64, demand_a: F64, load_a: F64, charger_v: F64,
+    charger_a: F64, out_step: Any, out_scalars: F64,
 ) -> None:  # fmt: skip
     """Row ``k`` of the trace: pack ``p``'s truth after the step (``Runner._sample`` order);
     the gates as the hardware really is (``Pack.effective_gates``); then the core's status
-    slots and, after them, what the BMS measured (:data:`MEASURED`, ``m_*`` shaped (P, B))."""
+    slots and, after them, what the BMS measured (:data:`MEASURED`, ``m_*`` shaped (P, B));
+    the step and the pack's scalars (``TraceBuffer._cols`` order)."""
+    out_step[k] = step
+    sc = out_scalars[k]
+    sc[0] = t_s
+    sc[1] = bus_v[p]
+    sc[2] = demand_a[p]
+    sc[3] = load_a[p]
+    sc[4] = charger_v[p]
+    sc[5] = charger_a[p]
     S = starts.shape[0]
     C = cell_v.shape[1]
     for s in range(S):
@@ -89,7 +100,14 @@ def _row(
             out_status[k, i, n_core + 3] = m_soc[p, i]
 
 
-_NO_MEASUREMENT = (np.zeros((0, 0)),) * 4
+class _NoBat(NamedTuple):
+    voltage_v: F64
+    current_a: F64
+    temp_c: F64
+    soc: F64
+
+
+_NO_MEASUREMENT = _NoBat(*(np.zeros((0, 0)),) * 4)
 """``_row``'s measured arrays when there are none (their slots are then NaN)."""
 
 
@@ -315,6 +333,9 @@ class TraceBuffer:
         self._key_slot = np.array([slot for slot, _, _ in self.channels], np.int64)
         self._bank: Any = None
         self._bank_ordered = False
+        self._views: dict[int, tuple[F64, F64, F64, F64]] = {}
+        """id(soc array) -> (soc, temp, their (packs, cells) views): a view made once per
+        state buffer, not per step."""
         self._last_sampled: F64 | None = None
         """The status numbers of the last :meth:`sample` (what ``changed`` compares with)."""
 
@@ -334,13 +355,16 @@ class TraceBuffer:
                     bank.idx.shape == (n,) and np.array_equal(bank.idx, np.arange(n))
                 )
             if self._bank_ordered:
-                shape = (pack.n_packs, pack.n_cells)
-                return bank.state.soc.reshape(shape), bank.state.temp_c.reshape(shape)
+                st = bank.state
+                hit = self._views.get(id(st.soc))  # the plant swaps two state buffers
+                if hit is None or hit[0] is not st.soc or hit[1] is not st.temp_c:
+                    if len(self._views) > 4:
+                        self._views.clear()
+                    shape = (pack.n_packs, pack.n_cells)
+                    views = (st.soc.reshape(shape), st.temp_c.reshape(shape))
+                    hit = self._views[id(st.soc)] = (st.soc, st.temp_c, *views)
+                return hit[2], hit[3]
         return pack.cell_states()
-
-    def _measured(self, m: MeasArrays) -> tuple[F64, F64, F64, F64]:
-        bat = m.bat
-        return bat.voltage_v, bat.current_a, bat.temp_c, bat.soc
 
     def _grow(self) -> None:
         size = min(2 * self.step.shape[0], self.max_rows + 1)
@@ -377,17 +401,15 @@ class TraceBuffer:
             self._grow()
         pack, p, n = self.pack, self.p, self.n
         soc, temp = self._cell_states()
-        self.step[n] = k
-        sc = self.scalars[n]
-        sc[0] = iv.t_s
-        sc[1], sc[2], sc[3] = iv.bus_v[p], iv.load_demand_a[p], iv.load_a[p]
-        sc[4], sc[5] = iv.charger_v[p], iv.charger_a[p]
+        bat = _NO_MEASUREMENT if m is None else m.bat
         _row(
             n, p, pack.string_cell_starts, pack.group_table, iv.cell_v, soc, temp,
             pack.capacity_ah, pack.chg_on, pack.dsg_on, pack.welded, pack.fet_shorted,
             iv.battery_v, iv.string_a, iv.chg_diode_a,
             iv.dsg_diode_a, iv.balancer_in_w, iv.group_v, status, self.battery, self.group_v,
-            self.status, *(_NO_MEASUREMENT if m is None else self._measured(m)),
+            self.status, bat.voltage_v, bat.current_a, bat.temp_c, bat.soc,
+            k, iv.t_s, iv.bus_v, iv.load_demand_a, iv.load_a, iv.charger_v, iv.charger_a,
+            self.step, self.scalars,
         )  # fmt: skip
         if m is None:
             self.status[n, :, self.n_core :].fill(np.nan)
@@ -400,6 +422,19 @@ class TraceBuffer:
             if self.n > self.max_rows:
                 self._decimate()
         return n if self._pending else self.n - 1
+
+    def status_layout(self) -> StatusLayout:
+        """How a row of :attr:`status` reads as the status of a sample (:class:`StatusRow`'s
+        channels, in its order, laid out over the strings as it spreads them)."""
+        lay = self._layout
+        topo = self.topology
+        n_b = len(topo.traction)
+        positions = tuple(range(n_b)) if lay.same else tuple(topo.traction)
+        n_strings = n_b if lay.same else topo.n_strings
+        channels = tuple(
+            (name, slot, kind, labels) for name, (slot, kind, labels) in lay.slot.items()
+        )
+        return StatusLayout(channels, positions, n_strings)
 
     @property
     def rows(self) -> int:

@@ -113,6 +113,35 @@ class Runner:
         )
         return loop, buf
 
+    def _recording(
+        self, core: Core, buf: TraceBuffer
+    ) -> Callable[[int, int, list[Event]], None] | None:
+        """What hands step ``k`` (trace row ``row``) and its events to the recorder. A recorder
+        that takes numbers (SQLite: ``record_numbers``) gets the trace's row as it is, with
+        no sample built per step; a core with Python parts (status that is not numbers), or
+        any other recorder, gets a :class:`StepSample`."""
+        rec = self.recorder
+        if rec is None:
+            return None
+        numbers = getattr(rec, "record_numbers", None)
+        if numbers is None or core.python_status() is not None:
+
+            def sample(k: int, row: int, events: list[Event]) -> None:
+                rec.record(buf.sample(row))
+                if events:
+                    rec.record_events(events)
+
+            return sample
+        layout = buf.status_layout()
+
+        def fast(k: int, row: int, events: list[Event]) -> None:
+            numbers(k, buf.scalars[row], buf.battery[row], buf.group_v[row], buf.status[row],
+                    layout)  # fmt: skip
+            if events:
+                rec.record_events(events)
+
+        return fast
+
     def run(self) -> Result:
         cfg = self.cfg
         dt = cfg.sim.dt_s
@@ -133,6 +162,7 @@ class Runner:
         status = "ok"
         enabled = cfg.sim.progress if self.progress is None else self.progress
         bar = _Progress(total, enabled, lines=self.progress is True and not sys.stderr.isatty())
+        record = self._recording(core, buf)
         try:
             for k in range(total):
                 rec = loop.step(k, dt)
@@ -140,10 +170,8 @@ class Runner:
                 new_events = rec.events[0]
                 if new_events:
                     self.events.extend(new_events)
-                if self.recorder is not None:
-                    self.recorder.record(buf.sample(row))
-                    if new_events:
-                        self.recorder.record_events(new_events)
+                if record is not None:
+                    record(k, row, new_events)
                 bar.update(k + 1)
                 self.steps_done = k + 1
                 if not loop.running:

@@ -8,6 +8,7 @@ keeps whatever was flushed. Writes are buffered and sent with ``executemany`` ev
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import importlib.metadata
 import math
 import os
@@ -15,6 +16,7 @@ import platform
 import sqlite3
 import time
 from collections.abc import Mapping, Sequence
+from itertools import chain, repeat
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -23,7 +25,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.contract.bms import Event, StatusValue
-from packpilot.contract.record import BATTERY_CHANNELS, StepSample
+from packpilot.contract.events import value as field_value
+from packpilot.contract.record import BATTERY_CHANNELS, StatusLayout, StepSample
 from packpilot.errors import InputError
 from packpilot.io.telemetry.liveness import add_writer_columns, host_name, mark_aborted
 from packpilot.io.telemetry.schema import (
@@ -96,6 +99,35 @@ def _versions() -> dict[str, str]:
     return {"packpilot": pp, "numpy": np.__version__, "python": platform.python_version()}
 
 
+ROWS_PER_INSERT = 64
+"""Rows one ``INSERT ... VALUES (...), (...), ...`` statement carries: SQLite then runs one
+statement per 64 rows instead of one per row (the status rows of uav_mission: 27.7 -> 16.0 us
+of CPU per step, the same rows; benchmarks/RESULTS.md)."""
+
+
+@functools.cache
+def _multi_row(sql: str, n: int) -> str:
+    """``sql`` (``INSERT INTO t VALUES (?, ?)``) inserting ``n`` rows at once."""
+    head, values = sql.split(" VALUES ")
+    return f"{head} VALUES {', '.join([values] * n)}"
+
+
+def _insert(conn: sqlite3.Connection, sql: str, rows: Sequence[tuple[Any, ...]]) -> None:
+    """``conn.executemany(sql, rows)``, in statements of :data:`ROWS_PER_INSERT` rows (the
+    same rows, in the same order, in the caller's transaction)."""
+    n = ROWS_PER_INSERT
+    full = len(rows) // n * n
+    if full:
+        width = len(rows[0])
+        flat = list(chain.from_iterable(rows[:full]))
+        step = width * n
+        conn.executemany(
+            _multi_row(sql, n), [flat[j : j + step] for j in range(0, full * width, step)]
+        )
+    if full < len(rows):
+        conn.executemany(sql, rows[full:])
+
+
 _UNSET = object()
 
 
@@ -111,6 +143,11 @@ def _status_cell(value: Any) -> tuple[StatusValue, str]:
         f = float(value)
         return (None if math.isnan(f) else f), "float"
     return str(value), "str"
+
+
+_FLOATLIKE = ("f", "o")
+"""Kinds whose value is the number itself (``o``: ``None`` for NaN): a value changed exactly
+when the numbers differ and are not both NaN."""
 
 
 class SQLiteRecorder:
@@ -149,6 +186,11 @@ class SQLiteRecorder:
         self._status_kinds: dict[str, set[str]] = {}
         self._status_prev: dict[tuple[str, int], Any] = {}
         self._status_prev_seq: dict[str, tuple[Any, ...]] = {}
+        self._num_buf: NDArray[np.float64] | None = None
+        self._num_prev: NDArray[np.float64] | None = None
+        self._num_layout: StatusLayout | None = None
+        self._num_done = 0
+        """Leading buffered rows whose status rows are made (the run's first sample's)."""
 
     @property
     def run_id(self) -> int | None:
@@ -197,11 +239,16 @@ class SQLiteRecorder:
         self._status_prev = {}
         self._status_prev_seq = {}
         self._bat_buf = None  # re-sized from the first sample of the new run
+        self._num_buf = self._num_prev = self._num_layout = None
+        self._num_done = 0
         return run_id
 
     def _alloc(self, sample: StepSample) -> None:
         """Size the sample buffers from the first sample of a run (group count is per pack)."""
-        n, shape_b, shape_g = self.flush_every, sample.battery.shape, sample.group_v.shape
+        self._alloc_shapes(sample.battery.shape, sample.group_v.shape)
+
+    def _alloc_shapes(self, shape_b: tuple[int, ...], shape_g: tuple[int, ...]) -> None:
+        n = self.flush_every
         self._pack_buf = np.empty((n, len(PACK_COLUMNS)))
         self._bat_buf = np.empty((n, *shape_b))
         self._grp_buf = np.empty((n, *shape_g))
@@ -242,6 +289,133 @@ class SQLiteRecorder:
             or time.monotonic() - self._last_commit >= self.commit_every_s
         ):
             self.flush()
+
+    def record_numbers(
+        self,
+        step: int,
+        scalars: NDArray[np.float64],
+        battery: NDArray[np.float64],
+        group_v: NDArray[np.float64],
+        status: NDArray[np.float64],
+        layout: StatusLayout,
+    ) -> None:
+        """:meth:`record` of a sample given as the numbers it is made of (what a run's trace
+        holds): ``scalars`` the pack row (:data:`PACK_COLUMNS`), ``battery``/``group_v`` as a
+        sample's, ``status`` the status numbers (batteries, slots) read through ``layout``.
+        The database receives the same rows as from :meth:`record`; the status values are
+        rendered and compared only at the flush, in bulk, and only where a number changed
+        (per step this copies four rows: rendering every sample cost more than the BMS)."""
+        run_id = self._require_run()
+        if self._steps and self._num_layout is None:
+            raise RuntimeError("record_numbers cannot follow record() in the same run")
+        k = self._pending
+        if self._bat_buf is None:
+            self._alloc_shapes(battery.shape, group_v.shape)
+        if self._num_buf is None:
+            self._num_buf = np.empty((self.flush_every, *status.shape))
+            self._num_layout = layout
+        assert self._pack_buf is not None and self._bat_buf is not None
+        assert self._grp_buf is not None
+        self._pack_buf[k] = scalars
+        self._bat_buf[k] = battery
+        self._grp_buf[k] = group_v
+        self._num_buf[k] = status
+        self._steps.append(int(step))
+        self._pending = k + 1
+        if self._num_prev is None:  # the run's first sample: every channel, as record() does
+            self._num_prev = status.copy()
+            self._num_done = self._pending
+            self._record_status(run_id, int(step), layout.render(status))
+        if (
+            self._pending >= self.flush_every
+            or time.monotonic() - self._last_commit >= self.commit_every_s
+        ):
+            self.flush()
+
+    def _numbers_to_status(self, run_id: int) -> None:
+        """The status rows of the buffered numbers (rows after a run's first sample, which
+        :meth:`record_numbers` stored whole): a value is stored when it renders differently
+        from the step before (what :meth:`_record_status` decides, value by value, against
+        the last value stored: for every kind, that is the previous step's value)."""
+        layout, buf, prev, k = self._num_layout, self._num_buf, self._num_prev, self._pending
+        start = self._num_done
+        if layout is None or buf is None or prev is None or k <= start:
+            return
+        slots = [slot for _, slot, _, _ in layout.channels]
+        cur = buf[start:k][:, :, slots]  # (t, b, c)
+        before = np.concatenate([prev[None, :, slots], buf[start : k - 1][:, :, slots]])
+        moved = cur.view(np.int64) != before.view(np.int64)
+        kinds = [kind for _, _, kind, _ in layout.channels]
+        floatlike = np.array([kind in _FLOATLIKE for kind in kinds])
+        if floatlike.any():
+            same = (cur == before) | (np.isnan(cur) & np.isnan(before))
+            moved &= ~(same & floatlike)
+        boolean = np.array([kind == "b" for kind in kinds])
+        if boolean.any():
+            moved &= ((cur != 0.0) != (before != 0.0)) | ~boolean
+        t, c, b = np.nonzero(moved.transpose(0, 2, 1))
+        if t.size:
+            self._store_moved(run_id, layout, t, c, b, cur, before, start)
+        self._num_prev = buf[k - 1].copy()
+        self._num_done = k
+
+    def _store_moved(
+        self, run_id: int, layout: StatusLayout, t: Any, c: Any, b: Any,
+        cur: NDArray[np.float64], before: NDArray[np.float64], start: int,
+    ) -> None:  # fmt: skip
+        """Append the status rows of the entries whose numbers moved (``t``, ``c``, ``b``:
+        row, channel, battery). Kinds ``f``/``o`` (every moved entry is a change, the value
+        is the number, NaN stored as NULL) in bulk; the others rendered one by one and kept
+        only when the value a user reads changed (``i``: 1.2 -> 1.7 is no change)."""
+        chans = layout.channels
+        kinds = self._status_kinds
+        steps = np.asarray(self._steps[start : start + cur.shape[0]], np.int64)
+        pos = np.asarray(layout.positions, np.int64)
+        floatlike = np.array([kind in _FLOATLIKE for _, _, kind, _ in chans])[c]
+        names = np.array([name for name, _, _, _ in chans], dtype=object)
+        fl = np.nonzero(floatlike)[0]
+        if fl.size:
+            tf, cf, bf = t[fl], c[fl], b[fl]
+            xs = cur[tf, bf, cf]
+            vals = [None if x != x else x for x in xs.tolist()]
+            self._status_rows.extend(
+                zip(
+                    repeat(run_id), steps[tf].tolist(), pos[bf].tolist(),
+                    names[cf].tolist(), vals, strict=False,
+                )
+            )  # fmt: skip
+            nan = np.isnan(xs)
+            for ci in np.unique(cf).tolist():
+                name, _, kind, _ = chans[ci]
+                mine = cf == ci
+                if kind == "f" or (~nan[mine]).any():
+                    kinds[name].add("float")
+                if kind == "o" and nan[mine].any():
+                    kinds[name].add("none")
+        other = np.nonzero(~floatlike)[0]
+        if other.size:
+            self._store_rendered(run_id, chans, t[other], c[other], b[other], cur, before, steps)
+
+    def _store_rendered(
+        self, run_id: int, chans: Sequence[tuple[str, int, str, Any]], t: Any, c: Any, b: Any,
+        cur: NDArray[np.float64], before: NDArray[np.float64], steps: NDArray[np.int64],
+    ) -> None:  # fmt: skip
+        """The moved entries of the kinds a number is not the value of (``i``, ``b``, ``m``,
+        ``l:``): stored when the rendered value changed (same rule as :meth:`_record_status`)."""
+        assert self._num_layout is not None
+        pos = self._num_layout.positions
+        rows, kinds = self._status_rows, self._status_kinds
+        xs = cur[t, b, c].tolist()
+        ps = before[t, b, c].tolist()
+        for ti, ci, bi, x, px in zip(t.tolist(), c.tolist(), b.tolist(), xs, ps, strict=True):
+            name, _, kind, labels = chans[ci]
+            v = field_value(x, kind, labels)
+            p = field_value(px, kind, labels)
+            if type(v) is type(p) and (v == p or (v != v and p != p)):
+                continue
+            stored, seen = _status_cell(v)
+            kinds[name].add(seen)
+            rows.append((run_id, int(steps[ti]), pos[bi], name, stored))
 
     def _record_status(self, run_id: int, step: int, status: Mapping[str, Sequence[Any]]) -> None:
         """Store a status value only when it differs from the last one stored (same type too).
@@ -343,17 +517,19 @@ class SQLiteRecorder:
 
     def _commit(self, conn: sqlite3.Connection) -> None:
         run_id = self._run_id
+        if run_id is not None and self._num_layout is not None:
+            self._numbers_to_status(run_id)
         pack, bat, aux = self._sample_rows(run_id) if run_id is not None else ([], [], [])
         conn.execute("BEGIN")
         try:
             if run_id is not None:
                 conn.execute("UPDATE runs SET heartbeat_at = ? WHERE id = ?", (_utc_now(), run_id))
-            conn.executemany(_PACK_INSERT, pack)
-            conn.executemany(_BAT_INSERT, bat)
+            _insert(conn, _PACK_INSERT, pack)
+            _insert(conn, _BAT_INSERT, bat)
             if aux:
                 conn.executemany(_AUX_INSERT, aux)
             if self._status_rows:
-                conn.executemany(_STATUS_INSERT, self._status_rows)
+                _insert(conn, _STATUS_INSERT, self._status_rows)
             if self._event_rows:
                 conn.executemany(_EVENT_INSERT, self._event_rows)
             if run_id is not None and self._status_kinds:
@@ -373,6 +549,7 @@ class SQLiteRecorder:
         self._status_rows.clear()
         self._event_rows.clear()
         self._pending = 0
+        self._num_done = 0
 
     def finish(self, metrics: Mapping[str, Any], status: str = "ok") -> None:
         """Flush, then stamp the run with its end time, status and metrics."""
@@ -403,6 +580,7 @@ class SQLiteRecorder:
     def _drop_buffers(self) -> None:
         """Forget the buffered rows of a failed flush (a full disk): they cannot be written."""
         self._pending = 0
+        self._num_done = 0
         self._steps.clear()
         self._aux_steps.clear()
         self._status_rows.clear()
