@@ -23,7 +23,12 @@ from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 
-from packpilot.control.registry import REGISTRY
+if __name__ == "__main__":  # ``python -m packpilot.cli``: decide before any kernel is imported
+    from packpilot.coldstart import prepare
+
+    prepare(sys.argv[1:])
+
+from packpilot.control.registry import REGISTRY  # noqa: E402 - after the start decision
 from packpilot.errors import PackPilotError
 
 if TYPE_CHECKING:
@@ -127,16 +132,18 @@ def _guard(fn: Callable[[], T], announce: bool | None = None) -> T:
     wrong, so that error stays one line. Compiling kernels (the first run on a machine) is
     said on stderr with a heartbeat when ``announce`` (default: stderr is a terminal)."""
     from packpilot.buildclock import announce_compiles
+    from packpilot.coldstart import reporting
 
     if announce is None:
         announce = sys.stderr.isatty()
     with warnings.catch_warnings(record=True) as held:
         try:
-            if announce:
-                with announce_compiles(sys.stderr):
+            with reporting(sys.stderr):  # interpreted first run: the background compile
+                if announce:
+                    with announce_compiles(sys.stderr):
+                        result = fn()
+                else:
                     result = fn()
-            else:
-                result = fn()
         except PackPilotError as err:
             typer.echo(f"error: {err}", err=True)
             raise typer.Exit(code=EXIT_USER_ERROR) from None
