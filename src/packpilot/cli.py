@@ -28,7 +28,7 @@ if __name__ == "__main__":  # ``python -m packpilot.cli``: decide before any ker
 
     prepare(sys.argv[1:])
 
-from packpilot.control.registry import REGISTRY  # noqa: E402 - after the start decision
+from packpilot.control.registry import REGISTRY
 from packpilot.errors import PackPilotError
 
 if TYPE_CHECKING:

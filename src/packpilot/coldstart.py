@@ -96,7 +96,7 @@ def cache_root() -> Path:
         return here
     from numba.misc.appdirs import AppDirs
 
-    return Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
+    return Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)  # type: ignore[no-untyped-call]
 
 
 _IMPORT = re.compile(
@@ -148,7 +148,7 @@ def _source_digest() -> str:
 
 
 def _machine() -> str:
-    import llvmlite
+    import llvmlite  # type: ignore[import-untyped]
     import numba
     from llvmlite import binding
 
@@ -238,58 +238,76 @@ def _interpreted(reason: str) -> None:
     from numba.core import config
 
     os.environ["NUMBA_DISABLE_JIT"] = "1"
-    config.reload_config()
-    config.DISABLE_JIT = True
+    config.reload_config()  # type: ignore[no-untyped-call]
+    config.DISABLE_JIT = True  # type: ignore[attr-defined]
     START.mode, START.reason = "interpreted", reason
 
 
-def prepare(argv: list[str]) -> Start:
-    """Decide how this command runs its kernels (see the module's docstring); call it before
-    any kernel module is imported. Any doubt (an unknown command, a config that does not
-    load: the command will say why) leaves the default: compiled."""
-    import numba
+@dataclass(frozen=True)
+class Decision:
+    """How a command runs its kernels: ``compiled``, ``interpreted`` (nothing compiles), or
+    ``background`` (interpreted while a background process compiles ``scenario``)."""
 
-    want = os.environ.get(ENV_MODE, "auto")
-    if numba.config.DISABLE_JIT:
-        START.mode, START.reason = "interpreted", "NUMBA_DISABLE_JIT=1"
-        return START
+    mode: str
+    reason: str = ""
+    scenario: Path | None = None
+    marker: Path | None = None
+    estimates: dict[str, float] = field(default_factory=dict)
+
+
+def decide(argv: list[str], disable_jit: bool, want: str = "auto") -> Decision:
+    """The policy of the module's docstring for the command line ``argv`` (no side effect).
+    Any doubt (an unknown command, a config that does not load: the command will say why)
+    gives the default: compiled."""
+    if disable_jit:
+        return Decision("interpreted", "NUMBA_DISABLE_JIT=1")
     if want == "compiled" or not argv or argv[0] not in COMMANDS:
-        return START
+        return Decision("compiled")
     if want == "interpreted":
-        _interpreted(f"{ENV_MODE}=interpreted")
-        return START
+        return Decision("interpreted", f"{ENV_MODE}=interpreted")
     config, opts = _config_arg(argv[1:])
     path = _scenario(config) if config else None
     if path is None:
-        return START
+        return Decision("compiled")
     try:
         from packpilot.config import load_config
 
         cfg = load_config(path)
         duration = float(opts.get("--duration", cfg.sim.duration_s))
         mark = marker(cfg)
-    except Exception:  # noqa: BLE001 - the command itself reports a bad config
-        return START
+    except Exception:
+        return Decision("compiled")
     if mark.exists():
-        START.reason = "kernels compiled for this scenario"
-        return START
-    if argv[0] == "simulate":
-        est = estimates(cfg, max(1, int(duration / cfg.sim.dt_s)))
-        START.estimates = est
-        if est["interpreted_s"] >= est["compile_s"]:
-            START.reason = (
-                f"compiling first: the run interpreted (~{est['interpreted_s']:.1f} s) would"
-                f" take longer than the compile (~{est['compile_s']:.0f} s)"
-            )
-            return START
-        why = (
-            f"kernels not compiled yet; the run interpreted (~{est['interpreted_s']:.1f} s) is"
-            f" shorter than the compile (~{est['compile_s']:.0f} s)"
-        )
-    else:
+        return Decision("compiled", "kernels compiled for this scenario")
+    if argv[0] != "simulate":
         why = "kernels not compiled yet; a real-time run does not wait for a compile"
-    _interpreted(why)
-    _background(path, mark)
+        return Decision("background", why, path, mark)
+    est = estimates(cfg, max(1, int(duration / cfg.sim.dt_s)))
+    run_s, build_s = est["interpreted_s"], est["compile_s"]
+    if run_s >= build_s:
+        why = (f"compiling first: the run interpreted (~{run_s:.1f} s) would take longer than"
+               f" the compile (~{build_s:.0f} s)")  # fmt: skip
+        return Decision("compiled", why, path, mark, est)
+    why = (f"kernels not compiled yet; the run interpreted (~{run_s:.1f} s) is shorter than"
+           f" the compile (~{build_s:.0f} s)")  # fmt: skip
+    return Decision("background", why, path, mark, est)
+
+
+def prepare(argv: list[str]) -> Start:
+    """Apply :func:`decide` to this process: call it before any kernel module is imported."""
+    import numba
+
+    off = bool(numba.config.DISABLE_JIT)  # type: ignore[attr-defined]
+    d = decide(argv, off, os.environ.get(ENV_MODE, "auto"))
+    START.reason, START.estimates = d.reason, d.estimates
+    if d.mode == "compiled":
+        START.mode = "compiled"
+        return START
+    if d.reason != "NUMBA_DISABLE_JIT=1":
+        _interpreted(d.reason)
+    START.mode = "interpreted"
+    if d.mode == "background" and d.scenario is not None and d.marker is not None:
+        _background(d.scenario, d.marker)
     return START
 
 
@@ -304,15 +322,15 @@ def _background(path: Path, mark: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_DISABLE_JIT"}
     env[ENV_MODE] = "compiled"
     log = open(work / "log", "wb")  # noqa: SIM115 - handed to the child
-    START.status.write_text(f"0 0 starting {os.getpid()}\n")
     START.child = subprocess.Popen(
         [sys.executable, "-m", "packpilot.warmup", str(path), str(START.status), str(mark),
          str(lock)],
         stdin=subprocess.DEVNULL, stdout=log, stderr=log, env=env,
         start_new_session=True,  # Ctrl-C of the command does not stop the compile
-        preexec_fn=_nice if os.name == "posix" else None,  # noqa: PLW1509
+        preexec_fn=_nice if os.name == "posix" else None,
     )  # fmt: skip
     log.close()
+    START.status.write_text(f"0 0 starting {START.child.pid}\n")
 
 
 def _nice() -> None:
