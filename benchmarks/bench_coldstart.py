@@ -141,7 +141,7 @@ def run_first_switch(example: str = "uav_mission") -> dict[str, object]:
                     "--can-arg", "host=127.0.0.1", "--can-arg", f"port={hub.port}"]  # fmt: skip
         t0 = time.perf_counter()
         twin = subprocess.Popen(
-            [*py, "hil", example, *bus_args],
+            [sys.executable, "-m", "packpilot.cli", "hil", example, *bus_args],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
@@ -158,8 +158,9 @@ def run_first_switch(example: str = "uav_mission") -> dict[str, object]:
             while listener.recv(0.0) is not None:
                 pass
             t1 = time.perf_counter()
-            run = subprocess.Popen([sys.executable, "-c", WRAP, "run", example, *bus_args],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+            run = subprocess.Popen([sys.executable, "-c", WRAP, "run", example, *bus_args,
+                                    "--json"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                    env=_env(Path(d2)), cwd=ROOT)  # fmt: skip
             run_lines = _Lines(run, t1)
             deadline = t1 + 300
@@ -168,9 +169,9 @@ def run_first_switch(example: str = "uav_mission") -> dict[str, object]:
                 if msg is not None and 0x200 <= msg.arbitration_id < 0x210:
                     out["run_first_switch_s"] = time.perf_counter() - t1
                     break
-            time.sleep(3.0)  # a few periods, then stop
+            time.sleep(10.0)  # 100 periods, then stop
             out["run_mode"] = (
-                "interpreted" if run_lines.first("running interpreted") else "compiled"
+                "interpreted" if run_lines.first("running interpreted") is not None else "compiled"
             )
         finally:
             listener.shutdown()
@@ -179,7 +180,11 @@ def run_first_switch(example: str = "uav_mission") -> dict[str, object]:
                 if proc is not None:
                     proc.send_signal(signal.SIGTERM)
                     with contextlib.suppress(subprocess.TimeoutExpired):
-                        proc.wait(timeout=30)
+                        text = proc.communicate(timeout=30)[0] if proc is run else ""
+                        with contextlib.suppress(ValueError, IndexError):
+                            m = json.loads(text.strip().splitlines()[-1])
+                            keys = ("periods", "step_p50_ms", "step_p99_ms", "overruns")
+                            out["run_timing"] = {k: m.get(k) for k in keys}
                     proc.kill()
     return out
 

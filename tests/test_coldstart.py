@@ -78,8 +78,21 @@ def test_forced_interpreted_start_starts_no_background_compile(tmp_path: Path) -
         **{coldstart.ENV_MODE: "interpreted"},
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
-    assert "running interpreted" in done.stderr
+    assert json.loads(done.stdout)["build_time_s"] == 0  # nothing compiled
     assert coldstart.BACKGROUND not in done.stderr
+    assert not (cache / "packpilot-compiled" / "status").exists()
+
+
+def test_bad_input_on_a_cold_start_is_one_error_line_and_no_background_compile(
+    tmp_path: Path,
+) -> None:
+    cache = tmp_path / "kernels"
+    cache.mkdir()
+    bad = tmp_path / "no" / "such" / "dir" / "run.sqlite"
+    done = _cli(["simulate", str(EXAMPLE), "--duration", "2", "--db", str(bad)], cache)
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert done.stderr.startswith("error:")
     assert not (cache / "packpilot-compiled" / "status").exists()
 
 

@@ -28,6 +28,7 @@ if __name__ == "__main__":  # ``python -m packpilot.cli``: decide before any ker
 
     prepare(sys.argv[1:])
 
+from packpilot.coldstart import begin
 from packpilot.control.registry import REGISTRY
 from packpilot.errors import PackPilotError
 
@@ -215,6 +216,7 @@ def simulate(
         cfg = _with_can(_load(path, duration), can_interface, can_channel, can_log)
         _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
+        begin()  # a first run: interpreted, the kernels compiling in the background
         result = _run_interruptible(cfg, path, db, progress, (report, plot, trace_csv))
         with _saying("writing the outputs and the verdict", bool(progress)):
             _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report,
@@ -1220,6 +1222,7 @@ def run(
         if replay_log is not None:
             return _replay_frames(cfg, replay_log, opts, db)
         recorder = _recorder(db)
+        begin()
         bms = BmsRuntime(cfg, opts, recorder)
         _sigterm_interrupts()
         typer.echo(
@@ -1290,6 +1293,7 @@ def hil(
                                **filters(can_interface, REQUEST_ONLY), **kw)  # fmt: skip
         log = FrameLog(can_log) if can_log is not None else None
         ids = _ids(dronecan_ids) or ()
+        begin()
         twin = Hil(cfg, bus, charger_bus=charger_bus, bms_period_s=bms_period,
                    timeout_periods=timeout_periods, log=log,
                    dronecan_ids={i: b for i, b in enumerate(ids) if b >= 0})  # fmt: skip

@@ -78,6 +78,9 @@ class Start:
     """The background compile's status file (``k n label pid``), when one runs."""
     child: subprocess.Popen[bytes] | None = None
     estimates: dict[str, float] = field(default_factory=dict)
+    decision: Decision | None = None
+    begun: bool = False
+    """:func:`begin` was called: the run started (the background compile with it)."""
 
 
 START = Start()
@@ -299,15 +302,13 @@ def prepare(argv: list[str]) -> Start:
 
     off = bool(numba.config.DISABLE_JIT)  # type: ignore[attr-defined]
     d = decide(argv, off, os.environ.get(ENV_MODE, "auto"))
-    START.reason, START.estimates = d.reason, d.estimates
+    START.reason, START.estimates, START.decision = d.reason, d.estimates, d
     if d.mode == "compiled":
         START.mode = "compiled"
         return START
     if d.reason != "NUMBA_DISABLE_JIT=1":
         _interpreted(d.reason)
-    START.mode = "interpreted"
-    if d.mode == "background" and d.scenario is not None and d.marker is not None:
-        _background(d.scenario, d.marker)
+    START.mode = "interpreted"  # the background compile starts with the run (:func:`begin`)
     return START
 
 
@@ -365,25 +366,35 @@ def _status() -> tuple[int, int, str, str] | None:
         return None
 
 
+def begin(stream: IO[str] | None = None) -> None:
+    """The run is about to start (its input checked): start the background compile, if this
+    process was set to run interpreted while one compiles, and say so. Not earlier: a command
+    refused for bad input prints its one ``error:`` line and nothing else."""
+    d = START.decision
+    if START.begun or d is None or d.mode != "background":
+        return
+    START.begun = True
+    if d.scenario is not None and d.marker is not None:
+        _background(d.scenario, d.marker)
+    print(
+        f"running interpreted from the first step ({d.reason}); same results as compiled",
+        file=stream or sys.stderr, flush=True,
+    )  # fmt: skip
+
+
 @contextlib.contextmanager
 def reporting(stream: IO[str], every_s: float = 1.5) -> Iterator[None]:
-    """While the block runs: say how this process runs its kernels (once), and the background
-    compile's progress at least every ``every_s`` (``k/n`` stages: each method's rules, the
-    fused step, the plant)."""
-    if START.mode != "interpreted" or START.status is None:
-        if START.mode == "interpreted":
-            print(f"running interpreted ({START.reason})", file=stream, flush=True)
+    """While the block runs, once :func:`begin` was called: the background compile's progress
+    at least every ``every_s`` (``k/n`` stages: each method's rules, the fused step, the
+    plant), and when it is done."""
+    if START.decision is None or START.decision.mode != "background":
         yield
         return
-    print(
-        f"running interpreted from the first step ({START.reason}); same results as compiled",
-        file=stream, flush=True,
-    )  # fmt: skip
     stop = threading.Event()
     t0 = time.perf_counter()
 
     def say() -> None:
-        st = _status()
+        st = _status() if START.begun else None
         if st is None:
             return
         k, n, label, pid = st
@@ -397,9 +408,14 @@ def reporting(stream: IO[str], every_s: float = 1.5) -> Iterator[None]:
         print(f"{BACKGROUND}: {total} ({label}; pid {pid}; {el:.0f} s)", file=stream, flush=True)
 
     def beat() -> None:
+        was = False
         while True:
-            say()
-            if stop.wait(every_s):
+            if START.begun and not was:
+                was = True
+                say()
+            elif was:
+                say()
+            if stop.wait(every_s if was else 0.1):
                 return
 
     thread = threading.Thread(target=beat, daemon=True)
