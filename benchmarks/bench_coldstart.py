@@ -20,6 +20,7 @@ import contextlib
 import itertools
 import json
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -173,6 +174,7 @@ def run_first_switch(example: str = "uav_mission") -> dict[str, object]:
             out["run_mode"] = (
                 "interpreted" if run_lines.first("running interpreted") is not None else "compiled"
             )
+            out["run_first_step_cpu_s"] = _cpu(run_lines)
         finally:
             listener.shutdown()
             for proc, tmp in ((run, Path(d2)), (twin, Path(d1))):
@@ -197,6 +199,7 @@ def demo() -> dict[str, object]:
                "--progress", "--db", str(tmp / "demo.sqlite"), "--report", str(tmp / "r.html"),
                "--plot", str(tmp / "demo.png"), "--can-log", str(tmp / "demo_can.blf"),
                "--json"]  # fmt: skip
+        cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                 env=_env(tmp), cwd=ROOT)  # fmt: skip
@@ -206,10 +209,12 @@ def demo() -> dict[str, object]:
         finally:
             _stop_child(tmp)
         wall = time.perf_counter() - t0
+        cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime
         lines.join()
         summary = json.loads(stdout) if proc.returncode == 0 else {}
         return {"wall_s": round(wall, 1), "first_step_s": lines.first("BENCH-FIRST-STEP"),
-                "first_step_cpu_s": _cpu(lines),
+                "first_step_cpu_s": _cpu(lines), "cpu_s": round(cpu, 1),
                 "max_silence_s": round(lines.max_gap(wall), 2), "exit": proc.returncode,
                 "wall_time_s": summary.get("wall_time_s"),
                 "build_time_s": summary.get("build_time_s")}  # fmt: skip
@@ -220,11 +225,12 @@ def main() -> int:
     ap.add_argument("--examples", help="comma-separated (default: every example)")
     ap.add_argument("--no-demo", action="store_true")
     ap.add_argument("--no-run", action="store_true")
+    ap.add_argument("--no-simulate", action="store_true")
     args = ap.parse_args()
     names = args.examples.split(",") if args.examples else sorted(
         p.stem for p in (ROOT / "examples").glob("*.toml"))  # fmt: skip
     results: dict[str, object] = {"simulate": []}
-    for name in names:
+    for name in [] if args.no_simulate else names:
         r = first_step(name)
         print(f"simulate {name:28s} first step {r['first_step_s']:.1f} s wall,"
               f" {r['first_step_cpu_s']} s CPU ({r['mode']})", flush=True)  # fmt: skip
