@@ -205,7 +205,9 @@ def demo() -> dict[str, object]:
                                 env=_env(tmp), cwd=ROOT)  # fmt: skip
         lines = _Lines(proc, t0)
         try:
-            stdout, _ = proc.communicate(timeout=3600)
+            proc.wait(timeout=3600)  # stderr is read by ``lines``; stdout is one JSON line
+            assert proc.stdout is not None
+            stdout = proc.stdout.read()
         finally:
             _stop_child(tmp)
         wall = time.perf_counter() - t0
