@@ -184,7 +184,7 @@ def run_first_switch(example: str = "uav_mission") -> dict[str, object]:
                     with contextlib.suppress(subprocess.TimeoutExpired):
                         text = proc.communicate(timeout=30)[0] if proc is run else ""
                         with contextlib.suppress(ValueError, IndexError):
-                            m = json.loads(text.strip().splitlines()[-1])
+                            m = json.loads(text[text.index("{") :])
                             keys = ("periods", "step_p50_ms", "step_p99_ms", "overruns")
                             out["run_timing"] = {k: m.get(k) for k in keys}
                     proc.kill()
