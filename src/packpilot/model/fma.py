@@ -36,15 +36,17 @@ from numba.extending import intrinsic, overload
 def _exact_fma(a: float, b: float, c: float) -> float:
     """``a * b + c`` rounded once, by exact rational arithmetic (slow; the fallback)."""
     a, b, c = float(a), float(b), float(c)
-    if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
-        return a * b + c  # inf / NaN propagate as IEEE says for fma
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return a * b + c  # the product is inf or NaN exactly: IEEE's fma does the same
+    if not math.isfinite(c):
+        return c  # a finite product (never overflowing: it is exact) plus inf or NaN
     r = Fraction(a) * Fraction(b) + Fraction(c)
     if r == 0:
         return a * b + c  # exact zero: a*b == -c exactly, so this has IEEE's sign of zero
     try:
         return float(r)  # int / int true division: correctly rounded (subnormals too)
     except OverflowError:
-        return math.copysign(math.inf, r)
+        return math.inf if r > 0 else -math.inf
 
 
 def _libm_fma() -> Callable[[float, float, float], float] | None:
