@@ -110,6 +110,7 @@ faults: $(TEST_STAMP)
 bench: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_report_memory.py --days 0.2
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_coldstart.py
 
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -23,6 +23,12 @@ from typing import TYPE_CHECKING, Annotated, Any, TypeVar
 
 import typer
 
+if __name__ == "__main__":  # ``python -m packpilot.cli``: decide before any kernel is imported
+    from packpilot.coldstart import prepare
+
+    prepare(sys.argv[1:])
+
+from packpilot.coldstart import begin
 from packpilot.control.registry import REGISTRY
 from packpilot.errors import PackPilotError
 
@@ -127,16 +133,18 @@ def _guard(fn: Callable[[], T], announce: bool | None = None) -> T:
     wrong, so that error stays one line. Compiling kernels (the first run on a machine) is
     said on stderr with a heartbeat when ``announce`` (default: stderr is a terminal)."""
     from packpilot.buildclock import announce_compiles
+    from packpilot.coldstart import reporting
 
     if announce is None:
         announce = sys.stderr.isatty()
     with warnings.catch_warnings(record=True) as held:
         try:
-            if announce:
-                with announce_compiles(sys.stderr):
+            with reporting(sys.stderr):  # interpreted first run: the background compile
+                if announce:
+                    with announce_compiles(sys.stderr):
+                        result = fn()
+                else:
                     result = fn()
-            else:
-                result = fn()
         except PackPilotError as err:
             typer.echo(f"error: {err}", err=True)
             raise typer.Exit(code=EXIT_USER_ERROR) from None
@@ -208,6 +216,7 @@ def simulate(
         cfg = _with_can(_load(path, duration), can_interface, can_channel, can_log)
         _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
+        begin()  # a first run: interpreted, the kernels compiling in the background
         result = _run_interruptible(cfg, path, db, progress, (report, plot, trace_csv))
         with _saying("writing the outputs and the verdict", bool(progress)):
             _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report,
@@ -1228,6 +1237,7 @@ def run(
         if replay_log is not None:
             return _replay_frames(cfg, replay_log, opts, db)
         recorder = _recorder(db)
+        begin()
         bms = BmsRuntime(cfg, opts, recorder)
         _sigterm_interrupts()
         typer.echo(
@@ -1298,6 +1308,7 @@ def hil(
                                **filters(can_interface, REQUEST_ONLY), **kw)  # fmt: skip
         log = FrameLog(can_log) if can_log is not None else None
         ids = _ids(dronecan_ids) or ()
+        begin()
         twin = Hil(cfg, bus, charger_bus=charger_bus, bms_period_s=bms_period,
                    timeout_periods=timeout_periods, log=log,
                    dronecan_ids={i: b for i, b in enumerate(ids) if b >= 0})  # fmt: skip

@@ -11,8 +11,8 @@ matters (tests/test_pack_kernel.py steps both side by side):
 * the bus is solved by the very compiled function the NumPy step calls
   (:func:`packpilot.model.bus_kernel._solve_one`);
 * cells advance through the cell model's own kernels (``_advance_kernel``,
-  ``_thevenin_kernel``), called from compiled code, so their compile options (FMA contraction)
-  and results are unchanged.
+  ``_thevenin_kernel``), called from compiled code, so their fused multiply-adds (written
+  ``fma(a, b, c)``, :mod:`packpilot.model.fma`) and results are unchanged.
 
 No fastmath here: every operation is the IEEE operation NumPy performs. The on-disk cache of
 these kernels is keyed by everything they import (:mod:`packpilot.jit`), so editing the cell

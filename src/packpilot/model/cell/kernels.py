@@ -19,20 +19,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.model.cell.params import F64, CellParams
+from packpilot.model.fma import fma
 from packpilot.model.thermal import step_coefficients
 
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 
 # error_model="numpy": no zero-division checks; _nrt=False: kernels never allocate, so no
-# reference counting of the array arguments (which otherwise costs ~10x in the inlined helpers);
-# contract: allow fused multiply-add.
+# reference counting of the array arguments (which otherwise costs ~10x in the inlined helpers).
+# No fastmath: each fused multiply-add is written ``fma(a, b, c)`` (packpilot.model.fma), the
+# ones LLVM's ``contract`` flag used to fuse, so the same source interpreted gives the same bits.
 _NUMBA_OPTIONS: dict[str, Any] = {
     "cache": True,
     "nogil": True,
     "error_model": "numpy",
     "_nrt": False,
-    "fastmath": {"contract"},
 }
 
 
@@ -92,14 +93,14 @@ def _lim(t: float, clamp: bool) -> float:
 def _interp1(x: float, ax: F64, inv: float, y: F64, clamp: bool) -> float:
     i, t = _frac(x, ax, inv)
     t = _lim(t, clamp)
-    return float(y[i] + t * (y[i + 1] - y[i]))
+    return float(fma(t, y[i + 1] - y[i], y[i]))
 
 
 @_jit_inline
 def _col2(y: F64, i: int, t: float, j: int) -> tuple[float, float]:
     """Bilinear table: values at z nodes j and j+1, interpolated along x (bracket i, fraction t)."""
     a0, a1 = y[i, j], y[i, j + 1]
-    return a0 + t * (y[i + 1, j] - a0), a1 + t * (y[i + 1, j + 1] - a1)
+    return fma(t, y[i + 1, j] - a0, a0), fma(t, y[i + 1, j + 1] - a1, a1)
 
 
 @_jit_inline
@@ -111,11 +112,11 @@ def _planes3(
     The flat layout [T][I][SoC][table] puts all tables of one corner side by side.
     """
     b = base + m
-    c00 = flat[b] + v * (flat[b + dk] - flat[b])
-    c01 = flat[b + dj] + v * (flat[b + dj + dk] - flat[b + dj])
-    c10 = flat[b + di] + v * (flat[b + di + dk] - flat[b + di])
-    c11 = flat[b + di + dj] + v * (flat[b + di + dj + dk] - flat[b + di + dj])
-    return c00 + u * (c01 - c00), c10 + u * (c11 - c10)
+    c00 = fma(v, flat[b + dk] - flat[b], flat[b])
+    c01 = fma(v, flat[b + dj + dk] - flat[b + dj], flat[b + dj])
+    c10 = fma(v, flat[b + di + dk] - flat[b + di], flat[b + di])
+    c11 = fma(v, flat[b + di + dj + dk] - flat[b + di + dj], flat[b + di + dj])
+    return fma(u, c01 - c00, c00), fma(u, c11 - c10, c10)
 
 
 @_jit_inline
@@ -133,7 +134,7 @@ def _ocv_at(
     x = u_ref if imeta[1] == 1 else soc
     i, t = _frac(x, du_x, fmeta[4])
     c0, c1 = _col2(du_y, i, _lim(t, clamp), jd)
-    return float(u_ref + (temp - t_ref) * (c0 + _lim(w, clamp) * (c1 - c0)))
+    return float(fma(temp - t_ref, fma(_lim(w, clamp), c1 - c0, c0), u_ref))
 
 
 @_jit_inline
@@ -162,7 +163,7 @@ def _terminal_at(
     k, v = _frac(soc, ax_s, fmeta[2])
     base = i * di + j * dj + k * dk
     p0, p1 = _planes3(flat, 0, base, di, dj, dk, _lim(u, clamp), _lim(v, clamp))
-    r0 = p0 + _lim(t, clamp) * (p1 - p0)
+    r0 = fma(_lim(t, clamp), p1 - p0, p0)
     ocv = _ocv_at(soc, temp, jd, w, ocv_x, ocv_y, du_x, du_y, fmeta, imeta)
     return ocv - eta_sum, r0 * r_scale
 
@@ -191,18 +192,18 @@ def _one_minus_exp_neg(x: float) -> float:
     the nested Taylor form x(1 - x/2(1 - x/3(... (1 - x/13)))) has a relative error < 1e-17.
     """
     if abs(x) < 0.25:
-        p = 1.0 - x * (1.0 / 13.0)
-        p = 1.0 - x * (1.0 / 12.0) * p
-        p = 1.0 - x * (1.0 / 11.0) * p
-        p = 1.0 - x * (1.0 / 10.0) * p
-        p = 1.0 - x * (1.0 / 9.0) * p
-        p = 1.0 - x * (1.0 / 8.0) * p
-        p = 1.0 - x * (1.0 / 7.0) * p
-        p = 1.0 - x * (1.0 / 6.0) * p
-        p = 1.0 - x * (1.0 / 5.0) * p
-        p = 1.0 - x * (1.0 / 4.0) * p
-        p = 1.0 - x * (1.0 / 3.0) * p
-        p = 1.0 - x * 0.5 * p
+        p = fma(-x, 1.0 / 13.0, 1.0)
+        p = fma(-(x * (1.0 / 12.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 11.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 10.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 9.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 8.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 7.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 6.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 5.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 4.0)), p, 1.0)
+        p = fma(-(x * (1.0 / 3.0)), p, 1.0)
+        p = fma(-(x * 0.5), p, 1.0)
         return x * p
     return -math.expm1(-x)
 
@@ -216,7 +217,7 @@ def _rc_branch(
     target = cur * r * r_scale
     frac = _one_minus_exp_neg(h / tau)
     d = eta - target
-    return target + d * (1.0 - frac), target + d * frac * tau * inv_h
+    return fma(d, 1.0 - frac, target), fma(d * frac * tau, inv_h, target)
 
 
 @_jit_inline
@@ -258,42 +259,42 @@ def _step_scalar(
     xt = _lim(xt, clamp)
     jd, w = _frac(tc, du_t, fmeta[5])
     d0, d1 = _col2(du_y, xi, xt, jd)
-    r0 = (p0 + t * (p1 - p0)) * r_scale
+    r0 = fma(t, p1 - p0, p0) * r_scale
     ev, r0v = 0.0, 0.0
     if with_v:
         ev, r0v = _terminal_at(
             soc, eta1 + eta2, tc, r_scale, i, tu, j, u, jd, w,
             flat, ax_s, ocv_x, ocv_y, du_x, du_y, fmeta, imeta,
         )  # fmt: skip
-    q0 = cur * (cur * r0 + eta1 + eta2 - (tc + 273.15) * (d0 + _lim(w, clamp) * (d1 - d0)))
+    q0 = cur * fma(-(tc + 273.15), fma(_lim(w, clamp), d1 - d0, d0), fma(cur, r0, eta1) + eta2)
     yc = tc - ta
     yj = tj - ta
-    tmid = ta + th[6] * yc + th[7] * yj + th[10] * q0
+    tmid = fma(th[10], q0, fma(th[7], yj, fma(th[6], yc, ta)))
     # corrector: every table at (T_mid, I, SoC_mid); the brackets rarely change
     im, tm = _frac(tmid, ax_t, fmeta[0])
     tm = _lim(tm, clamp)
     if im != i:
         base += (im - i) * di
         p0, p1 = _planes3(flat, 0, base, di, dj, dk, u, v)
-    heat = cur * cur * (p0 + tm * (p1 - p0)) * r_scale
+    heat = cur * cur * fma(tm, p1 - p0, p0) * r_scale
     p0, p1 = _planes3(flat, 1, base, di, dj, dk, u, v)
-    r = p0 + tm * (p1 - p0)
+    r = fma(tm, p1 - p0, p0)
     p0, p1 = _planes3(flat, 2, base, di, dj, dk, u, v)
-    eta1_new, mean = _rc_branch(eta1, cur, r, p0 + tm * (p1 - p0), r_scale, h, inv_h)
-    heat += cur * mean
+    eta1_new, mean = _rc_branch(eta1, cur, r, fma(tm, p1 - p0, p0), r_scale, h, inv_h)
+    heat = fma(cur, mean, heat)
     eta2_new = 0.0
     if imeta[0] == 2:
         p0, p1 = _planes3(flat, 3, base, di, dj, dk, u, v)
-        r = p0 + tm * (p1 - p0)
+        r = fma(tm, p1 - p0, p0)
         p0, p1 = _planes3(flat, 4, base, di, dj, dk, u, v)
-        eta2_new, mean = _rc_branch(eta2, cur, r, p0 + tm * (p1 - p0), r_scale, h, inv_h)
-        heat += cur * mean
+        eta2_new, mean = _rc_branch(eta2, cur, r, fma(tm, p1 - p0, p0), r_scale, h, inv_h)
+        heat = fma(cur, mean, heat)
     jm, w = _frac(tmid, du_t, fmeta[5])
     if jm != jd:
         d0, d1 = _col2(du_y, xi, xt, jm)
-    heat -= cur * (tmid + 273.15) * (d0 + _lim(w, clamp) * (d1 - d0))
-    tc_new = ta + th[0] * yc + th[1] * yj + th[4] * heat
-    tj_new = ta + th[2] * yc + th[3] * yj + th[5] * heat
+    heat = fma(-(cur * (tmid + 273.15)), fma(_lim(w, clamp), d1 - d0, d0), heat)
+    tc_new = fma(th[4], heat, fma(th[1], yj, fma(th[0], yc, ta)))
+    tj_new = fma(th[5], heat, fma(th[3], yj, fma(th[2], yc, ta)))
     return soc1, eta1_new, eta2_new, tc_new, tj_new, heat, ev, r0v
 
 
@@ -336,7 +337,7 @@ def _step_kernel(
             soc[c], eta[c, 0], e2, tc[c], tj[c], i, h, ta[c], cap[c], rs[c], th,
             flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta, True,
         )  # fmt: skip
-        v_o[c] = e - r0 * i
+        v_o[c] = fma(-r0, i, e)
         soc_o[c] = s1
         eta_o[c, 0] = a1
         if two:
@@ -386,7 +387,7 @@ def _simulate_kernel(
         soc, 0.0, tc, cur[0], r_scale,
         flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta,
     )  # fmt: skip
-    v_o[0] = ev - r0 * cur[0]
+    v_o[0] = fma(-r0, cur[0], ev)
     soc_o[0], tc_o[0], tj_o[0] = soc, tc, tj
     for k in range(n):
         soc, e1, e2, tc, tj, _q, _e, _r = _step_scalar(
@@ -397,7 +398,7 @@ def _simulate_kernel(
             soc, e1 + e2, tc, cur[k], r_scale,
             flat, ax_t, ax_i, ax_s, ocv_x, ocv_y, du_x, du_t, du_y, fmeta, imeta,
         )  # fmt: skip
-        v_o[k + 1] = ev - r0 * cur[k]
+        v_o[k + 1] = fma(-r0, cur[k], ev)
         soc_o[k + 1], tc_o[k + 1], tj_o[k + 1] = soc, tc, tj
 
 
