@@ -187,7 +187,7 @@ def test_runner_classifies_killed_survived_invalid_and_timeout(tiny_tree: Path) 
     assert (bad.outcome, bad.detail) == ("invalid", "does not compile")
     assert (tiny_tree / "src" / "tiny.py").read_text() == TINY  # restored every time
     rows = run.gen_summary([killed, survived, no_import, hang, bad])["tiny"]
-    assert rows == {"killed": 1, "timeout": 1, "survived": 1, "invalid": 2, "error": 0}
+    assert rows == {"killed": 1, "timeout": 1, "survived": 1, "equivalent": 0, "invalid": 2, "error": 0}
     assert run.kill_rate(rows) == pytest.approx(200.0 / 3)
     assert survived.id in run.gen_table([survived], "x")
 

@@ -41,6 +41,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from tests.mutation.equivalent import EQUIVALENT
 from tests.mutation.generate import GenMutant, compiles, generate, iter_targets
 from tests.mutation.mutants import TESTS
 
@@ -263,6 +264,14 @@ def make_tree(base: Path, root: Path | None = None) -> Path:
     return base
 
 
+def _logged(log: Path) -> set[str]:
+    """Ids already in ``log`` (another run may append to the same log: two processes, one
+    from each end of a sample, share the work without running a mutant twice)."""
+    if not log.exists():
+        return set()
+    return {json.loads(ln)["id"] for ln in log.read_text().splitlines() if ln.strip()}
+
+
 def run_many(mutants: list[GenMutant], log: Path, cache: Path, full: bool = False,
              jobs: int = 1, root: Path | None = None) -> list[FastResult]:  # fmt: skip
     """Run ``mutants`` (``jobs`` at a time, each job its own tree and server), appending each
@@ -301,6 +310,8 @@ def run_many(mutants: list[GenMutant], log: Path, cache: Path, full: bool = Fals
             server = Server(trees[j])
             try:
                 for mu in todo[j::jobs]:
+                    if mu.id in _logged(log):  # another process sharing the log ran it
+                        continue
                     res = run_one(server, mu, maps[mu.module], spans[mu.path], full)
                     with lock:
                         done[mu.id] = res
@@ -357,25 +368,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--log", type=Path, default=ROOT / "out" / "mutation_fast.jsonl")
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "mutation_map")
     ap.add_argument("--jobs", type=int, default=1, help="mutants run in parallel")
+    ap.add_argument("--reverse", action="store_true",
+                    help="from the end of the sample (a second process sharing --log)")
     ap.add_argument("--report", type=Path, help="only print the table of this log")
     ap.add_argument("--list", action="store_true", help="only list the chosen mutants")
     args = ap.parse_args(argv)
     if args.report:
         res = [FastResult(**json.loads(ln)) for ln in args.report.read_text().splitlines() if ln]
-        print(report(res))
+        print(report(res, set(EQUIVALENT)))
+        for r in res:
+            if r.outcome not in ("killed", "timeout"):
+                why = EQUIVALENT.get(r.id, r.detail) if r.outcome == "survived" else r.detail
+                print(f"- `{r.id}` {r.module}:{r.line} {r.operator} ({r.outcome}): {why}")
         return 0
     gen = generate(list(iter_targets(args.module)))
     if args.id:
         gen = [m for m in gen if m.id in args.id]
     elif not args.all:
         gen = stratified(gen, args.sample, args.seed, args.floor)
+    if args.reverse:
+        gen = gen[::-1]
     if args.list:
         for m in gen:
             print(f"{m.id} {m.module}:{m.line} {m.operator}  {m.why}")
         return 0
     results = run_many(gen, args.log.resolve(), args.cache.resolve(), args.full, args.jobs)
-    print(report(results))
-    return 0 if all(r.outcome != "survived" for r in results) else 1
+    print(report(results, set(EQUIVALENT)))
+    alive = [r for r in results if r.outcome == "survived" and r.id not in EQUIVALENT]
+    return 0 if not alive else 1
 
 
 if __name__ == "__main__":

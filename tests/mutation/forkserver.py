@@ -22,8 +22,9 @@ import signal
 import sys
 import time
 
-for _name in ("numpy", "numba", "scipy", "scipy.optimize", "scipy.interpolate", "pydantic",
-              "hypothesis", "hypothesis.strategies", "pytest", "can", "sqlite3", "tomllib",
+for _name in ("numpy", "numpy.typing", "numba", "scipy", "scipy.optimize", "pydantic",
+              "hypothesis", "hypothesis.strategies", "pytest", "can", "cantools", "dronecan",
+              "pymavlink.mavutil", "typer", "typer.testing", "yaml", "sqlite3", "tomllib",
               "_pytest.python", "_pytest.runner", "xdist"):  # fmt: skip
     with contextlib.suppress(Exception):  # a missing optional library: the child imports it
         importlib.import_module(_name)

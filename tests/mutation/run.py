@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from tests.mutation import fast
+from tests.mutation.equivalent import EQUIVALENT
 from tests.mutation.generate import GenMutant, compiles, generate, iter_targets
 from tests.mutation.mutants import MUTANTS, PENDING, TESTS, Mutant
 
@@ -211,7 +212,7 @@ def write_reports(results: list[Result], out: Path) -> None:
     (out / "mutation.md").write_text("# Mutation run\n\n" + table(results) + "\n")
 
 
-OUTCOMES = ("killed", "timeout", "survived", "invalid", "error")
+OUTCOMES = ("killed", "timeout", "survived", "equivalent", "invalid", "error")
 
 
 def gen_summary(results: list[Result]) -> dict[str, dict[str, int]]:
@@ -233,8 +234,8 @@ def kill_rate(row: dict[str, int]) -> float | None:
 
 
 def gen_table(results: list[Result], how: str) -> str:
-    rows = [how, "", "| module | killed | by timeout | survived | invalid | kill rate |",
-            "| --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    rows = [how, "", "| module | killed | by timeout | survived | equivalent | invalid | error | "
+            "kill rate |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for mod, row in gen_summary(results).items():
         rate = kill_rate(row)
         cells = " | ".join(str(row[o]) for o in OUTCOMES)
@@ -259,8 +260,11 @@ def write_gen_reports(results: list[Result], out: Path, how: str) -> None:
 def from_fast(r: fast.FastResult) -> Result:
     """A generated mutant's result as the reports take it."""
     why = f"{r.original.strip()}  ->  {r.mutated.strip()}"
-    return Result(r.module, f"{r.operator}@{r.line}#{r.id}", why, r.outcome, r.seconds,
-                  r.detail, r.id, r.line, r.operator, r.original, r.mutated)  # fmt: skip
+    outcome, detail = r.outcome, r.detail
+    if outcome == "survived" and r.id in EQUIVALENT:  # judged: no test can kill it
+        outcome, detail = "equivalent", EQUIVALENT[r.id]
+    return Result(r.module, f"{r.operator}@{r.line}#{r.id}", why, outcome, r.seconds,
+                  detail, r.id, r.line, r.operator, r.original, r.mutated)  # fmt: skip
 
 
 def select(modules: list[str], names: list[str]) -> list[Mutant]:
