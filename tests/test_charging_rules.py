@@ -11,6 +11,8 @@ import math
 from dataclasses import replace
 from typing import Any
 
+import pytest
+
 from packpilot.contract.bms import ControlOutput, Measurements
 from packpilot.control.charging import ChargingConfig, ChargingController
 from tests.test_charging_helpers import ToyPack, pack_info
@@ -178,3 +180,38 @@ def test_a_first_plan_closes_a_level_only_where_the_predicted_bus_charges_it() -
     on_bus = charging(charging(rest, 0, 80.5, -2.5), 1, 80.5, -2.5)
     outs = run(ctrl, on_bus, 1)
     assert outs[-1].commands.chg_on == (True, True, True, False)
+
+
+def test_a_held_current_step_teaches_the_settled_resistance() -> None:
+    """R from a current step held steady for two windows of ``r_settle_s`` (rules.py "settled"
+    estimate): the voltage rise to the end of the first window minus the drift measured over
+    the second, over the step. Here 0 -> -5 A moves V by +0.5 V at once (step R 0.1 Ohm), then
+    the polarization adds 0.3 V by T and the OCV drifts 0.05 V from T to 2T:
+    R = ((80.8 - 80.0) - (80.85 - 80.8)) / 5 = 0.15 Ohm, replacing the step value."""
+    toy, ctrl = frozen([80.0, 90.0], docked=False)
+    m0 = toy.measure()
+    t_win = CFG.r_settle_s
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
+    ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=80.5), 1.0)  # the step, at t = 0
+    assert ctrl.r_ohm[0] == pytest.approx(0.1)
+    for k in range(1, int(2 * t_win) + 1):
+        # polarization settles linearly to +0.3 V at T, then the OCV drift alone
+        v = 80.5 + 0.3 * k / t_win if k <= t_win else 80.8 + 0.05 * (k - t_win) / t_win
+        ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=v), 1.0)
+    assert ctrl.r_ohm[0] == pytest.approx(0.15, rel=1e-6)
+
+
+def test_a_non_finite_aux_reading_is_one_fault_that_stops_aux_charging() -> None:
+    """An aux battery with a NaN reading: one Fault event whose reason says the aux battery's
+    measurement (not the traction batteries'), aux relay open at 0 A, and no repeat while it
+    stays invalid."""
+    toy = ToyPack([80.0, 90.0], aux_soc=0.5)
+    ctrl = ChargingController(CFG, pack_info(2, has_aux=True))
+    m = toy.measure()
+    assert m.aux is not None
+    bad = replace(m, aux=replace(m.aux, temp_c=math.nan))
+    outs = run(ctrl, bad, 3)
+    faults = [e for o in outs for e in o.events if e.kind == "Fault"]
+    assert [e.data.get("reason") for e in faults] == ["aux_invalid_measurement"]
+    assert outs[-1].commands.aux_relay_closed is False
+    assert outs[-1].commands.aux_charge_a == 0.0
