@@ -215,3 +215,27 @@ def test_a_non_finite_aux_reading_is_one_fault_that_stops_aux_charging() -> None
     assert [e.data.get("reason") for e in faults] == ["aux_invalid_measurement"]
     assert outs[-1].commands.aux_relay_closed is False
     assert outs[-1].commands.aux_charge_a == 0.0
+
+
+def test_the_unfit_top_of_a_level_waits_whatever_its_position() -> None:
+    """As above with the batteries in another order: the one the predicted bus (80.23 V) would
+    not charge is found by its voltage, not by its place in the pack (the highest unfit one
+    waits first, then the rest are predicted again)."""
+    cfg = ChargingConfig(r_comp_initial_ohm=0.05, charger_current_limit_a=5.0,
+                         termination_current_a=0.5)  # fmt: skip
+    toy, ctrl = frozen([80.45, 80.0, 80.0, 90.0], cfg)
+    outs = run(ctrl, toy.measure(), 5)
+    assert outs[-1].status["chg_stage"][0] == "S20"
+    assert outs[-1].commands.chg_on == (False, True, True, False)
+    assert outs[-1].status["chg_group"][0] == 1  # a first battery, waiting for the bus
+
+
+def test_a_resistance_exactly_at_the_plausible_maximum_is_learned() -> None:
+    """``r_comp_max_ohm``: estimates *above* it are rejected; one exactly at it is believed
+    (0 -> -5 A moving V by +5 V is R = 1 Ohm, the default maximum)."""
+    toy, ctrl = frozen([80.0, 90.0], docked=False)
+    m0 = toy.measure()
+    assert CFG.r_comp_max_ohm == 1.0
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
+    ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=85.0), 1.0)
+    assert ctrl.r_ohm[0] == 1.0
