@@ -239,3 +239,19 @@ def test_a_resistance_exactly_at_the_plausible_maximum_is_learned() -> None:
     ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
     ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=85.0), 1.0)
     assert ctrl.r_ohm[0] == 1.0
+
+
+def test_a_silent_charger_is_lost_after_the_full_timeout_of_each_docking() -> None:
+    """``charger_status_timeout_s`` of silence counts from the docking: docked with no charger
+    status at all, the charger is declared lost on the 3rd 1-s period of a 3-s timeout, not
+    earlier, after an undocked period too (generated mutant adb5ead09e: undocking left 1 s on
+    the silence clock)."""
+    ctrl = ChargingController(ChargingConfig(charger_status_timeout_s=3.0), pack_info(2))
+    bats = ToyPack([80.0, 90.0]).measure().batteries
+    for _ in range(2):  # two docking sessions, each after an undocked period
+        ctrl.step(Measurements(t_s=0.0, batteries=bats, bus_v=math.nan, docked=False), 1.0)
+        silent = Measurements(t_s=0.0, batteries=bats, bus_v=math.nan, docked=True)
+        outs = [ctrl.step(silent, 1.0) for _ in range(4)]
+        lost = [k for k, o in enumerate(outs) for e in o.events
+                if e.kind == "Fault" and "lost" in e.message]  # fmt: skip
+        assert lost == [2]
