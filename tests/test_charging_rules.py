@@ -255,3 +255,15 @@ def test_a_silent_charger_is_lost_after_the_full_timeout_of_each_docking() -> No
         lost = [k for k, o in enumerate(outs) for e in o.events
                 if e.kind == "Fault" and "lost" in e.message]  # fmt: skip
         assert lost == [2]
+
+
+def test_a_plan_that_connects_nothing_names_no_battery() -> None:
+    """Undocking ends the session in ``idle``: its StageChanged event names no first, second
+    or closed battery (generated mutant a54b1662a7: every battery was listed as a second)."""
+    toy, ctrl = frozen([80.0, 90.0], CFG_R)
+    m = toy.measure()
+    run(ctrl, m, 3)
+    outs = run(ctrl, replace(m, docked=False, charger=None), 1)
+    stages = [e.data for o in outs for e in o.events if e.kind == "StageChanged"]
+    assert [s["stage"] for s in stages] == ["idle"]
+    assert (stages[0]["first"], stages[0]["second"], stages[0]["closed"]) == ("", "", "")
