@@ -144,3 +144,16 @@ def test_fraction_is_sum_of_t_over_tmax(rows: list[Row]) -> None:
         if i > CFG.discharge_threshold_a and v <= p.cutoff_v:
             expected += Fraction(round(dt * 1000), p.t_max_ms)
         assert ctl.battery(0).acc_wms / TABLE.m_ms == expected
+
+
+def test_dt_ms_is_pythons_limit_denominator() -> None:
+    """The tick length in exact ms (rules.dt_ms) equals CPython's
+    ``Fraction(dt * 1000).limit_denominator(1000)`` for tick lengths that are no whole number
+    of ms (k / 7919 s), where the continued fraction must choose between its last convergent
+    and the semiconvergent (generated mutant 68f193f081: that choice broken)."""
+    from packpilot.control.protection.rules import dt_ms
+
+    for k in range(1, 4000, 7):
+        dt = k / 7919.0
+        want = Fraction(dt * 1000.0).limit_denominator(1000)
+        assert dt_ms(dt) == (want.numerator, want.denominator), dt

@@ -11,4 +11,13 @@ EQUIVALENT: dict[str, str] = {
     "af2faa7284": "protection dt_ms: `if not (x > 0.0): return 0, 1` -> pass. The only caller "
     "(step_pack) passes a finite dt >= 0; at x = 0 the fall-through halves n = 0 down to e = 0 "
     "and returns (0 << 0, 1) = (0, 1), the same.",
+    "8e12b7adb7": "can _delay: `not (isfinite(now) and ts and isfinite(ts))` -> `... or ...`. "
+    "Differs only when the wall clock is finite and the timestamp missing (python-can's 0.0; "
+    "never None): then d = now - 0 = time.time() >= 1e6 s and the range check `0 < d < 1e6` "
+    "returns 0 as the original does; NaN timestamps give d = NaN, also 0. The two guards "
+    "overlap for the only wall clock the plant is given (time.time).",
+    "88d28141f5": "can _judge_sequence: `gap >= RESYNC_PERIODS * period_s - 1e-9` -> `>`. The "
+    "two differ only when the gap equals RESYNC_PERIODS * period_s - 1e-9 exactly; the 1e-9 is "
+    "there so a gap of exactly RESYNC_PERIODS periods (up to float noise) resyncs, which both "
+    "do. No frame timestamp difference lands on that one float.",
 }
