@@ -267,3 +267,29 @@ def test_a_plan_that_connects_nothing_names_no_battery() -> None:
     stages = [e.data for o in outs for e in o.events if e.kind == "StageChanged"]
     assert [s["stage"] for s in stages] == ["idle"]
     assert (stages[0]["first"], stages[0]["second"], stages[0]["closed"]) == ("", "", "")
+
+
+def test_a_charger_that_falls_silent_is_lost_after_the_full_timeout() -> None:
+    """The silence clock restarts at every charger status: statuses for a while, then none,
+    and the charger is declared lost on the 3rd 1-s period of a 3-s timeout (generated mutant
+    4b25194981: a status left 1 s on the clock)."""
+    ctrl = ChargingController(ChargingConfig(charger_status_timeout_s=3.0), pack_info(2))
+    toy = ToyPack([80.0, 90.0])
+    m = toy.measure()
+    assert m.charger is not None and m.docked
+    run(ctrl, m, 3)
+    outs = run(ctrl, replace(m, charger=None), 4)
+    lost = [k for k, o in enumerate(outs) for e in o.events
+            if e.kind == "Fault" and "lost" in e.message]  # fmt: skip
+    assert lost == [2]
+
+
+def test_a_battery_at_v_sat_is_full_at_exactly_the_termination_current() -> None:
+    """Full = at V_sat (within reach_tol) with a charge current *at most* the termination
+    current: exactly at it counts (generated mutant 137deb0a5a: strictly below)."""
+    toy, ctrl = frozen([80.0, 90.0], CFG_R)
+    m = toy.measure()
+    at = patched(m, 0, voltage_v=CFG.v_sat_v, current_a=-CFG.termination_current_a)
+    outs = run(ctrl, at, 3)
+    full = [e for o in outs for e in o.events if e.kind == "BatteryFull" and e.battery == 0]
+    assert [e.data["reason"] for e in full] == ["full"]

@@ -20,4 +20,6 @@ EQUIVALENT: dict[str, str] = {
     "two differ only when the gap equals RESYNC_PERIODS * period_s - 1e-9 exactly; the 1e-9 is "
     "there so a gap of exactly RESYNC_PERIODS periods (up to float noise) resyncs, which both "
     "do. No frame timestamp difference lands on that one float.",
+    "606071d32c": "protection dt_ms: `den <= MAX_DEN_MS` -> `<`: den = 1 << e is a power of two "
+    "and MAX_DEN_MS = 1000 is not, so den never equals it.",
 }
