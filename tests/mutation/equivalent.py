@@ -22,4 +22,9 @@ EQUIVALENT: dict[str, str] = {
     "do. No frame timestamp difference lands on that one float.",
     "606071d32c": "protection dt_ms: `den <= MAX_DEN_MS` -> `<`: den = 1 << e is a power of two "
     "and MAX_DEN_MS = 1000 is not, so den never equals it.",
+    "05f3e364b4": "plausibility `NONE = -1` -> `-2`: a finding state used only by name inside "
+    "rules.py (returned by the judge helpers, compared `state == NONE`), never stored in a "
+    "status, an event or any array another module reads; OK = 0 and BAD = 1 stay distinct.",
+    "4d03f98d8c": "equalization step: `dt_s > 0.0` -> `>= 0.0` in `dt = dt_s if ... else 0.0`: "
+    "at dt_s = 0 both give 0 (a -0.0 only ever added to timers: the same sums).",
 }
