@@ -24,7 +24,8 @@ from typing import Any
 
 import pytest
 
-_TARGETS = {os.path.realpath(p) for p in os.environ.get("MUTATE_COVER_FILES", "").split(os.pathsep) if p}
+_FILES = os.environ.get("MUTATE_COVER_FILES", "")
+_TARGETS = {os.path.realpath(p) for p in _FILES.split(os.pathsep) if p}
 _KNOWN: dict[str, str | None] = {}
 _DATA: dict[str, dict[str, set[int]]] = {"": {}}
 _CUR: list[str] = [""]
@@ -100,7 +101,7 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
 
 def pytest_unconfigure(config: pytest.Config) -> None:
     sys.settrace(None)
-    threading.settrace(None)  # type: ignore[arg-type]
+    threading.settrace(None)
     out = os.environ.get("MUTATE_COVER_OUT")
     if not out:
         return

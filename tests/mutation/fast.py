@@ -218,7 +218,11 @@ class Server:
     def close(self) -> None:
         if self.proc.stdin:
             self.proc.stdin.close()
-        self.proc.wait(10)
+        try:
+            self.proc.wait(120)  # it may still be importing on a loaded box
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
 
 
 def run_one(server: Server, mu: GenMutant, cmap: dict[str, Any], spans: Any,
@@ -286,6 +290,8 @@ def run_many(mutants: list[GenMutant], log: Path, cache: Path, full: bool = Fals
     todo = [m for m in mutants if m.id not in done]
     print(f"fast: {len(mutants)} mutants, {len(mutants) - len(todo)} already in {log}",
           flush=True)  # fmt: skip
+    if not todo:
+        return [done[m.id] for m in mutants if m.id in done]
     lock = threading.Lock()
     count = [0]
     log.parent.mkdir(parents=True, exist_ok=True)
