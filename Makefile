@@ -76,8 +76,10 @@ test: $(TEST_STAMP) browser
 # that execute its line (a map built once per module, cached in $(OUT)/mutation_map/), fail-fast,
 # in a forked child (tests/mutation/fast.py): a few seconds each. Kill rate per module on stdout
 # and in $(OUT)/mutation.json / .md (hand-listed) and $(OUT)/mutation_generated.json / .md /
-# .jsonl (generated). The first run builds the maps (one interpreted run of every module's
-# tests, ~10 min on 2 idle cores); later runs reuse them. MUTATE_SEED picks another sample.
+# .jsonl (generated). The first run builds the maps (one traced, interpreted run of every
+# module's tests, as the old runner's baseline did: 40 s - 12 min per module on the loaded box
+# of 2026-11-28, sequencing over 40 min); later runs reuse them until a rules or test file
+# changes. MUTATE_SEED picks another sample.
 MUTATE_JOBS ?= 2
 MUTATE_N ?= 24
 MUTATE_SEED ?= 26
