@@ -178,6 +178,9 @@ def test_an_explicit_reset_of_one_battery_leaves_the_others_latched() -> None:
     d.step(ok, ok, ok)
     assert d.ctl.reset_trips(1) >= 1
     assert [d.ctl.is_active(i, k) for i in range(3)] == [True, False, True]
+    out = d.step(ok, ok, ok)  # the reset's events come with the next tick, naming battery 1
+    resets = [(e.battery, e.data["row"]) for e in out.events if e.kind == "LimitReset"]
+    assert (1, k) in resets and all(b == 1 for b, _ in resets)
     assert d.ctl.reset_trips(0) >= 1
     assert [d.ctl.is_active(i, k) for i in range(3)] == [False, False, True]
     assert d.ctl.reset_trips() >= 1
