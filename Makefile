@@ -70,12 +70,16 @@ test: $(TEST_STAMP) browser
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider
 
 # Mutation testing (#18 §1, #26 item 4): every hand-listed mutant of a safety rule
-# (tests/mutation/mutants.py) plus a seeded random sample of MUTATE_N tool-generated mutants of
-# every rules module (tests/mutation/generate.py; docs/mutation.md) against each module's
-# behavioural tests, interpreted (NUMBA_DISABLE_JIT=1), on a private copy of the tree; kill rate
-# per module on stdout and in $(OUT)/mutation.json / .md (hand-listed) and
-# $(OUT)/mutation_generated.json / .md (generated). A generated mutant takes 10 s - 2 min on
-# one core: MUTATE_N=24 is ~10-15 min on 2 cores; MUTATE_SEED picks another sample.
+# (tests/mutation/mutants.py) plus a seeded, stratified random sample of MUTATE_N tool-generated
+# mutants of every rules module (tests/mutation/generate.py; docs/mutation.md), interpreted
+# (NUMBA_DISABLE_JIT=1), on a private copy of the tree. A generated mutant runs only the tests
+# that execute its line (a map built once per module, cached in $(OUT)/mutation_map/), fail-fast,
+# in a forked child (tests/mutation/fast.py): a few seconds each. Kill rate per module on stdout
+# and in $(OUT)/mutation.json / .md (hand-listed) and $(OUT)/mutation_generated.json / .md /
+# .jsonl (generated). The first run builds the maps (one traced, interpreted run of every
+# module's tests, as the old runner's baseline did: 40 s - 12 min per module on the loaded box
+# of 2026-11-28, sequencing over 40 min); later runs reuse them until a rules or test file
+# changes. MUTATE_SEED picks another sample.
 MUTATE_JOBS ?= 2
 MUTATE_N ?= 24
 MUTATE_SEED ?= 26
@@ -86,7 +90,7 @@ mutate: $(TEST_STAMP)
 
 # Property soak (#18 §2): every Hypothesis property under the `nightly` profile (tests/budget.py:
 # at least 10,000 examples each, CI budget x 50), then every generated mutant of every rules
-# module (#26 item 4; ~3,400 mutants, about a day on 2 cores; $(OUT)/mutation_generated.*).
+# module (#26 item 4; ~3,400 mutants, several hours on 2 cores; $(OUT)/mutation_generated.*).
 # Hours, not minutes; not part of `make test`.
 soak: $(TEST_STAMP)
 	HYPOTHESIS_PROFILE=nightly PYBAMM_DISABLE_TELEMETRY=true \

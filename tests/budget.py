@@ -30,8 +30,14 @@ settings.register_profile(
     print_blob=True,
 )
 settings.register_profile("dev", max_examples=20, deadline=None)
-if PROFILE not in ("ci", "nightly", "dev"):
-    raise SystemExit(f"HYPOTHESIS_PROFILE={PROFILE!r}: expected ci, nightly or dev")
+# mutation runs (tests/mutation/fast.py): the CI budget, but the same examples every run and no
+# example database, so a mutant is killed or survives reproducibly and the map of which test
+# reaches which line (built once) holds for every mutant run
+settings.register_profile(
+    "mutate", max_examples=CI_MIN, deadline=None, derandomize=True, database=None
+)
+if PROFILE not in ("ci", "nightly", "dev", "mutate"):
+    raise SystemExit(f"HYPOTHESIS_PROFILE={PROFILE!r}: expected ci, nightly, dev or mutate")
 settings.load_profile(PROFILE)
 
 

@@ -11,6 +11,8 @@ import math
 from dataclasses import replace
 from typing import Any
 
+import pytest
+
 from packpilot.contract.bms import ControlOutput, Measurements
 from packpilot.control.charging import ChargingConfig, ChargingController
 from tests.test_charging_helpers import ToyPack, pack_info
@@ -178,3 +180,116 @@ def test_a_first_plan_closes_a_level_only_where_the_predicted_bus_charges_it() -
     on_bus = charging(charging(rest, 0, 80.5, -2.5), 1, 80.5, -2.5)
     outs = run(ctrl, on_bus, 1)
     assert outs[-1].commands.chg_on == (True, True, True, False)
+
+
+def test_a_held_current_step_teaches_the_settled_resistance() -> None:
+    """R from a current step held steady for two windows of ``r_settle_s`` (rules.py "settled"
+    estimate): the voltage rise to the end of the first window minus the drift measured over
+    the second, over the step. Here 0 -> -5 A moves V by +0.5 V at once (step R 0.1 Ohm), then
+    the polarization adds 0.3 V by T and the OCV drifts 0.05 V from T to 2T:
+    R = ((80.8 - 80.0) - (80.85 - 80.8)) / 5 = 0.15 Ohm, replacing the step value."""
+    toy, ctrl = frozen([80.0, 90.0], docked=False)
+    m0 = toy.measure()
+    t_win = CFG.r_settle_s
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
+    ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=80.5), 1.0)  # the step, at t = 0
+    assert ctrl.r_ohm[0] == pytest.approx(0.1)
+    for k in range(1, int(2 * t_win) + 1):
+        # polarization settles linearly to +0.3 V at T, then the OCV drift alone
+        v = 80.5 + 0.3 * k / t_win if k <= t_win else 80.8 + 0.05 * (k - t_win) / t_win
+        ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=v), 1.0)
+    assert ctrl.r_ohm[0] == pytest.approx(0.15, rel=1e-6)
+
+
+def test_a_non_finite_aux_reading_is_one_fault_that_stops_aux_charging() -> None:
+    """An aux battery with a NaN reading: one Fault event whose reason says the aux battery's
+    measurement (not the traction batteries'), aux relay open at 0 A, and no repeat while it
+    stays invalid."""
+    toy = ToyPack([80.0, 90.0], aux_soc=0.5)
+    ctrl = ChargingController(CFG, pack_info(2, has_aux=True))
+    m = toy.measure()
+    assert m.aux is not None
+    bad = replace(m, aux=replace(m.aux, temp_c=math.nan))
+    outs = run(ctrl, bad, 3)
+    faults = [e for o in outs for e in o.events if e.kind == "Fault"]
+    assert [e.data.get("reason") for e in faults] == ["aux_invalid_measurement"]
+    assert outs[-1].commands.aux_relay_closed is False
+    assert outs[-1].commands.aux_charge_a == 0.0
+
+
+def test_the_unfit_top_of_a_level_waits_whatever_its_position() -> None:
+    """As above with the batteries in another order: the one the predicted bus (80.23 V) would
+    not charge is found by its voltage, not by its place in the pack (the highest unfit one
+    waits first, then the rest are predicted again)."""
+    cfg = ChargingConfig(r_comp_initial_ohm=0.05, charger_current_limit_a=5.0,
+                         termination_current_a=0.5)  # fmt: skip
+    toy, ctrl = frozen([80.45, 80.0, 80.0, 90.0], cfg)
+    outs = run(ctrl, toy.measure(), 5)
+    assert outs[-1].status["chg_stage"][0] == "S20"
+    assert outs[-1].commands.chg_on == (False, True, True, False)
+    assert outs[-1].status["chg_group"][0] == 1  # a first battery, waiting for the bus
+
+
+def test_a_resistance_exactly_at_the_plausible_maximum_is_learned() -> None:
+    """``r_comp_max_ohm``: estimates *above* it are rejected; one exactly at it is believed
+    (0 -> -5 A moving V by +5 V is R = 1 Ohm, the default maximum)."""
+    toy, ctrl = frozen([80.0, 90.0], docked=False)
+    m0 = toy.measure()
+    assert CFG.r_comp_max_ohm == 1.0
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
+    ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=85.0), 1.0)
+    assert ctrl.r_ohm[0] == 1.0
+
+
+def test_a_silent_charger_is_lost_after_the_full_timeout_of_each_docking() -> None:
+    """``charger_status_timeout_s`` of silence counts from the docking: docked with no charger
+    status at all, the charger is declared lost on the 3rd 1-s period of a 3-s timeout, not
+    earlier, after an undocked period too (generated mutant adb5ead09e: undocking left 1 s on
+    the silence clock)."""
+    ctrl = ChargingController(ChargingConfig(charger_status_timeout_s=3.0), pack_info(2))
+    bats = ToyPack([80.0, 90.0]).measure().batteries
+    for _ in range(2):  # two docking sessions, each after an undocked period
+        ctrl.step(Measurements(t_s=0.0, batteries=bats, bus_v=math.nan, docked=False), 1.0)
+        silent = Measurements(t_s=0.0, batteries=bats, bus_v=math.nan, docked=True)
+        outs = [ctrl.step(silent, 1.0) for _ in range(4)]
+        lost = [k for k, o in enumerate(outs) for e in o.events
+                if e.kind == "Fault" and "lost" in e.message]  # fmt: skip
+        assert lost == [2]
+
+
+def test_a_plan_that_connects_nothing_names_no_battery() -> None:
+    """Undocking ends the session in ``idle``: its StageChanged event names no first, second
+    or closed battery (generated mutant a54b1662a7: every battery was listed as a second)."""
+    toy, ctrl = frozen([80.0, 90.0], CFG_R)
+    m = toy.measure()
+    run(ctrl, m, 3)
+    outs = run(ctrl, replace(m, docked=False, charger=None), 1)
+    stages = [e.data for o in outs for e in o.events if e.kind == "StageChanged"]
+    assert [s["stage"] for s in stages] == ["idle"]
+    assert (stages[0]["first"], stages[0]["second"], stages[0]["closed"]) == ("", "", "")
+
+
+def test_a_charger_that_falls_silent_is_lost_after_the_full_timeout() -> None:
+    """The silence clock restarts at every charger status: statuses for a while, then none,
+    and the charger is declared lost on the 3rd 1-s period of a 3-s timeout (generated mutant
+    4b25194981: a status left 1 s on the clock)."""
+    ctrl = ChargingController(ChargingConfig(charger_status_timeout_s=3.0), pack_info(2))
+    toy = ToyPack([80.0, 90.0])
+    m = toy.measure()
+    assert m.charger is not None and m.docked
+    run(ctrl, m, 3)
+    outs = run(ctrl, replace(m, charger=None), 4)
+    lost = [k for k, o in enumerate(outs) for e in o.events
+            if e.kind == "Fault" and "lost" in e.message]  # fmt: skip
+    assert lost == [2]
+
+
+def test_a_battery_at_v_sat_is_full_at_exactly_the_termination_current() -> None:
+    """Full = at V_sat (within reach_tol) with a charge current *at most* the termination
+    current: exactly at it counts (generated mutant 137deb0a5a: strictly below)."""
+    toy, ctrl = frozen([80.0, 90.0], CFG_R)
+    m = toy.measure()
+    at = patched(m, 0, voltage_v=CFG.v_sat_v, current_a=-CFG.termination_current_a)
+    outs = run(ctrl, at, 3)
+    full = [e for o in outs for e in o.events if e.kind == "BatteryFull" and e.battery == 0]
+    assert [e.data["reason"] for e in full] == ["full"]

@@ -9,6 +9,7 @@ import pytest
 
 from packpilot.contract.arrays import NO_OPINION, cmd_arrays
 from packpilot.contract.bms import Commands
+from packpilot.contract.charger import ChargerCommand
 from packpilot.control.core import put_commands
 
 
@@ -38,3 +39,16 @@ def test_a_balancer_opinion_replaces_the_earlier_one_and_leaves_out_groups_at_ze
     put_commands(cmd, 0, Commands(balancer_a=((0.05,),)))
     assert cmd.balancer_a[0].tolist() == [[0.05, 0.0, 0.0], [0.0, 0.0, 0.0]]
     assert bool(cmd.balancer_set[0])
+
+
+@pytest.mark.parametrize("opinions", list(itertools.product([True, False], repeat=3)))
+def test_the_charger_is_on_only_if_no_controller_said_off(opinions: tuple[bool, ...]) -> None:
+    """Charger setpoints merge like the switches: the latest setpoint wins, but one "off" from
+    any controller leaves the charger off at 0 V / 0 A whatever comes after it (generated
+    mutant 575482da88: the merged "off" re-enabled the charger at 0 V / 0 A)."""
+    cmd = cmd_arrays(1, 1, 1)
+    for k, on in enumerate(opinions):
+        put_commands(cmd, 0, Commands(charger=ChargerCommand(90.0 + k, 5.0 + k, enable=on)))
+    assert bool(cmd.charger_set[0])
+    got = (float(cmd.charger_v[0]), float(cmd.charger_a[0]), bool(cmd.charger_enable[0]))
+    assert got == ((92.0, 7.0, True) if all(opinions) else (0.0, 0.0, False))

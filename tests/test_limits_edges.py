@@ -160,3 +160,69 @@ def test_a_relay_conducts_only_with_both_feedbacks_closed() -> None:
     bms = (healthy(switch=CLOSED), healthy(switch=SwitchState(chg_on=False, dsg_on=True)))
     ctl.step(Measurements(t_s=0.0, batteries=bms, bus_v=22.2), 0.1)
     assert ctl.pack_limit_dsg_a == pytest.approx(2 * 15.0 * CAP)
+
+
+def test_an_explicit_reset_of_one_battery_leaves_the_others_latched() -> None:
+    """``reset_trips(i)`` clears battery i's latched rows only; ``reset_trips()`` clears every
+    battery's. Three batteries latched at the over-voltage trip (no latch time: held until an
+    explicit reset), all back below the reset value."""
+    k, row = next((k, r) for k, r in enumerate(DEFAULT_ROWS)
+                  if r.limit == "over_voltage" and r.tier == "trip")  # fmt: skip
+    assert row.latch_s is None
+    d = Driver(n=3)
+    hot = with_value(row, row.threshold + 0.05)
+    for _ in range(400):
+        d.step(hot, hot, hot)
+    assert all(d.ctl.is_active(i, k) for i in range(3))
+    ok = healthy()
+    d.step(ok, ok, ok)
+    assert d.ctl.reset_trips(1) >= 1
+    assert [d.ctl.is_active(i, k) for i in range(3)] == [True, False, True]
+    out = d.step(ok, ok, ok)  # the reset's events come with the next tick, naming battery 1
+    resets = [(e.battery, e.data["row"]) for e in out.events if e.kind == "LimitReset"]
+    assert (1, k) in resets and all(b == 1 for b, _ in resets)
+    assert d.ctl.reset_trips(0) >= 1
+    assert [d.ctl.is_active(i, k) for i in range(3)] == [False, False, True]
+    assert d.ctl.reset_trips() >= 1
+    assert not any(d.ctl.is_active(i, k) for i in range(3))
+
+
+def _charge_trip() -> tuple[int, LimitRow]:
+    """The over-temperature-while-charging trip (latched 60 s: the tests stay inside that)."""
+    k, row = next((k, r) for k, r in enumerate(DEFAULT_ROWS)
+                  if r.limit == "over_temp_charge" and r.tier == "trip")  # fmt: skip
+    assert row.when == "charging" and row.direction == "above" and (row.latch_s or 0) >= 10
+    return k, row
+
+
+def test_a_charge_only_trip_can_be_reset_once_the_battery_no_longer_charges() -> None:
+    """A row that applies only while charging is out of context once the pack is undocked and
+    the battery not charged: an explicit reset clears it even with its quantity still beyond
+    the reset value (generated mutant ae7f2d2c03: the out-of-context row kept refusing)."""
+    k, row = _charge_trip()
+    d = Driver()
+    hot = with_value(row, row.threshold + 1.0)
+    for _ in range(30):
+        d.step(hot, docked=True)
+    assert d.ctl.is_active(0, k)
+    assert d.ctl.reset_trips() == 0  # still charging and beyond the reset value
+    d.step(hot, docked=False)
+    assert d.ctl.reset_trips() >= 1
+    assert not d.ctl.is_active(0, k)
+
+
+def test_an_absent_battery_takes_no_charging_context_from_its_neighbour() -> None:
+    """An absent battery's rows are judged in its own context (charging only when docked), not
+    in the one left by the battery before it: undocked, with battery 0 cross-charged at 1C,
+    absent battery 1's latched charge-only trip is out of context and can be reset
+    (generated mutant 0472b2b94f)."""
+    k, row = _charge_trip()
+    d = Driver(n=2)
+    hot = with_value(row, row.threshold + 1.0)
+    for _ in range(30):
+        d.step(healthy(), hot, docked=True)
+    assert d.ctl.is_active(1, k)
+    charged = healthy(current_a=-CAP)  # 1C into battery 0: its charge context is on
+    d.step(charged, None, docked=False)  # type: ignore[arg-type]
+    assert d.ctl.reset_trips(1) >= 1
+    assert not d.ctl.is_active(1, k)

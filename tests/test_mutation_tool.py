@@ -4,12 +4,13 @@ on a tiny fixture module: no numba, no project kernels, a few seconds."""
 from __future__ import annotations
 
 import ast
+import shutil
 import textwrap
 from pathlib import Path
 
 import pytest
 
-from tests.mutation import run
+from tests.mutation import fast, run
 from tests.mutation.generate import (
     GenMutant,
     Target,
@@ -186,6 +187,52 @@ def test_runner_classifies_killed_survived_invalid_and_timeout(tiny_tree: Path) 
     assert (bad.outcome, bad.detail) == ("invalid", "does not compile")
     assert (tiny_tree / "src" / "tiny.py").read_text() == TINY  # restored every time
     rows = run.gen_summary([killed, survived, no_import, hang, bad])["tiny"]
-    assert rows == {"killed": 1, "timeout": 1, "survived": 1, "invalid": 2}
+    assert rows == {"killed": 1, "timeout": 1, "survived": 1, "equivalent": 0, "invalid": 2,
+                    "error": 0}  # fmt: skip
     assert run.kill_rate(rows) == pytest.approx(200.0 / 3)
     assert survived.id in run.gen_table([survived], "x")
+
+
+def test_fast_runs_a_mutant_against_only_the_tests_that_reach_it(
+    tiny_tree: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The map, the selection and the fork server (fast.py) on the tiny module: a mutant of a
+    function no test calls survives without a run; the others end as with the plain runner."""
+    (tiny_tree / "tests" / "__init__.py").touch()
+    (tiny_tree / "tests" / "mutation").mkdir()
+    (tiny_tree / "tests" / "mutation" / "__init__.py").touch()
+    for name in ("cover_plugin.py", "forkserver.py"):
+        shutil.copy(run.ROOT / "tests" / "mutation" / name, tiny_tree / "tests" / "mutation")
+    monkeypatch.setattr(fast, "TIMEOUT_MIN_S", 15.0)  # a loaded box: pytest starts slowly
+    monkeypatch.setattr(fast, "RETRY_FACTOR", 1.0)
+    monkeypatch.setattr(fast, "TIMEOUT_PAD_S", 0.0)
+    chosen = {
+        "killed": _one("cmp:>-><", "if x > hi:", "x < hi"),
+        "survived": _one("cmp:>->>=", "if x > hi:", "x >= hi"),
+        "unreached": _one("minmax", "return min(", "return max("),
+        "invalid": _one("cmp:>-><", "SCALE > 1.0", "SCALE < 1.0"),
+        "timeout": _one("arith:+->-", "k += 1", "k -= 1"),
+    }
+    log = tmp_path / "log.jsonl"
+    got = fast.run_many(list(chosen.values()), log, tmp_path / "map", root=tiny_tree)
+    by = {r.id: r for r in got}
+    outcome = {k: by[m.id].outcome for k, m in chosen.items()}
+    assert outcome == {"killed": "killed", "survived": "survived", "unreached": "survived",
+                       "invalid": "invalid", "timeout": "timeout"}  # fmt: skip
+    assert by[chosen["unreached"].id].tests == 0  # band() is called by no test: no run
+    assert by[chosen["killed"].id].tests == 1  # only test_over reaches `if x > hi`
+    assert "test_over" in by[chosen["killed"].id].detail
+    assert (tiny_tree / "src" / "tiny.py").read_text() == TINY  # the fixture itself untouched
+    assert len(log.read_text().splitlines()) == 5  # one line per mutant, as each ends
+    again = fast.run_many(list(chosen.values()), log, tmp_path / "map", root=tiny_tree)
+    assert [r.outcome for r in again] == [r.outcome for r in got]  # resumed from the log
+    assert len(list((tmp_path / "map").glob("tiny-*.json"))) == 1  # the map built once
+
+
+def test_a_stratified_sample_holds_every_module_and_is_reproducible() -> None:
+    gen = generate()
+    a = fast.stratified(gen, 400, 26, 12)
+    assert [m.id for m in a] == [m.id for m in fast.stratified(gen, 400, 26, 12)]
+    per = {mod: sum(m.module == mod for m in a) for mod in {m.module for m in gen}}
+    assert min(per.values()) >= 12 and 400 <= len(a) <= 440
+    assert [m.id for m in a] != [m.id for m in fast.stratified(gen, 400, 27, 12)]

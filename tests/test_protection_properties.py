@@ -144,3 +144,17 @@ def test_fraction_is_sum_of_t_over_tmax(rows: list[Row]) -> None:
         if i > CFG.discharge_threshold_a and v <= p.cutoff_v:
             expected += Fraction(round(dt * 1000), p.t_max_ms)
         assert ctl.battery(0).acc_wms / TABLE.m_ms == expected
+
+
+def test_dt_ms_is_pythons_limit_denominator() -> None:
+    """The tick length in exact ms (rules.dt_ms) equals CPython's
+    ``Fraction(dt * 1000).limit_denominator(1000)`` for tick lengths that are no whole number
+    of ms (k / 7919 s), where the continued fraction must choose between its last convergent
+    and the semiconvergent (generated mutant 68f193f081: that choice broken), and for ticks
+    below a microsecond, where only 0/1 and 1/1000 are candidates (6e8f3f340e)."""
+    from packpilot.control.protection.rules import dt_ms
+
+    tiny = [1e-9, 1e-7, 4.9e-7, 5e-7, 5.1e-7, 9.9e-7]  # below 1/1000 ms: 0/1 or 1/1000
+    for dt in [*(k / 7919.0 for k in range(1, 4000, 7)), *tiny]:
+        want = Fraction(dt * 1000.0).limit_denominator(1000)
+        assert dt_ms(dt) == (want.numerator, want.denominator), dt

@@ -301,3 +301,27 @@ def test_a_new_attempt_after_the_method_gave_up_is_logged_again() -> None:
     assert refused(0.2) == []
     method.close = True
     assert refused(0.3) == [1]  # a new episode
+
+
+def test_a_battery_refused_after_it_was_accepted_is_logged() -> None:
+    """Acceptance ends a refusal episode: a battery that was admitted and then drifts out of
+    the join limit is refused *and logged*, and so again after it was admitted in between
+    (generated mutant 5e0683ef7a: an admitted battery was marked as already refused)."""
+
+    class _Close:
+        def step(self, meas: Measurements, dt_s: float) -> ControlOutput:
+            on = (True,) * len(meas.batteries)
+            return ControlOutput(Commands(chg_on=on, dsg_on=on))
+
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(2), methods=[_Close()])
+
+    def refused(t: float, v1: float) -> list[int | None]:
+        bats = (_bat(100.0, closed=True), _bat(v1))
+        out = sup.step(Measurements(t_s=t, batteries=bats, bus_v=100.0), 0.1)
+        return [e.battery for e in out.events if e.kind == "CommandRefused"]
+
+    assert refused(0.0, 101.0) == []  # within 3 V: admitted
+    assert refused(0.1, 110.0) == [1]
+    assert refused(0.2, 110.0) == []  # the same episode
+    assert refused(0.3, 101.0) == []
+    assert refused(0.4, 110.0) == [1]  # admitted in between: a new episode

@@ -35,7 +35,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from tests.mutation.generate import GenMutant, compiles, generate, iter_targets, sample
+from tests.mutation import fast
+from tests.mutation.equivalent import EQUIVALENT
+from tests.mutation.generate import GenMutant, compiles, generate, iter_targets
 from tests.mutation.mutants import MUTANTS, PENDING, TESTS, Mutant
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -210,7 +212,7 @@ def write_reports(results: list[Result], out: Path) -> None:
     (out / "mutation.md").write_text("# Mutation run\n\n" + table(results) + "\n")
 
 
-OUTCOMES = ("killed", "timeout", "survived", "invalid")
+OUTCOMES = ("killed", "timeout", "survived", "equivalent", "invalid", "error")
 
 
 def gen_summary(results: list[Result]) -> dict[str, dict[str, int]]:
@@ -232,8 +234,8 @@ def kill_rate(row: dict[str, int]) -> float | None:
 
 
 def gen_table(results: list[Result], how: str) -> str:
-    rows = [how, "", "| module | killed | by timeout | survived | invalid | kill rate |",
-            "| --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    rows = [how, "", "| module | killed | by timeout | survived | equivalent | invalid | error | "
+            "kill rate |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for mod, row in gen_summary(results).items():
         rate = kill_rate(row)
         cells = " | ".join(str(row[o]) for o in OUTCOMES)
@@ -255,9 +257,36 @@ def write_gen_reports(results: list[Result], out: Path, how: str) -> None:
     )
 
 
+def from_fast(r: fast.FastResult) -> Result:
+    """A generated mutant's result as the reports take it."""
+    why = f"{r.original.strip()}  ->  {r.mutated.strip()}"
+    outcome, detail = r.outcome, r.detail
+    if outcome == "survived" and r.id in EQUIVALENT:  # judged: no test can kill it
+        outcome, detail = "equivalent", EQUIVALENT[r.id]
+    return Result(r.module, f"{r.operator}@{r.line}#{r.id}", why, outcome, r.seconds,
+                  detail, r.id, r.line, r.operator, r.original, r.mutated)  # fmt: skip
+
+
 def select(modules: list[str], names: list[str]) -> list[Mutant]:
     chosen = [mu for mu in MUTANTS if (not modules or mu.module in modules)]
     return [mu for mu in chosen if not names or mu.name in names]
+
+
+def choose_generated(args: argparse.Namespace) -> tuple[list[GenMutant], str]:
+    """The generated mutants the options ask for, and a line saying how they were chosen."""
+    gen = generate(list(iter_targets(args.module)))
+    how = f"all {len(gen)} generated mutants"
+    if args.id:
+        gen = [m for m in gen if m.id in args.id]
+        how = f"{len(gen)} generated mutants chosen by id"
+    elif not args.all_generated:
+        total = len(gen)
+        gen = fast.stratified(gen, args.generated, args.seed, args.floor) if args.generated else []
+        how = (f"{len(gen)} of {total} generated mutants, stratified by module (at least "
+               f"{args.floor} each), seed {args.seed}")
+    if args.module:
+        how += " (modules: " + ", ".join(args.module) + ")"
+    return gen, how
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -272,29 +301,33 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=26, help="sampling seed for --generated")
     ap.add_argument("--id", action="append", default=[], help="only this generated mutant id")
     ap.add_argument("--no-hand", action="store_true", help="skip the hand-listed mutants")
+    ap.add_argument("--floor", type=int, default=1,
+                    help="--generated: at least this many mutants of every module")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the generated results already in OUT/mutation_generated.jsonl")
     args = ap.parse_args(argv)  # fmt: skip
     mutants = [] if args.no_hand else select(args.module, args.mutant)
     stale = check_snippets(MUTANTS)
     if stale:
         print("mutate: stale mutants (fix the list):\n  " + "\n  ".join(stale), file=sys.stderr)
         return 2
-    gen = generate(list(iter_targets(args.module)))
-    how = f"all {len(gen)} generated mutants"
-    if args.id:
-        gen = [m for m in gen if m.id in args.id]
-        how = f"{len(gen)} generated mutants chosen by id"
-    elif not args.all_generated:
-        how = f"{min(args.generated, len(gen))} of {len(gen)} generated mutants, seed {args.seed}"
-        gen = sample(gen, args.generated, args.seed)
-    if args.module:
-        how += " (modules: " + ", ".join(args.module) + ")"
+    gen, how = choose_generated(args)
     if not mutants and not gen:
         print("mutate: no mutant selected", file=sys.stderr)
         return 2
     print(f"mutate: {len(mutants)} hand-listed + {len(gen)} generated mutants, tests "
           "interpreted (NUMBA_DISABLE_JIT=1)", flush=True)  # fmt: skip
-    with tempfile.TemporaryDirectory(prefix="packpilot-mutate-") as tmp:
-        results = run_all([*mutants, *gen], max(1, args.jobs), Path(tmp))
+    results: list[Result] = []
+    if mutants:
+        with tempfile.TemporaryDirectory(prefix="packpilot-mutate-") as tmp:
+            results += run_all(list(mutants), max(1, args.jobs), Path(tmp))
+    if gen:  # only the tests that reach each mutant, fail-fast, forked (fast.py)
+        log = (args.out / "mutation_generated.jsonl").resolve()
+        if not args.resume:
+            log.unlink(missing_ok=True)
+        ran = fast.run_many(gen, log, (args.out / "mutation_map").resolve(), False,
+                            max(1, args.jobs))  # fmt: skip
+        results += [from_fast(r) for r in ran]
     hand = [r for r in results if not r.id]
     made = [r for r in results if r.id]
     if hand:
