@@ -140,7 +140,10 @@ def test_a_frozen_loaded_battery_rejoins_without_charging_its_sibling(
     both A's FETs at once and A pushed 15.76 A into B, limit 9.7 A, for one period)."""
     o = fs.measure(cfg, fault("frozen telemetry of loaded A"))
     assert_safe(o)
-    assert o.max_charge_a <= 0.6  # not only below the limit: about nothing
+    # Not only below the limit: little more than what the rested battery's diode lets
+    # through (0.50 A when written; 1.15 A since #27 holds a stated resistance_ohm at 25 degC,
+    # so the 20 degC pack is more resistive and polarises more).
+    assert o.max_charge_a <= 1.5
     held = [e for e in o.ls.bms.events if e.kind == "StateChanged" and e.battery == 0
             and e.data.get("reason") == "held open by another layer"]  # fmt: skip
     assert [round(e.t_s - o.fault.at_s, 1) for e in held] == [0.6]  # once, the step after
