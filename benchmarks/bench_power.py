@@ -92,7 +92,8 @@ def crossed(cfg: ScenarioConfig, current_a: np.ndarray, hold_s: float = HOLD_S) 
         iv = pack.step(DT_S, "current", current_a)
         _soc, temp = pack.cell_states()
         for i, k in enumerate(strings):
-            sl = slice(pack.string_cell_starts[k], pack.string_cell_starts[k] + cfg.pack.batteries[k].n_cells)
+            c0 = pack.string_cell_starts[k]
+            sl = slice(c0, c0 + cfg.pack.batteries[k].n_cells)
             cur = iv.string_a[:, k]
             cut = (cur > 0) & (iv.cell_v[:, sl].min(axis=1) < prm.cell_v_min[i])
             over = cur > lim_d[i]
@@ -177,7 +178,7 @@ def _join_case(kind: str, dsoc: float, r_mult: float, preload: bool) -> dict[str
         "switch": kind, "dsoc": dsoc, "dv_v": round(float(dv), 3), "r_B_ohm": 0.02 * r_mult,
         "preload_a": float(load[0]),
         "predicted_peak_a": round(plan.peak_a, 2), "plant_peak_a": round(peak, 2),
-        "error": round(err, 4), "half_s": round(plan.half_s, 2),
+        "error": round(err, 4),
     }
 
 

@@ -625,7 +625,7 @@ def plan_join(
         for r in rows:
             fixed = f"{r['fixed_dv_v']:g} V"
             typer.echo(f"{r['battery']:>8} {r['soc']:>5.2f} {r['temp_c']:>6.1f} "
-                       f"{r['r_loop_ohm'] * 1e3:>6.1f}mO {r['dv_up_v']:>6.3f}V "
+                       f"{float(r['r_loop_ohm']) * 1e3:>6.1f}mO {r['dv_up_v']:>6.3f}V "
                        f"{r['dv_down_v']:>6.3f}V {fixed:>8} {r['peak_at_fixed_a']:>7.1f}A "
                        f"{r['half_s']:>7.2f}")  # fmt: skip
 

@@ -16,6 +16,7 @@ polarisation voltages (and their resistances and time constants) into the same f
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -36,6 +37,7 @@ from packpilot.control.power import (
     plan_join,
 )
 from packpilot.errors import ConfigError
+from packpilot.model.cell import model as cellmod
 from packpilot.model.cell.params import CellParams
 from packpilot.model.pack import Pack, _load_cell_set
 
@@ -47,8 +49,14 @@ def traction(cfg: ScenarioConfig) -> list[BatteryConfig]:
     return [b for b in cfg.pack.batteries if b.role != "aux"]
 
 
+@functools.lru_cache(maxsize=16)
+def _cells(name: str) -> CellParams:
+    return _load_cell_set(name)
+
+
 def cell_set(cfg: ScenarioConfig, b: BatteryConfig) -> CellParams:
-    return _load_cell_set(b.cell or cfg.pack.cell)
+    """The battery's cell set (loaded once per process: the publisher asks every second)."""
+    return _cells(b.cell or cfg.pack.cell)
 
 
 @dataclass(frozen=True)
@@ -83,7 +91,9 @@ def cell_rc(params: CellParams, soc: float, temp_c: float, current_a: float = 0.
     r0 = at(params.r0_ohm)
     r1, c1 = at(params.r1_ohm), at(params.c1_f)
     r2, c2 = at(params.r2_ohm), at(params.c2_f)
-    r_t = math.log(at(params.r0_ohm, t=temp_c + 5.0) / at(params.r0_ohm, t=temp_c - 5.0)) / 10.0
+    # the chord over the next 10 K a battery warms under load (R falls convexly with
+    # temperature, so the chord keeps the predicted R at or above the table's on the way)
+    r_t = math.log(at(params.r0_ohm, t=temp_c + 10.0) / r0) / 10.0
     ds = 0.05 if soc < 0.5 else -0.05
     r_s = math.log(at(params.r0_ohm, s=soc + ds) / r0) / ds
     di = max(abs(current_a), 30.0)
@@ -120,10 +130,10 @@ def params_of(
     highest of the cell set's minimum voltage and the limits table's ``cell_v_min`` trips,
     the maximum the lowest of its maximum and the ``cell_v_max`` trips, the temperature limits
     the lowest ``temp_max_c`` trip of each path and the highest ``temp_min_c`` trip (none without
-    one); the heat capacity is the cells' alone
-    (no jig: a conservative, faster heating)."""
+    one); the heat capacity is the cells', cooled
+    through their conductance to the jig (held at the start temperature)."""
     bats = traction(cfg)
-    pack_cells = _load_cell_set(cfg.pack.cell)
+    pack_cells = _cells(cfg.pack.cell)
     sw = [b.switch or cfg.pack.switch for b in bats]
     lo, hi = _limit_rows(cfg, "cell_v_min"), _limit_rows(cfg, "cell_v_max")
     hot_d = _limit_rows(cfg, "temp_max_c", "discharge")
@@ -144,8 +154,19 @@ def params_of(
         temp_min_chg_c=[max(cold_c, default=-math.inf) for _ in bats],
         heat_j_per_k=[c.thermal.cell_heat_capacity_j_per_k * b.n_cells
                       for c, b in zip(sets, bats, strict=True)],
+        cool_w_per_k=[_conductance(c) * b.n_cells for c, b in zip(sets, bats, strict=True)],
         horizons_s=horizons_s, n_sub=n_sub,
     )  # fmt: skip
+
+
+def _conductance(c: CellParams) -> float:
+    """A cell's conductance to what surrounds it: to its jig (two-node model), or to the air
+    through the jig (one node)."""
+    th = c.thermal
+    if th.nodes == 2:
+        return float(th.cell_jig_w_per_k)
+    a, b = th.cell_jig_w_per_k, th.jig_air_w_per_k
+    return float(a * b / (a + b))
 
 
 def current_limits(cfg: ScenarioConfig, capacity_ah: F64) -> tuple[F64, F64]:
@@ -187,6 +208,7 @@ def inputs_from_core(
     dsg_on: NDArray[np.bool_],
     limit_dsg_a: F64 | None = None,
     limit_chg_a: F64 | None = None,
+    prm: PowerParams | None = None,
 ) -> PowerInputs:
     """The batteries' state as the core knows it today (one pack; arrays over traction
     batteries). **The observer's hook**: replace the SOC, the resistances and the zero
@@ -196,6 +218,7 @@ def inputs_from_core(
     a NaN there means unknown and leaves the trip."""
     bats = traction(cfg)
     n = len(bats)
+    prm = params_of(cfg) if prm is None else prm
     inp = new_inputs(1, n)
     cap = np.array([b.capacity_ah or cell_set(cfg, b).capacity_ah for b in bats])
     dsg, chg = current_limits(cfg, cap)
@@ -205,6 +228,8 @@ def inputs_from_core(
         cur = float(current_a[i]) if math.isfinite(current_a[i]) else 0.0
         _fill_rc(inp, 0, i, b, cell_rc(cell_set(cfg, b), s, t, cur), resistance_scale(cfg, b))
         inp.soc[0, i] = s
+        inp.emf_offset_v[0, i] = b.n_cells * entropic_v(cell_set(cfg, b), prm, s, t)
+        inp.dudt_v_per_k[0, i] = b.n_cells * dudt_v_per_k(cell_set(cfg, b), s, t)
         inp.temp_c[0, i] = t
         inp.capacity_ah[0, i] = cap[i]
         avg = float(voltage_v[i]) / b.n_cells
@@ -218,6 +243,18 @@ def inputs_from_core(
         inp.limit_dsg_a[0, i] = _tighter(dsg[i], limit_dsg_a, i)
         inp.limit_chg_a[0, i] = _tighter(chg[i], limit_chg_a, i)
     return inp
+
+
+def entropic_v(params: CellParams, prm: PowerParams, soc: float, temp_c: float) -> float:
+    """How far the cell's OCV at ``temp_c`` sits from the OCV table the prediction reads."""
+    at_t = float(cellmod.ocv_v(params, np.array([soc]), np.array([temp_c]))[0])
+    return at_t - float(np.interp(soc, prm.ocv_soc, prm.ocv_v))
+
+
+def dudt_v_per_k(params: CellParams, soc: float, temp_c: float) -> float:
+    """The cell's entropic coefficient dOCV/dT at this state (V/K)."""
+    lo, hi = cellmod.ocv_v(params, np.array([soc, soc]), np.array([temp_c - 1.0, temp_c + 1.0]))
+    return float(hi - lo) / 2.0
 
 
 def _gap(x: float) -> float:
@@ -238,6 +275,7 @@ def inputs_from_plant(cfg: ScenarioConfig, pack: Pack) -> PowerInputs:
     bats = traction(cfg)
     strings = [k for k, b in enumerate(cfg.pack.batteries) if b.role != "aux"]
     P = pack.n_packs
+    pp = params_of(cfg)
     inp = new_inputs(P, len(bats))
     soc, temp = pack.cell_states()
     eta = np.zeros((2, *soc.shape))
@@ -262,6 +300,9 @@ def inputs_from_plant(cfg: ScenarioConfig, pack: Pack) -> PowerInputs:
             inp.v1_v[p, i] = float(eta[0, p, sl].sum())
             inp.v2_v[p, i] = float(eta[1, p, sl].sum())
             inp.soc[p, i] = s
+            emf = float(pack.e_cell[p, sl].sum() + eta[:, p, sl].sum())
+            inp.emf_offset_v[p, i] = emf - b.n_cells * float(np.interp(s, pp.ocv_soc, pp.ocv_v))
+            inp.dudt_v_per_k[p, i] = b.n_cells * dudt_v_per_k(prm, s, t)
             inp.temp_c[p, i] = t
             inp.capacity_ah[p, i] = float(pack.capacity_ah[p, sl].mean())
             avg = float(v_cell[p, sl].mean())

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from packpilot.control.power import rules
 from packpilot.control.power.rules import (
@@ -35,8 +36,8 @@ HORIZONS_S = (2.0, 10.0, 30.0)
 
 def make_params(
     *,
-    ocv_soc: Sequence[float],
-    ocv_v: Sequence[float],
+    ocv_soc: ArrayLike,
+    ocv_v: ArrayLike,
     series: Sequence[float],
     relay: Sequence[bool],
     on_ohm: Sequence[float],
@@ -49,6 +50,7 @@ def make_params(
     temp_min_dsg_c: Sequence[float] | None = None,
     temp_min_chg_c: Sequence[float] | None = None,
     heat_j_per_k: Sequence[float],
+    cool_w_per_k: Sequence[float] | None = None,
     horizons_s: Sequence[float] = HORIZONS_S,
     n_sub: int = 30,
     iters: int = 30,
@@ -62,12 +64,14 @@ def make_params(
     cold = [-math.inf] * n
     temp_min_dsg_c = cold if temp_min_dsg_c is None else temp_min_dsg_c
     temp_min_chg_c = cold if temp_min_chg_c is None else temp_min_chg_c
+    cool_w_per_k = [0.0] * n if cool_w_per_k is None else cool_w_per_k
     per = {
         "series": series, "relay": relay, "on_ohm": on_ohm, "diode_drop_v": diode_drop_v,
         "diode_ohm": diode_ohm, "cell_v_min": cell_v_min, "cell_v_max": cell_v_max,
         "temp_max_dsg_c": temp_max_dsg_c,
         "temp_max_chg_c": temp_max_chg_c, "temp_min_dsg_c": temp_min_dsg_c,
         "temp_min_chg_c": temp_min_chg_c, "heat_j_per_k": heat_j_per_k,
+        "cool_w_per_k": cool_w_per_k,
     }  # fmt: skip
     for name, v in per.items():
         if len(v) != n:
@@ -78,14 +82,18 @@ def make_params(
         raise ConfigError(f"power: horizons_s must be positive, got {tuple(horizons_s)}")
     if n_sub < 1 or iters < 1:
         raise ConfigError("power: n_sub and iters must be >= 1")
-    f = lambda v: np.asarray(v, np.float64)  # noqa: E731
+
+    def f(v: ArrayLike) -> np.ndarray:
+        return np.asarray(v, np.float64)
+
     return PowerParams(
         ocv_soc=xs, ocv_v=ys, series=f(series), relay=np.asarray(relay, np.bool_),
         on_ohm=f(on_ohm), diode_drop_v=f(diode_drop_v), diode_ohm=f(diode_ohm),
         cell_v_min=f(cell_v_min), cell_v_max=f(cell_v_max), temp_max_dsg_c=f(temp_max_dsg_c),
         temp_max_chg_c=f(temp_max_chg_c), temp_min_dsg_c=f(temp_min_dsg_c),
         temp_min_chg_c=f(temp_min_chg_c),
-        heat_j_per_k=f(heat_j_per_k), horizons_s=f(horizons_s), n_sub=int(n_sub),
+        heat_j_per_k=f(heat_j_per_k), cool_w_per_k=f(cool_w_per_k), horizons_s=f(horizons_s),
+        n_sub=int(n_sub),
         iters=int(iters),
     )  # fmt: skip
 
@@ -102,7 +110,8 @@ def new_inputs(n_packs: int, n_batteries: int) -> PowerInputs:
         present=np.ones(shape, np.bool_), chg_on=np.ones(shape, np.bool_),
         dsg_on=np.ones(shape, np.bool_), soc=full(math.nan), capacity_ah=full(math.nan),
         temp_c=full(25.0), r0_ohm=full(math.nan), r1_ohm=full(0.0), tau1_s=full(0.0),
-        v1_v=full(0.0), r2_ohm=full(0.0), tau2_s=full(0.0), v2_v=full(0.0), r_per_k=full(0.0),
+        v1_v=full(0.0), r2_ohm=full(0.0), tau2_s=full(0.0), v2_v=full(0.0), emf_offset_v=full(0.0),
+        dudt_v_per_k=full(0.0), r_per_k=full(0.0),
         r_per_soc=full(0.0), r_per_a=full(0.0),
         low_cell_v=full(0.0), high_cell_v=full(0.0), limit_dsg_a=full(math.inf),
         limit_chg_a=full(math.inf),
@@ -111,8 +120,13 @@ def new_inputs(n_packs: int, n_batteries: int) -> PowerInputs:
 
 def new_work(n_packs: int, n_batteries: int) -> PowerWork:
     shape = (n_packs, n_batteries)
-    z = lambda: np.zeros(shape, np.float64)  # noqa: E731
-    b = lambda: np.zeros(shape, np.bool_)  # noqa: E731
+
+    def z() -> np.ndarray:
+        return np.zeros(shape, np.float64)
+
+    def b() -> np.ndarray:
+        return np.zeros(shape, np.bool_)
+
     return PowerWork(
         soc=z(), v1=z(), v2=z(), temp=z(), r0=z(), e=z(), eoff=z(), cur=z(), peak_pos=z(),
         peak_neg=z(), dok=b(), ddrop=z(), dohm=z(), cok=b(), cdrop=z(), cohm=z(),

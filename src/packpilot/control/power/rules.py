@@ -83,7 +83,10 @@ class PowerParams(NamedTuple):
     temp_min_chg_c: F64
     """(B,) ... and for charging (a cold cell takes no charge)."""
     heat_j_per_k: F64
-    """(B,) the battery's heat capacity (adiabatic heating over the horizon)."""
+    """(B,) the battery's heat capacity ..."""
+    cool_w_per_k: F64
+    """(B,) ... and its conductance to its surroundings, held at the starting temperature
+    (the jig warms far more slowly than a cell over 30 s)."""
     horizons_s: F64
     """(H,) the horizons, e.g. 2, 10, 30 s."""
     n_sub: int
@@ -114,6 +117,12 @@ class PowerInputs(NamedTuple):
     """0 for a one-RC model."""
     tau2_s: F64
     v2_v: F64
+    emf_offset_v: F64
+    """Added to ``series × cell OCV(SOC)`` (the table's reference temperature): the entropic
+    shift at the battery's temperature, or an observer's EMF correction."""
+    dudt_v_per_k: F64
+    """The battery's EMF change per kelvin (entropic coefficient × cells): its EMF follows
+    the predicted temperature, and ``-I·T·dU/dT`` of reversible heat enters the heating."""
     r_per_k: F64
     """d ln R / dT of R0, R1 and R2 at the present state (1/K; negative: a warming battery's
     resistance falls) ..."""
@@ -143,7 +152,7 @@ class PowerWork(NamedTuple):
     """R0 at the predicted temperature (the RC resistances scale with it)."""
     e: F64
     eoff: F64
-    """Offset added to a battery's EMF (the join planner sets the joining battery's dV)."""
+    """Offset added to a battery's EMF: ``emf_offset_v``, plus the joining battery's dV."""
     cur: F64
     peak_pos: F64
     peak_neg: F64
@@ -346,6 +355,8 @@ def start(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int, only: int) 
         wk.v2[p, s] = inp.v2_v[p, s] if math.isfinite(inp.v2_v[p, s]) else 0.0
         wk.temp[p, s] = inp.temp_c[p, s]
         wk.r0[p, s] = inp.r0_ohm[p, s]
+        off = inp.emf_offset_v[p, s]
+        wk.eoff[p, s] = off if math.isfinite(off) else 0.0
         wk.cur[p, s] = 0.0
         wk.peak_pos[p, s] = 0.0
         wk.peak_neg[p, s] = 0.0
@@ -373,10 +384,16 @@ def rescale(inp: PowerInputs, wk: PowerWork, p: int) -> None:
 
 
 @kernel
+def _entropic(inp: PowerInputs, wk: PowerWork, p: int, s: int) -> float:
+    """EMF moved by the predicted warming."""
+    return _x(inp.dudt_v_per_k[p, s], wk.temp[p, s] - inp.temp_c[p, s])
+
+
+@kernel
 def emf(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int) -> None:
     """Each battery's source voltage now: EMF from the SOC minus its polarisation."""
     for s in range(inp.soc.shape[1]):
-        ocv = prm.series[s] * cell_ocv(prm, wk.soc[p, s])
+        ocv = prm.series[s] * cell_ocv(prm, wk.soc[p, s]) + _entropic(inp, wk, p, s)
         wk.e[p, s] = ocv - wk.v1[p, s] - wk.v2[p, s] + wk.eoff[p, s]
 
 
@@ -396,13 +413,19 @@ def advance(
     a1 = _decay(inp.tau1_s[p, s], h)
     a2 = _decay(inp.tau2_s[p, s], h)
     scale = wk.r0[p, s] / inp.r0_ohm[p, s]
+    v1 = wk.v1[p, s]
+    v2 = wk.v2[p, s]
     wk.v1[p, s] = wk.v1[p, s] * a1 + inp.r1_ohm[p, s] * scale * cur * (1.0 - a1)
     wk.v2[p, s] = wk.v2[p, s] * a2 + inp.r2_ohm[p, s] * scale * cur * (1.0 - a2)
     wk.soc[p, s] -= cur * h / (3600.0 * inp.capacity_ah[p, s])
-    heat_w = cur * (cur * wk.r0[p, s] + wk.v1[p, s] + wk.v2[p, s])
+    heat_w = cur * (cur * wk.r0[p, s] + 0.5 * (v1 + wk.v1[p, s]) + 0.5 * (v2 + wk.v2[p, s]))
+    dudt = inp.dudt_v_per_k[p, s]
+    if math.isfinite(dudt):
+        heat_w -= cur * (wk.temp[p, s] + 273.15) * dudt
+    heat_w -= prm.cool_w_per_k[s] * (wk.temp[p, s] - inp.temp_c[p, s])
     if heat_w > 0.0 and prm.heat_j_per_k[s] > 0.0:
         wk.temp[p, s] += heat_w * h / prm.heat_j_per_k[s]
-    ocv = prm.series[s] * cell_ocv(prm, wk.soc[p, s])
+    ocv = prm.series[s] * cell_ocv(prm, wk.soc[p, s]) + _entropic(inp, wk, p, s)
     term = ocv - wk.v1[p, s] - wk.v2[p, s] + wk.eoff[p, s] - cur * wk.r0[p, s]
     cell = term / prm.series[s]
     if cur > 0.0 and cell - inp.low_cell_v[p, s] < prm.cell_v_min[s]:
@@ -576,8 +599,6 @@ def join_bus_v(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int, j: int
     start(prm, inp, wk, p, -1)
     wk.dok[p, j] = False
     wk.cok[p, j] = False
-    for s in range(inp.soc.shape[1]):
-        wk.eoff[p, s] = 0.0
     emf(prm, inp, wk, p)
     return bus_voltage(wk, p, load_a)
 
@@ -599,7 +620,8 @@ def join(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int, j: int, load
     v0 = join_bus_v(prm, inp, wk, p, j, load_a)
     if not math.isfinite(v0):
         return math.nan, math.nan, math.nan, math.nan
-    wk.eoff[p, j] = 0.0 if math.isnan(dv) else v0 + dv - wk.e[p, j]
+    if not math.isnan(dv):
+        wk.eoff[p, j] += v0 + dv - wk.e[p, j]
     branches(prm, inp, wk, p, -1)
     h = horizon_s / n_steps
     peak = 0.0
@@ -629,8 +651,6 @@ def join(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int, j: int, load
                 advance(prm, inp, wk, p, s, wk.cur[p, s], h)
         rescale(inp, wk, p)
         branches(prm, inp, wk, p, -1)
-    for s in range(inp.soc.shape[1]):
-        wk.eoff[p, s] = 0.0
     return peak, over, half, cur
 
 
