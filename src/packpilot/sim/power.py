@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from scipy.interpolate import interpn
 
 from packpilot.config import ScenarioConfig
+from packpilot.config.limits import LimitsConfig
 from packpilot.config.scenario import BatteryConfig
 from packpilot.config.supervisor import SupervisorConfig
 from packpilot.control.power import (
@@ -340,13 +341,19 @@ def join_table(
     (all at rest at one SOC and temperature, the others holding ``load_a``), the admissible
     dV above and below the bus (its switch within ``switch_a`` and its own current limits,
     every other battery within its own), and the predicted peak at the supervisor's fixed
-    ``join_limit_v``."""
+    ``join_limit_v``. Without a ``[limits]`` section the default limits table's trips
+    stand for the batteries' current limits; a dV of ``dv_max`` (an empty battery against a
+    full one) means any difference is admissible."""
+    if cfg.limits is None:  # a designer's question: the default limits table's trips
+        cfg = cfg.model_copy(update={"limits": LimitsConfig()})
     prm = params_of(cfg)
     bats = traction(cfg)
     if len(bats) < 2:
         raise ConfigError("plan-join: the pack needs at least two traction batteries to join")
     fixed = (cfg.supervisor or SupervisorConfig()).join_limit_v
     temps = temps_c if temps_c is not None else (0.0, cfg.pack.ambient_c)
+    # the largest difference two of these batteries can have: empty against full
+    dv_max = float(max(prm.series) * (prm.ocv_v[-1] - prm.ocv_v[0]))
     rows: list[dict[str, float | str]] = []
     for j, b in enumerate(bats):
         for soc in socs:
@@ -359,8 +366,10 @@ def join_table(
                 rows.append({
                     "battery": b.name, "soc": soc, "temp_c": t,
                     "r_loop_ohm": _loop_ohm(prm, inp, j),
-                    "dv_up_v": admissible_dv(prm, inp, j, up_a, sign=1.0, load_a=load_a),
-                    "dv_down_v": admissible_dv(prm, inp, j, down_a, sign=-1.0, load_a=load_a),
+                    "dv_up_v": admissible_dv(prm, inp, j, up_a, sign=1.0, load_a=load_a,
+                                             dv_max=dv_max),
+                    "dv_down_v": admissible_dv(prm, inp, j, down_a, sign=-1.0, load_a=load_a,
+                                               dv_max=dv_max),
                     "fixed_dv_v": fixed, "peak_at_fixed_a": plan.peak_a,
                     "half_s": plan.half_s, "limit_up_a": up_a, "limit_down_a": down_a,
                 })  # fmt: skip
