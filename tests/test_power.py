@@ -207,7 +207,7 @@ def test_bus_solve_is_the_plants(seed: int) -> None:
     inp.chg_on[0] = chg
     inp.dsg_on[0] = dsg
     wk = pw.new_work(1, b)
-    rules.branches(prm, inp, wk, 0, -1)
+    rules.start(prm, inp, wk, 0, -1)
     wk.e[0] = e
     v = rules.bus_voltage(wk, 0, load)
     br = switch_branches(kind, np.full(b, 0.001), np.full(b, 0.6), np.full(b, 0.003),
