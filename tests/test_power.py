@@ -296,3 +296,23 @@ def test_bad_inputs_say_what() -> None:
         pw.state_of_power(params(2), inputs([0.02]))
     with pytest.raises(ConfigError, match="no battery 5"):
         pw.plan_join(params(2), inputs([0.02, 0.02]), 5, 1.0)
+
+
+def test_the_lowest_cell_reaches_the_cutoff_first() -> None:
+    prm = params(1)
+    inp = inputs([0.02])
+    inp.low_cell_v[:] = 0.1  # one cell sits 0.1 V below the average
+    out = pw.state_of_power(prm, inp)
+    assert out.pack_dsg_a[0, 0] == pytest.approx((N * 3.5 - N * 3.1) / 0.02, rel=1e-6)
+
+
+def test_a_warming_battery_loses_resistance_and_gains_power() -> None:
+    prm = params(1, ocv=([0.0, 1.0], [3.0, 4.2]))._replace(heat_j_per_k=np.array([300.0]))
+    inp = inputs([0.03], cap=5.0)
+    inp.soc[:] = 0.2
+    inp.temp_c[:] = 5.0
+    still = pw.state_of_power(prm, inp).pack_dsg_a[0]
+    inp.r_per_k[:] = -0.03
+    warm = pw.state_of_power(prm, inp).pack_dsg_a[0]
+    assert warm[0] == pytest.approx(still[0], rel=0.02)  # 2 s: barely warmer
+    assert warm[2] > 1.05 * still[2]  # 30 s: a few kelvin, 10 % less resistance at the end

@@ -245,6 +245,21 @@ class Publisher:
             inp.present[0, :] = False
         return state_of_power(self.power_prm, inp)
 
+    def warm_up(self) -> None:
+        """Compile (or load) the state-of-power kernels on a made-up state, before the
+        clock starts: the first publication finds no battery reported yet and would
+        otherwise compile them inside the loop."""
+        n = self.power_prm.series.shape[0]
+        half = np.full(n, 0.5)
+        v = float(np.interp(0.5, self.power_prm.ocv_soc, self.power_prm.ocv_v))
+        yes = np.ones(n, bool)
+        inp = inputs_from_core(
+            self.cfg, soc=half, temp_c=np.full(n, 25.0), current_a=np.zeros(n),
+            voltage_v=self.power_prm.series * v, min_cell_v=np.full(n, v),
+            max_cell_v=np.full(n, v), present=yes, chg_on=yes, dsg_on=yes, prm=self.power_prm,
+        )  # fmt: skip
+        state_of_power(self.power_prm, inp)
+
     def power_frame(self, t: float) -> can.Message:
         """0x231: the pack's 2 / 10 / 30 s discharge and 10 s charge limits (NaN: unknown)."""
         sop = self.sop
