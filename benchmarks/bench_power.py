@@ -33,7 +33,13 @@ from packpilot.config import ScenarioConfig
 from packpilot.config.scenario import parse_config
 from packpilot.control import power as pw
 from packpilot.model.pack import Pack
-from packpilot.sim.power import current_limits, inputs_from_plant, params_of, traction
+from packpilot.sim.power import (
+    current_limits,
+    inputs_from_core,
+    inputs_from_plant,
+    params_of,
+    traction,
+)
 
 HERE = Path(__file__).resolve().parent
 DT_S = 0.1
@@ -72,18 +78,29 @@ def scenario(bats: list[dict[str, Any]], kind: str = "mosfet_pair") -> ScenarioC
     }, "bench_power")  # fmt: skip
 
 
-def _plant(cfg: ScenarioConfig) -> Pack:
+PRELOAD_A = 60.0
+PRELOAD_S = 60.0
+
+
+def _plant(cfg: ScenarioConfig, preload: bool = False) -> Pack:
+    """The sweep's packs (SOC shift x ambient), fresh, or after ``PRELOAD_S`` at
+    ``PRELOAD_A`` (polarised: what a BMS without an observer does not see)."""
     n = len(SOC_SHIFT) * len(AMBIENT_C)
     shift = np.repeat(SOC_SHIFT, len(AMBIENT_C))
     amb = np.tile(AMBIENT_C, len(SOC_SHIFT))
-    return Pack(cfg, n_packs=n, soc_offset=shift, ambient_c=amb)
+    pack = Pack(cfg, n_packs=n, soc_offset=shift, ambient_c=amb)
+    if preload:
+        for _ in range(round(PRELOAD_S / DT_S)):
+            pack.step(DT_S, "current", np.full(n, PRELOAD_A))
+    return pack
 
 
-def crossed(cfg: ScenarioConfig, current_a: np.ndarray, hold_s: float = HOLD_S) -> np.ndarray:
+def crossed(cfg: ScenarioConfig, current_a: np.ndarray, hold_s: float = HOLD_S,
+            preload: bool = False) -> np.ndarray:  # fmt: skip
     """Per pack: which limit the plant crossed drawing ``current_a`` for ``hold_s`` (0 none,
     else ``WHY_*``)."""
     prm = params_of(cfg)
-    pack = _plant(cfg)
+    pack = _plant(cfg, preload)
     strings = [k for k, b in enumerate(cfg.pack.batteries) if b.role != "aux"]
     caps = np.array([b.capacity_ah or 5.0 for b in traction(cfg)])
     lim_d, _ = current_limits(cfg, caps)
@@ -105,14 +122,15 @@ def crossed(cfg: ScenarioConfig, current_a: np.ndarray, hold_s: float = HOLD_S) 
     return why
 
 
-def true_limit(cfg: ScenarioConfig, hi: np.ndarray, iters: int = 16) -> np.ndarray:
+def true_limit(cfg: ScenarioConfig, hi: np.ndarray, iters: int = 16,
+               preload: bool = False) -> np.ndarray:  # fmt: skip
     """The largest constant current each pack holds for 10 s on the plant (bisection)."""
     top = hi.copy()
-    ok_top = crossed(cfg, top) == 0
+    ok_top = crossed(cfg, top, preload=preload) == 0
     lo = np.zeros_like(hi)
     for _ in range(iters):
         mid = 0.5 * (lo + hi)
-        ok = crossed(cfg, mid) == 0
+        ok = crossed(cfg, mid, preload=preload) == 0
         lo = np.where(ok, mid, lo)
         hi = np.where(ok, hi, mid)
     return np.where(ok_top, top, lo)
@@ -144,6 +162,59 @@ def sop_sweep() -> list[dict[str, Any]]:
                 "weakest_alone_a": round(float(aged[p]), 2),
                 "cpu_ms_per_pack": round(1e3 * cpu / pred.size, 2),
             })  # fmt: skip
+    return rows
+
+
+def _core_inputs(cfg: ScenarioConfig, pack: Pack, p: int) -> Any:
+    """What the core has today for pack ``p`` of the plant (``inputs_from_core``: no
+    polarisation), from the plant's state as a smart battery reports it."""
+    strings = [k for k, b in enumerate(cfg.pack.batteries) if b.role != "aux"]
+    soc, temp = pack.cell_states()
+    v_cell = pack.cell_voltage_now()
+    chg, dsg = pack.effective_gates()
+    rows: dict[str, list[float]] = {k: [] for k in ("soc", "t", "i", "v", "lo", "hi")}
+    for k in strings:
+        c0 = pack.string_cell_starts[k]
+        sl = slice(c0, c0 + cfg.pack.batteries[k].n_cells)
+        rows["soc"].append(float(soc[p, sl].min()))
+        rows["t"].append(float(temp[p, sl].max()))
+        rows["i"].append(float(pack.string_a[p, k]))
+        rows["v"].append(float(v_cell[p, sl].sum()))
+        rows["lo"].append(float(v_cell[p, sl].min()))
+        rows["hi"].append(float(v_cell[p, sl].max()))
+    a = {k: np.array(v) for k, v in rows.items()}
+    return inputs_from_core(
+        cfg, soc=a["soc"], temp_c=a["t"], current_a=a["i"], voltage_v=a["v"],
+        min_cell_v=a["lo"], max_cell_v=a["hi"], present=np.ones(len(strings), bool),
+        chg_on=chg[p, strings], dsg_on=dsg[p, strings],
+    )  # fmt: skip
+
+
+def preload_sweep() -> list[dict[str, Any]]:
+    """After 60 s at 60 A: the prediction from the plant's truth (polarisation known, what an
+    observer gives) and from what the core has today (no polarisation)."""
+    cfg = scenario(SPREADS["fresh+aged"])
+    prm = params_of(cfg)
+    pack = _plant(cfg, preload=True)
+    truth = pw.state_of_power(prm, inputs_from_plant(cfg, pack)).pack_dsg_a[:, H10]
+    today = np.array([
+        pw.state_of_power(prm, _core_inputs(cfg, pack, p)).pack_dsg_a[0, H10]
+        for p in range(pack.n_packs)
+    ])  # fmt: skip
+    upper = np.full(pack.n_packs, 250.0)
+    real = true_limit(cfg, upper, preload=True)
+    why_t = crossed(cfg, truth, preload=True)
+    why_c = crossed(cfg, today, preload=True)
+    rows = []
+    for p in range(pack.n_packs):
+        rows.append({
+            "soc_shift": SOC_SHIFT[p // len(AMBIENT_C)], "ambient_c": AMBIENT_C[p % len(AMBIENT_C)],
+            "true_a": round(float(real[p]), 2),
+            "from_truth_a": round(float(truth[p]), 2),
+            "truth_crossed": pw.WHY_NAMES[int(why_t[p])],
+            "from_core_today_a": round(float(today[p]), 2),
+            "core_crossed": pw.WHY_NAMES[int(why_c[p])],
+        })  # fmt: skip
     return rows
 
 
@@ -201,11 +272,16 @@ def _table(rows: list[dict[str, Any]]) -> str:
 
 def run() -> dict[str, Any]:
     sop = sop_sweep()
+    pre = preload_sweep()
     join = join_sweep()
     ratios = [r["ratio"] for r in sop]
     errors = [abs(r["error"]) for r in join]
+    pre_ratio = [r["from_truth_a"] / r["true_a"] for r in pre if r["true_a"] > 0]
     return {
-        "sop": sop, "join": join,
+        "sop": sop, "join": join, "pre": pre,
+        "pre_truth_crossings": sum(r["truth_crossed"] != "none" for r in pre),
+        "pre_core_crossings": sum(r["core_crossed"] != "none" for r in pre),
+        "pre_min_ratio": min(pre_ratio), "pre_n": len(pre),
         "sop_crossings": sum(r["crossed"] != "none" for r in sop),
         "sop_min_ratio": min(ratios), "sop_n": len(sop),
         "join_max_error": max(errors), "join_n": len(join),
@@ -226,8 +302,15 @@ def section(res: dict[str, Any]) -> str:
         f"| SOP 10 s: predicted / true limit (bisection on the plant), worst | "
         f"{res['sop_min_ratio']:.3f} | >= 0.90 |\n"
         f"| join planner: predicted vs plant peak current, worst relative error | "
-        f"{100 * res['join_max_error']:.1f} % over {res['join_n']} joins | <= 15 % |\n\n"
+        f"{100 * res['join_max_error']:.1f} % over {res['join_n']} joins | <= 15 % |\n"
+        f"| SOP 10 s after 60 s at 60 A, from the plant's truth (polarisation known): "
+        f"crossings; worst predicted / true | {res['pre_truth_crossings']} of {res['pre_n']}; "
+        f"{res['pre_min_ratio']:.3f} | 0; >= 0.90 |\n"
+        f"| SOP 10 s after 60 s at 60 A, from what the core has today (no polarisation "
+        f"estimate): crossings | {res['pre_core_crossings']} of {res['pre_n']} | stated "
+        f"(the observer's inputs fix it) |\n\n"
         "State of power, every case:\n\n" + _table(res["sop"]) + "\n\n"
+        "After 60 s at 60 A (fresh + aged), every case:\n\n" + _table(res["pre"]) + "\n\n"
         "Join planner, every case:\n\n" + _table(res["join"]) + "\n"
     )
 

@@ -95,7 +95,8 @@ def cell_rc(params: CellParams, soc: float, temp_c: float, current_a: float = 0.
     # the chord over the next 10 K a battery warms under load (R falls convexly with
     # temperature, so the chord keeps the predicted R at or above the table's on the way)
     r_t = math.log(at(params.r0_ohm, t=temp_c + 10.0) / r0) / 10.0
-    ds = 0.05 if soc < 0.5 else -0.05
+    # the chord towards empty, where a discharging battery goes (R rises steeply there)
+    ds = -0.05 if soc >= 0.05 else 0.05
     r_s = math.log(at(params.r0_ohm, s=soc + ds) / r0) / ds
     di = max(abs(current_a), 30.0)
     r_a = math.log(at(params.r0_ohm, i=di) / r0) / di
@@ -279,6 +280,9 @@ def inputs_from_plant(cfg: ScenarioConfig, pack: Pack) -> PowerInputs:
     pp = params_of(cfg)
     inp = new_inputs(P, len(bats))
     soc, temp = pack.cell_states()
+    jig = np.empty_like(temp)
+    for bank in pack.banks:
+        jig.ravel()[bank.idx] = bank.state.jig_temp_c
     eta = np.zeros((2, *soc.shape))
     for bank in pack.banks:
         for r in range(bank.state.eta_v.shape[1]):
@@ -305,6 +309,7 @@ def inputs_from_plant(cfg: ScenarioConfig, pack: Pack) -> PowerInputs:
             inp.emf_offset_v[p, i] = emf - b.n_cells * float(np.interp(s, pp.ocv_soc, pp.ocv_v))
             inp.dudt_v_per_k[p, i] = b.n_cells * dudt_v_per_k(prm, s, t)
             inp.temp_c[p, i] = t
+            inp.surround_c[p, i] = float(jig[p, sl].mean())
             inp.capacity_ah[p, i] = float(pack.capacity_ah[p, sl].mean())
             avg = float(v_cell[p, sl].mean())
             inp.low_cell_v[p, i] = _gap(avg - float(v_cell[p, sl].min()))

@@ -111,7 +111,7 @@ def new_inputs(n_packs: int, n_batteries: int) -> PowerInputs:
         dsg_on=np.ones(shape, np.bool_), soc=full(math.nan), capacity_ah=full(math.nan),
         temp_c=full(25.0), r0_ohm=full(math.nan), r1_ohm=full(0.0), tau1_s=full(0.0),
         v1_v=full(0.0), r2_ohm=full(0.0), tau2_s=full(0.0), v2_v=full(0.0), emf_offset_v=full(0.0),
-        dudt_v_per_k=full(0.0), r_per_k=full(0.0),
+        surround_c=full(math.nan), dudt_v_per_k=full(0.0), r_per_k=full(0.0),
         r_per_soc=full(0.0), r_per_a=full(0.0),
         low_cell_v=full(0.0), high_cell_v=full(0.0), limit_dsg_a=full(math.inf),
         limit_chg_a=full(math.inf),

@@ -120,6 +120,9 @@ class PowerInputs(NamedTuple):
     emf_offset_v: F64
     """Added to ``series × cell OCV(SOC)`` (the table's reference temperature): the entropic
     shift at the battery's temperature, or an observer's EMF correction."""
+    surround_c: F64
+    """Temperature of what the cells lose heat to (their jig, the air; NaN: the cells' own
+    starting temperature, i.e. no cooling until they warm)."""
     dudt_v_per_k: F64
     """The battery's EMF change per kelvin (entropic coefficient × cells): its EMF follows
     the predicted temperature, and ``-I·T·dU/dT`` of reversible heat enters the heating."""
@@ -422,7 +425,10 @@ def advance(
     dudt = inp.dudt_v_per_k[p, s]
     if math.isfinite(dudt):
         heat_w -= cur * (wk.temp[p, s] + 273.15) * dudt
-    heat_w -= prm.cool_w_per_k[s] * (wk.temp[p, s] - inp.temp_c[p, s])
+    around = inp.surround_c[p, s]
+    if not math.isfinite(around):
+        around = inp.temp_c[p, s]
+    heat_w -= prm.cool_w_per_k[s] * (wk.temp[p, s] - around)
     if heat_w > 0.0 and prm.heat_j_per_k[s] > 0.0:
         wk.temp[p, s] += heat_w * h / prm.heat_j_per_k[s]
     ocv = prm.series[s] * cell_ocv(prm, wk.soc[p, s]) + _entropic(inp, wk, p, s)
