@@ -54,6 +54,7 @@ def make_params(
     horizons_s: Sequence[float] = HORIZONS_S,
     n_sub: int = 30,
     iters: int = 30,
+    margin: float = 0.0,
 ) -> PowerParams:
     """The static facts, checked (a bad value raises :class:`ConfigError` naming it)."""
     xs = np.asarray(ocv_soc, np.float64)
@@ -82,6 +83,8 @@ def make_params(
         raise ConfigError(f"power: horizons_s must be positive, got {tuple(horizons_s)}")
     if n_sub < 1 or iters < 1:
         raise ConfigError("power: n_sub and iters must be >= 1")
+    if not 0.0 <= margin < 1.0:
+        raise ConfigError(f"power: margin must be in 0..1, got {margin}")
 
     def f(v: ArrayLike) -> np.ndarray:
         return np.asarray(v, np.float64)
@@ -93,7 +96,7 @@ def make_params(
         temp_max_chg_c=f(temp_max_chg_c), temp_min_dsg_c=f(temp_min_dsg_c),
         temp_min_chg_c=f(temp_min_chg_c),
         heat_j_per_k=f(heat_j_per_k), cool_w_per_k=f(cool_w_per_k), horizons_s=f(horizons_s),
-        n_sub=int(n_sub),
+        n_sub=int(n_sub), margin=float(margin),
         iters=int(iters),
     )  # fmt: skip
 

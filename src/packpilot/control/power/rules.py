@@ -93,6 +93,9 @@ class PowerParams(NamedTuple):
     """Sub-steps per horizon."""
     iters: int
     """Bisection steps (the result is within ``2**-iters`` of the upper bound)."""
+    margin: float
+    """Share taken off the largest holdable current before it is published (the
+    prediction's error against the plant, ``docs/power.md``)."""
 
 
 class PowerInputs(NamedTuple):
@@ -565,7 +568,7 @@ def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p
         t = prm.horizons_s[k]
         for d in range(2):
             sign = 1.0 if d == 0 else -1.0
-            i = largest(prm, inp, wk, p, -1, t, sign)
+            i = largest(prm, inp, wk, p, -1, t, sign) * (1.0 - prm.margin)
             why = wk.why[p]
             who = wk.who[p]
             hold(prm, inp, wk, p, -1, sign * i, t)
@@ -584,8 +587,8 @@ def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p
                 for s in range(n):
                     out.share_chg_a[p, s, k] = -wk.peak_neg[p, s]
         for s in range(n):
-            out.alone_dsg_a[p, s, k] = largest(prm, inp, wk, p, s, t, 1.0)
-            out.alone_chg_a[p, s, k] = largest(prm, inp, wk, p, s, t, -1.0)
+            out.alone_dsg_a[p, s, k] = largest(prm, inp, wk, p, s, t, 1.0) * (1.0 - prm.margin)
+            out.alone_chg_a[p, s, k] = largest(prm, inp, wk, p, s, t, -1.0) * (1.0 - prm.margin)
 
 
 @kernel
