@@ -115,6 +115,7 @@ bench: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_report_memory.py --days 0.2
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_coldstart.py
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_power.py --append
 
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -590,6 +590,72 @@ def report(
     _guard(go)
 
 
+@app.command("plan-join")
+def plan_join(
+    config: Annotated[Path, typer.Argument(help="scenario TOML file, or an example's name")],
+    soc: Annotated[str, typer.Option(help="pack SOCs to tabulate, comma-separated")] = (
+        "0.2,0.5,0.8"
+    ),
+    temp: Annotated[
+        str | None,
+        typer.Option(help="temperatures (degC), comma-separated (default: 0 and the ambient)"),
+    ] = None,
+    switch_a: Annotated[
+        float | None,
+        typer.Option(help="the switch's peak current rating (A; default: battery limits only)"),
+    ] = None,
+    load_a: Annotated[
+        float, typer.Option(help="current the other batteries carry meanwhile (A; < 0 charging)")
+    ] = 0.0,
+    as_json: Annotated[bool, typer.Option("--json", help="print the rows as JSON")] = False,
+) -> None:
+    """The join planner as a designer's table: for each battery about to join the others,
+    the admissible voltage difference (above / below the bus) and the predicted peak current
+    at the supervisor's fixed join_limit_v (docs/power.md)."""
+
+    def go() -> None:
+        from packpilot.sim.power import join_table
+
+        cfg = _load(scenario_path(config), None)
+        socs = _floats("--soc", soc, 0.0, 1.0)
+        temps = _floats("--temp", temp, -60.0, 100.0) if temp is not None else None
+        check_option("--switch-a", switch_a, 1e-3, 1e6, " A")
+        check_option("--load-a", load_a, -1e5, 1e5, " A")
+        rows = join_table(cfg, socs, temps, switch_a if switch_a is not None else float("inf"),
+                          load_a)  # fmt: skip
+        if as_json:
+            typer.echo(json.dumps(rows, default=_json_default))
+            return
+        typer.echo(f"{cfg.pack.name}: admissible dV at which a battery may join (its switch"
+                   " and every battery within its current limits), the others at rest"
+                   f" carrying {load_a:g} A")  # fmt: skip
+        typer.echo(f"{'battery':>8} {'SOC':>5} {'T degC':>6} {'R loop':>8} {'dV up':>7} "
+                   f"{'dV down':>7} {'peak at':>8} {'':>9} {'half s':>7}")  # fmt: skip
+        for r in rows:
+            fixed = f"{r['fixed_dv_v']:g} V"
+            typer.echo(f"{r['battery']:>8} {r['soc']:>5.2f} {r['temp_c']:>6.1f} "
+                       f"{float(r['r_loop_ohm']) * 1e3:>6.1f}mO {r['dv_up_v']:>6.3f}V "
+                       f"{r['dv_down_v']:>6.3f}V {fixed:>8} {r['peak_at_fixed_a']:>7.1f}A "
+                       f"{r['half_s']:>7.2f}")  # fmt: skip
+
+    _guard(go)
+
+
+def _floats(option: str, text: str, lo: float, hi: float) -> tuple[float, ...]:
+    """A comma-separated list of numbers within ``lo..hi``, else one line naming the option."""
+    from packpilot.errors import ConfigError
+
+    try:
+        values = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError(f"{option} {text!r}: not a comma-separated list of numbers") from None
+    if not values:
+        raise ConfigError(f"{option} {text!r}: give at least one number")
+    for v in values:
+        check_option(option, v, lo, hi)
+    return values
+
+
 def default_report_path(db: Path, run_id: int | None) -> Path:
     """``run.sqlite`` -> ``run.html`` (``run_3.html`` for ``--run-id 3``), beside the file."""
     return db.with_name(db.stem + (f"_{run_id}" if run_id is not None else "") + ".html")

@@ -195,6 +195,61 @@ PUBLISH = [
            src="runtime/publish.py"),
 ]
 
+POWER = [
+    _m("power", "cutoff-ignored",
+       "    if cur > 0.0 and cell - inp.low_cell_v[p, s] < prm.cell_v_min[s]:",
+       "    if False and cell - inp.low_cell_v[p, s] < prm.cell_v_min[s]:",
+       "state of power lets a discharging battery cross its cut-off"),
+    _m("power", "lowest-cell-ignored",
+       "    if cur > 0.0 and cell - inp.low_cell_v[p, s] < prm.cell_v_min[s]:",
+       "    if cur > 0.0 and cell < prm.cell_v_min[s]:",
+       "the average cell, not the lowest, is held above the cut-off"),
+    _m("power", "cell-max-ignored",
+       "    if cur < 0.0 and cell + inp.high_cell_v[p, s] > prm.cell_v_max[s]:",
+       "    if False:",
+       "a charging battery's highest cell may pass its maximum"),
+    _m("power", "share-limit-ignored",
+       "        if cur > inp.limit_dsg_a[p, s] or -cur > inp.limit_chg_a[p, s]:\n"
+       "            return _fail(wk, p, WHY_CURRENT, s)\n    for s",
+       "        if -cur > inp.limit_chg_a[p, s]:\n"
+       "            return _fail(wk, p, WHY_CURRENT, s)\n    for s",
+       "a battery's share of the pack current may exceed its discharge limit (N x weakest)"),
+    _m("power", "no-polarisation-buildup",
+       "    wk.v1[p, s] = wk.v1[p, s] * a1 + inp.r1_ohm[p, s] * scale * cur * (1.0 - a1)",
+       "    wk.v1[p, s] = wk.v1[p, s] * a1",
+       "the RC branch does not charge over the horizon: a 30 s limit as large as a 2 s one"),
+    _m("power", "hot-discharge-allowed",
+       "    if cur > 0.0 and wk.temp[p, s] > prm.temp_max_dsg_c[s]:",
+       "    if False:",
+       "a battery above its temperature limit still gets a discharge limit"),
+    _m("power", "cold-charge-allowed",
+       "    if cur < 0.0 and wk.temp[p, s] < prm.temp_min_chg_c[s]:",
+       "    if False:",
+       "a battery below its charge temperature still gets a charge limit"),
+    _m("power", "diode-drop-ignored",
+       "            wk.ddrop[p, s] = 0.0 if chg else prm.diode_drop_v[s]",
+       "            wk.ddrop[p, s] = 0.0",
+       "a battery discharging through a body diode is predicted without its drop"),
+    _m("power", "no-warming",
+       "        e = _x(inp.r_per_k[p, s], wk.temp[p, s] - inp.temp_c[p, s])",
+       "        e = 0.0",
+       "the resistance of a warming battery is held (a cold pack's limit is underestimated "
+       "and its split mispredicted)"),
+    _m("power", "join-peak-after-first-step",
+       "        if abs(cur) > abs(peak):\n            peak = cur",
+       "        if k > 0 and abs(cur) > abs(peak):\n            peak = cur",
+       "the join's peak (the instant of closing, RC branches as shorts) is missed"),
+    _m("power", "join-ignores-other-batteries",
+       "        if s != j and (wk.peak_pos[p, s] > inp.limit_dsg_a[p, s]",
+       "        if False and (wk.peak_pos[p, s] > inp.limit_dsg_a[p, s]",
+       "the admissible dV lets the joining battery overcharge the others"),
+    Mutant("power", "dcl-ignores-state-of-power",
+           "            dcl = min(dcl, float(self.sop.pack_dsg_a[0, HORIZON_CCL]))",
+           "            dcl = dcl",
+           "the inverter is told N x weakest although the split allows less",
+           src="runtime/publish.py"),
+]
+
 BMU = [
     Mutant("bmu", "no-dock-restart", "back = ~self.bmu_on & (dock | (",
            "back = ~self.bmu_on & (False | (",
@@ -437,7 +492,7 @@ CAN = [
 
 MUTANTS: list[Mutant] = [
     *LIMITS, *PLAUSIBILITY, *CHARGING, *PROTECTION, *SUPERVISOR, *SOC, *EQUALIZATION,
-    *SEQUENCING, *PUBLISH, *QUALITY, *CAN, *BMU,
+    *SEQUENCING, *PUBLISH, *QUALITY, *CAN, *BMU, *POWER,
 ]
 
 PENDING: dict[str, str] = {}
@@ -466,6 +521,11 @@ TESTS: dict[str, list[str]] = {
         "tests/test_charging_delta_v1.py",
     ],
     "publish": ["tests/test_publish_standby.py"],
+    "power": [
+        "tests/test_power.py",
+        "tests/test_power_cli.py",
+        "tests/test_power_publish.py",
+    ],
     "quality": ["tests/test_demo_goals.py"],
     "protection": [
         "tests/test_protection_controller.py",

@@ -63,6 +63,7 @@ SECTION_TITLES = {
     "summary": "Summary",
     "batteries": "Batteries",
     "switches": "Switches",
+    "power": "State of power",
     "events": "Events",
     "controllers": "Other channels",
     "can": "CAN bus",
@@ -474,6 +475,9 @@ def _sections(result: Result, info: RunInfo, verdict: Verdict, page: S.Page) -> 
             body[key] = build(page)
     body["batteries"] = S.batteries(page)
     body["switches"] = S.switches(page)
+    power = S.power(page)
+    if power:
+        body["power"] = power
     body["events"] = _events(result, info)
     body["controllers"] = S.controllers(page)
     can_html, can_charts = can_section(info.can_log_path(), page.store)

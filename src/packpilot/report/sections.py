@@ -599,3 +599,84 @@ def _group_charts(page: Page, base: str, names: list[str]) -> list[str]:
 
 
 __all__ = ["METHODS", "Page", "batteries", "controllers", "switches"]
+
+
+MAX_SOP_POINTS = 120
+"""State-of-power predictions drawn along a run at most (each one a few milliseconds)."""
+
+
+def _scenario(info: RunInfo) -> Any:
+    """The run's scenario, typed, or None when its recorded config does not read back."""
+    from packpilot.config.scenario import parse_config
+    from packpilot.errors import PackPilotError
+
+    if not info.config:
+        return None
+    try:
+        return parse_config(dict(info.config), "recorded config")
+    except PackPilotError:
+        return None
+
+
+def power(page: Page) -> str:
+    """The pack's state of power along the run (``docs/power.md``): at up to 120 instants,
+    the largest discharge current it could have held for 10 and 30 s from the recorded state
+    (the same prediction ``run`` publishes as CCL/DCL), beside the current it carried. Empty
+    when the run's config does not read back or nothing was recorded."""
+    from packpilot.control.power import state_of_power
+    from packpilot.sim.power import inputs_from_core, params_of
+
+    cfg = _scenario(page.info)
+    cols = page.traction
+    if cfg is None or len(page.t) == 0 or not cols:
+        return ""
+    prm = params_of(cfg)
+    if prm.series.shape[0] != len(cols):
+        return ""
+    tr = page.result.trace
+    n = len(page.t)
+    picks = np.unique(np.linspace(0, n - 1, min(MAX_SOP_POINTS, n)).astype(np.intp))
+    sop = np.full((3, n), math.nan)
+    for k in picks:
+
+        def row(name: str, k: int = int(k)) -> F64:
+            return np.asarray(tr.channel(name)[k, cols], np.float64)
+
+        here = np.isfinite(row("voltage_v")) & np.isfinite(row("soc"))
+        if not here.any():
+            continue
+        inp = inputs_from_core(
+            cfg, soc=row("soc"), temp_c=row("temp_c"), current_a=row("current_a"),
+            voltage_v=row("voltage_v"), min_cell_v=row("min_cell_v"),
+            max_cell_v=row("max_cell_v"), present=here, chg_on=row("chg_on") > 0.5,
+            dsg_on=row("dsg_on") > 0.5, prm=prm,
+        )  # fmt: skip
+        out = state_of_power(prm, inp)
+        sop[:, k] = (out.pack_dsg_a[0, 1], out.pack_dsg_a[0, 2], out.pack_chg_a[0, 1])
+    held = np.maximum.accumulate(np.where(np.isfinite(sop[0]), np.arange(n), 0))
+    sop = sop[:, held]  # each prediction holds until the next one
+    drawn = np.nansum(tr.channel("current_a")[:, cols], axis=1)
+    chart = Chart("power", "Discharge state of power and the current drawn (A)", "A",
+                  height=200, marks=page.marks)  # fmt: skip
+    chart.series = [
+        Series(page.store.add("sop/dsg10", sop[0]), "10 s limit", "#1f77b4"),
+        Series(page.store.add("sop/dsg30", sop[1]), "30 s limit", "#1f77b4", dash=True),
+        Series(page.store.add("sop/drawn", drawn), "pack current", PACK_COLOR, width=1.0),
+    ]
+    headroom = sop[1] - drawn
+    low = float(np.nanmin(headroom)) if np.isfinite(headroom).any() else math.nan
+    when = float(page.t[int(np.nanargmin(headroom))]) if math.isfinite(low) else math.nan
+    facts = table(("", "value"), [
+        ("lowest 30 s discharge limit (A)", fmt_num(float(np.nanmin(sop[1])))),
+        ("least headroom, 30 s limit - current (A)", fmt_num(low)),
+        ("... at", fmt_time(when) if math.isfinite(when) else "–"),
+        ("lowest 10 s charge limit (A)", fmt_num(float(np.nanmin(sop[2])))),
+    ])  # fmt: skip
+    note = (
+        '<p class="note">Predicted from the recorded state as <code>run</code> predicts '
+        "its CCL/DCL (SOC, temperatures, switch states; the cell set's resistances; no "
+        "polarisation), at up to 120 instants: the largest constant current the pack could "
+        "have held for that long without any battery crossing its cut-off, current or "
+        "temperature limit (docs/power.md).</p>"
+    )
+    return note + facts + page.chart(chart)

@@ -272,12 +272,13 @@ class BmsRuntime:
 
     def warm_up(self) -> None:
         """Pay the one-time costs before the clock starts: loading the compiled core (one step
-        on a *copy* of its arenas: the real state is untouched), DSDL parsing, codec caches
-        (frames built, not sent)."""
+        on a *copy* of its arenas: the real state is untouched), the state-of-power kernels,
+        DSDL parsing, codec caches (frames built, not sent)."""
         core = self.core
         if core.fused:
             f, i, h, c, b, lay = (a.copy() for a in core.arenas)
             core.step_kernel(f, i, h, c, b, lay, core.directory.copy(), self.opts.period_s)
+        self.publisher.warm_up()
         self.publisher.frames(0.0)
         self.publisher.transfer_id = 0
 

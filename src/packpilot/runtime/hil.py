@@ -120,7 +120,11 @@ class AircraftLog:
 
     last: dict[int, dc.BatteryInfo] = field(default_factory=dict)
     transfers: int = 0
-    assembler: dc.Assembler = field(default_factory=lambda: dc.Assembler((dc.BATTERY_INFO_ID,)))
+    periodic: dc.BatteryPeriodic | None = None
+    """The last BatteryPeriodic (design facts and the pack's current limits)."""
+    assembler: dc.Assembler = field(
+        default_factory=lambda: dc.Assembler((dc.BATTERY_INFO_ID, dc.BATTERY_PERIODIC_ID))
+    )
 
     @property
     def errors(self) -> int:
@@ -129,10 +133,12 @@ class AircraftLog:
     def take(self, msg: can.Message) -> bool:
         if not self.assembler.wants(msg):
             return False
-        info = self.assembler.take(msg)
+        info = self.assembler.take_any(msg)
         if isinstance(info, dc.BatteryInfo):
             self.last[info.battery_id] = info
             self.transfers += 1
+        elif isinstance(info, dc.BatteryPeriodic):
+            self.periodic = info
         return True
 
 
@@ -144,6 +150,11 @@ _PYLON_IDS = frozenset(
 
 class Hil:
     """The simulated pack of ``cfg`` as CAN nodes on ``bus`` (charger on ``charger_bus``)."""
+
+    protection: dict[str, float]
+    """The last ProtectionState frame (0x230) the platform decoded ..."""
+    power: dict[str, float]
+    """... and the last StateOfPower frame (0x231)."""
 
     def __init__(
         self,
@@ -198,7 +209,7 @@ class Hil:
             )  # fmt: skip
         self.inverter = InverterLog()
         self.aircraft = AircraftLog()
-        self.protection: dict[str, float] = {}
+        self.protection, self.power = {}, {}
         """The last ProtectionState frame the platform was sent."""
         self.counters = FrameCounters()
         self.commands = 0
@@ -320,6 +331,9 @@ class Hil:
             self.commands += 1
         if kind == "protection":
             self.protection = vals
+            return
+        if kind == "power":
+            self.power = vals
             return
         if kind == "aux" and self.aux is not None:
             if self.aux.command(bool(vals["AuxRelay"]), True, int(vals["Seq"]), t):

@@ -6,6 +6,11 @@ connected: ``n_conducting × weakest``), the limits ladders' tiers, the supervis
 protection's platform interface. Nothing is decided here: a trip in the core is a 0 A limit
 here because the limits layer says 0 A, and a supervisor in ``fault`` or ``shutdown`` zeroes
 both limits because that mode opens every path.
+
+The state of power (``control/power``, ``docs/power.md``) is the core's prediction from the
+same state: the Pylontech CCL/DCL are the smaller of the limits layer's and the 30 s state of
+power (an inverter holds them continuously), and the ``StateOfPower`` frame (0x231) and
+DroneCAN ``BatteryPeriodic`` carry the 2 / 10 / 30 s figures.
 """
 
 from __future__ import annotations
@@ -20,10 +25,15 @@ from packpilot.config import ScenarioConfig
 from packpilot.contract.events import value as field_value
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
+from packpilot.control.power import PowerOut, state_of_power
 from packpilot.control.supervisor.rules import MODES
 from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can import pylon
-from packpilot.io.can.battery import ProtectionReport, encode_protection
+from packpilot.io.can.battery import ProtectionReport, encode_power, encode_protection
+from packpilot.sim.power import inputs_from_core, params_of
+
+HORIZON_CCL = 2
+"""Index of the 30 s horizon in ``control.power.HORIZONS_S``: what CCL/DCL carry."""
 
 PERIOD_S = 1.0
 TRIPPED_MODES = ("fault", "shutdown")
@@ -107,6 +117,9 @@ class Publisher:
         self.cvl_v, self.dvl_v = _voltage_limits(cfg, info.groups_per_battery)
         self.quantity = {r.limit: r.quantity for r in cfg.limits.rows} if cfg.limits else {}
         self.last: pylon.PackAsBattery | None = None
+        self.power_prm = params_of(cfg)
+        self.sop: PowerOut | None = None
+        """The state of power of the last publication."""
 
     def due(self, t: float) -> bool:
         return self.next_s is None or t >= self.next_s - 1e-9
@@ -127,12 +140,15 @@ class Publisher:
 
     def frames(self, t: float) -> list[can.Message]:
         out: list[can.Message] = []
+        self.sop = self.state_of_power()
         if self.cfg.limits is not None:
             self.last = self.pack_as_battery()
             out += pylon.encode_all(self.last, t)
         out.append(encode_protection(self.protection(), t))
+        out.append(self.power_frame(t))
         for info in self.battery_infos():
             out += dc.encode(info, self.node_id, self.transfer_id, t=t)
+        out += dc.encode_periodic(self.periodic(), self.node_id, self.transfer_id, t=t)
         self.transfer_id = (self.transfer_id + 1) & 0x1F
         return out
 
@@ -147,6 +163,9 @@ class Publisher:
         tripped = mode(ch) in TRIPPED_MODES
         ccl = 0.0 if tripped else _finite0(ch.value("pack_limit_chg_a"))
         dcl = 0.0 if tripped else _finite0(ch.value("pack_limit_dsg_a"))
+        if self.sop is not None:
+            ccl = min(ccl, float(self.sop.pack_chg_a[0, HORIZON_CCL]))
+            dcl = min(dcl, float(self.sop.pack_dsg_a[0, HORIZON_CCL]))
         # A battery counts towards the SOC only with both capacities known: a NaN remaining
         # beside a finite full capacity would read as empty and drag the pack's SOC down.
         known = (
@@ -197,6 +216,58 @@ class Publisher:
                     warn |= bit
         return prot, warn
 
+    # ------------------------------------------------------------------ state of power
+    def state_of_power(self) -> PowerOut | None:
+        """The core's state of power now, from the state the core has: the SOC method's
+        estimate (else the batteries' own SOC), the switch feedback, the limits layer's
+        per-battery limits; the cell set's resistances (``sim/power.py:inputs_from_core``,
+        the observer's hook). A battery not reporting, or with no SOC, counts as absent (the
+        others are assumed to carry everything). None when nothing can be predicted."""
+        m, ch = self.core.m, self.ch
+        n = self.power_prm.series.shape[0]
+        if m.bat.reported.shape[1] != n:
+            return None
+        est = np.array([ch.value("soc_est", i) for i in range(n)])
+        soc = np.where(np.isfinite(est), est, m.bat.soc[0])
+        here = self._present() & np.isfinite(soc)
+        if not here.any():
+            return None
+        inp = inputs_from_core(
+            self.cfg, soc=soc, temp_c=m.bat.temp_c[0], current_a=m.bat.current_a[0],
+            voltage_v=m.bat.voltage_v[0], min_cell_v=m.bat.min_cell_v[0],
+            max_cell_v=m.bat.max_cell_v[0], present=here, chg_on=m.bat.sw_chg[0],
+            dsg_on=m.bat.sw_dsg[0],
+            limit_dsg_a=np.array([ch.value("limit_dsg_a", i) for i in range(n)]),
+            limit_chg_a=np.array([ch.value("limit_chg_a", i) for i in range(n)]),
+            prm=self.power_prm,
+        )  # fmt: skip
+        if mode(ch) in TRIPPED_MODES:
+            inp.present[0, :] = False
+        return state_of_power(self.power_prm, inp)
+
+    def warm_up(self) -> None:
+        """Compile (or load) the state-of-power kernels on a made-up state, before the
+        clock starts: the first publication finds no battery reported yet and would
+        otherwise compile them inside the loop."""
+        n = self.power_prm.series.shape[0]
+        half = np.full(n, 0.5)
+        v = float(np.interp(0.5, self.power_prm.ocv_soc, self.power_prm.ocv_v))
+        yes = np.ones(n, bool)
+        inp = inputs_from_core(
+            self.cfg, soc=half, temp_c=np.full(n, 25.0), current_a=np.zeros(n),
+            voltage_v=self.power_prm.series * v, min_cell_v=np.full(n, v),
+            max_cell_v=np.full(n, v), present=yes, chg_on=yes, dsg_on=yes, prm=self.power_prm,
+        )  # fmt: skip
+        state_of_power(self.power_prm, inp)
+
+    def power_frame(self, t: float) -> can.Message:
+        """0x231: the pack's 2 / 10 / 30 s discharge and 10 s charge limits (NaN: unknown)."""
+        sop = self.sop
+        if sop is None:
+            return encode_power(math.nan, math.nan, math.nan, math.nan, t)
+        d = [float(x) for x in sop.pack_dsg_a[0]]
+        return encode_power(d[0], d[1], d[2], float(sop.pack_chg_a[0, 1]), t)
+
     # ------------------------------------------------------------------ the aircraft
     def protection(self) -> ProtectionReport:
         """The most-used battery's protection interface (255 / NaN: no protection)."""
@@ -241,6 +312,27 @@ class Publisher:
                                       100.0 * float(m.bat.soc[0, i]), math.nan,
                                       rem * vi, full * vi, fl, f"PackPilot-{i}"))  # fmt: skip
         return out
+
+    def periodic(self) -> dc.BatteryPeriodic:
+        """BatteryPeriodic of the pack: cell voltage limits and the current limits the
+        aircraft may hold (continuous: the published DCL/CCL; 30 s burst: the 30 s state of
+        power; 0 = not provided)."""
+        pack = self.last or self.pack_as_battery()
+        prm, sop = self.power_prm, self.sop
+        cells = int(max(prm.series)) if prm.series.size else 0
+        burst = float(sop.pack_dsg_a[0, HORIZON_CCL]) if sop is not None else 0.0
+        if mode(self.ch) in TRIPPED_MODES:
+            burst = 0.0
+        return dc.BatteryPeriodic(
+            name=self.name, design_capacity_ah=float(np.nansum(self.info.capacity_ah)),
+            cells_in_series=cells,
+            nominal_voltage_v=0.0,
+            discharge_minimum_voltage_v=float(max(prm.cell_v_min, default=0.0)),
+            charging_maximum_voltage_v=float(min(prm.cell_v_max, default=0.0)),
+            charging_maximum_current_a=pack.charge_current_a,
+            discharge_maximum_current_a=pack.discharge_current_a,
+            discharge_maximum_burst_current_a=burst,
+        )  # fmt: skip
 
     @staticmethod
     def _flags(current_a: float, in_use: bool, bad: bool) -> int:

@@ -39,6 +39,7 @@ from packpilot.io.can.dbcgen import (
     MAX_GROUPS,
     PLATFORM_MEAS,
     PROTECTION_STATE,
+    STATE_OF_POWER,
     SWITCH_CMD,
     SWITCH_STATE,
 )
@@ -56,7 +57,10 @@ KINDS: dict[int, str] = {
 """Per-battery frame kinds by base identifier (battery ``i`` at ``base + i``)."""
 SENTINEL_BITS = 16
 """Fields this wide carry "not available" as a sentinel count."""
-SINGLE: dict[int, str] = {AUX_CMD: "aux", PLATFORM_MEAS: "platform", PROTECTION_STATE: "protection"}
+SINGLE: dict[int, str] = {
+    AUX_CMD: "aux", PLATFORM_MEAS: "platform", PROTECTION_STATE: "protection",
+    STATE_OF_POWER: "power",
+}  # fmt: skip
 
 
 @functools.cache
@@ -221,6 +225,13 @@ def encode_protection(p: ProtectionReport, t: float = 0.0) -> can.Message:
     return _frame(PROTECTION_STATE, vals, t)
 
 
+def encode_power(dcl_2s_a: float, dcl_10s_a: float, dcl_30s_a: float, ccl_10s_a: float,
+                 t: float = 0.0) -> can.Message:  # fmt: skip
+    """The pack's state of power (A; NaN: not known, the field's sentinel)."""
+    vals = {"Dcl2s": dcl_2s_a, "Dcl10s": dcl_10s_a, "Dcl30s": dcl_30s_a, "Ccl10s": ccl_10s_a}
+    return _frame(STATE_OF_POWER, vals, t)
+
+
 # ----------------------------------------------------------------------------- decode
 def decode(msg: can.Message) -> tuple[str, int, dict[str, float]]:
     """(kind, battery index or -1, physical values; NaN where not available) of a PackPilot
@@ -260,6 +271,7 @@ __all__ = [
     "encode_balancer",
     "encode_battery",
     "encode_platform",
+    "encode_power",
     "encode_protection",
     "encode_switch",
     "encode_switch_state",

@@ -33,6 +33,7 @@ SWITCH_CMD = 0x200
 AUX_CMD = 0x210
 PLATFORM_MEAS = 0x220
 PROTECTION_STATE = 0x230
+STATE_OF_POWER = 0x231
 
 
 @dataclass(frozen=True)
@@ -159,6 +160,15 @@ def pack_messages() -> list[Msg]:
                 Sig("AllowanceUsed", 16, 16, factor=0.001, comment="used share, 0..1 (>1 trip)"),
                 Sig("TimeToTrip", 32, 16, unit="s", comment="65535 = none / beyond"),
                 Sig("TimeToEmpty", 48, 16, unit="s", comment="65535 = none / beyond"),
+            )),
+        Msg("StateOfPower", STATE_OF_POWER, 8, "BMS", "Platform",
+            "The pack's state of power, every 1 s: the largest current it can hold for the "
+            "horizon without any battery crossing its cut-off, current or temperature limit "
+            "(docs/power.md).", (
+                Sig("Dcl2s", 0, 16, factor=0.1, unit="A", comment="discharge, 2 s"),
+                Sig("Dcl10s", 16, 16, factor=0.1, unit="A", comment="discharge, 10 s"),
+                Sig("Dcl30s", 32, 16, factor=0.1, unit="A", comment="discharge, 30 s"),
+                Sig("Ccl10s", 48, 16, factor=0.1, unit="A", comment="charge, 10 s"),
             )),
     ]
 

@@ -20,6 +20,9 @@ import dronecan
 BATTERY_INFO_ID = 1092
 BATTERY_INFO_AUX_ID = 20004
 """ArduPilot's ``ardupilot.equipment.power.BatteryInfoAux``: per-cell voltages, cycles."""
+BATTERY_PERIODIC_ID = 20011
+"""ArduPilot's ``ardupilot.equipment.power.BatteryPeriodic``: design facts and the pack's
+current limits (continuous, 30 s burst, charge)."""
 
 IN_USE = 1
 CHARGING = 2
@@ -123,6 +126,58 @@ def encode_cells(
     return _transfer(msg, node_id, transfer_id, priority, t)
 
 
+@dataclass(frozen=True, slots=True)
+class BatteryPeriodic:
+    """The fields of one BatteryPeriodic message PackPilot fills (0 = not provided, as the
+    DSDL says): per-cell voltage limits and the pack's current limits."""
+
+    name: str
+    design_capacity_ah: float
+    cells_in_series: int
+    nominal_voltage_v: float
+    discharge_minimum_voltage_v: float
+    charging_maximum_voltage_v: float
+    charging_maximum_current_a: float
+    discharge_maximum_current_a: float
+    discharge_maximum_burst_current_a: float
+    """The largest discharge current for 30 s (the state of power's 30 s figure)."""
+    full_charge_capacity_ah: float = math.nan
+
+
+def encode_periodic(
+    info: BatteryPeriodic, node_id: int, transfer_id: int, priority: int = 24, t: float = 0.0
+) -> list[can.Message]:
+    msg = dronecan.ardupilot.equipment.power.BatteryPeriodic(
+        name=list(info.name.encode("ascii", "replace")[:50]),
+        design_capacity=_f(info.design_capacity_ah),
+        cells_in_series=max(0, min(info.cells_in_series, 255)),
+        nominal_voltage=_f(info.nominal_voltage_v),
+        discharge_minimum_voltage=_f(info.discharge_minimum_voltage_v),
+        charging_maximum_voltage=_f(info.charging_maximum_voltage_v),
+        charging_maximum_current=_f(info.charging_maximum_current_a),
+        discharge_maximum_current=_f(info.discharge_maximum_current_a),
+        discharge_maximum_burst_current=_f(info.discharge_maximum_burst_current_a),
+        full_charge_capacity=info.full_charge_capacity_ah,
+        cycle_count=0xFFFF,
+        state_of_health=0xFF,
+    )
+    return _transfer(msg, node_id, transfer_id, priority, t)
+
+
+def _periodic(p: Any) -> BatteryPeriodic:
+    return BatteryPeriodic(
+        name=bytes(int(x) for x in p.name).decode("ascii", "replace"),
+        design_capacity_ah=float(p.design_capacity), cells_in_series=int(p.cells_in_series),
+        nominal_voltage_v=float(p.nominal_voltage),
+        discharge_minimum_voltage_v=float(p.discharge_minimum_voltage),
+        charging_maximum_voltage_v=float(p.charging_maximum_voltage),
+        charging_maximum_current_a=float(p.charging_maximum_current),
+        discharge_maximum_current_a=float(p.discharge_maximum_current),
+        discharge_maximum_burst_current_a=float(p.discharge_maximum_burst_current),
+        full_charge_capacity_ah=float(p.full_charge_capacity),
+    )  # fmt: skip
+
+
 def data_type(msg: can.Message) -> int:
     """The DroneCAN message data type id of a 29-bit frame (bits 8..23)."""
     return (msg.arbitration_id >> 8) & 0xFFFF if msg.is_extended_id else -1
@@ -141,6 +196,11 @@ class Assembler:
         return data_type(msg) in self.types
 
     def take(self, msg: can.Message) -> BatteryInfo | BatteryCells | None:
+        """:meth:`take_any` for the battery messages (a BatteryPeriodic counts as nothing)."""
+        x = self.take_any(msg)
+        return None if isinstance(x, BatteryPeriodic) else x
+
+    def take_any(self, msg: can.Message) -> BatteryInfo | BatteryCells | BatteryPeriodic | None:
         if not msg.data:
             self.errors += 1
             return None
@@ -166,11 +226,13 @@ class Assembler:
             return None
 
 
-def decode_any(frames: Sequence[can.Message]) -> BatteryInfo | BatteryCells:
-    """A BatteryInfo or BatteryInfoAux transfer, decoded."""
+def decode_any(frames: Sequence[can.Message]) -> BatteryInfo | BatteryCells | BatteryPeriodic:
+    """A BatteryInfo, BatteryInfoAux or BatteryPeriodic transfer, decoded."""
     fr = [dronecan.transport.Frame(m.arbitration_id, bytes(m.data)) for m in frames]
     transfer = dronecan.transport.Transfer()
     transfer.from_frames(fr)
+    if transfer.data_type_id == BATTERY_PERIODIC_ID:
+        return _periodic(transfer.payload)
     if transfer.data_type_id == BATTERY_INFO_AUX_ID:
         p: Any = transfer.payload
         return BatteryCells(
@@ -208,6 +270,7 @@ def decode(frames: Sequence[can.Message]) -> BatteryInfo:
 __all__ = [
     "BAD_BATTERY",
     "BATTERY_INFO_ID",
+    "BATTERY_PERIODIC_ID",
     "BMS_ERROR",
     "CHARGED",
     "CHARGING",
@@ -217,7 +280,9 @@ __all__ = [
     "TEMP_HOT",
     "BatteryCells",
     "BatteryInfo",
+    "BatteryPeriodic",
     "ah_from_wh",
     "decode",
     "encode",
+    "encode_periodic",
 ]
