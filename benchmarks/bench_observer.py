@@ -1,0 +1,172 @@
+"""Issue #28 acceptance figures for the battery observer (``make bench``).
+
+Every shipped example runs on the plant with the acceptance's sensor errors (voltage noise
+sigma 5 mV per cell, current gain +1 % and offset +0.2 A) and the BMS's initial SOC 10 %
+wrong (toward the middle), with ``[soc]`` present (added with its defaults where the example
+has none). Per example and battery: the SOC error (shown SOC minus the plant's, the weakest
+cell's remaining / full charge) as RMS after the first 5 minutes and its maximum there, for the
+observer and, side by side, for today's estimator (the coulomb counter with OCV after a rest,
+which the core also runs as the observer's fallback); R0 against the plant's after the first
+load step; capacity against the plant's at the end. Then the core's speed with the observer
+(P = 1 ``ClosedLoop.step`` CPU time; P = 256 per pack-step).
+
+    PYTHONPATH=src python benchmarks/bench_observer.py [EXAMPLE ...] [--speed-only]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from packpilot.config import ScenarioConfig, parse_config, read_toml
+from packpilot.sim.loop import ClosedLoop, n_steps
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = sorted(p.stem for p in (ROOT / "examples").glob("*.toml"))
+SENSORS = {
+    "seed": 28,
+    "cell_v": {"noise_sigma": 0.005},
+    "current": {"gain": 1.01, "offset": 0.2},
+}
+SOC_ERROR0 = 0.10
+SETTLE_S = 300.0
+
+
+def scenario(name: str, sensors: bool = True, duration_s: float | None = None) -> ScenarioConfig:
+    """The example with ``[soc]`` (defaults where absent) and the acceptance's sensors."""
+    data: dict[str, Any] = read_toml(ROOT / "examples" / f"{name}.toml")
+    data.setdefault("soc", {})
+    if sensors:
+        data["sensors"] = SENSORS
+    if duration_s is not None:
+        data["sim"]["duration_s"] = duration_s
+    load = data.get("load", {})
+    prof = load.get("profile")
+    if isinstance(prof, str) and prof.endswith((".csv", ".ulg", ".bin", ".log")):
+        load["profile"] = str((ROOT / "examples" / prof).resolve())
+    return parse_config(data, name)
+
+
+def soc_part(loop: ClosedLoop) -> Any:
+    return next(x for x in loop.core.compiled if x.method.name == "soc")
+
+
+def truth(loop: ClosedLoop) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per traction battery of pack 0: (SOC of the weakest cell = min remaining / min full,
+    battery R0 at the present state (ohm), battery capacity (Ah)), from the plant."""
+    pack = loop.plant.pack
+    soc, _ = pack.cell_states()
+    cap = pack.capacity_ah[0]
+    tr = loop.plant.topology.traction
+    s_out, r_out, q_out = [], [], []
+    for i in tr:
+        cells = pack.cell_string == i
+        s_out.append(float(np.min(soc[0, cells] * cap[cells]) / np.min(cap[cells])))
+        # every cell of a battery is in series (a group is cells_per_group cells in series)
+        r_out.append(float(np.sum(pack.r_cell[0, cells])))
+        q_out.append(float(np.min(cap[cells])))
+    return np.array(s_out), np.array(r_out), np.array(q_out)
+
+
+def run_example(name: str, duration_s: float | None = None) -> dict[str, Any]:
+    cfg = scenario(name, duration_s=duration_s)
+    loop = ClosedLoop.of(cfg, 1)
+    part = soc_part(loop)
+    st = part.st
+    s0, _, _ = truth(loop)
+    wrong = np.where(s0 > 0.5, s0 - SOC_ERROR0, s0 + SOC_ERROR0)
+    st.soc[0, :] = wrong  # the fallback starts 10 % off; the observer starts from it
+    dt = cfg.sim.dt_s
+    n = n_steps(cfg)
+    rows = []
+    step_a = np.zeros(len(s0))
+    r0_after_step = np.full(len(s0), np.nan)
+    r0_true_step = np.full(len(s0), np.nan)
+    t_step = np.full(len(s0), np.nan)
+    for k in range(n):
+        loop.step(k, dt)
+        t = loop.plant.t_s
+        s_true, r_true, q_true = truth(loop)
+        cur = loop.plant.pack.string_a[0, list(loop.plant.topology.traction)]
+        rows.append((t, *s_true, *st.shown_soc[0], *st.soc[0]))
+        for i in range(len(s0)):  # the first load step: |I| rises above 2 A; judged 30 s on
+            if np.isnan(t_step[i]) and abs(cur[i]) > 2.0 and abs(step_a[i]) <= 2.0:
+                t_step[i] = t
+            if not np.isnan(t_step[i]) and np.isnan(r0_after_step[i]) and t >= t_step[i] + 30:
+                r0_after_step[i] = st.r0_ohm[0, i]
+                r0_true_step[i] = r_true[i]
+        step_a = cur
+    arr = np.array(rows)
+    b = len(s0)
+    t = arr[:, 0]
+    late = t >= SETTLE_S
+    out: dict[str, Any] = {"example": name, "duration_s": float(t[-1]), "batteries": []}
+    for i in range(b):
+        tr_s = arr[:, 1 + i]
+        e_obs = arr[:, 1 + b + i] - tr_s
+        e_old = arr[:, 1 + 2 * b + i] - tr_s
+        _, r_true, q_true = truth(loop)
+        out["batteries"].append({
+            "obs_rms": float(np.sqrt(np.nanmean(e_obs[late] ** 2))) if late.any() else math.nan,
+            "obs_max": float(np.nanmax(np.abs(e_obs[late]))) if late.any() else math.nan,
+            "old_rms": float(np.sqrt(np.nanmean(e_old[late] ** 2))) if late.any() else math.nan,
+            "old_max": float(np.nanmax(np.abs(e_old[late]))) if late.any() else math.nan,
+            "r0_err": float(r0_after_step[i] / r0_true_step[i] - 1.0),
+            "cap_err": float(st.capacity_ah[0, i] / q_true[i] - 1.0),
+            "observer_ok": bool(st.obs_ok[0, i]),
+        })  # fmt: skip
+    return out
+
+
+def speed() -> dict[str, float]:
+    """CPU time per ``ClosedLoop.step`` (P = 1) and per pack-step (P = 256), uav_mission with
+    the observer, after a warm-up."""
+    out = {}
+    for p, steps in ((1, 2000), (256, 200)):
+        cfg = scenario("uav_mission", sensors=False)
+        loop = ClosedLoop.of(cfg, p)
+        dt = cfg.sim.dt_s
+        for k in range(20):
+            loop.step(k, dt)
+        t0 = time.process_time()
+        for k in range(20, 20 + steps):
+            loop.step(k, dt)
+        per = (time.process_time() - t0) / steps
+        core_t0 = time.process_time()
+        for _ in range(steps):
+            loop.core.step_batch(loop.m, dt)
+        core = (time.process_time() - core_t0) / steps
+        out[f"P={p} loop step us"] = per * 1e6
+        out[f"P={p} core step us per pack"] = core * 1e6 / p
+    return out
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("examples", nargs="*")
+    ap.add_argument("--speed-only", action="store_true")
+    ap.add_argument("--duration", type=float, default=None)
+    a = ap.parse_args(argv)
+    if not a.speed_only:
+        print("example | battery | observer RMS / max % | today's RMS / max % | R0 err % | "
+              "capacity err % | observer ok")
+        for name in a.examples or EXAMPLES:
+            res = run_example(name, a.duration)
+            for i, r in enumerate(res["batteries"]):
+                print(f"{name} | {i} | {100 * r['obs_rms']:.2f} / {100 * r['obs_max']:.2f} | "
+                      f"{100 * r['old_rms']:.2f} / {100 * r['old_max']:.2f} | "
+                      f"{100 * r['r0_err']:+.1f} | {100 * r['cap_err']:+.1f} | "
+                      f"{r['observer_ok']}", flush=True)  # fmt: skip
+    for k, v in speed().items():
+        print(f"{k}: {v:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
