@@ -67,19 +67,19 @@ class SocConfig(Strict):
         description="Random walk of the capacity (relative, per sqrt(s)): slow, across cycles.",
     )
     ekf_offset_walk_a: float = Field(
-        default=1e-4, description="Random walk of the current-sensor offset (A per sqrt(s))."
+        default=2e-5, description="Random walk of the current-sensor offset (A per sqrt(s))."
     )
     ekf_soc_sigma0: float = Field(
         default=0.15, description="Prior standard deviation of the SOC at (re)start (0..1)."
     )
     ekf_resistance_sigma0: float = Field(
-        default=0.3, description="Prior relative standard deviation of the resistance scale."
+        default=0.1, description="Prior relative standard deviation of the resistance scale."
     )
     ekf_capacity_sigma0: float = Field(
         default=0.1, description="Prior relative standard deviation of the capacity."
     )
     ekf_offset_sigma0_a: float = Field(
-        default=0.5, description="Prior standard deviation of the current offset (A; 0: off)."
+        default=0.3, description="Prior standard deviation of the current offset (A; 0: off)."
     )
     nis_window_s: float = Field(
         default=60.0,
@@ -93,8 +93,24 @@ class SocConfig(Strict):
         "consistent filter averages about 1).",
     )
 
+    load_avg_s: float = Field(
+        default=180.0,
+        description="Time constant of the recent average load the predictions assume (s, > 0; "
+        "3 minutes, as Victron's time to go).",
+    )
+    cutoff_cell_v: float | None = Field(
+        default=None,
+        description="Cell voltage whose crossing the time to cut-off predicts (V); default: "
+        "the cell set's lower voltage limit. Set it to the protection's cut-off.",
+    )
+
     @model_validator(mode="after")
     def _check(self) -> SocConfig:
+        if not (_finite(self.load_avg_s) and 0.0 < self.load_avg_s <= MAX_TIME_S):
+            raise ValueError(f"load_avg_s must be > 0 s, got {self.load_avg_s}")
+        c = self.cutoff_cell_v
+        if c is not None and not (_finite(c) and 0.0 < c <= 5.0):
+            raise ValueError(f"cutoff_cell_v must be within 0..5 V, got {c}")
         for name in (
             "ekf_voltage_sigma_v", "ekf_current_sigma_a", "nis_window_s", "nis_limit",
         ):  # fmt: skip

@@ -103,6 +103,8 @@ class PackInfo:
     """Cell R1, same layout."""
     ecm_tau_s: tuple[float, ...] = ()
     """Cell R1 * C1, same layout."""
+    cell_v_min_v: float = 2.5
+    """The traction cells' lower voltage limit (the cell set's ``v_min_v``)."""
     r_scale: tuple[float, ...] = ()
     """Per battery, the stated resistance as a factor on the cell tables (1: the tables;
     empty: 1 for every battery)."""

@@ -83,6 +83,7 @@ class SimulatedPlant:
             ocv_v=tuple(float(x) for x in params.ocv_table_v),
             names=tuple(bats[i].name for i in tr),
             **_ecm(params),
+            cell_v_min_v=float(params.v_min_v),
             r_scale=tuple(float(pack.nominal_r_scale[pack.cell_string == i].mean()) for i in tr),
         )
 

@@ -51,8 +51,13 @@ STATUS = (
     StatusChannel("soc_current_offset_a"),
     StatusChannel("soc_nis"),
     StatusChannel("soc_observer_ok", "b"),
+    StatusChannel("soc_time_to_go_s", "o"),
+    StatusChannel("soc_time_to_cutoff_s", "o"),
+    StatusChannel("soc_time_to_full_s", "o"),
+    StatusChannel("soc_load_avg_a", "o"),
 )
 assert STATUS[rules.ST_OK].name == "soc_observer_ok"
+assert STATUS[rules.ST_LOAD].name == "soc_load_avg_a"
 
 
 def _finite(x: float) -> bool:
@@ -126,6 +131,8 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
         nis_avg=np.ones(shape),
         obs_age_s=np.zeros(shape),
         obs_ok=np.zeros(shape, np.bool_),
+        pred_age_s=np.full(shape, np.inf),
+        load_age_s=np.zeros(shape),
         **{name: nan.copy() for name in _OUTPUTS},
     )
     return prm, st
@@ -133,7 +140,8 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
 
 _OUTPUTS = (
     "emf_v", "r0_ohm", "r0_var_ohm2", "r1_ohm", "tau_s", "v_rc_v", "v_rc_var_v2", "soc_var",
-    "capacity_ah", "capacity_var_ah2", "offset_a", "offset_var_a2",
+    "capacity_ah", "capacity_var_ah2", "offset_a", "offset_var_a2", "load_avg_a",
+    "time_to_go_s", "time_to_cutoff_s", "time_to_full_s",
 )  # fmt: skip
 
 
@@ -173,6 +181,11 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
         "nis_window_s": float(config.nis_window_s),
         "nis_limit": float(config.nis_limit),
         "offset_max_a": float(4.0 * config.ekf_offset_sigma0_a),
+        "load_tau_s": float(config.load_avg_s),
+        "cutoff_cell_v": float(
+            config.cutoff_cell_v if config.cutoff_cell_v is not None else info.cell_v_min_v
+        ),
+        "predict_every_s": 1.0,
     }
 
 

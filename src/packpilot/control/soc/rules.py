@@ -51,6 +51,15 @@ ST_CAP = 7
 ST_OFFSET = 8
 ST_NIS = 9
 ST_OK = 10
+ST_TTG = 11
+ST_TTC = 12
+ST_TTF = 13
+ST_LOAD = 14
+
+N_SCAN = 32
+"""Points of the coarse scan for the cut-off crossing (then bisection within the first
+bracket that crosses)."""
+N_BISECT = 30
 
 
 class SocParams(NamedTuple):
@@ -89,6 +98,11 @@ class SocParams(NamedTuple):
     nis_window_s: float
     nis_limit: float
     offset_max_a: float
+    load_tau_s: float
+    """Time constant of the recent average load the predictions assume (s)."""
+    cutoff_cell_v: float
+    """The cell voltage whose crossing ``time_to_cutoff_s`` predicts (V)."""
+    predict_every_s: float
 
 
 class SocState(NamedTuple):
@@ -135,6 +149,21 @@ class SocState(NamedTuple):
     offset_a: F64
     """(P, B) estimated current-sensor offset (A; measured = true + offset)."""
     offset_var_a2: F64
+    load_avg_a: F64
+    """(P, B) recent average battery current (exponential, ``load_tau_s``; offset removed)."""
+    load_age_s: F64
+    """(P, B) time the average has run (it is the plain mean until ``load_tau_s``)."""
+    pred_age_s: F64
+    """(P, B) time since the predictions were last computed (inf: never)."""
+    time_to_go_s: F64
+    """(P, B) shown SOC x capacity / recent average load (NaN unless discharging)."""
+    time_to_cutoff_s: F64
+    """(P, B) when the cell voltage reaches ``cutoff_cell_v`` at the recent average load, the
+    polarisation relaxing toward its steady state on the way (NaN: not discharging, or not
+    within the OCV table)."""
+    time_to_full_s: F64
+    """(P, B) (1 - shown SOC) x capacity / recent average charge current (NaN unless
+    charging; constant current to full: optimistic where a charger tapers)."""
 
 
 @kernel_inline
@@ -292,6 +321,88 @@ def _observe(
 
 
 @kernel_inline
+def cell_v_at(prm: SocParams, st: SocState, p: int, i: int, cur: float, temp: float,
+              t: float) -> float:  # fmt: skip
+    """The model's cell voltage ``t`` seconds ahead at the constant current ``cur``: SOC
+    falls linearly; R0, R1 and tau are the tables' at that SOC (and the present temperature)
+    times the estimated resistance scale; the polarisation relaxes from its present value
+    toward ``R1 * cur``."""
+    soc = st.x[p, i, ob.X_SOC] - cur * t / (3600.0 * st.x[p, i, ob.X_CAP])
+    rs = st.x[p, i, ob.X_RSCALE]
+    r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, soc)
+    r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, soc)
+    tau = ob.table2(prm.tau_tab, prm.ax_t, prm.ax_s, temp, soc)
+    ocv, _ = ob.ocv_at(prm.ocv_soc, prm.ocv_v, soc)
+    v_ss = r1 * cur
+    v1 = v_ss + (st.x[p, i, ob.X_V1] - v_ss) * math.exp(-t / tau)
+    return ocv - r0 * cur - v1
+
+
+@kernel_inline
+def time_to_cutoff(prm: SocParams, st: SocState, p: int, i: int, cur: float, temp: float) -> float:
+    """Seconds until the model's cell voltage reaches the cut-off at the constant ``cur``:
+    the first crossing on a scan of ``N_SCAN`` points up to the end of the OCV table, then
+    bisection in that bracket. 0 when already at or below; NaN when not discharging or when
+    no crossing lies within the table."""
+    if not (cur >= prm.rest_current_a):
+        return math.nan
+    vc = prm.cutoff_cell_v
+    if cell_v_at(prm, st, p, i, cur, temp, 0.0) <= vc:
+        return 0.0
+    horizon = (st.x[p, i, ob.X_SOC] - prm.ocv_soc[0]) * 3600.0 * st.x[p, i, ob.X_CAP] / cur
+    if not (horizon > 0.0):
+        return math.nan
+    lo = 0.0
+    hi = math.nan
+    for k in range(1, N_SCAN + 1):
+        t = horizon * k / N_SCAN
+        if cell_v_at(prm, st, p, i, cur, temp, t) <= vc:
+            hi = t
+            break
+        lo = t
+    if not math.isfinite(hi):
+        return math.nan
+    for _ in range(N_BISECT):
+        mid = 0.5 * (lo + hi)
+        if cell_v_at(prm, st, p, i, cur, temp, mid) <= vc:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+@kernel_inline
+def _predict(prm: SocParams, st: SocState, m: MeasArrays, p: int, i: int, dt: float) -> None:
+    """The recent average load, and every ``predict_every_s`` the three times from it."""
+    cur = m.bat.current_a[p, i]
+    if not (math.isfinite(cur) and math.isfinite(st.x[p, i, ob.X_SOC])):
+        return
+    cur = cur - st.x[p, i, ob.X_OFFSET]
+    # the mean since the start until a whole time constant has passed, exponential after
+    st.load_age_s[p, i] += dt
+    a = fmin(1.0, dt / fmin(prm.load_tau_s, st.load_age_s[p, i]))
+    if not math.isfinite(st.load_avg_a[p, i]):
+        st.load_avg_a[p, i] = cur
+    else:
+        st.load_avg_a[p, i] += a * (cur - st.load_avg_a[p, i])
+    st.pred_age_s[p, i] += dt
+    if st.pred_age_s[p, i] < prm.predict_every_s - EPS:
+        return
+    st.pred_age_s[p, i] = 0.0
+    avg = st.load_avg_a[p, i]
+    left_ah = st.shown_soc[p, i] * st.x[p, i, ob.X_CAP]
+    st.time_to_go_s[p, i] = left_ah * 3600.0 / avg if avg >= prm.rest_current_a else math.nan
+    missing_ah = (1.0 - st.shown_soc[p, i]) * st.x[p, i, ob.X_CAP]
+    st.time_to_full_s[p, i] = (
+        missing_ah * 3600.0 / -avg if avg <= -prm.rest_current_a else math.nan
+    )
+    temp = m.bat.temp_c[p, i]
+    st.time_to_cutoff_s[p, i] = time_to_cutoff(
+        prm, st, p, i, avg, temp if math.isfinite(temp) else 25.0
+    )
+
+
+@kernel_inline
 def step_pack(
     prm: SocParams, st: SocState, tp: PackArrays, m: MeasArrays, p: int, dt_s: float,
     cmd: CmdArrays, ev: EventBuf, src: int, status: F64, s0: int,
@@ -306,6 +417,8 @@ def step_pack(
             st.shown_soc[p, i] = fmin(1.0, fmax(0.0, st.x[p, i, ob.X_SOC]))
         else:
             st.shown_soc[p, i] = st.soc[p, i]
+        if prm.observer:
+            _predict(prm, st, m, p, i, dt)
         status[p, i, s0 + ST_SOC] = st.shown_soc[p, i]
         status[p, i, s0 + ST_REST] = st.rest_s[p, i]
         status[p, i, s0 + ST_FALLBACK] = st.soc[p, i]
@@ -317,6 +430,10 @@ def step_pack(
         status[p, i, s0 + ST_OFFSET] = st.offset_a[p, i]
         status[p, i, s0 + ST_NIS] = st.nis_avg[p, i]
         status[p, i, s0 + ST_OK] = 1.0 if st.obs_ok[p, i] else 0.0
+        status[p, i, s0 + ST_TTG] = st.time_to_go_s[p, i]
+        status[p, i, s0 + ST_TTC] = st.time_to_cutoff_s[p, i]
+        status[p, i, s0 + ST_TTF] = st.time_to_full_s[p, i]
+        status[p, i, s0 + ST_LOAD] = st.load_avg_a[p, i]
 
 
 @kernel
