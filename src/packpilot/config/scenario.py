@@ -365,7 +365,7 @@ class SensorError(_Strict):
     sample ``delay_s`` old. The defaults are a perfect sensor."""
 
     noise_sigma: NonNegFloat = Field(
-        0.0, le=1000.0, description="standard deviation of white Gaussian noise (unit of the quantity)"
+        0.0, le=1000.0, description="standard deviation of white Gaussian noise (its unit)"
     )
     gain: Annotated[float, Field(gt=0.5, lt=2.0, allow_inf_nan=False)] = Field(
         1.0, description="scale error: 1.01 reads 1 % high"

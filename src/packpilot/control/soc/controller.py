@@ -161,6 +161,19 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
     def arr(t: tuple[float, ...], dummy: int) -> Any:
         return np.array(t, np.float64) if have else np.ones(dummy)
 
+    sig0 = (
+        config.ekf_soc_sigma0,
+        0.05,
+        config.ekf_resistance_sigma0,
+        config.ekf_capacity_sigma0,
+        config.ekf_offset_sigma0_a,
+    )
+    walk = (
+        config.ekf_current_sigma_a,
+        config.ekf_resistance_walk,
+        config.ekf_capacity_walk,
+        config.ekf_offset_walk_a,
+    )
     return {
         "observer": bool(config.observer and have),
         "ax_t": np.array(info.ecm_temp_c, np.float64) if have else np.array([0.0, 1.0]),
@@ -169,14 +182,8 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
         "r1_tab": arr(info.ecm_r1_ohm, 4),
         "tau_tab": arr(info.ecm_tau_s, 4),
         "r_nom": np.array(r_nom, np.float64),
-        "sig0": np.array(
-            [config.ekf_soc_sigma0, 0.05, config.ekf_resistance_sigma0,
-             config.ekf_capacity_sigma0, config.ekf_offset_sigma0_a], np.float64,
-        ),  # fmt: skip
-        "walk": np.array(
-            [config.ekf_current_sigma_a, config.ekf_resistance_walk, config.ekf_capacity_walk,
-             config.ekf_offset_walk_a], np.float64,
-        ),  # fmt: skip
+        "sig0": np.array(sig0, np.float64),
+        "walk": np.array(walk, np.float64),
         "var_v": float(config.ekf_voltage_sigma_v) ** 2,
         "nis_window_s": float(config.nis_window_s),
         "nis_limit": float(config.nis_limit),

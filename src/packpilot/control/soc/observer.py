@@ -71,8 +71,10 @@ def table2(tab: F64, ax_t: F64, ax_s: F64, temp_c: float, soc: float) -> float:
     ns = ax_s.shape[0]
     kt, ft = _bracket(temp_c, ax_t)
     ks, fs = _bracket(soc, ax_s)
-    a = tab[kt * ns + ks] + (tab[kt * ns + ks + 1] - tab[kt * ns + ks]) * fs
-    b = tab[(kt + 1) * ns + ks] + (tab[(kt + 1) * ns + ks + 1] - tab[(kt + 1) * ns + ks]) * fs
+    k0 = kt * ns + ks
+    k1 = k0 + ns
+    a: float = tab[k0] + (tab[k0 + 1] - tab[k0]) * fs
+    b: float = tab[k1] + (tab[k1 + 1] - tab[k1]) * fs
     return a + (b - a) * ft
 
 
@@ -170,7 +172,7 @@ def correct(
     rs = x[p, i, X_RSCALE]
     ic = cur_a - x[p, i, X_OFFSET]
     ocv, slope = ocv_at(ocv_soc, ocv_v, x[p, i, X_SOC])
-    nu = y_v - (ocv - rs * r0 * ic - x[p, i, X_V1])
+    nu: float = y_v - (ocv - rs * r0 * ic - x[p, i, X_V1])
     hv[p, i, X_SOC] = slope
     hv[p, i, X_V1] = -1.0
     hv[p, i, X_RSCALE] = -r0 * ic

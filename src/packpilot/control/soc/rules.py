@@ -328,13 +328,13 @@ def cell_v_at(prm: SocParams, st: SocState, p: int, i: int, cur: float, temp: fl
     times the estimated resistance scale; the polarisation relaxes from its present value
     toward ``R1 * cur``."""
     soc = st.x[p, i, ob.X_SOC] - cur * t / (3600.0 * st.x[p, i, ob.X_CAP])
-    rs = st.x[p, i, ob.X_RSCALE]
+    rs: float = st.x[p, i, ob.X_RSCALE]
     r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, soc)
     r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, soc)
     tau = ob.table2(prm.tau_tab, prm.ax_t, prm.ax_s, temp, soc)
     ocv, _ = ob.ocv_at(prm.ocv_soc, prm.ocv_v, soc)
     v_ss = r1 * cur
-    v1 = v_ss + (st.x[p, i, ob.X_V1] - v_ss) * math.exp(-t / tau)
+    v1: float = v_ss + (st.x[p, i, ob.X_V1] - v_ss) * math.exp(-t / tau)
     return ocv - r0 * cur - v1
 
 
