@@ -124,12 +124,13 @@ def run_example(name: str, duration_s: float | None = None) -> dict[str, Any]:
     return out
 
 
-def speed() -> dict[str, float]:
-    """CPU time per ``ClosedLoop.step`` (P = 1) and per pack-step (P = 256), uav_mission with
-    the observer, after a warm-up."""
+def speed(name: str) -> dict[str, float]:
+    """CPU time per ``ClosedLoop.step`` (P = 1) and per pack-step (P = 256) of example
+    ``name`` with the observer (its sensors perfect: the error model is Python, not core),
+    after a warm-up; and the core step alone (``Core.step_batch``) per pack."""
     out = {}
     for p, steps in ((1, 2000), (256, 200)):
-        cfg = scenario("uav_mission", sensors=False)
+        cfg = scenario(name, sensors=False)
         loop = ClosedLoop.of(cfg, p)
         dt = cfg.sim.dt_s
         for k in range(20):
@@ -142,8 +143,9 @@ def speed() -> dict[str, float]:
         for _ in range(steps):
             loop.core.step_batch(loop.m, dt)
         core = (time.process_time() - core_t0) / steps
-        out[f"P={p} loop step us"] = per * 1e6
-        out[f"P={p} core step us per pack"] = core * 1e6 / p
+        out[f"{name} P={p} ClosedLoop.step us CPU"] = per * 1e6
+        out[f"{name} P={p} ClosedLoop.step us CPU per pack"] = per * 1e6 / p
+        out[f"{name} P={p} core step us CPU per pack"] = core * 1e6 / p
     return out
 
 
@@ -151,6 +153,8 @@ def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("examples", nargs="*")
     ap.add_argument("--speed-only", action="store_true")
+    ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--speed-example", action="append", default=[])
     ap.add_argument("--duration", type=float, default=None)
     a = ap.parse_args(argv)
     if not a.speed_only:
@@ -163,8 +167,10 @@ def main(argv: list[str]) -> int:
                       f"{100 * r['old_rms']:.2f} / {100 * r['old_max']:.2f} | "
                       f"{100 * r['r0_err']:+.1f} | {100 * r['cap_err']:+.1f} | "
                       f"{r['observer_ok']}", flush=True)  # fmt: skip
-    for k, v in speed().items():
-        print(f"{k}: {v:.2f}")
+    if not a.no_speed:
+        for name in a.speed_example or ["soc_observer_sensors", "uav_mission"]:
+            for k, v in speed(name).items():
+                print(f"{k}: {v:.2f}", flush=True)
     return 0
 
 
