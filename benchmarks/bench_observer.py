@@ -74,9 +74,19 @@ def truth(loop: ClosedLoop) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(s_out), np.array(r_out), np.array(q_out)
 
 
-def run_example(name: str, duration_s: float | None = None) -> dict[str, Any]:
+AGED_R = 1.3
+AGED_CAP_BELIEF = 1.07
+"""``--aged``: the plant's cells have 1.3x the stated resistance, and the BMS believes 7 % more
+capacity than the cells have (both estimators are told the wrong capacity): what the observer
+must learn (R0 after the first load step, capacity over the run)."""
+
+
+def run_example(name: str, duration_s: float | None = None, aged: bool = False) -> dict[str, Any]:
     cfg = scenario(name, duration_s=duration_s)
-    loop = ClosedLoop.of(cfg, 1)
+    over = {"r_scale": np.array([AGED_R])} if aged else None
+    loop = ClosedLoop.of(cfg, 1, over)
+    if aged:
+        loop.core.tp.capacity_ah[:] *= AGED_CAP_BELIEF
     part = soc_part(loop)
     st = part.st
     s0, _, _ = truth(loop)
@@ -156,12 +166,13 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--speed-example", action="append", default=[])
     ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--aged", action="store_true", help="resistance 1.3x, capacity 7 % wrong")
     a = ap.parse_args(argv)
     if not a.speed_only:
         print("example | battery | observer RMS / max % | today's RMS / max % | R0 err % | "
               "capacity err % | observer ok")
         for name in a.examples or EXAMPLES:
-            res = run_example(name, a.duration)
+            res = run_example(name, a.duration, a.aged)
             for i, r in enumerate(res["batteries"]):
                 print(f"{name} | {i} | {100 * r['obs_rms']:.2f} / {100 * r['obs_max']:.2f} | "
                       f"{100 * r['old_rms']:.2f} / {100 * r['old_max']:.2f} | "
