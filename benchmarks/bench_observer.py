@@ -134,6 +134,50 @@ def run_example(name: str, duration_s: float | None = None, aged: bool = False) 
     return out
 
 
+def cutoff_figures(profile: bool, cutoff_v: float = 3.3) -> dict[str, float]:
+    """Time to cut-off against the plant: ``soc_observer_sensors`` with its sensor errors at a
+    constant 14 A (``profile`` False) or on its flight profile repeated (True), from 95 % until
+    the weakest cell's true voltage reaches ``cutoff_v``. Over the last 10 minutes (after the
+    first 5): the largest error relative to the true remaining time (ignoring the last 10 s,
+    where one sample is already 10 %), and how often consecutive 1 s samples moved by more
+    than 5 % + 5 s while the recent load moved by less than 20 %."""
+    data: dict[str, Any] = read_toml(ROOT / "examples" / "soc_observer_sensors.toml")
+    data["soc"] = {"cutoff_cell_v": cutoff_v}
+    data["sim"]["duration_s"] = 20000.0
+    if profile:
+        data["load"]["repeat"] = True
+    else:
+        data["load"] = {"kind": "current", "value": 14.0}
+    cfg = parse_config(data, "cutoff")
+    loop = ClosedLoop.of(cfg, 1)
+    st = soc_part(loop).st
+    dt = cfg.sim.dt_s
+    every = round(1.0 / dt)
+    rows = []
+    k = 0
+    while float(np.min(loop.plant.pack.cell_voltage_now()[0])) > cutoff_v and k < 200000:
+        loop.step(k, dt)
+        k += 1
+        if k % every == 0:
+            rows.append((loop.plant.t_s, st.time_to_cutoff_s[0, 0], st.load_avg_a[0, 0]))
+    t_trip = loop.plant.t_s
+    a = np.array(rows)
+    win = (a[:, 0] >= t_trip - 600.0) & (a[:, 0] >= 300.0)
+    left = t_trip - a[win, 0]
+    rel = np.abs(a[win, 1] - left) / left
+    keep = left >= 10.0
+    ttc, load = a[win, 1], a[win, 2]
+    jump = np.abs(np.diff(ttc)) > 0.05 * ttc[:-1] + 5.0 + 1.0
+    steady = np.abs(np.diff(load)) <= 0.2 * np.abs(load[:-1])
+    return {
+        "trip_s": float(t_trip),
+        "max_rel_err_last_10min": float(np.nanmax(rel[keep])),
+        "median_rel_err_last_10min": float(np.nanmedian(rel[keep])),
+        "jumps_beyond_5pct_5s": float(np.sum(jump & steady)),
+        "samples": float(win.sum()),
+    }
+
+
 def speed(name: str) -> dict[str, float]:
     """CPU time per ``ClosedLoop.step`` (P = 1) and per pack-step (P = 256) of example
     ``name`` with the observer (its sensors perfect: the error model is Python, not core),
@@ -164,6 +208,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("examples", nargs="*")
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--no-speed", action="store_true")
+    ap.add_argument("--cutoff", action="store_true", help="the time-to-cut-off figures")
     ap.add_argument("--speed-example", action="append", default=[])
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--aged", action="store_true", help="resistance 1.3x, capacity 7 % wrong")
@@ -178,6 +223,12 @@ def main(argv: list[str]) -> int:
                       f"{100 * r['old_rms']:.2f} / {100 * r['old_max']:.2f} | "
                       f"{100 * r['r0_err']:+.1f} | {100 * r['cap_err']:+.1f} | "
                       f"{r['observer_ok']}", flush=True)  # fmt: skip
+    if a.cutoff:
+        for prof in (False, True):
+            res = cutoff_figures(prof)
+            what = "flight profile repeated" if prof else "constant 14 A"
+            print(f"time to cut-off (3.3 V), {what}: " + ", ".join(
+                f"{k} {v:.3g}" for k, v in res.items()), flush=True)  # fmt: skip
     if not a.no_speed:
         for name in a.speed_example or ["soc_observer_sensors", "uav_mission"]:
             for k, v in speed(name).items():
