@@ -106,7 +106,6 @@ faults: $(TEST_STAMP)
 
 bench: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py
-	$(PY) benchmarks/bench_observer.py --cutoff
 
 lint: $(TEST_STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -203,6 +203,34 @@ def speed(name: str) -> dict[str, float]:
     return out
 
 
+def run() -> list[dict[str, Any]]:
+    """``make bench`` (``run_all.py`` finds every ``bench_*.py``): every figure as a row."""
+    rows: list[dict[str, Any]] = []
+    for name in EXAMPLES:
+        res = run_example(name)
+        for i, r in enumerate(res["batteries"]):
+            rows.append({
+                "figure": f"SOC error {name} battery {i}: observer RMS / max (today's)",
+                "measured": f"{100 * r['obs_rms']:.2f} / {100 * r['obs_max']:.2f} % "
+                            f"({100 * r['old_rms']:.2f} / {100 * r['old_max']:.2f} %)",
+                "target": "<= 2 % RMS / <= 3 % max after 5 min",
+            })  # fmt: skip
+    for prof in (False, True):
+        c = cutoff_figures(prof)
+        what = "flight profile repeated" if prof else "constant 14 A"
+        rows.append({
+            "figure": f"time to cut-off, {what}: max / median error, last 10 min; jumps",
+            "measured": f"{100 * c['max_rel_err_last_10min']:.1f} / "
+                        f"{100 * c['median_rel_err_last_10min']:.1f} %; "
+                        f"{c['jumps_beyond_5pct_5s']:.0f}",
+            "target": "<= 10 %; 0 jumps > 5 % + 5 s at steady load",
+        })  # fmt: skip
+    for name in ("soc_observer_sensors", "uav_mission"):
+        for k, v in speed(name).items():
+            rows.append({"figure": k, "measured": f"{v:.2f}", "target": "P=1 <= 60; P=256 <= 6"})
+    return rows
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("examples", nargs="*")
