@@ -172,7 +172,7 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
         config.ekf_current_sigma_a,
         config.ekf_resistance_walk,
         config.ekf_capacity_walk,
-        config.ekf_offset_walk_a,
+        config.ekf_offset_walk_a if config.ekf_offset_sigma0_a > 0.0 else 0.0,
     )
     return {
         "observer": bool(config.observer and have),
