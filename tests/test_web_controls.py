@@ -223,6 +223,23 @@ def test_headline_times() -> None:
     assert headline(None, [])["time_to_go_s"] is None
 
 
+def test_headline_times_from_the_observer() -> None:
+    """With the SOC observer's channels the times are its (recent average load), not the
+    present current's; the soonest battery's time to cut-off."""
+    def bat(cur: float, soc: float, avg: float, ttc: float) -> dict[str, Any]:
+        return {"current_a": cur, "remaining_ah": 9.0, "full_ah": 9.0,
+                "status": {"soc_est": soc, "soc_capacity_ah": 5.0, "soc_load_avg_a": avg,
+                           "soc_time_to_cutoff_s": ttc}}  # fmt: skip
+
+    h = headline(summary([bat(30.0, 0.5, 10.0, 700.0), bat(0.0, 0.4, 5.0, 650.0)]),
+                 ["traction", "traction"])  # fmt: skip
+    assert h["time_to_go_s"] == pytest.approx((2.5 + 2.0) * 3600 / 15.0)
+    assert h["time_to_cutoff_s"] == 650.0 and h["time_to_full_s"] is None
+    h = headline(summary([bat(-3.0, 0.5, -2.0, float("nan"))]), ["traction"])
+    assert h["time_to_full_s"] == pytest.approx(2.5 * 3600 / 2.0)
+    assert h["time_to_go_s"] is None and h["time_to_cutoff_s"] is None
+
+
 def test_headline_on_a_live_protected_run() -> None:
     live, sim = start(speed=0.0)
     sim.join(30.0)

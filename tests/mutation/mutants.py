@@ -335,6 +335,28 @@ SOC = [
        "ocv_soc", "the OCV correction ignores blend"),
     _m("soc", "ocv-unclamped", "return fmin(1.0, fmax(0.0, s))", "return s",
        "the OCV lookup leaves 0..1"),
+    _m("soc", "observer-no-fallback", "if prm.observer and st.obs_ok[p, i]:", "if prm.observer:",
+       "a diverged observer stays the SOC source (issue #28)"),
+    _m("soc", "observer-never-diverges",
+       "bad = not _finite_state(st, p, i) or not (st.nis_avg[p, i] <= prm.nis_limit)",
+       "bad = not _finite_state(st, p, i)", "the innovation window test never fails"),
+    _m("soc", "observer-resumes-at-once",
+       "elif not st.obs_ok[p, i] and st.obs_age_s[p, i] >= prm.nis_window_s - EPS:",
+       "elif not st.obs_ok[p, i]:", "a restarted observer is the source before a window"),
+    _m("soc", "cutoff-no-polarisation", "    v_ss = r1 * cur\n", "    v_ss = 0.0\n",
+       "time to cut-off ignores the polarisation at the load"),
+    _m("soc", "cutoff-no-r0", "    return ocv - r0 * cur - v1\n", "    return ocv - v1\n",
+       "time to cut-off ignores the ohmic drop"),
+    _m("soc", "load-not-averaged",
+       "a = fmin(1.0, dt / fmin(prm.load_tau_s, st.load_age_s[p, i]))", "a = 1.0",
+       "the predictions follow the instantaneous load (jumpy)"),
+    _m("soc", "time-to-go-no-soc",
+       "left_ah = st.shown_soc[p, i] * st.x[p, i, ob.X_CAP]", "left_ah = st.x[p, i, ob.X_CAP]",
+       "time to go ignores the SOC"),
+    _m("soc", "time-to-full-sign",
+       "missing_ah = (1.0 - st.shown_soc[p, i]) * st.x[p, i, ob.X_CAP]",
+       "missing_ah = st.shown_soc[p, i] * st.x[p, i, ob.X_CAP]",
+       "time to full counts the charge present, not the charge missing"),
 ]
 
 EQUALIZATION = [
@@ -554,7 +576,7 @@ TESTS: dict[str, list[str]] = {
         "_still_empty",
         "tests/test_bmu_supply.py::test_closed_loop_a_browned_out_bmu_logs_no_stage_while_docked",
     ],
-    "soc": ["tests/test_soc_estimator.py"],
+    "soc": ["tests/test_soc_estimator.py", "tests/test_soc_observer.py"],
     # shared helpers (#26 item 4: generated mutants only): every method's commands and events
     # go through control/commands.py, capacity / conduction through control/battery.py
     "commands": [

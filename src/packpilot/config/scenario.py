@@ -366,6 +366,50 @@ class SimConfig(_Strict):
         return self
 
 
+class SensorError(_Strict):
+    """The error of one measured quantity, in that quantity's unit (V, A or degC): what a real
+    BMS's front end reads is ``gain * truth + offset + noise``, rounded to ``quantum``, from the
+    sample ``delay_s`` old. The defaults are a perfect sensor."""
+
+    noise_sigma: NonNegFloat = Field(
+        0.0, le=1000.0, description="standard deviation of white Gaussian noise (its unit)"
+    )
+    gain: Annotated[float, Field(gt=0.5, lt=2.0, allow_inf_nan=False)] = Field(
+        1.0, description="scale error: 1.01 reads 1 % high"
+    )
+    offset: Annotated[float, Field(ge=-1000.0, le=1000.0, allow_inf_nan=False)] = Field(
+        0.0, description="additive error (unit of the quantity)"
+    )
+    quantum: NonNegFloat = Field(
+        0.0, le=100.0, description="resolution: readings are rounded to a multiple (0: none)"
+    )
+    delay_s: Annotated[float, Field(ge=0.0, le=60.0, allow_inf_nan=False)] = Field(
+        0.0, description="the reading is the truth this long ago (latest sample at or before)"
+    )
+
+    @property
+    def perfect(self) -> bool:
+        return (
+            self.noise_sigma == 0.0 and self.gain == 1.0 and self.offset == 0.0
+            and self.quantum == 0.0 and self.delay_s == 0.0
+        )  # fmt: skip
+
+
+class SensorsConfig(_Strict):
+    """``[sensors]``: realistic sensing in the plant (issue #28 item 0), off when absent.
+
+    Errors apply per quantity where the BMS's front end measures it: every cell voltage (so
+    group, battery, min and max cell voltages are sums and extremes of erroneous cells), every
+    battery's current, every cell temperature and the bus (pack) voltage. The noise is drawn
+    from ``seed`` (one stream per quantity), so a run is reproducible."""
+
+    seed: int = Field(0, ge=0, lt=2**63, description="seed of the noise streams")
+    cell_v: SensorError = Field(SensorError(), description="each cell (group) voltage, V")
+    pack_v: SensorError = Field(SensorError(), description="the bus (pack) voltage, V")
+    current: SensorError = Field(SensorError(), description="each battery's current, A")
+    temp: SensorError = Field(SensorError(), description="each cell temperature, degC")
+
+
 FaultKind = Literal[
     "sensor_nan",
     "sensor_stuck",
@@ -469,6 +513,9 @@ class ScenarioConfig(_Strict):
         None, description="present: BMS SOC estimation (coulomb counting + OCV after rest)"
     )
     can: CanConfig | None = Field(None, description="charger over CAN (python-can)")
+    sensors: SensorsConfig | None = Field(
+        None, description="present: the plant's sensors read with these errors (issue #28)"
+    )
     faults: list[FaultConfig] = Field(default_factory=list)
 
     @field_validator("controller", mode="before")

@@ -1,4 +1,6 @@
-"""``[soc]``: the BMS's own state-of-charge estimate (coulomb counting + OCV after a rest)."""
+"""``[soc]``: the BMS's own state-of-charge estimate: the battery observer (an extended Kalman
+filter on the cell's equivalent circuit, issue #28) with coulomb counting + OCV after a rest as
+its fallback."""
 
 from __future__ import annotations
 
@@ -40,8 +42,94 @@ class SocConfig(Strict):
         "empties first in a series string) or 'avg' (battery voltage / series cells).",
     )
 
+    observer: bool = Field(
+        default=True,
+        description="Run the battery observer (EKF) as the SOC source; false: the coulomb "
+        "counter with rest corrections alone (as before issue #28).",
+    )
+    ekf_voltage_sigma_v: float = Field(
+        default=0.01,
+        description="Standard deviation of the cell-voltage measurement the observer assumes "
+        "(V, > 0): sensor noise plus model error.",
+    )
+    ekf_current_sigma_a: float = Field(
+        default=1.0,
+        description="Standard deviation of the battery current it assumes (A, > 0): drives "
+        "the SOC and polarisation process noise.",
+    )
+    ekf_resistance_walk: float = Field(
+        default=2e-3,
+        description="Random walk of the resistance scale (relative, per sqrt(s)): how fast "
+        "R0 may move (temperature, ageing) beyond its table.",
+    )
+    ekf_capacity_walk: float = Field(
+        default=1e-6,
+        description="Random walk of the capacity (relative, per sqrt(s)): slow, across cycles.",
+    )
+    ekf_offset_walk_a: float = Field(
+        default=2e-5, description="Random walk of the current-sensor offset (A per sqrt(s))."
+    )
+    ekf_soc_sigma0: float = Field(
+        default=0.15, description="Prior standard deviation of the SOC at (re)start (0..1)."
+    )
+    ekf_resistance_sigma0: float = Field(
+        default=0.1, description="Prior relative standard deviation of the resistance scale."
+    )
+    ekf_capacity_sigma0: float = Field(
+        default=0.1, description="Prior relative standard deviation of the capacity."
+    )
+    ekf_offset_sigma0_a: float = Field(
+        default=0.0,
+        description="Prior standard deviation of the current-sensor offset (A); 0 (default): "
+        "not estimated. Measured (issue #28): with a +1 % gain and +0.2 A offset it was not "
+        "observable on the shipped examples (it drifted the wrong way and took the capacity "
+        "with it), so it is off unless a pack's cycles make it observable.",
+    )
+    nis_window_s: float = Field(
+        default=60.0,
+        description="Window of the divergence test (s, > 0): the normalised innovations "
+        "squared, exponentially averaged over it; also how long a (re)started observer must "
+        "run before it is the SOC source again.",
+    )
+    nis_limit: float = Field(
+        default=25.0,
+        description="The observer has diverged when that average exceeds this (> 0; a "
+        "consistent filter averages about 1).",
+    )
+
+    load_avg_s: float = Field(
+        default=180.0,
+        description="Time constant of the recent average load the predictions assume (s, > 0; "
+        "3 minutes, as Victron's time to go).",
+    )
+    cutoff_cell_v: float | None = Field(
+        default=None,
+        description="Cell voltage whose crossing the time to cut-off predicts (V); default: "
+        "the cell set's lower voltage limit. Set it to the protection's cut-off.",
+    )
+
     @model_validator(mode="after")
     def _check(self) -> SocConfig:
+        if not (_finite(self.load_avg_s) and 0.0 < self.load_avg_s <= MAX_TIME_S):
+            raise ValueError(f"load_avg_s must be > 0 s, got {self.load_avg_s}")
+        c = self.cutoff_cell_v
+        if c is not None and not (_finite(c) and 0.0 < c <= 5.0):
+            raise ValueError(f"cutoff_cell_v must be within 0..5 V, got {c}")
+        for name in (
+            "ekf_voltage_sigma_v", "ekf_current_sigma_a", "nis_window_s", "nis_limit",
+        ):  # fmt: skip
+            v = getattr(self, name)
+            if not (_finite(v) and 0.0 < v <= MAX_TIME_S):
+                raise ValueError(f"{name} must be > 0, got {v}")
+        for name in (
+            "ekf_resistance_walk", "ekf_capacity_walk", "ekf_offset_walk_a",
+            "ekf_resistance_sigma0", "ekf_capacity_sigma0", "ekf_offset_sigma0_a",
+        ):  # fmt: skip
+            v = getattr(self, name)
+            if not (_finite(v) and 0.0 <= v <= 10.0):
+                raise ValueError(f"{name} must be within 0..10, got {v}")
+        if not (_finite(self.ekf_soc_sigma0) and 0.0 < self.ekf_soc_sigma0 <= 1.0):
+            raise ValueError(f"ekf_soc_sigma0 must be within 0..1, got {self.ekf_soc_sigma0}")
         if not (_finite(self.rest_current_a) and 0.0 < self.rest_current_a <= DETECT_MAX_A):
             raise ValueError(
                 f"rest_current_a must be > 0 and <= {DETECT_MAX_A:g} A, got {self.rest_current_a}"

@@ -70,6 +70,8 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "CrossCurrentRisk": KindRow(Severity.WARNING, "crosscurrent"),
         # a battery with a failed sensor now supplies the load (degraded mode, #15 §5)
         "ReserveEngaged": KindRow(Severity.WARNING, "reserve"),
+        # the SOC observer failed its innovation test: the coulomb counter is shown (#28)
+        "SocObserverDiverged": KindRow(Severity.WARNING, "estimator", "SocObserverResumed"),
         # the CAN runtime's own detections (issue #26): telemetry not trusted, a dock contact
         # contradicted by the measurements, a switch node that opened on its command timeout
         "TelemetrySuspect": KindRow(Severity.WARNING, "telemetry", "TelemetryTrusted"),
@@ -95,6 +97,7 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         # handling it (the physics check flags a cross-charge that is too large)
         "ReverseCurrent": _I,
         "SocCorrected": _I,
+        "SocObserverResumed": _I,
         "StageChanged": _I,
         "StateChanged": _I,
     }

@@ -93,6 +93,21 @@ class PackInfo:
     temperature), as a BMS has it in its parameter memory; empty when unknown."""
     names: tuple[str, ...] = ()
     """The batteries' configured names (event messages use them); empty: indices."""
+    ecm_temp_c: tuple[float, ...] = ()
+    ecm_soc: tuple[float, ...] = ()
+    """Axes of the traction cells' equivalent-circuit tables at zero current (the observer's
+    model, issue #28); empty when unknown (the SOC estimator then runs its fallback only)."""
+    ecm_r0_ohm: tuple[float, ...] = ()
+    """Cell R0 over (temperature, SOC), temperature-major (len(ecm_temp_c) * len(ecm_soc))."""
+    ecm_r1_ohm: tuple[float, ...] = ()
+    """Cell R1, same layout."""
+    ecm_tau_s: tuple[float, ...] = ()
+    """Cell R1 * C1, same layout."""
+    cell_v_min_v: float = 2.5
+    """The traction cells' lower voltage limit (the cell set's ``v_min_v``)."""
+    r_scale: tuple[float, ...] = ()
+    """Per battery, the stated resistance as a factor on the cell tables (1: the tables;
+    empty: 1 for every battery)."""
 
 
 __all__ = ["PackInfo", "Topology"]

@@ -270,6 +270,9 @@ class Pack:
                 _, r0 = cellmod.thevenin(prm, ref, np.zeros(1), np.array([nominal]), np.ones(1))
                 rs[sl] = b.resistance_ohm / (b.n_cells * float(r0[0]))
             start += b.n_cells
+        self.nominal_r_scale = rs.copy()
+        """(cells,) each cell's resistance factor as the config states it (no campaign draw):
+        what the BMS is told."""
         soc2 = self._per_pack(cap, rs, soc)
         self.banks = []
         string_of_cell = self.cell_string

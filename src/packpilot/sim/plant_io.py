@@ -24,6 +24,7 @@ from packpilot.jit import kernel, kernel_inline
 from packpilot.model.numerics import segment_sum, short_sum
 from packpilot.model.pack import Interval, Pack
 from packpilot.model.switches import KIND_RELAY
+from packpilot.sim.sensors import sensors_of
 
 Array = NDArray[np.float64]
 
@@ -52,6 +53,8 @@ class SimulatedPlant:
         self._groups = np.array(pack.groups_per_string, np.int64)
         self._scratch = np.zeros(pack.n_strings)
         self._aux = -1 if self.aux is None else self.aux
+        self.sensors = sensors_of(cfg.sensors)
+        """The ``[sensors]`` errors (None: the sensors read the truth)."""
 
     @property
     def t_s(self) -> float:
@@ -79,6 +82,9 @@ class SimulatedPlant:
             ocv_soc=tuple(float(x) for x in params.ocv_soc),
             ocv_v=tuple(float(x) for x in params.ocv_table_v),
             names=tuple(bats[i].name for i in tr),
+            **_ecm(params),
+            cell_v_min_v=float(params.v_min_v),
+            r_scale=tuple(float(pack.nominal_r_scale[pack.cell_string == i].mean()) for i in tr),
         )
 
     def _traction_cell_params(self) -> Any:
@@ -94,12 +100,15 @@ class SimulatedPlant:
         pack = self.pack
         soc, temp = pack.cell_states()
         t = pack.t_s
+        cell_v, string_a, bus_v = pack.cell_voltage_now(), pack.string_a, pack.bus_v
+        if self.sensors is not None:
+            cell_v, string_a, temp, bus_v = self.sensors.read(t, cell_v, string_a, temp, bus_v)
         sense(
-            *arenas, m_row, t, pack.cell_voltage_now(), soc, temp, pack.capacity_ah,
+            *arenas, m_row, t, cell_v, soc, temp, pack.capacity_ah,
             pack.string_cell_starts,
-            self._group_starts, self._string_group_starts, self._groups, pack.string_a,
+            self._group_starts, self._string_group_starts, self._groups, string_a,
             pack.chg_on, pack.dsg_on, pack.welded, pack.fet_shorted, pack.present_from_s,
-            self.traction, self._aux, pack.is_aux, pack.bus_v, bool(pack.charger_connected(t)[0]),
+            self.traction, self._aux, pack.is_aux, bus_v, bool(pack.charger_connected(t)[0]),
             self._scratch,
         )  # fmt: skip
 
@@ -124,6 +133,22 @@ class SimulatedPlant:
         """One period of every pack under the load ``demand`` (P,) of ``kind`` (``current``,
         ``power``, ``resistance``, ``none``; the scenario's by default)."""
         return self.pack.step(dt_s, kind or self.cfg.load.kind, demand, reuse=True)
+
+
+def _ecm(params: Any) -> dict[str, tuple[float, ...]]:
+    """The cell set's R0, R1 and tau = R1 C1 at zero current over (temperature, SOC), as the
+    BMS's observer has them (the column of the current axis nearest 0 A)."""
+    j = int(np.argmin(np.abs(params.rc_current_a)))
+    r0 = params.r0_ohm[:, j, :]
+    r1 = params.r1_ohm[:, j, :]
+    tau = r1 * params.c1_f[:, j, :]
+    return {
+        "ecm_temp_c": tuple(float(x) for x in params.rc_temp_c),
+        "ecm_soc": tuple(float(x) for x in params.rc_soc),
+        "ecm_r0_ohm": tuple(float(x) for x in r0.ravel()),
+        "ecm_r1_ohm": tuple(float(x) for x in r1.ravel()),
+        "ecm_tau_s": tuple(float(x) for x in tau.ravel()),
+    }
 
 
 @kernel_inline

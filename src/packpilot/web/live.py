@@ -175,6 +175,10 @@ def headline(latest: Mapping[str, Any] | None, roles: Sequence[str]) -> dict[str
       of the protection controller; None without it or when no voltage is falling);
     - ``time_to_full_s``: the Ah still missing at the present charge current (an optimistic
       bound: the constant-voltage taper makes the real charge longer).
+
+    With the battery observer (``[soc]``, issue #28) all three come from it instead: its SOC
+    and capacity at the recent average load (3 minutes, so the figures move smoothly), and the
+    soonest battery's time to cut-off solved forward on its model (``docs/safety.md`` §2a).
     """
     out: dict[str, Any] = {"time_to_go_s": None, "time_to_cutoff_s": None, "time_to_full_s": None}
     if not latest:
@@ -184,6 +188,9 @@ def headline(latest: Mapping[str, Any] | None, roles: Sequence[str]) -> dict[str
         for i, b in enumerate(latest.get("batteries") or ())
         if (roles[i] if i < len(roles) else "traction") != "aux"
     ]
+    observed = _observer_headline(bats)
+    if observed is not None:
+        return observed
     cur = sum(_num(b.get("current_a")) for b in bats)
     if cur > MOVING_A:
         left = sum(max(0.0, _num(b.get("remaining_ah"))) for b in bats)
@@ -199,6 +206,30 @@ def headline(latest: Mapping[str, Any] | None, roles: Sequence[str]) -> dict[str
     ]
     out["time_to_cutoff_s"] = min(trips) if trips else None
     return out
+
+
+def _observer_headline(bats: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """The headline times from the observer's status channels, or None when a traction
+    battery lacks them (no ``[soc]``, or the cell tables unknown)."""
+    keys = ("soc_est", "soc_capacity_ah", "soc_load_avg_a")
+    rows = [b.get("status") or {} for b in bats]
+    if not rows or not all(
+        isinstance(r.get(k), int | float) and math.isfinite(r[k]) for r in rows for k in keys
+    ):
+        return None
+    avg = sum(float(r["soc_load_avg_a"]) for r in rows)
+    left = sum(float(r["soc_est"]) * float(r["soc_capacity_ah"]) for r in rows)
+    full = sum(float(r["soc_capacity_ah"]) for r in rows)
+    ttc = [
+        float(t)
+        for r in rows
+        if isinstance(t := r.get("soc_time_to_cutoff_s"), int | float) and math.isfinite(t)
+    ]
+    return {
+        "time_to_go_s": left * 3600.0 / avg if avg > MOVING_A else None,
+        "time_to_cutoff_s": min(ttc) if ttc and avg > MOVING_A else None,
+        "time_to_full_s": (full - left) * 3600.0 / -avg if avg < -MOVING_A else None,
+    }
 
 
 def _num(x: Any) -> float:

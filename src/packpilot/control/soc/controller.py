@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 from itertools import pairwise
+from typing import Any
 
 import numpy as np
 
@@ -14,6 +15,7 @@ from packpilot.contract.events import Labels, Reason, fields
 from packpilot.contract.topology import PackInfo
 from packpilot.control.method import CompiledController, Method, StatusChannel
 from packpilot.control.soc import rules
+from packpilot.control.soc.observer import N_X
 from packpilot.control.soc.rules import SocParams, SocState
 from packpilot.errors import ConfigError
 
@@ -23,8 +25,39 @@ REASONS = (
         "SOC {before:.3f} -> {after:.3f} from OCV {cell_v:.4f} V",
         fields("before", "after", "ocv_soc", "cell_v"),
     ),
+    Reason(
+        "SocObserverDiverged",
+        "SOC observer diverged (innovations {nis:.1f}x their variance over {window_s:g} s): "
+        "SOC from the coulomb counter ({fallback:.3f}; the observer had {observer:.3f}), "
+        "observer restarted",
+        fields("nis", "window_s", "fallback", "observer"),
+    ),
+    Reason(
+        "SocObserverResumed",
+        "SOC observer consistent again (innovations {nis:.2f}x their variance): SOC "
+        "{soc:.3f} from the observer",
+        fields("nis", "soc"),
+    ),
 )
-STATUS = (StatusChannel("soc_est"), StatusChannel("soc_rest_s"))
+STATUS = (
+    StatusChannel("soc_est"),
+    StatusChannel("soc_rest_s"),
+    StatusChannel("soc_fallback"),
+    StatusChannel("soc_sigma"),
+    StatusChannel("soc_emf_v"),
+    StatusChannel("soc_r0_ohm"),
+    StatusChannel("soc_v_rc_v"),
+    StatusChannel("soc_capacity_ah"),
+    StatusChannel("soc_current_offset_a"),
+    StatusChannel("soc_nis"),
+    StatusChannel("soc_observer_ok", "b"),
+    StatusChannel("soc_time_to_go_s", "o"),
+    StatusChannel("soc_time_to_cutoff_s", "o"),
+    StatusChannel("soc_time_to_full_s", "o"),
+    StatusChannel("soc_load_avg_a", "o"),
+)
+assert STATUS[rules.ST_OK].name == "soc_observer_ok"
+assert STATUS[rules.ST_LOAD].name == "soc_load_avg_a"
 
 
 def _finite(x: float) -> bool:
@@ -79,15 +112,88 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
         ocv_v=np.array(volts, np.float64),
         ocv_soc=np.array(soc, np.float64),
         series_cells=series,
+        **_observer_params(config, info),
     )
     shape = (len(infos), n)
+    nan = np.full(shape, np.nan)
     st = SocState(
-        soc=np.full(shape, np.nan),
+        soc=nan.copy(),
         rest_s=np.zeros(shape),
         next_fix_s=np.zeros(shape),
         corrections=np.zeros(shape, np.int64),
+        shown_soc=nan.copy(),
+        x=np.full((*shape, N_X), np.nan),
+        cov=np.zeros((*shape, N_X, N_X)),
+        fm=np.zeros((*shape, N_X, N_X)),
+        wk=np.zeros((*shape, N_X, N_X)),
+        hv=np.zeros((*shape, N_X)),
+        kv=np.zeros((*shape, N_X)),
+        nis_avg=np.ones(shape),
+        obs_age_s=np.zeros(shape),
+        obs_ok=np.zeros(shape, np.bool_),
+        pred_age_s=np.full(shape, np.inf),
+        load_age_s=np.zeros(shape),
+        **{name: nan.copy() for name in _OUTPUTS},
     )
     return prm, st
+
+
+_OUTPUTS = (
+    "emf_v", "r0_ohm", "r0_var_ohm2", "r1_ohm", "tau_s", "v_rc_v", "v_rc_var_v2", "soc_var",
+    "capacity_ah", "capacity_var_ah2", "offset_a", "offset_var_a2", "load_avg_a",
+    "time_to_go_s", "time_to_cutoff_s", "time_to_full_s",
+)  # fmt: skip
+
+
+def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
+    """The observer's part of :class:`SocParams`: the cell tables of ``info`` (empty ones turn
+    the observer off: the fallback is then the estimate) and the filter's tuning."""
+    nt, ns = len(info.ecm_temp_c), len(info.ecm_soc)
+    tables = (info.ecm_r0_ohm, info.ecm_r1_ohm, info.ecm_tau_s)
+    have = nt >= 2 and ns >= 2 and all(len(t) == nt * ns for t in tables)
+    if have and not all(_finite(x) and x > 0.0 for t in tables for x in t):
+        raise ConfigError("soc: the cell set's R0, R1 and tau tables must be finite and > 0")
+    n = info.n_batteries
+    r_nom = info.r_scale or (1.0,) * n
+    if len(r_nom) != n or not all(_finite(x) and x > 0.0 for x in r_nom):
+        raise ConfigError(f"soc: PackInfo.r_scale needs {n} positive factors, got {r_nom}")
+
+    def arr(t: tuple[float, ...], dummy: int) -> Any:
+        return np.array(t, np.float64) if have else np.ones(dummy)
+
+    sig0 = (
+        config.ekf_soc_sigma0,
+        0.05,
+        config.ekf_resistance_sigma0,
+        config.ekf_capacity_sigma0,
+        config.ekf_offset_sigma0_a,
+    )
+    walk = (
+        config.ekf_current_sigma_a,
+        config.ekf_resistance_walk,
+        config.ekf_capacity_walk,
+        config.ekf_offset_walk_a if config.ekf_offset_sigma0_a > 0.0 else 0.0,
+    )
+    return {
+        "observer": bool(config.observer and have),
+        "ax_t": np.array(info.ecm_temp_c, np.float64) if have else np.array([0.0, 1.0]),
+        "ax_s": np.array(info.ecm_soc, np.float64) if have else np.array([0.0, 1.0]),
+        "r0_tab": arr(info.ecm_r0_ohm, 4),
+        "r1_tab": arr(info.ecm_r1_ohm, 4),
+        "tau_tab": arr(info.ecm_tau_s, 4),
+        "r_nom": np.array(r_nom, np.float64),
+        "sig0": np.array(sig0, np.float64),
+        "walk": np.array(walk, np.float64),
+        "var_v": float(config.ekf_voltage_sigma_v) ** 2,
+        "nis_window_s": float(config.nis_window_s),
+        "nis_limit": float(config.nis_limit),
+        "offset_max_a": float(4.0 * config.ekf_offset_sigma0_a),
+        "load_tau_s": float(config.load_avg_s),
+        "cutoff_cell_v": float(
+            config.cutoff_cell_v if config.cutoff_cell_v is not None else info.cell_v_min_v
+        ),
+        "predict_every_s": 1.0,
+    }
 
 
 def _labels(prm: SocParams) -> Labels:
@@ -103,7 +209,7 @@ METHOD = Method(
     reasons=REASONS,
     status=STATUS,
     labels=_labels,
-    max_events=lambda info: info.n_batteries,
+    max_events=lambda info: 2 * info.n_batteries,
 )
 
 

@@ -1,0 +1,231 @@
+"""The battery observer (issue #28 item 1): an extended Kalman filter on the cell's equivalent
+circuit, one per battery, compiled like every rule.
+
+Model (one cell of the battery: the weakest, read by ``_cell_v`` as the fallback rule does; every
+cell of a battery is in series, a group being ``cells_per_group`` cells in series, so each
+carries the battery current)::
+
+    i_cell  = i_measured - offset
+    soc'    = soc - i_cell * dt / (3600 * capacity)
+    v1'     = v1 * e + r_scale * R1(T, soc) * (1 - e) * i_cell,   e = exp(-dt / tau(T, soc))
+    r_scale' = r_scale + w_r       (fast random walk: temperature, ageing, a wrong datasheet)
+    capacity' = capacity + w_q     (slow random walk: ageing, learned across cycles)
+    offset'  = offset + w_b        (current-sensor offset, battery amperes)
+    y = OCV(soc) - r_scale * R0(T, soc) * i_cell - v1 + noise
+
+``R0``, ``R1`` and ``tau`` are the cell set's tables at zero current over temperature and SOC
+(``PackInfo.ecm_*``); the filter estimates one resistance scale per battery (``r_scale``, which
+multiplies both resistances: what ageing and the pack's interconnects do), so its R0 follows
+temperature through the table and the battery's own deviation through the state. The
+measurement is the cell voltage at ``t`` under the current of ``[t - dt, t]`` (the sampling
+convention of the fallback rule): predict with that current, then correct.
+
+Why an EKF and not a sigma-point filter: the only non-linearity is OCV(soc), piecewise linear
+in the table, so the EKF's linearisation is exact within a table segment, and it costs one
+5x5 covariance propagation per battery and step with no square root.
+
+Arrays: ``x`` (P, B, 5) the state in the order of the ``X_*`` indices, ``cov`` (P, B, 5, 5) its
+covariance; ``fm`` / ``wk`` (P, B, 5, 5) and ``hv`` / ``kv`` (P, B, 5) are scratch (no
+allocation inside kernels, docs/kernels.md).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from packpilot.jit import kernel_inline
+
+F64 = NDArray[np.float64]
+
+N_X = 5
+X_SOC = 0
+X_V1 = 1
+"""Polarisation (RC) voltage of one cell, V (positive while discharging)."""
+X_RSCALE = 2
+X_CAP = 3
+"""Capacity of one cell, Ah."""
+X_OFFSET = 4
+"""Current-sensor offset of the battery, A (measured = true + offset)."""
+
+
+@kernel_inline
+def _bracket(x: float, ax: F64) -> tuple[int, float]:
+    """Segment k (0..n-2) of ``ax`` holding ``x`` and the fraction within it, clamped."""
+    n = ax.shape[0]
+    if not (x > ax[0]):  # NaN lands on the first node
+        return 0, 0.0
+    if x >= ax[n - 1]:
+        return n - 2, 1.0
+    k = 0
+    while ax[k + 1] <= x:
+        k += 1
+    return k, (x - ax[k]) / (ax[k + 1] - ax[k])
+
+
+@kernel_inline
+def table2(tab: F64, ax_t: F64, ax_s: F64, temp_c: float, soc: float) -> float:
+    """Bilinear look-up of a (T, SOC) table stored T-major as ``tab[t * n_soc + s]``."""
+    ns = ax_s.shape[0]
+    kt, ft = _bracket(temp_c, ax_t)
+    ks, fs = _bracket(soc, ax_s)
+    k0 = kt * ns + ks
+    k1 = k0 + ns
+    a: float = tab[k0] + (tab[k0 + 1] - tab[k0]) * fs
+    b: float = tab[k1] + (tab[k1 + 1] - tab[k1]) * fs
+    return a + (b - a) * ft
+
+
+@kernel_inline
+def ocv_at(ocv_soc: F64, ocv_v: F64, soc: float) -> tuple[float, float]:
+    """(OCV, dOCV/dSOC) of the cell at ``soc`` (linear in each table segment, the end
+    segments extended)."""
+    n = ocv_soc.shape[0]
+    k = 0
+    if soc >= ocv_soc[n - 1]:
+        k = n - 2
+    elif soc > ocv_soc[0]:
+        while ocv_soc[k + 1] <= soc:
+            k += 1
+    slope = (ocv_v[k + 1] - ocv_v[k]) / (ocv_soc[k + 1] - ocv_soc[k])
+    return ocv_v[k] + slope * (soc - ocv_soc[k]), slope
+
+
+@kernel_inline
+def reset(x: F64, cov: F64, p: int, i: int, soc: float, cap_ah: float, r_scale: float,
+          sig: F64) -> None:  # fmt: skip
+    """Start the filter of battery ``i`` at ``soc`` with the prior ``sig`` (standard deviations
+    of soc, v1, r_scale (relative), capacity (relative), offset)."""
+    x[p, i, X_SOC] = soc
+    x[p, i, X_V1] = 0.0
+    x[p, i, X_RSCALE] = r_scale
+    x[p, i, X_CAP] = cap_ah
+    x[p, i, X_OFFSET] = 0.0
+    for r in range(N_X):
+        for c in range(N_X):
+            cov[p, i, r, c] = 0.0
+    cov[p, i, X_SOC, X_SOC] = sig[0] * sig[0]
+    cov[p, i, X_V1, X_V1] = sig[1] * sig[1]
+    cov[p, i, X_RSCALE, X_RSCALE] = (sig[2] * r_scale) * (sig[2] * r_scale)
+    cov[p, i, X_CAP, X_CAP] = (sig[3] * cap_ah) * (sig[3] * cap_ah)
+    cov[p, i, X_OFFSET, X_OFFSET] = sig[4] * sig[4]
+
+
+@kernel_inline
+def predict(
+    x: F64, cov: F64, fm: F64, wk: F64, p: int, i: int, cur_a: float, dt: float,
+    r1: float, tau_s: float, walk: F64,
+) -> None:  # fmt: skip
+    """Time update over ``dt`` under the measured battery current ``cur_a``.
+
+    ``walk``: process noise densities (current A, r_scale 1/sqrt(s) relative, capacity
+    1/sqrt(s) relative, offset A/sqrt(s))."""
+    soc = x[p, i, X_SOC]
+    v1 = x[p, i, X_V1]
+    rs = x[p, i, X_RSCALE]
+    q = x[p, i, X_CAP]
+    ic = cur_a - x[p, i, X_OFFSET]
+    e = math.exp(-dt / tau_s)
+    g = 1.0 - e
+    k_ah = dt / (3600.0 * q)
+    x[p, i, X_SOC] = soc - ic * k_ah
+    x[p, i, X_V1] = v1 * e + rs * r1 * g * ic
+    for r in range(N_X):
+        for c in range(N_X):
+            fm[p, i, r, c] = 1.0 if r == c else 0.0
+    fm[p, i, X_SOC, X_CAP] = ic * k_ah / q
+    fm[p, i, X_SOC, X_OFFSET] = k_ah
+    fm[p, i, X_V1, X_V1] = e
+    fm[p, i, X_V1, X_RSCALE] = r1 * g * ic
+    fm[p, i, X_V1, X_OFFSET] = -rs * r1 * g
+    for r in range(N_X):  # wk = F P
+        for c in range(N_X):
+            acc = 0.0
+            for k in range(N_X):
+                acc += fm[p, i, r, k] * cov[p, i, k, c]
+            wk[p, i, r, c] = acc
+    for r in range(N_X):  # P = wk F'
+        for c in range(N_X):
+            acc = 0.0
+            for k in range(N_X):
+                acc += wk[p, i, r, k] * fm[p, i, c, k]
+            cov[p, i, r, c] = acc
+    s_i = walk[0]
+    cov[p, i, X_SOC, X_SOC] += (s_i * k_ah) * (s_i * k_ah)
+    cov[p, i, X_V1, X_V1] += (rs * r1 * g * s_i) * (rs * r1 * g * s_i)
+    cov[p, i, X_RSCALE, X_RSCALE] += walk[1] * walk[1] * dt
+    cov[p, i, X_CAP, X_CAP] += (walk[2] * q) * (walk[2] * q) * dt
+    cov[p, i, X_OFFSET, X_OFFSET] += walk[3] * walk[3] * dt
+
+
+@kernel_inline
+def correct(
+    x: F64, cov: F64, hv: F64, kv: F64, wk: F64, p: int, i: int, y_v: float, cur_a: float,
+    r0: float, ocv_soc: F64, ocv_v: F64, var_v: float,
+) -> float:  # fmt: skip
+    """Measurement update with the cell voltage ``y_v``; returns the normalised innovation
+    squared (innovation^2 / its predicted variance), NaN when the measurement was unusable."""
+    if not math.isfinite(y_v):
+        return math.nan
+    rs = x[p, i, X_RSCALE]
+    ic = cur_a - x[p, i, X_OFFSET]
+    ocv, slope = ocv_at(ocv_soc, ocv_v, x[p, i, X_SOC])
+    nu: float = y_v - (ocv - rs * r0 * ic - x[p, i, X_V1])
+    hv[p, i, X_SOC] = slope
+    hv[p, i, X_V1] = -1.0
+    hv[p, i, X_RSCALE] = -r0 * ic
+    hv[p, i, X_CAP] = 0.0
+    hv[p, i, X_OFFSET] = rs * r0
+    s = var_v
+    for r in range(N_X):  # kv = P H'; s = H P H' + R
+        acc = 0.0
+        for c in range(N_X):
+            acc += cov[p, i, r, c] * hv[p, i, c]
+        kv[p, i, r] = acc
+        s += hv[p, i, r] * acc
+    if not (s > 0.0):
+        return math.nan
+    for r in range(N_X):
+        kv[p, i, r] = kv[p, i, r] / s
+        x[p, i, r] += kv[p, i, r] * nu
+    for r in range(N_X):  # P -= K S K' (= K H P), kept symmetric
+        for c in range(N_X):
+            wk[p, i, r, c] = cov[p, i, r, c] - kv[p, i, r] * s * kv[p, i, c]
+    for r in range(N_X):
+        for c in range(N_X):
+            cov[p, i, r, c] = 0.5 * (wk[p, i, r, c] + wk[p, i, c, r])
+    return nu * nu / s
+
+
+@kernel_inline
+def bound(x: F64, cov: F64, p: int, i: int, cap_nom: float, r_nom: float,
+          offset_max: float) -> None:  # fmt: skip
+    """Keep the state physical (a filter that leaves these bounds is diverging; the window
+    test then says so): SOC within the OCV table's reach, the resistance scale within 0.1..10x
+    its nominal, the capacity within 0.5..1.5x, the offset within +-``offset_max``; a
+    variance never below zero."""
+    x[p, i, X_SOC] = min(1.1, max(-0.1, x[p, i, X_SOC]))
+    x[p, i, X_RSCALE] = min(10.0 * r_nom, max(0.1 * r_nom, x[p, i, X_RSCALE]))
+    x[p, i, X_CAP] = min(1.5 * cap_nom, max(0.5 * cap_nom, x[p, i, X_CAP]))
+    x[p, i, X_OFFSET] = min(offset_max, max(-offset_max, x[p, i, X_OFFSET]))
+    for r in range(N_X):
+        if not (cov[p, i, r, r] > 0.0):
+            cov[p, i, r, r] = 0.0
+
+
+__all__ = [
+    "N_X",
+    "X_CAP",
+    "X_OFFSET",
+    "X_RSCALE",
+    "X_SOC",
+    "X_V1",
+    "bound",
+    "correct",
+    "ocv_at",
+    "predict",
+    "reset",
+    "table2",
+]

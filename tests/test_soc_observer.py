@@ -1,0 +1,222 @@
+"""Issue #28: the plant's sensor errors and the battery observer (EKF) of the SOC estimator,
+on the real plant (the observer never imports it)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from packpilot.config import SensorError, SensorsConfig, parse_config, read_toml
+from packpilot.config.scenario import ScenarioConfig
+from packpilot.errors import ConfigError
+from packpilot.sim.loop import ClosedLoop
+from packpilot.sim.sensors import Sensors, sensors_of
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def scenario(duration_s: float, **over: Any) -> ScenarioConfig:
+    data = read_toml(EXAMPLES / "soc_observer_sensors.toml")
+    data["sim"]["duration_s"] = duration_s
+    for key, val in over.items():
+        data[key] = val
+    return parse_config(data, "soc_observer_sensors")
+
+
+def soc_state(loop: ClosedLoop) -> Any:
+    return next(x for x in loop.core.compiled if x.method.name == "soc").st
+
+
+def true_soc(loop: ClosedLoop) -> float:
+    """The weakest cell's remaining / full charge (what the BMS should show)."""
+    pack = loop.plant.pack
+    soc, _ = pack.cell_states()
+    cap = pack.capacity_ah[0]
+    return float(np.min(soc[0] * cap) / np.min(cap))
+
+
+def run(cfg: ScenarioConfig, soc0_error: float = 0.0, steps: int | None = None) -> ClosedLoop:
+    loop = ClosedLoop.of(cfg, 1)
+    st = soc_state(loop)
+    if soc0_error:
+        st.soc[0, 0] = true_soc(loop) + soc0_error
+    dt = cfg.sim.dt_s
+    for k in range(steps if steps is not None else round(cfg.sim.duration_s / dt)):
+        loop.step(k, dt)
+    return loop
+
+
+# ------------------------------------------------------------------------ sensor errors
+
+
+def test_sensor_reads_gain_offset_quantum_and_delay() -> None:
+    err = SensorError(gain=1.01, offset=0.2, quantum=0.05, delay_s=0.25)
+    s = Sensors(SensorsConfig(current=err))
+    truth = [np.array([[10.0 * k]]) for k in range(6)]
+    reads = [float(s.current.read(0.1 * k, truth[k])[0, 0]) for k in range(6)]
+    # at t = 0.5 the sample 0.25 s old is the one of t = 0.2 (latest at or before t - delay)
+    assert reads[5] == pytest.approx(round((20.0 * 1.01 + 0.2) / 0.05) * 0.05)
+    assert reads[0] == pytest.approx(round(0.2 / 0.05) * 0.05)  # before any: the oldest
+    assert all(abs(r / 0.05 - round(r / 0.05)) < 1e-9 for r in reads)
+    assert truth[5][0, 0] == 50.0  # the truth is never touched
+
+
+def test_sensor_noise_is_seeded_and_absent_sections_read_truth() -> None:
+    def draws(seed: int) -> np.ndarray:
+        s = Sensors(SensorsConfig(seed=seed, cell_v=SensorError(noise_sigma=0.005)))
+        return np.array([s.cell_v.read(0.0, np.full((1, 6), 3.7)) for _ in range(200)])
+
+    a, b, c = draws(1), draws(1), draws(2)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    assert np.std(a - 3.7) == pytest.approx(0.005, rel=0.15)
+    assert sensors_of(None) is None
+    assert sensors_of(SensorsConfig()) is None  # every quantity perfect: the truth
+
+
+def test_sensor_config_errors_name_the_field() -> None:
+    with pytest.raises(ConfigError, match=r"sensors\.current\.gain"):
+        scenario(1.0, sensors={"current": {"gain": 3.0}})
+
+
+def test_plant_measures_with_the_configured_errors() -> None:
+    cfg = scenario(5.0, sensors={"current": {"gain": 1.01, "offset": 0.2}})
+    loop = run(cfg, steps=20)
+    truth = float(loop.plant.pack.string_a[0, 0])
+    loop.step(20, cfg.sim.dt_s)  # the step measures the plant as it was before it
+    assert float(loop.m.bat.current_a[0, 0]) == pytest.approx(truth * 1.01 + 0.2, rel=1e-12)
+
+
+# ------------------------------------------------------------------------ the observer
+
+
+def test_observer_corrects_a_wrong_initial_soc_under_sensor_errors() -> None:
+    """10 % wrong at the start, 5 mV noise, +1 % gain, +0.2 A offset: within 2 % after
+    4 minutes of flight, where the coulomb counter is still ~10 % off; R0 near the plant's."""
+    loop = run(scenario(240.0), soc0_error=-0.10)
+    st = soc_state(loop)
+    truth = true_soc(loop)
+    assert bool(st.obs_ok[0, 0])
+    assert abs(st.shown_soc[0, 0] - truth) < 0.02
+    assert abs(st.soc[0, 0] - truth) > 0.08  # the fallback alone has not recovered
+    r_true = float(np.sum(loop.plant.pack.r_cell[0]))
+    assert st.r0_ohm[0, 0] == pytest.approx(r_true, rel=0.10)
+    status = loop.core.status_of(0)
+    assert status["soc_est"][0] == pytest.approx(st.shown_soc[0, 0])
+    assert status["soc_fallback"][0] == pytest.approx(st.soc[0, 0])
+    # terminal = EMF - R0 I - polarisation: the outputs reproduce the measured voltage
+    m = loop.m.bat
+    model_v = st.emf_v[0, 0] - st.r0_ohm[0, 0] * (m.current_a[0, 0] - st.offset_a[0, 0])
+    assert model_v - st.v_rc_v[0, 0] == pytest.approx(m.voltage_v[0, 0], abs=6 * 0.03)
+
+
+def test_diverged_observer_falls_back_to_the_coulomb_counter_with_an_event() -> None:
+    """A cell-voltage sensor reading 0.8 V high: no SOC explains it, the innovations stay large,
+    the window test fails, and the SOC shown is the fallback's."""
+    cfg = scenario(120.0, sensors={"cell_v": {"offset": 0.8}})
+    loop = ClosedLoop.of(cfg, 1)
+    st = soc_state(loop)
+    kinds: list[str] = []
+    dt = cfg.sim.dt_s
+    for k in range(1200):
+        loop.step(k, dt)
+        kinds += [e.kind for e in loop.core.events()[0]]
+    assert "SocObserverDiverged" in kinds
+    assert "SocObserverResumed" not in kinds
+    assert not bool(st.obs_ok[0, 0])
+    assert st.shown_soc[0, 0] == st.soc[0, 0]
+    assert loop.core.status_of(0)["soc_observer_ok"][0] is False
+
+
+def test_observer_off_shows_the_coulomb_counter() -> None:
+    cfg = scenario(30.0, soc={"observer": False})
+    loop = run(cfg)
+    st = soc_state(loop)
+    assert st.shown_soc[0, 0] == st.soc[0, 0]
+    assert np.isnan(st.emf_v[0, 0])
+
+
+# ------------------------------------------------------------------------ predictions
+
+
+def constant_load(current_a: float, soc0: float, cutoff_v: float, dt_s: float) -> ScenarioConfig:
+    """The example at a constant load (a negative one: a charger at that current instead)."""
+    data = read_toml(EXAMPLES / "soc_observer_sensors.toml")
+    data["pack"]["batteries"][0]["soc0"] = soc0
+    data["load"] = {"kind": "current", "value": current_a}
+    if current_a < 0:
+        data["load"] = {"kind": "none"}
+        data["charger"] = {"present": True, "rated_v": 60.0, "rated_a": 20.0, "voltage_v": 25.2,
+                           "current_a": -current_a, "enable": True}  # fmt: skip
+    data["soc"] = {"cutoff_cell_v": cutoff_v}
+    data["sim"] = {"dt_s": dt_s, "duration_s": 7200.0}
+    return parse_config(data, "constant_load")
+
+
+def test_time_to_cutoff_and_to_go_match_the_plant_at_constant_load() -> None:
+    """14 A from 95 %: over the last 10 minutes before the weakest cell reaches 3.3 V, the
+    predicted time to cut-off is within 10 % (or 5 s) of the time the plant takes, and moves
+    smoothly (load constant: never more than 5 % + 5 s between 1 s samples); the time to go is
+    the remaining charge over the load (to the SOC's accuracy)."""
+    cfg = constant_load(14.0, 0.95, 3.3, 0.5)
+    loop = ClosedLoop.of(cfg, 1)
+    st = soc_state(loop)
+    pred: list[tuple[float, float, float, float]] = []
+    k = 0
+    while float(np.min(loop.plant.pack.cell_voltage_now()[0])) > 3.3:
+        loop.step(k, 0.5)
+        k += 1
+        if k % 2 == 0:
+            pack = loop.plant.pack
+            soc, _ = pack.cell_states()
+            left = float(np.min(soc[0] * pack.capacity_ah[0]))
+            amps = float(pack.string_a[0, 0])
+            pred.append((loop.plant.t_s, st.time_to_cutoff_s[0, 0], st.time_to_go_s[0, 0],
+                         left * 3600.0 / amps))  # fmt: skip
+        assert k < 20000
+    t_trip = loop.plant.t_s
+    arr = np.array(pred)
+    last = (arr[:, 0] >= t_trip - 600.0) & (arr[:, 0] >= 120.0)
+    assert last.sum() > 300
+    left = t_trip - arr[last, 0]
+    err = np.abs(arr[last, 1] - left)
+    assert np.all(err <= np.maximum(0.10 * left, 5.0)), float(np.max(err / np.maximum(left, 1)))
+    jumps = np.abs(np.diff(arr[last, 1]))
+    assert np.all(jumps <= 0.05 * arr[last, 1][:-1] + 5.0 + 1.0)  # + the 1 s that elapsed
+    late = arr[:, 0] >= 300.0  # right to the SOC's accuracy: 2 % of 5 Ah at 14 A, and 3 %
+    tol = 0.02 * 5.0 * 3600 / 14 + 0.03 * arr[late, 3]
+    assert np.all(np.abs(arr[late, 2] - arr[late, 3]) <= tol)
+
+
+def test_time_to_full_while_charging_and_none_while_discharging() -> None:
+    cfg = constant_load(-5.0, 0.30, 3.3, 0.5)
+    loop = ClosedLoop.of(cfg, 1)
+    st = soc_state(loop)
+    for k in range(600):
+        loop.step(k, 0.5)
+    pack = loop.plant.pack
+    soc, _ = pack.cell_states()
+    missing = float(np.max((1.0 - soc[0]) * pack.capacity_ah[0]))
+    amps = -float(pack.string_a[0, 0])
+    assert amps == pytest.approx(5.0, rel=0.05)
+    assert st.time_to_full_s[0, 0] == pytest.approx(missing * 3600.0 / amps, rel=0.05)
+    assert np.isnan(st.time_to_go_s[0, 0]) and np.isnan(st.time_to_cutoff_s[0, 0])
+
+
+def test_time_to_cutoff_moves_smoothly_through_the_flight_profile() -> None:
+    """The shipped example's flight (take-off, hover, manoeuvres: the current steps by tens of
+    %): sampled every second after the first 5 minutes, the time to cut-off never moves by more
+    than 5 % + 5 s (+ the second that passed), because it assumes the recent average load."""
+    cfg = scenario(900.0)
+    loop = ClosedLoop.of(cfg, 1)
+    st = soc_state(loop)
+    samples = []
+    for k in range(9000):
+        loop.step(k, 0.1)
+        if k % 10 == 9 and loop.plant.t_s >= 300.0:
+            samples.append(float(st.time_to_cutoff_s[0, 0]))
+    ttc = np.array(samples)
+    assert np.isfinite(ttc).all()
+    assert np.all(np.abs(np.diff(ttc)) <= 0.05 * ttc[:-1] + 5.0 + 1.0)
