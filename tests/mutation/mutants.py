@@ -248,6 +248,11 @@ POWER = [
            "            dcl = dcl",
            "the inverter is told N x weakest although the split allows less",
            src="runtime/publish.py"),
+    Mutant("power", "observer-polarisation-ignored",
+           "    if pol is not None and math.isfinite(pol[i]):",
+           "    if False:",
+           "the limits ignore the polarisation the observer sees after a heavy load",
+           src="sim/power.py"),
 ]
 
 BMU = [
@@ -547,6 +552,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_power.py",
         "tests/test_power_cli.py",
         "tests/test_power_publish.py",
+        "tests/test_power_observer.py",
     ],
     "quality": ["tests/test_demo_goals.py"],
     "protection": [

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 
 import can
 import numpy as np
+from numpy.typing import NDArray
 
 from packpilot.config import ScenarioConfig
 from packpilot.contract.events import value as field_value
@@ -239,11 +240,19 @@ class Publisher:
             dsg_on=m.bat.sw_dsg[0],
             limit_dsg_a=np.array([ch.value("limit_dsg_a", i) for i in range(n)]),
             limit_chg_a=np.array([ch.value("limit_chg_a", i) for i in range(n)]),
-            prm=self.power_prm,
+            prm=self.power_prm, polarisation_v=self._observed("soc_v_rc_v", n),
+            r0_ohm=self._observed("soc_r0_ohm", n),
         )  # fmt: skip
         if mode(ch) in TRIPPED_MODES:
             inp.present[0, :] = False
         return state_of_power(self.power_prm, inp)
+
+    def _observed(self, name: str, n: int) -> NDArray[np.float64]:
+        """A channel of the SOC observer per battery, NaN where the observer is not
+        trusted (diverged, restarting, or not running)."""
+        ok = np.array([self.ch.value("soc_observer_ok", i) == 1.0 for i in range(n)])
+        values = np.array([self.ch.value(name, i) for i in range(n)])
+        return np.where(ok, values, math.nan)
 
     def warm_up(self) -> None:
         """Compile (or load) the state-of-power kernels on a made-up state, before the

@@ -130,7 +130,9 @@ measured by ``benchmarks/bench_power.py`` (1.2 %, after a 60 s preload), rounded
 
 
 def params_of(
-    cfg: ScenarioConfig, horizons_s: tuple[float, ...] = HORIZONS_S, n_sub: int = 30,
+    cfg: ScenarioConfig,
+    horizons_s: tuple[float, ...] = HORIZONS_S,
+    n_sub: int = 30,
     margin: float = MARGIN,
 ) -> PowerParams:
     """The static facts of the pack's traction batteries: the pack cell set's OCV curve,
@@ -217,10 +219,16 @@ def inputs_from_core(
     limit_dsg_a: F64 | None = None,
     limit_chg_a: F64 | None = None,
     prm: PowerParams | None = None,
+    polarisation_v: F64 | None = None,
+    r0_ohm: F64 | None = None,
 ) -> PowerInputs:
-    """The batteries' state as the core knows it today (one pack; arrays over traction
-    batteries). **The observer's hook**: replace the SOC, the resistances and the zero
-    polarisation below by the observer's estimates.
+    """The batteries' state as the core knows it (one pack; arrays over traction
+    batteries). SOC is what the caller passes (the SOC method's estimate: the observer's
+    where it runs). ``polarisation_v`` and ``r0_ohm`` are the observer's estimates (battery
+    units; NaN where it does not run or is not trusted): where finite, the RC polarisation
+    stands in the first branch (the observer has one) and the estimated R0 replaces the cell
+    set's, with no current dependence (the observer's R0 is fitted at the currents seen).
+    Elsewhere the cell set's resistances and zero polarisation.
 
     ``limit_*_a`` (the limits layer's published per-battery limits) tighten the C-rate trips;
     a NaN there means unknown and leaves the trip."""
@@ -250,7 +258,18 @@ def inputs_from_core(
         inp.v2_v[0, i] = 0.0
         inp.limit_dsg_a[0, i] = _tighter(dsg[i], limit_dsg_a, i)
         inp.limit_chg_a[0, i] = _tighter(chg[i], limit_chg_a, i)
+        _observed(inp, i, polarisation_v, r0_ohm)
     return inp
+
+
+def _observed(inp: PowerInputs, i: int, pol: F64 | None, r0: F64 | None) -> None:
+    """The observer's polarisation and R0 of battery ``i``, where it has them (#28 §1 -> §3)."""
+    if pol is not None and math.isfinite(pol[i]):
+        inp.v1_v[0, i] = float(pol[i])
+        inp.v2_v[0, i] = 0.0
+    if r0 is not None and math.isfinite(r0[i]) and r0[i] > 0.0:
+        inp.r0_ohm[0, i] = float(r0[i])
+        inp.r_per_a[0, i] = 0.0
 
 
 def entropic_v(params: CellParams, prm: PowerParams, soc: float, temp_c: float) -> float:
