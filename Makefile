@@ -31,7 +31,7 @@ $(TEST_STAMP): $(STAMP) pyproject.toml
 demo: $(STAMP)
 	mkdir -p $(OUT)
 	rm -f $(OUT)/demo.sqlite $(OUT)/demo.sqlite-wal $(OUT)/demo.sqlite-shm $(OUT)/demo_can.blf
-	@echo "demo: simulating the 90-minute UAV mission (about 100 s; the first run on a machine also compiles the kernels, saying so)" >&2
+	@echo "demo: simulating the 90-minute UAV mission (about 1 min; a first run on a machine runs the core interpreted while one background process compiles it, saying so)" >&2
 	$(PY) -m packpilot.cli simulate examples/uav_mission.toml --progress \
 		--db $(OUT)/demo.sqlite --report $(OUT)/report.html --plot $(OUT)/demo.png \
 		--can-log $(OUT)/demo_can.blf --json > $(OUT)/demo_summary.json
