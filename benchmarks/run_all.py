@@ -485,8 +485,20 @@ def main() -> int:
         print(section, flush=True)
         sections.insert(0, section)
     if not only:
-        (HERE / "RESULTS.md").write_text(header + "\n".join(sections))
+        path = HERE / "RESULTS.md"
+        kept = _kept_sections(path.read_text() if path.exists() else "")
+        path.write_text(header + "\n".join(sections) + kept)
     return 1 if failed else 0
+
+
+KEEP_MARK = "<!-- run_all keeps everything below this line -->"
+"""Dated sections a session writes by hand (figures of standalone scripts, measured under
+stated conditions) live below this mark: a ``make bench`` rewrites what is above it only."""
+
+
+def _kept_sections(text: str) -> str:
+    at = text.find(KEEP_MARK)
+    return "\n" + (text[at:] if at >= 0 else KEEP_MARK + "\n")
 
 
 if __name__ == "__main__":
