@@ -216,7 +216,6 @@ def simulate(
         cfg = _with_can(_load(path, duration), can_interface, can_channel, can_log)
         _check_outputs(db=db, trace_csv=trace_csv, plot=plot, report=report, can_log=can_log)
         started = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
-        begin()  # a first run: interpreted, the kernels compiling in the background
         result = _run_interruptible(cfg, path, db, progress, (report, plot, trace_csv))
         with _saying("writing the outputs and the verdict", bool(progress)):
             _write_outputs(result, cfg.model_dump(mode="json"), path, trace_csv, plot, report,
@@ -305,6 +304,7 @@ def _run_interruptible(
 
     with _saying("building the pack and the BMS", bool(progress)):
         runner = _named(path, lambda: Runner(cfg, progress=progress))
+    begin()  # a first run: interpreted, compiling in the background (its input now checked)
     try:
         if db is None:
             return runner.run()
@@ -1303,8 +1303,8 @@ def run(
         if replay_log is not None:
             return _replay_frames(cfg, replay_log, opts, db)
         recorder = _recorder(db)
-        begin()
         bms = BmsRuntime(cfg, opts, recorder)
+        begin()
         _sigterm_interrupts()
         typer.echo(
             f"packpilot run: {len(cfg.pack.batteries)} batteries on {can_interface}:"
@@ -1374,10 +1374,10 @@ def hil(
                                **filters(can_interface, REQUEST_ONLY), **kw)  # fmt: skip
         log = FrameLog(can_log) if can_log is not None else None
         ids = _ids(dronecan_ids) or ()
-        begin()
         twin = Hil(cfg, bus, charger_bus=charger_bus, bms_period_s=bms_period,
                    timeout_periods=timeout_periods, log=log,
                    dronecan_ids={i: b for i, b in enumerate(ids) if b >= 0})  # fmt: skip
+        begin()
         _sigterm_interrupts()
         typer.echo(f"packpilot hil: {cfg.pack.name} on {can_interface}:{can_channel} "
                    f"at {speed:g}x (Ctrl-C stops)", err=True)  # fmt: skip

@@ -398,11 +398,14 @@ def reporting(stream: IO[str], every_s: float = 1.5) -> Iterator[None]:
         return
     stop = threading.Event()
     t0 = time.perf_counter()
+    said = False
 
     def say() -> None:
+        nonlocal said
         st = _status() if START.begun else None
         if st is None:
             return
+        said = True
         k, n, label, pid = st
         el = time.perf_counter() - t0
         if label == "done":
@@ -429,8 +432,11 @@ def reporting(stream: IO[str], every_s: float = 1.5) -> Iterator[None]:
     try:
         yield
     finally:
+        done = stop.is_set()
         stop.set()
         thread.join()
+        if START.begun and not said and not done:
+            say()  # a run shorter than the first beat still says what goes on behind it
 
 
 def main() -> None:
