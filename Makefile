@@ -12,18 +12,21 @@ venv: $(STAMP)
 
 # The demo needs only the package and its runtime dependencies; the test extras (pytest,
 # PyBaMM, linters, ...) are installed by `make test` / `make lint` on top (TEST_STAMP).
-# pip is not --quiet: it names each package as it goes, so the install is never minutes of
-# silence (issue #25: never more than 2 s without output in `make demo`).
+# pip is not --quiet: it names each package as it goes; scripts/heartbeat.py (standard library,
+# it runs before the venv exists) adds a line whenever a set-up command has been silent for 1.5 s
+# (python -m venv, pip's "Installing collected packages" phase: 12.7 s of silence before it, fresh
+# clone, quiet machine), so `make demo` is never more than 2 s without output (issue #25).
+HEARTBEAT := $(PYTHON) scripts/heartbeat.py
 $(STAMP): pyproject.toml
 	@echo "setup: creating $(VENV) and installing packpilot (runtime dependencies only)" >&2
-	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --progress-bar off --upgrade pip
-	$(PY) -m pip install --progress-bar off -e .
+	$(HEARTBEAT) "creating $(VENV)" -- $(PYTHON) -m venv $(VENV)
+	$(HEARTBEAT) "upgrading pip" -- $(PY) -m pip install --progress-bar off --upgrade pip
+	$(HEARTBEAT) "installing packpilot and its dependencies" -- $(PY) -m pip install --progress-bar off -e .
 	touch $(STAMP)
 
 $(TEST_STAMP): $(STAMP) pyproject.toml
 	@echo "setup: installing the test extras (pytest, PyBaMM, linters)" >&2
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(HEARTBEAT) "installing the test extras" -- $(PY) -m pip install --quiet -e ".[test]"
 	touch $(TEST_STAMP)
 
 # Each demo starts a fresh telemetry file: a second `make demo` would otherwise append "run 2"
