@@ -18,11 +18,12 @@ import subprocess
 import sys
 import threading
 import time
+from typing import IO
 
 BEAT_S = 1.5
 
 
-def _pump(stream: "subprocess.IO[str]", last: list[float], lock: threading.Lock) -> None:
+def _pump(stream: IO[str], last: list[float], lock: threading.Lock) -> None:
     """Copy the child's merged output to our stdout, remembering when it last spoke."""
     for line in stream:
         with lock:
