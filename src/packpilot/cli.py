@@ -1396,6 +1396,7 @@ def hil(
             "switch_timeouts": sum(n.timeouts for n in twin.switch),
             "frames_sent": twin.counters.sent, "frames_received": twin.counters.received,
             "inverter_limits": inv.get("Pylon_Limits"), "inverter_soc": inv.get("Pylon_SocSoh"),
+            "state_of_power": twin.power or None,
         }  # fmt: skip
 
     _print_runtime(_guard(go), as_json=True)

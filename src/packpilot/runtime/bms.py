@@ -325,6 +325,8 @@ class BmsRuntime:
     def close(self) -> None:
         if self.charger is not None:
             self.charger.close()
+        if self.publisher.worker is not None:
+            self.publisher.worker.close()
         self.shared.shutdown()
         if self.log is not None:
             self.log.close()

@@ -11,14 +11,25 @@ The state of power (``control/power``, ``docs/power.md``) is the core's predicti
 same state: the Pylontech CCL/DCL are the smaller of the limits layer's and the 30 s state of
 power (an inverter holds them continuously), and the ``StateOfPower`` frame (0x231) and
 DroneCAN ``BatteryPeriodic`` carry the 2 / 10 / 30 s figures.
+
+Interpreted (a first run on a machine, ``coldstart.py``) the state of power costs about half
+a second of CPU (thousands of sub-steps of its bisections as plain Python) against ~1 µs
+compiled; computed inline once a second it stalled the BMS period by up to 0.75 s every
+second (``step_p99_ms`` 747, 5 overruns in 66 periods, 2026-11-28). There it runs on one
+worker thread from a snapshot of the inputs taken at the publication (:class:`PowerWorker`):
+each publication carries the figure of the previous snapshot (about 1 s old, or NaN =
+unknown before the first), and the BMS period keeps its time (the worker yields the GIL every
+5 ms). Compiled it stays inline, as before: same figures, same frames.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import can
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -26,7 +37,7 @@ from packpilot.config import ScenarioConfig
 from packpilot.contract.events import value as field_value
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
-from packpilot.control.power import PowerOut, state_of_power
+from packpilot.control.power import PowerInputs, PowerOut, PowerParams, state_of_power
 from packpilot.control.supervisor.rules import MODES
 from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can import pylon
@@ -95,6 +106,35 @@ def _voltage_limits(cfg: ScenarioConfig, groups: Sequence[int]) -> tuple[float, 
     return cvl, dvl
 
 
+class PowerWorker:
+    """The state of power off the BMS period's thread (interpreted runs; see the module's
+    docstring): one computation at a time, from the snapshot given at its submission;
+    :meth:`latest` hands back the last finished result and starts the next one."""
+
+    def __init__(self) -> None:
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="packpilot-state-of-power")
+        self._running: Future[PowerOut] | None = None
+        self.result: PowerOut | None = None
+        self.computed = 0
+        """Computations finished (their results published or superseded)."""
+
+    def latest(self, prm: PowerParams, inp: PowerInputs | None) -> PowerOut | None:
+        """The last finished result (None before the first); submits ``inp`` unless a
+        computation is still running (then this snapshot is skipped: the next one is newer)."""
+        if self._running is not None and self._running.done():
+            self.result = self._running.result()
+            self._running = None
+            self.computed += 1
+        if inp is None:
+            self.result = None  # nothing to predict now: say unknown, not an old figure
+        elif self._running is None:
+            self._running = self._pool.submit(state_of_power, prm, inp)
+        return self.result
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False, cancel_futures=True)
+
+
 class Publisher:
     """Pylontech frames, the protection state and DroneCAN BatteryInfo, every second."""
 
@@ -121,6 +161,8 @@ class Publisher:
         self.power_prm = params_of(cfg)
         self.sop: PowerOut | None = None
         """The state of power of the last publication."""
+        self.worker = PowerWorker() if numba.config.DISABLE_JIT else None  # type: ignore[attr-defined]
+        """Interpreted runs compute the state of power on a worker thread (module docstring)."""
 
     def due(self, t: float) -> bool:
         return self.next_s is None or t >= self.next_s - 1e-9
@@ -141,7 +183,10 @@ class Publisher:
 
     def frames(self, t: float) -> list[can.Message]:
         out: list[can.Message] = []
-        self.sop = self.state_of_power()
+        if self.worker is None:
+            self.sop = self.state_of_power()
+        else:
+            self.sop = self.worker.latest(self.power_prm, self.power_inputs())
         if self.cfg.limits is not None:
             self.last = self.pack_as_battery()
             out += pylon.encode_all(self.last, t)
@@ -219,11 +264,18 @@ class Publisher:
 
     # ------------------------------------------------------------------ state of power
     def state_of_power(self) -> PowerOut | None:
-        """The core's state of power now, from the state the core has: the SOC method's
-        estimate (else the batteries' own SOC), the switch feedback, the limits layer's
-        per-battery limits; the cell set's resistances (``sim/power.py:inputs_from_core``,
-        the observer's hook). A battery not reporting, or with no SOC, counts as absent (the
-        others are assumed to carry everything). None when nothing can be predicted."""
+        """The core's state of power now (:meth:`power_inputs`); None when nothing can be
+        predicted."""
+        inp = self.power_inputs()
+        return None if inp is None else state_of_power(self.power_prm, inp)
+
+    def power_inputs(self) -> PowerInputs | None:
+        """What the state of power is computed from, from the state the core has: the SOC
+        method's estimate (else the batteries' own SOC), the switch feedback, the limits
+        layer's per-battery limits; the cell set's resistances (``sim/power.py:
+        inputs_from_core``, the observer's hook). A battery not reporting, or with no SOC,
+        counts as absent (the others are assumed to carry everything). Fresh arrays: a
+        snapshot the worker thread may read while the core steps on."""
         m, ch = self.core.m, self.ch
         n = self.power_prm.series.shape[0]
         if m.bat.reported.shape[1] != n:
@@ -245,7 +297,7 @@ class Publisher:
         )  # fmt: skip
         if mode(ch) in TRIPPED_MODES:
             inp.present[0, :] = False
-        return state_of_power(self.power_prm, inp)
+        return inp
 
     def _observed(self, name: str, n: int) -> NDArray[np.float64]:
         """A channel of the SOC observer per battery, NaN where the observer is not
@@ -257,7 +309,10 @@ class Publisher:
     def warm_up(self) -> None:
         """Compile (or load) the state-of-power kernels on a made-up state, before the
         clock starts: the first publication finds no battery reported yet and would
-        otherwise compile them inside the loop."""
+        otherwise compile them inside the loop. Interpreted there is nothing to compile
+        (and half a second of CPU to lose before the first period): nothing to do."""
+        if self.worker is not None:
+            return
         n = self.power_prm.series.shape[0]
         half = np.full(n, 0.5)
         v = float(np.interp(0.5, self.power_prm.ocv_soc, self.power_prm.ocv_v))
