@@ -391,6 +391,7 @@ def fit(
     if not temps:
         x, res, jac, lay = _maybe_self_heating(lay, x, res, jac, profs, ocv, t_ref, notes)
         if "heat_c_j_per_k" in lay.names:
+            assumptions[:] = [a for a in assumptions if not a.startswith("the fitted resistances")]
             assumptions.append(
                 f"self-heating: each log starts at {t_ref:.1f} degC (the reference temperature, "
                 "at rest); the fitted resistances hold there and fall as the modelled cell "
