@@ -142,16 +142,62 @@ def _batt_capacity(path: Path) -> str:
     return f"{float(m.group(1)):.0f} mAh" if m else ""
 
 
+def _fit_row(prof: Any, uav: Any) -> dict[str, Any]:
+    """One profile fitted and validated (60 / 40), with PyBOP on the same split."""
+    from packpilot.model.fit.validate import fit_and_validate
+
+    t1 = time.process_time()
+    v = fit_and_validate([prof], uav.ocv_soc, uav.ocv_table_v)
+    c = v.checks[0]
+    p = v.result.params
+    row = {
+        "fit_cpu_s": time.process_time() - t1,
+        "heldout_rmse_mV": 1000 * c.rmse_v, "heldout_max_mV": 1000 * c.max_err_v,
+        "noise_floor_mV": 1000 * c.noise_floor_v,
+        "rmse_over_noise": c.rmse_v / max(c.noise_floor_v, 1e-6),
+        "line_rmse_mV": 1000 * c.baseline_rmse_v, "skill": c.skill,
+        "soc_swing_pct": 100 * c.soc_swing,
+        "r0_mOhm": 1000 * p["r0_ohm"].value,
+        "capacity_ah": p["capacity_ah"].value,
+        "self_heating": "heat_c_j_per_k" in p,
+        "verdict": v.verdict,
+    }  # fmt: skip
+    row.update(_pybop(prof, int(len(prof.t_s) * 0.6)))
+    return row
+
+
+def _cycler_row(path: Path) -> dict[str, Any]:
+    """A lab cycler export (one cell): imports, fit, PyBOP on the same split."""
+    from packpilot.errors import PackPilotError
+    from packpilot.model.cell import load_parameter_set
+    from packpilot.replay.fitlogs import cycler_profile
+
+    row: dict[str, Any] = {"log": path.name, "battery": "cell"}
+    t0 = time.process_time()
+    try:
+        prof, _ = cycler_profile(path, None)
+    except PackPilotError as err:
+        row["imports"] = f"refused: {str(err).split(': ', 1)[1]}"
+        return row
+    row["imports"] = "yes (Maccor text export; lab cycler, 1 cell)"
+    row["import_cpu_s"] = time.process_time() - t0
+    row.update(_fit_row(prof, load_parameter_set("uav_5ah")))
+    return row
+
+
 def _real() -> list[dict[str, Any]]:
     from packpilot.errors import PackPilotError
+    from packpilot.io.cycler import is_cycler_export
     from packpilot.io.flightlog import read_flight_log
     from packpilot.model.cell import load_parameter_set
-    from packpilot.model.fit.validate import fit_and_validate
     from packpilot.replay.fitlogs import battery_profile
 
     uav = load_parameter_set("uav_5ah")
     rows = []
     for path in sorted(REAL.glob("*")):
+        if is_cycler_export(path):
+            rows.append(_cycler_row(path))
+            continue
         if path.suffix not in (".ulg", ".bin", ".log", ".tlog"):
             continue
         row: dict[str, Any] = {"log": path.name}
@@ -168,23 +214,8 @@ def _real() -> list[dict[str, Any]]:
             r = dict(row, battery=b.name)
             try:
                 prof, _ = battery_profile(path, b, SERIES.get(path.name))
-                t1 = time.process_time()
-                v = fit_and_validate([prof], uav.ocv_soc, uav.ocv_table_v)
-                c = v.checks[0]
-                p = v.result.params
-                r.update({
-                    "fit_cpu_s": time.process_time() - t1,
-                    "heldout_rmse_mV": 1000 * c.rmse_v, "heldout_max_mV": 1000 * c.max_err_v,
-                    "noise_floor_mV": 1000 * c.noise_floor_v,
-                    "rmse_over_noise": c.rmse_v / max(c.noise_floor_v, 1e-6),
-                    "line_rmse_mV": 1000 * c.baseline_rmse_v, "skill": c.skill,
-                    "soc_swing_pct": 100 * c.soc_swing,
-                    "r0_mOhm": 1000 * p["r0_ohm"].value,
-                    "capacity_ah": p["capacity_ah"].value,
-                    "configured": _batt_capacity(path),
-                    "verdict": v.verdict,
-                })  # fmt: skip
-                r.update(_pybop(prof, int(len(prof.t_s) * 0.6)))
+                r.update(_fit_row(prof, uav))
+                r["configured"] = _batt_capacity(path)
             except PackPilotError as err:
                 r["fit"] = f"refused: {str(err).split(': ', 1)[-1]}"
             rows.append(r)

@@ -4,6 +4,9 @@ counter as the state when the log has one.
 
 A battery the fit cannot use is refused in one line naming what is missing: no current
 measurement, no cell count (give ``--cells``), too few samples.
+
+Lab cycler exports (a Maccor text export, :mod:`packpilot.io.cycler`) are read beside the
+logs: one cell on one channel (``--cells N`` when the channel held N cells in series).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from packpilot.errors import InputError
+from packpilot.io.cycler import is_cycler_export, read_maccor
 from packpilot.io.flightlog import F64, BatterySeries, hold, read_flight_log
 from packpilot.model.fit.profile import Profile
 
@@ -72,6 +76,20 @@ def battery_profile(path: Path, b: BatterySeries, cells: int | None) -> tuple[Pr
     return prof, notes
 
 
+def cycler_profile(path: Path, cells: int | None) -> tuple[Profile, list[str]]:
+    """A cycler channel's profile: one cell unless ``cells`` says how many in series."""
+    c = read_maccor(path)
+    n = cells or 1
+    if float(np.max(np.abs(c.current_a))) <= 0.0:
+        raise InputError(f"{path}: the channel's current is 0 throughout: nothing to fit")
+    notes = [*c.notes, f"{path.name}: {n} series cell(s)" + ("" if cells else " (no --cells)")]
+    try:
+        prof = Profile(path.name, c.t_s, c.current_a, c.voltage_v / n, None, c.temp_c)
+    except ValueError as err:
+        raise InputError(f"{path}: {err}") from None
+    return prof, notes
+
+
 def profiles_from_logs(
     paths: list[Path], cells: int | None, battery: str | None
 ) -> tuple[list[Profile], list[str]]:
@@ -79,6 +97,11 @@ def profiles_from_logs(
     out: list[Profile] = []
     notes: list[str] = []
     for path in paths:
+        if is_cycler_export(path):
+            prof, more = cycler_profile(path, cells)
+            out.append(prof)
+            notes += more
+            continue
         log = read_flight_log(path)
         names = [b.name for b in log.batteries]
         if battery is not None:
@@ -98,4 +121,4 @@ def profiles_from_logs(
     return out, notes
 
 
-__all__ = ["battery_profile", "profiles_from_logs"]
+__all__ = ["battery_profile", "cycler_profile", "profiles_from_logs"]

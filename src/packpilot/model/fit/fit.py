@@ -26,7 +26,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from packpilot.errors import InputError
-from packpilot.model.fit.profile import F64, EcmValues, Profile, predict
+from packpilot.model.fit.profile import F64, EcmValues, Profile, noise_floor, predict
 
 MIN_SOC_SWING = 0.30
 """Below this swing of the state of charge the capacity is flagged not identifiable."""
@@ -47,6 +47,24 @@ thousands of samples that see the capacity, decisive only where the SOC barely m
 capacity is flagged not identifiable anyway, and it no longer runs to a bound)."""
 SECOND_RC_GAIN = 0.10
 """A second RC pair is kept only when it lowers the RMSE by at least this share."""
+SELF_HEATING_GAIN = 0.10
+"""Self-heating (logs without temperature) is kept only when it lowers the RMSE by at least
+this share: a pack that does not warm enough to move its resistance keeps constant ones."""
+SELF_HEATING_NOISE = 1.0
+"""... and only when constant resistances leave more than the noise floor (of the training
+part): a model already at the noise has nothing left for heat to explain
+(robert_lefebvre_octo_PM.log: 15.5 mV against a 15.7 mV floor; with heat the training RMSE
+fell 13 % to below the floor and the held-out one rose from 22.2 to 30.0 mV). Not twice the
+floor: a warming pack's capacity and OCV absorb much of the heating in the training part
+(a plant-made warming flight: 13.6 mV against an 11.0 mV floor, held-out 28.7 mV)."""
+MIN_HEAT_J_PER_K_AH = 9.9
+"""The least heat capacity a Li-ion cell can have per Ah: 0.8 J/(g K) (the low end of measured
+specific heats, 0.8-1.3 J/(g K)) x 3.7 V / 300 Wh/kg (above the best cells' specific energy) =
+9.9 J/(K Ah). A fitted self-heating below it is not heat: it is rejected, with the reason."""
+HEAT_B_K = 20000.0 / 8.314462618
+"""Arrhenius constant of the resistances under self-heating (K): Ea = 20 kJ/mol, uav_5ah's and
+PyBaMM ECM_Example's law (src/packpilot/data/cells/README.md: inside the 11-53 kJ/mol of PyBaMM's
+physics sets). Not fitted: without a logged temperature only B / C is seen."""
 BOUNDS = {
     "r0_ohm": (1e-4, 1.0),
     "r1_ohm": (1e-5, 1.0),
@@ -54,10 +72,13 @@ BOUNDS = {
     "r2_ohm": (1e-5, 1.0),
     "tau2_s": (1.0, 20000.0),
     "b_k": (0.0, 8000.0),
+    "heat_c_j_per_k": (1.0, 5000.0),
+    "heat_g_w_per_k": (1e-3, 50.0),
 }
 """Bounds per cell: resistances 0.1 mOhm .. 1 Ohm, time constants 50 ms .. 50 min."""
 UNITS = {"capacity_ah": "Ah", "r0_ohm": "Ohm", "r1_ohm": "Ohm", "tau1_s": "s",
-         "r2_ohm": "Ohm", "tau2_s": "s", "b_k": "K"}  # fmt: skip
+         "r2_ohm": "Ohm", "tau2_s": "s", "b_k": "K", "heat_c_j_per_k": "J/K",
+         "heat_g_w_per_k": "W/K"}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -117,6 +138,8 @@ class _Layout:
     logs: list[str]
     lo: list[float] = field(default_factory=list)
     hi: list[float] = field(default_factory=list)
+    heat_b_k: float = HEAT_B_K
+    """B of the self-heating law (fixed; used when the layout has heat_c_j_per_k)."""
     prior: tuple[float, float] = (0.0, 0.0)
     """(log capacity the voltages suggest, weight in V per unit of log): a weak prior that
     holds the capacity where the data say nothing (see CAPACITY_PRIOR_LOG_SD)."""
@@ -127,14 +150,19 @@ class _Layout:
         if "r2_ohm" in p:
             rc.append((p["r2_ohm"], p["tau2_s"]))
         soc0 = [float(v) for v in x[len(self.names) :]]
-        vals = EcmValues(p["capacity_ah"], p["r0_ohm"], tuple(rc), p.get("b_k", 0.0), t_ref_c)
+        heat = "heat_c_j_per_k" in p
+        b_k = self.heat_b_k if heat else p.get("b_k", 0.0)
+        vals = EcmValues(p["capacity_ah"], p["r0_ohm"], tuple(rc), b_k, t_ref_c,
+                         p.get("heat_c_j_per_k", 0.0), p.get("heat_g_w_per_k", 0.0))  # fmt: skip
         return vals, soc0
 
 
-def _layout(n_rc: int, law: bool, q_bounds: tuple[float, float], logs: list[str]) -> _Layout:
+def _layout(n_rc: int, law: bool, q_bounds: tuple[float, float], logs: list[str],
+            heat: bool = False) -> _Layout:  # fmt: skip
     names = ["capacity_ah", "r0_ohm", "r1_ohm", "tau1_s"]
     names += ["r2_ohm", "tau2_s"] if n_rc == 2 else []
     names += ["b_k"] if law else []
+    names += ["heat_c_j_per_k", "heat_g_w_per_k"] if heat else []
     lay = _Layout(names, logs)
     for n in names:
         lo, hi = q_bounds if n == "capacity_ah" else BOUNDS[n]
@@ -360,6 +388,17 @@ def fit(
     if not ocv_note.startswith("chemistry default ("):
         x, res, jac = _solve(lay, profs, ocv, t_ref, [x])
     n_rc = 1
+    if not temps:
+        x, res, jac, lay = _maybe_self_heating(lay, x, res, jac, profs, ocv, t_ref, notes)
+        if "heat_c_j_per_k" in lay.names:
+            assumptions[:] = [a for a in assumptions if not a.startswith("the fitted resistances")]
+            assumptions.append(
+                f"self-heating: each log starts at {t_ref:.1f} degC (the reference temperature, "
+                "at rest); the fitted resistances hold there and fall as the modelled cell "
+                f"warms (Arrhenius B = {HEAT_B_K:.0f} K, the template's, not fitted); heat "
+                "capacity and conductance are effective values (the fitted resistance includes "
+                "wiring that heats no cell)"
+            )
     if max_rc >= 2:
         x, res, jac, lay, n_rc = _maybe_second_rc(lay, x, res, jac, profs, ocv, t_ref, law,
                                                   q_bounds, names, period, notes)  # fmt: skip
@@ -373,13 +412,51 @@ def fit(
     )  # fmt: skip
 
 
+def _maybe_self_heating(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequence[Profile],
+                        ocv: tuple[F64, F64], t_ref: float, notes: list[str]
+                        ) -> tuple[F64, F64, F64, _Layout]:  # fmt: skip
+    """Logs without temperature: let the cell warm by its own losses (one lumped node, the
+    resistances falling by the template's Arrhenius law) and keep it only where the data ask
+    for it (SELF_HEATING_GAIN)."""
+    rmse1 = float(np.sqrt(np.mean(res**2)))
+    floor = max(noise_floor(p) for p in profs)
+    if rmse1 <= SELF_HEATING_NOISE * floor:
+        notes.append(
+            f"self-heating not tried: constant resistances leave {1000 * rmse1:.2f} mV, within "
+            f"the noise floor ({1000 * floor:.2f} mV): nothing left for heat to explain"
+        )
+        return x, res, jac, lay
+    q_bounds = (math.exp(lay.lo[0]), math.exp(lay.hi[0]))
+    heat = _layout(1, False, q_bounds, lay.logs, heat=True)
+    heat.prior = lay.prior
+    lo, hi = np.array(heat.lo), np.array(heat.hi)
+    starts = [np.clip(np.array([*x[:4], math.log(c), math.log(g), *x[4:]]), lo + 1e-9, hi - 1e-9)
+              for c, g in ((50.0, 0.5), (200.0, 2.0), (20.0, 0.1))]  # fmt: skip
+    xh, resh, jach = _solve(heat, profs, ocv, t_ref, starts)
+    rmseh = float(np.sqrt(np.mean(resh**2)))
+    q, c_j, g_w = math.exp(xh[0]), math.exp(xh[4]), math.exp(xh[5])
+    what = (f"RMSE {1000 * rmse1:.2f} mV with constant resistances, {1000 * rmseh:.2f} mV "
+            f"self-heating (C {c_j:.3g} J/K, G {g_w:.3g} W/K per cell)")  # fmt: skip
+    if c_j / q < MIN_HEAT_J_PER_K_AH:
+        notes.append(
+            f"self-heating rejected ({what}): {c_j / q:.3g} J/K per Ah is below what a Li-ion "
+            f"cell can have ({MIN_HEAT_J_PER_K_AH:g}): constant resistances kept"
+        )
+        return x, res, jac, lay
+    if rmseh < (1.0 - SELF_HEATING_GAIN) * rmse1:
+        notes.append(f"self-heating kept: {what}")
+        return xh, resh, jach, heat
+    notes.append(f"self-heating not resolved by the data ({what}): constant resistances kept")
+    return x, res, jac, lay
+
+
 def _maybe_second_rc(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequence[Profile],
                      ocv: tuple[F64, F64], t_ref: float, law: bool,
                      q_bounds: tuple[float, float], names: list[str], period: float,
                      notes: list[str]) -> tuple[F64, F64, F64, _Layout, int]:  # fmt: skip
     """Keep a second RC pair only where the data resolve it: a clear RMSE gain, a time
     constant well apart from the first and both identified."""
-    lay2 = _layout(2, law, q_bounds, names)
+    lay2 = _layout(2, law, q_bounds, names, "heat_c_j_per_k" in lay.names)
     lay2.prior = lay.prior
     base = list(x[:4])
     tails = list(x[4:])

@@ -18,6 +18,20 @@ Per cell, with ``I`` the cell current (battery current / parallel count, + = dis
 
 ``f(T) = exp(B (1/(T+273.15) - 1/(T_ref+273.15)))`` scales every resistance when the logs
 span temperatures (``B`` fitted); otherwise ``f = 1`` at the stated reference temperature.
+
+**Self-heating** (logs without temperature): a pack warms in flight by its own losses and its
+resistance falls, which constant resistances cannot follow (a real ArduCopter flight: R from
+36 to 19 mOhm per cell over the first 1.0 Ah, the voltage at 18 A *rising* as charge was
+drawn). With ``heat_c_j_per_k > 0`` the stepper carries one lumped temperature rise ``y``
+above the start (= the reference temperature), driven by the cell's irreversible heat::
+
+    P_k = I_k (R0 f_k I_k + sum_j eta_jk)                 (W: current x overpotential)
+    y_k = b_k y_(k-1) + P_k / G (1 - b_k),   b_k = exp(-G dt_k / C)
+    f_k = exp(B (1/(T_ref + y_(k-1)) - 1/T_ref))        (the rise before the interval)
+
+with ``C`` the heat capacity and ``G`` the conductance to ambient per cell, ``B`` the
+template's Arrhenius constant (not fitted: with the temperature unlogged, only ``B / C``
+would be seen). The pack starts at ambient (logs start at rest).
 """
 
 from __future__ import annotations
@@ -81,6 +95,16 @@ class Profile:
         )  # fmt: skip
 
 
+def noise_floor(p: Profile) -> float:
+    """The voltage's scatter between consecutive samples where the current barely changes
+    (1.4826 x the median absolute first difference / sqrt 2): no model can beat it."""
+    dv = np.diff(p.voltage_v)
+    di = np.abs(np.diff(p.current_a))
+    calm = di <= max(0.02 * float(np.max(np.abs(p.current_a))), 1e-3)
+    d = dv[calm] if calm.sum() >= 10 else dv
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
 @kernel
 def _rc_kernel(t: F64, i: F64, r: float, tau: float, scale: F64, out: F64) -> None:
     """One RC branch over variable steps; starts in steady state with the first current."""
@@ -99,6 +123,44 @@ def rc_drop(profile: Profile, r_ohm: float, tau_s: float, scale: F64) -> F64:
     return out
 
 
+@kernel
+def _heated_kernel(t: F64, i: F64, r0: float, rc_r: F64, rc_tau: F64, c_j: float, g_w: float,
+                   b_k: float, t_ref_k: float, eta: F64, drop: F64, rise: F64) -> None:  # fmt: skip
+    """R0 and the RC branches over variable steps with one lumped self-heating node: the
+    resistance factor of each interval from the rise before it (explicit in the temperature,
+    exact in the RC branches and the cooling); RC branches start in steady state."""
+    y = 0.0
+    for k in range(t.size):
+        f = math.exp(b_k * (1.0 / (t_ref_k + y) - 1.0 / t_ref_k))
+        dt = t[k] - t[k - 1] if k > 0 else 0.0
+        total = r0 * f * i[k]
+        for j in range(rc_r.size):
+            if k == 0:
+                eta[j] = rc_r[j] * f * i[0]
+            else:
+                a = math.exp(-dt / rc_tau[j])
+                eta[j] = a * eta[j] + rc_r[j] * f * i[k] * (1.0 - a)
+            total += eta[j]
+        drop[k] = total
+        if k > 0:
+            b = math.exp(-g_w * dt / c_j)
+            y = b * y + i[k] * total / g_w * (1.0 - b)
+        rise[k] = y
+
+
+def heated_drop(profile: Profile, values: EcmValues) -> tuple[F64, F64]:
+    """(R0 + RC drop, temperature rise above the start) at each sample, self-heating."""
+    n = len(profile.t_s)
+    drop, rise = np.empty(n), np.empty(n)
+    rc_r = np.array([r for r, _ in values.rc], dtype=np.float64)
+    rc_tau = np.array([tau for _, tau in values.rc], dtype=np.float64)
+    _heated_kernel(profile.t_s, profile.current_a, float(values.r0_ohm), rc_r, rc_tau,
+                   float(values.heat_c_j_per_k), float(values.heat_g_w_per_k),
+                   float(values.b_k), float(values.t_ref_c) + 273.15, np.empty(len(rc_r)),
+                   drop, rise)  # fmt: skip
+    return drop, rise
+
+
 @dataclass(frozen=True)
 class EcmValues:
     """The parameters the stepper needs (per cell)."""
@@ -110,6 +172,10 @@ class EcmValues:
     b_k: float = 0.0
     """Arrhenius constant of the resistances (K); 0 = no temperature dependence."""
     t_ref_c: float = 25.0
+    heat_c_j_per_k: float = 0.0
+    """Self-heating: heat capacity per cell (J/K); 0 = no self-heating (see the module)."""
+    heat_g_w_per_k: float = 0.0
+    """Self-heating: conductance to ambient per cell (W/K)."""
 
 
 def temp_scale(profile: Profile, b_k: float, t_ref_c: float) -> F64:
@@ -126,6 +192,9 @@ def predict(
 ) -> tuple[F64, F64]:
     """(cell voltage, state of charge) at every sample of the profile."""
     soc = soc0 - profile.drawn_ah / values.capacity_ah
+    if values.heat_c_j_per_k > 0.0:
+        drop, _ = heated_drop(profile, values)
+        return np.interp(soc, ocv_soc, ocv_v) - drop, soc
     scale = temp_scale(profile, values.b_k, values.t_ref_c)
     v = np.interp(soc, ocv_soc, ocv_v) - values.r0_ohm * scale * profile.current_a
     for r, tau in values.rc:
@@ -133,4 +202,6 @@ def predict(
     return v, soc
 
 
-__all__ = ["EcmValues", "Profile", "predict", "rc_drop", "temp_scale"]
+__all__ = [
+    "EcmValues", "Profile", "heated_drop", "noise_floor", "predict", "rc_drop", "temp_scale",
+]

@@ -16,6 +16,7 @@ import numpy as np
 
 from packpilot.model.cell import CellParams, load_parameter_set, simulate_current
 from packpilot.model.fit.profile import F64, Profile
+from packpilot.model.thermal import ThermalParams
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,32 @@ def plant_params(truth: Truth, base: str = "uav_5ah") -> CellParams:
         rc_soc=np.array([0.0, 1.0]), r0_ohm=np.full(shape, truth.r0_ohm),
         r1_ohm=np.full(shape, truth.r1_ohm), c1_f=np.full(shape, truth.tau1_s / truth.r1_ohm),
         r2_ohm=None, c2_f=None,
+    )  # fmt: skip
+
+
+def heating_plant_params(truth: Truth, b_k: float, heat_c_j_per_k: float, heat_g_w_per_k: float,
+                         t_ref_c: float = 25.0, base: str = "uav_5ah", *,
+                         entropic: bool = True) -> CellParams:  # fmt: skip
+    """The plant of :func:`plant_params` whose resistances follow an Arrhenius law about
+    ``t_ref_c`` (time constants kept) and whose cell has one thermal node (heat capacity,
+    conductance to ambient): a pack that warms in flight and whose resistance falls.
+    ``entropic=False`` drops dU/dT (the OCV's own temperature shift and the reversible heat,
+    which the fit's stepper does not model)."""
+    p = plant_params(truth, base)
+    if not entropic:
+        p = replace(p, dudt_v_per_k=np.zeros_like(p.dudt_v_per_k))
+    temps = np.arange(-20.0, 121.0, 5.0)
+    f = np.exp(b_k * (1.0 / (temps + 273.15) - 1.0 / (t_ref_c + 273.15)))
+
+    def table(x: F64) -> F64:
+        out: F64 = np.broadcast_to(x[:, None, None], (len(temps), 2, 2)).copy()
+        return out
+
+    return replace(
+        p, name=f"synthetic_heating_{base}", rc_temp_c=temps, r0_ohm=table(truth.r0_ohm * f),
+        r1_ohm=table(truth.r1_ohm * f), c1_f=table(truth.tau1_s / (truth.r1_ohm * f)),
+        thermal=ThermalParams(heat_c_j_per_k, 0.0, 2.0 * heat_g_w_per_k, 2.0 * heat_g_w_per_k,
+                              nodes=1),
     )  # fmt: skip
 
 
@@ -68,15 +95,18 @@ def synthetic_log(
     seconds: int = 1500,
     seed: int = 1,
     ambient_c: float = 25.0,
+    plant: CellParams | None = None,
 ) -> Profile:
     """A logged flight: the plant stepped at the logging period (the current held over each
     second), its voltage with Gaussian noise of ``noise_v`` (one sigma), its current times
-    ``gain`` and the charge counter integrating that current."""
+    ``gain`` and the charge counter integrating that current. ``plant`` replaces the
+    constant-resistance plant of ``truth`` (e.g. :func:`heating_plant_params`)."""
     per_s = flight_current(truth.capacity_ah, rest_s, seconds, seed)
     reps = round(rate_hz)
     cur = np.repeat(per_s, reps) if reps > 1 else per_s
     h = 1.0 / rate_hz
-    tr = simulate_current(plant_params(truth), cur, h, truth.soc0, ambient_c)
+    cell = plant_params(truth) if plant is None else plant
+    tr = simulate_current(cell, cur, h, truth.soc0, ambient_c)
     rng = np.random.default_rng(seed + 1000)
     measured_i = tr.current_a * gain
     counter = np.concatenate([[0.0], np.cumsum(cur * gain * h)]) / 3600.0
@@ -87,4 +117,6 @@ def synthetic_log(
     )  # fmt: skip
 
 
-__all__ = ["Truth", "flight_current", "plant_params", "synthetic_log"]
+__all__ = [
+    "Truth", "flight_current", "heating_plant_params", "plant_params", "synthetic_log",
+]

@@ -23,7 +23,7 @@ import numpy as np
 
 from packpilot.errors import InputError
 from packpilot.model.fit.fit import FitResult, fit
-from packpilot.model.fit.profile import F64, Profile, predict
+from packpilot.model.fit.profile import F64, Profile, noise_floor, predict
 
 TRAIN_SHARE = 0.6
 """The first 60 % of each log's samples train the model; the rest tests it."""
@@ -62,15 +62,6 @@ class Validation:
     checks: list[LogCheck]
     verdict: str
     reasons: list[str]
-
-
-def noise_floor(p: Profile) -> float:
-    """The voltage's scatter between consecutive samples where the current barely changes."""
-    dv = np.diff(p.voltage_v)
-    di = np.abs(np.diff(p.current_a))
-    calm = di <= max(0.02 * float(np.max(np.abs(p.current_a))), 1e-3)
-    d = dv[calm] if calm.sum() >= 10 else dv
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
 
 
 def _baseline(p: Profile, train: slice) -> F64:
