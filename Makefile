@@ -114,8 +114,20 @@ faults: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -q -p no:cacheprovider \
 		tests/test_runtime_fault_suite.py tests/test_runtime_faults.py
 
-bench: $(TEST_STAMP)
-	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py
+# PyBOP, the fit's independent oracle (#27: "never worse than PyBOP on the same split"), in an
+# environment of its own: PyBOP 26.3 needs numpy < 2.4 and PackPilot runs on 2.4. Bench-time only;
+# benchmarks/bench_fit.py calls it through PACKPILOT_PYBOP_PYTHON (unset: no PyBOP columns).
+PYBOP_VENV := .venv-pybop
+PYBOP_STAMP := $(PYBOP_VENV)/.installed-stamp
+$(PYBOP_STAMP):
+	$(HEARTBEAT) "creating $(PYBOP_VENV) (PyBOP for make bench)" -- $(PYTHON) -m venv $(PYBOP_VENV)
+	$(HEARTBEAT) "installing PyBOP" -- $(PYBOP_VENV)/bin/python -m pip install --quiet \
+		"pybop==26.3" "numpy<2.4"
+	touch $(PYBOP_STAMP)
+
+bench: $(TEST_STAMP) $(PYBOP_STAMP)
+	PYBAMM_DISABLE_TELEMETRY=true PACKPILOT_PYBOP_PYTHON=$(CURDIR)/$(PYBOP_VENV)/bin/python \
+		$(PY) benchmarks/run_all.py
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_report_memory.py --days 0.2
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_coldstart.py
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_power.py --append
@@ -126,4 +138,4 @@ lint: $(TEST_STAMP)
 	$(VENV)/bin/lint-imports
 
 clean:
-	rm -rf $(VENV) $(OUT) .mypy_cache .ruff_cache
+	rm -rf $(VENV) $(PYBOP_VENV) $(OUT) .mypy_cache .ruff_cache
