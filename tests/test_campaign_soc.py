@@ -37,7 +37,7 @@ def _from_trace(cfg: ScenarioConfig, draw: cp.Draw) -> dict[str, float]:
     res = Runner(cfg, progress=False, pack_overrides=draw.pack_overrides()).run()
     tr = res.trace
     late = tr.t_s >= SETTLE_S - EPS_S  # the step starting at 300 s (a sum of 0.1 s steps)
-    truth = tr.channel("soc")[late, 0]
+    truth = np.clip(tr.channel("soc")[late, 0], 0.0, 1.0)  # past empty: 0 % on any display
     out = {}
     for key, ch in (("soc_err", "soc_est"), ("soc_err_old", "soc_fallback")):
         est = np.array([float(row[0]) for row in tr.status[ch]])[late]
@@ -45,6 +45,8 @@ def _from_trace(cfg: ScenarioConfig, draw: cp.Draw) -> dict[str, float]:
         out[f"{key}_rms_0"] = float(np.sqrt(np.mean(err**2)))
         out[f"{key}_max_0"] = float(np.max(np.abs(err)))
     out["steps"] = float(late.sum())
+    raw = tr.channel("soc")[late, 0]
+    out["outside_s"] = float(np.sum((raw < 0.0) | (raw > 1.0)) * cfg.sim.dt_s)
     return out
 
 
@@ -69,7 +71,7 @@ def test_soc_columns_are_true_against_estimated_soc_on_a_loopback_cluster(campai
         want = _from_trace(cfg, draw)
         assert row["soc_err_steps"] == want["steps"] > 1000
         for k, v in want.items():
-            if k != "steps":
+            if k not in ("steps", "outside_s"):
                 assert row[k] == pytest.approx(v, rel=1e-9, abs=1e-12), (row["run"], k)
         assert row["soc_err_rms"] == row["soc_err_rms_0"]  # one battery: the worst is it
 
@@ -102,6 +104,19 @@ def test_a_run_reads_the_same_noise_alone_as_in_its_batch() -> None:
     other = cp.run_batch(cfg, [twin])[0]
     assert other["soc_err_rms"] != alone["soc_err_rms"]
     assert not math.isnan(alone["soc_err_rms"])
+
+
+def test_past_empty_counts_as_zero_and_its_time_is_reported() -> None:
+    """A battery flown past empty (nothing protects it; the plant's SOC goes below 0): the
+    error is against 0 %, what any display shows, and the time past empty is its own column."""
+    cfg = _scenario()
+    draw = cp.Draw(run=0, seed=4, soc0_offset=-0.72)
+    row = cp.run_batch(cfg, [draw])[0]
+    want = _from_trace(cfg, draw)
+    assert want["outside_s"] > 30.0
+    assert row["soc_truth_outside_s"] == pytest.approx(want["outside_s"], abs=1e-6)
+    for k in ("soc_err_rms_0", "soc_err_max_0", "soc_err_old_rms_0", "soc_err_old_max_0"):
+        assert row[k] == pytest.approx(want[k], rel=1e-9, abs=1e-12), k
 
 
 @pytest.mark.parametrize("bad", [-0.1, 0.6, float("nan")])

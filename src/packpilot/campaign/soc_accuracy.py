@@ -10,7 +10,9 @@ period's start time ``t_s``, as the trace stamps it) while the run is live:
 
 - truth: the plant's SOC of the battery, its weakest cell's remaining charge over the weakest
   cell's full charge (:func:`~packpilot.sim.sensors.true_soc`, the trace's ``soc`` channel),
-  at the end of the step;
+  at the end of the step, clipped to [0, 1]: a battery that nothing protects can be run past
+  empty (the plant's SOC goes below 0), and 0 % is then what any SOC display, and both
+  estimators, show; the time the truth spent outside is its own column;
 - the observer's error: the SOC the BMS shows at that step (``shown_soc``, status
   ``soc_est``: the observer while it is healthy, else its fallback) minus the truth;
 - today's error: the coulomb counter with OCV after a rest (``soc``, status ``soc_fallback``,
@@ -24,8 +26,9 @@ pairing (one row); the lag is one step's charge, I dt / (3600 Q): 0.02 % of SOC 
 
 Columns (per battery ``_i``, and the worst battery without suffix): ``soc_err_rms``,
 ``soc_err_max``, ``soc_err_old_rms``, ``soc_err_old_max``; ``soc_fallback_s`` (seconds after
-``SETTLE_S`` that the shown SOC came from the fallback, the observer not trusted) and
-``soc_err_steps`` (steps judged).
+``SETTLE_S`` that the shown SOC came from the fallback, the observer not trusted),
+``soc_truth_outside_s`` (seconds after ``SETTLE_S`` that the plant's SOC was below 0 or above 1)
+and ``soc_err_steps`` (steps judged); ``_s`` columns: the run's worst battery.
 """
 
 from __future__ import annotations
@@ -78,13 +81,16 @@ class SocAccuracy:
         self.peak = {k: np.zeros(shape) for k in ("new", "old")}
         self.n = {k: np.zeros(shape, np.int64) for k in ("new", "old")}
         self.fallback_s = np.zeros(shape)
+        self.outside_s = np.zeros(shape)
 
     def feed(self, live: NDArray[np.bool_], t_s: float, dt_s: float) -> None:
         """Fold the step just taken (period start ``t_s``) for the packs ``live`` at its start."""
         if t_s < self.settle_s - EPS_S:
             return
-        truth = true_soc(self.loop.plant.pack, self.traction)
+        raw = true_soc(self.loop.plant.pack, self.traction)
+        truth = np.clip(raw, 0.0, 1.0)  # past empty (or full) is 0 % (100 %) for any display
         rows = live[:, None]
+        self.outside_s += np.where(rows & ((raw < 0.0) | (raw > 1.0)), dt_s, 0.0)
         for key, est in (("new", self.st.shown_soc), ("old", self.st.soc)):
             err = np.abs(est - truth)
             ok = rows & np.isfinite(err)
@@ -111,6 +117,7 @@ class SocAccuracy:
                 worst[name] = max(got) if got else None
         out.update(worst)
         out["soc_fallback_s"] = float(self.fallback_s[p].max())
+        out["soc_truth_outside_s"] = float(self.outside_s[p].max())
         out["soc_err_steps"] = int(self.n["new"][p].min())
         return out
 
