@@ -111,6 +111,8 @@ faults: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -q -p no:cacheprovider \
 		tests/test_runtime_fault_suite.py tests/test_runtime_faults.py
 
+# run_all.py runs every benchmarks/bench_*.py that has a run(): among them bench_soc_campaign
+# (#28: 200 runs of the SOC acceptance on a 2-worker loopback Dask cluster, ~3 min).
 bench: $(TEST_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/run_all.py
 	PYBAMM_DISABLE_TELEMETRY=true $(PY) benchmarks/bench_report_memory.py --days 0.2
