@@ -125,6 +125,8 @@ $(PYBOP_STAMP):
 		"pybop==26.3" "numpy<2.4"
 	touch $(PYBOP_STAMP)
 
+# run_all.py runs every benchmarks/bench_*.py that has a run(): among them bench_soc_campaign
+# (#28: 200 runs of the SOC acceptance on a 2-worker loopback Dask cluster, ~3 min).
 bench: $(TEST_STAMP) $(PYBOP_STAMP)
 	PYBAMM_DISABLE_TELEMETRY=true PACKPILOT_PYBOP_PYTHON=$(CURDIR)/$(PYBOP_VENV)/bin/python \
 		$(PY) benchmarks/run_all.py

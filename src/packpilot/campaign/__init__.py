@@ -9,6 +9,8 @@ loop with those values applied through the plant's hooks. This module is the ent
 - :mod:`~packpilot.campaign.spreads` — spreads, their parsing, and each run's draw;
 - :mod:`~packpilot.campaign.execute` — a batch of runs through the closed loop, one row each
   (failures as error rows, the ``PACKPILOT_CAMPAIGN_FAIL_RUNS`` test knob);
+- :mod:`~packpilot.campaign.soc_accuracy` — SOC error of the BMS (and of today's estimator)
+  against the plant's, per run, when the scenario has ``[soc]`` and ``[sensors]`` (#28);
 - :mod:`~packpilot.campaign.store` — Parquet part files, resume and consolidation;
 - :mod:`~packpilot.campaign.schedule` — Dask schedulers and batch sizes;
 - :mod:`~packpilot.campaign.summary` — percentiles, histograms, JSON and console output.

@@ -11,6 +11,10 @@ WARNING, ALARM, FAULT; ``alarms``: its alarm categories, comma-separated, the na
 :class:`~packpilot.sim.verdict.BatchPhysics` folds the physics checks (over-discharge,
 cross-charge, load loss) over the batch step by step, since a campaign keeps no trace.
 
+With ``[soc]`` and ``[sensors]`` a row also carries the run's SOC accuracy (the shown SOC and
+today's estimator against the plant's, :mod:`~packpilot.campaign.soc_accuracy`), folded step
+by step like the physics checks.
+
 Hidden test knob: the environment variable ``PACKPILOT_CAMPAIGN_FAIL_RUNS="3,7"`` (read by the
 process that drives the campaign, then shipped to the workers) makes those run indices raise
 at their first control step — a deliberately failing run.
@@ -29,6 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from packpilot.campaign.soc_accuracy import accuracy_of
 from packpilot.campaign.spreads import Draw
 from packpilot.config import ScenarioConfig
 from packpilot.contract.severity import Severity
@@ -94,11 +99,10 @@ def _deliberate_failure(run: int) -> DeliberateFailure:
 
 
 def stack_overrides(draws: Sequence[Draw]) -> dict[str, Any]:
-    """The draws' plant overrides as (P,) arrays: one batch, one plant."""
+    """The draws' plant overrides stacked over the batch, (P,) (``sensor_stream``: (P, 2)):
+    one batch, one plant."""
     per = [d.pack_overrides() for d in draws]
-    return {
-        k: np.concatenate([np.asarray(o[k], np.float64).reshape(1) for o in per]) for k in per[0]
-    }
+    return {k: np.concatenate([np.asarray(o[k]) for o in per]) for k in per[0]}
 
 
 def unsupported_reason(cfg: ScenarioConfig) -> str | None:
@@ -128,6 +132,7 @@ def run_batch_loop(
         len(draws),
         loop.plant.pack.string_cell_starts,
     )
+    acc = accuracy_of(loop)
     dt = cfg.sim.dt_s
     try:
         for k in range(n_steps(cfg)):
@@ -136,6 +141,8 @@ def run_batch_loop(
             live = loop.metrics.live.copy()  # a pack stopping at this step still counts it
             rec = loop.step(k, dt)
             _watch_step(watch, loop, rec.iv, live)
+            if acc is not None:
+                acc.feed(live, rec.iv.t_s, dt)
     finally:
         loop.close()
     wall = (time.perf_counter() - t0) / len(draws)
@@ -145,6 +152,8 @@ def run_batch_loop(
             rows.append(_error_row(d, _deliberate_failure(d.run), wall))
         else:
             rows.append(_row(d, loop.metrics.of(p, wall, names), wall, watch.of(p)))
+            if acc is not None:
+                rows[-1].update(acc.columns(p))
     return rows
 
 

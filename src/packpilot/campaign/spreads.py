@@ -155,12 +155,15 @@ class Draw:
     ambient_c: float = 25.0
 
     def pack_overrides(self) -> dict[str, Any]:
-        """Keyword arguments for ``Pack(cfg, 1, ...)``: the plant's campaign hooks."""
+        """The plant's campaign hooks for one pack (``SimulatedPlant(cfg, 1, ...)``): the
+        ``Pack`` factors, and ``sensor_stream``, the key of the run's own sensor noise
+        (``[sensors]``), ``(seed, run)``, so the noise too depends only on the run."""
         return {
             "capacity_scale": np.array([self.capacity_scale]),
             "r_scale": np.array([self.r0_scale]),
             "soc_offset": np.array([self.soc0_offset]),
             "ambient_c": np.array([self.ambient_c]),
+            "sensor_stream": np.array([[self.seed, self.run]], np.int64),
         }
 
 

@@ -408,6 +408,13 @@ class SensorsConfig(_Strict):
     pack_v: SensorError = Field(SensorError(), description="the bus (pack) voltage, V")
     current: SensorError = Field(SensorError(), description="each battery's current, A")
     temp: SensorError = Field(SensorError(), description="each cell temperature, degC")
+    soc0_error: Annotated[float, Field(ge=0.0, le=0.5, allow_inf_nan=False)] = Field(
+        0.0,
+        description="the SOC the BMS starts from is this far from the truth (SOC fraction, "
+        "toward 50 %), as if restored from a stale memory at power-up; 0: it reads the OCV of "
+        "its first sample as before. Applies to the [soc] estimator (both the observer and "
+        "the coulomb counter start from it)",
+    )
 
 
 FaultKind = Literal[

@@ -44,6 +44,7 @@ from packpilot.sim.faults import FaultInjector, Silenceable, SilenceableLink
 from packpilot.sim.links import ChargerLinks, PackLinks, default_links, pack_links
 from packpilot.sim.metrics import Metrics
 from packpilot.sim.plant_io import SimulatedPlant
+from packpilot.sim.sensors import start_soc_wrong
 
 Array = NDArray[np.float64]
 
@@ -311,6 +312,8 @@ class ClosedLoop:
                 raw = [SilenceableLink(x) for x in raw]
             chargers, silenceable = ChargerLinks(cfg, raw), list(raw)  # type: ignore[arg-type]
         faults = FaultInjector(cfg, plant.pack, silenceable) if cfg.faults else None
+        if cfg.sensors is not None and cfg.sensors.soc0_error > 0.0:
+            start_soc_wrong(core, plant.pack, plant.traction, cfg.sensors.soc0_error)
         return cls(cfg, plant, core, chargers, faults, hooks)
 
     def demand(self, t_s: float) -> float:

@@ -35,13 +35,16 @@ def topology(cfg: ScenarioConfig) -> Topology:
 
 
 class SimulatedPlant:
-    """``n_packs`` simulated packs of one scenario (campaign draws in ``overrides``)."""
+    """``n_packs`` simulated packs of one scenario (campaign draws in ``overrides``: the
+    ``Pack`` hooks, and ``sensor_stream``, each pack's key for its own sensor noise)."""
 
     def __init__(
         self, cfg: ScenarioConfig, n_packs: int = 1, overrides: Mapping[str, Any] | None = None
     ) -> None:
         self.cfg = cfg
-        self.pack = Pack(cfg, n_packs=n_packs, **dict(overrides or {}))
+        hooks = dict(overrides or {})
+        streams = hooks.pop("sensor_stream", None)
+        self.pack = Pack(cfg, n_packs=n_packs, **hooks)
         self.n_packs = n_packs
         self.topology = topology(cfg)
         self.traction = np.array(self.topology.traction, np.intp)
@@ -53,7 +56,9 @@ class SimulatedPlant:
         self._groups = np.array(pack.groups_per_string, np.int64)
         self._scratch = np.zeros(pack.n_strings)
         self._aux = -1 if self.aux is None else self.aux
-        self.sensors = sensors_of(cfg.sensors)
+        self.sensors = sensors_of(
+            cfg.sensors, None if streams is None else np.asarray(streams, np.int64)
+        )
         """The ``[sensors]`` errors (None: the sensors read the truth)."""
 
     @property
