@@ -174,10 +174,20 @@ def test_a_whatif_beyond_its_fitted_range_warns_live(
 
 @pytest.fixture(scope="module")
 def fleet_only(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
-    from tests.test_web_fleet import _fleet
+    """A fleet of two batteries, two flights each (``packpilot fleet add``'s records)."""
+    import numpy as np
+
+    from packpilot.model.fit.synthetic import Truth, synthetic_log
+    from packpilot.replay.fleet import connect, flight_record, store
 
     db = tmp_path_factory.mktemp("fleet") / "fleet.sqlite"
-    _fleet(db)
+    con = connect(db)
+    for name in ("P1", "P2"):
+        for k in range(2):
+            prof = synthetic_log(Truth(soc0=0.95), 1.0, seconds=120, seed=k + len(name))
+            cells = prof.voltage_v[:, None] + np.array([0.0, -0.006, 0.0])
+            store(con, flight_record(name, f"{name}-{k}", f"{name}-{k}", "A", prof, 3, "", cells))
+    con.close()
     yield from _serve(None, "fleet", 10.0, fleet=db)
 
 
