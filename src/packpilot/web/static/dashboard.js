@@ -210,7 +210,7 @@ function renderPower(P) {
       : S.powerNote || (S.latest ? "computing…" : "—");
     return;
   }
-  const why = (w, who) => w === "none" ? "—" : w + (who ? " (" + who + ")" : "");
+  const why = (w, who) => w === "none" ? "—" : w + (who ? ", battery " + who : "");
   const body = tab.tBodies[0];
   body.textContent = "";
   for (const h of P.horizons) {
