@@ -533,11 +533,8 @@ function buildSchematic() {
     const v = svg("text", { x: cx, y: 190 + dy, class: "val mid" }, "—");
     const a = svg("text", { x: cx, y: 208 + dy, class: "val mid" }, "—");
     const jg = svg("g", { class: "join", "data-join": b.name, "data-state": "none" });
-    const peak = svg("text", { x: cx, y: 248 + dy, class: "lbl mid small" }, "");
-    const dvt = svg("text", { x: cx, y: 264 + dy, class: "lbl mid small" }, "");
-    jg.append(peak, dvt);
     g.append(v, a, jg);
-    Object.assign(p, { fill, v, a, cx, dy, join: { group: jg, peak, dv: dvt } });
+    Object.assign(p, { fill, v, a, cx, dy, join: { group: jg, peak: null, dv: null } });
     parts.bats.push(p);
   });
   root.append(g);
@@ -598,10 +595,14 @@ function joinOf(name) {
 }
 function renderJoin(p, j) {
   const g = p.join;
-  g.peak.textContent = g.dv.textContent = "";
-  g.peak.removeAttribute("data-peak");
   g.group.setAttribute("data-state", j ? (j.within ? "ok" : "over") : "none");
-  if (!j) return;
+  // the texts exist only while there is a plan (an empty <text> would be a 0 px label)
+  if (!j) { g.group.textContent = ""; g.peak = g.dv = null; return; }
+  if (!g.peak) {
+    g.peak = svg("text", { x: p.cx, y: 248 + p.dy, class: "lbl mid small" }, "");
+    g.dv = svg("text", { x: p.cx, y: 264 + p.dy, class: "lbl mid small" }, "");
+    g.group.append(g.peak, g.dv);
+  }
   g.peak.dataset.peak = isNum(j.peak_a) ? String(j.peak_a) : "";
   g.peak.dataset.limit = isNum(j.limit_a) ? String(j.limit_a) : "";
   g.peak.textContent = "join " + (isNum(j.peak_a) ? Math.abs(j.peak_a).toFixed(1) : "?") +
