@@ -10,6 +10,7 @@ against what the wrong source would have given."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -180,3 +181,28 @@ def test_the_live_status_carries_the_panel_once_computed(run: Any) -> None:
     again = live.status()["power"]
     assert again is not None and again["step"] == live._latest.step  # type: ignore[union-attr]
     assert first is None or first["step"] <= again["step"]
+
+
+def test_a_recording_scrubbed_shows_the_panel_of_that_moment(tmp_path: Path) -> None:
+    """A recording's ``/api/at`` carries the state of power and the join plan predicted for
+    the scrubbed sample, from its recorded channels (the run read back from real SQLite)."""
+    from packpilot.io.telemetry import SQLiteRecorder
+    from packpilot.web.recorded import Recording
+
+    db = tmp_path / "run.sqlite"
+    cfg = _cfg()
+    data = cfg.model_dump(mode="json")
+    data["sim"]["duration_s"] = 15.0
+    with SQLiteRecorder(db) as rec:
+        runner = Runner(type(cfg).model_validate(data), recorder=rec, progress=False)
+        wrong_start(runner)
+        runner.run()
+    recording = Recording(db)
+    at = recording.at(10.0)
+    power = at["power"]
+    assert power is not None and power["step"] == at["latest"]["step"]
+    assert [b["soc_source"] for b in power["batteries"]] == ["fallback", "fallback"]
+    assert [j["name"] for j in power["joins"]] == ["B"]
+    bats = at["latest"]["batteries"]
+    assert [b["soc_core"] for b in bats] == [b["status"]["soc_est"] for b in bats]
+    assert {b["soc_source"] for b in bats} == {"fallback"}
