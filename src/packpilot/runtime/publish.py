@@ -36,7 +36,7 @@ from packpilot.contract import soc_source
 from packpilot.contract.events import value as field_value
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
-from packpilot.control.power import PowerOut, state_of_power
+from packpilot.control.power import PowerInputs, PowerOut, state_of_power
 from packpilot.control.supervisor.rules import MODES
 from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can import pylon
@@ -48,7 +48,7 @@ from packpilot.io.can.battery import (
     encode_soc,
 )
 from packpilot.sim.power import inputs_from_core, params_of
-from packpilot.sim.power_view import TRIPPED_MODES, CoreView, state_of_power_now
+from packpilot.sim.power_view import TRIPPED_MODES, CoreView, sop_inputs
 
 HORIZON_CCL = 2
 """Index of the 30 s horizon in ``control.power.HORIZONS_S``: what CCL/DCL carry."""
@@ -291,11 +291,17 @@ class Publisher:
         )  # fmt: skip
 
     def state_of_power(self) -> PowerOut | None:
-        """The core's state of power now, from the state the core has (:meth:`view`; the
-        one function the dashboard and the report use too). A battery not reporting, or with
-        no SOC, counts as absent (the others are assumed to carry everything). None when
-        nothing can be predicted."""
-        return state_of_power_now(self.cfg, self.power_prm, self.view())
+        """The core's state of power now (:meth:`power_inputs`); None when nothing can be
+        predicted."""
+        inp = self.power_inputs()
+        return None if inp is None else state_of_power(self.power_prm, inp)
+
+    def power_inputs(self) -> PowerInputs | None:
+        """What the state of power is computed from: the state the core has (:meth:`view`),
+        through ``sim/power_view.py:sop_inputs``, the one function the dashboard and the
+        report use too. A battery not reporting, or with no SOC, counts as absent (the
+        others are assumed to carry everything). Fresh arrays."""
+        return sop_inputs(self.cfg, self.power_prm, self.view())
 
     def warm_up(self) -> None:
         """Compile (or load) the state-of-power kernels on a made-up state, before the
