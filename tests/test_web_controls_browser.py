@@ -239,6 +239,9 @@ def test_starting_an_example_from_the_page(
 ) -> None:
     browser.call("Page.navigate", url=live_server.url)
     browser.wait_body(lambda d: int(d.get("samples", 0)) > 0, 30.0)
+    # the menu comes from /api/catalog, fetched once the page is greeted: it may land after
+    # the first samples (it did once the server also predicts the state of power)
+    browser.wait("document.getElementById('example-select').options.length > 1", 30.0)
     opts = js(browser, "[...document.getElementById('example-select').options].map(o => o.value)")
     assert "evtol_charging" in opts and "uav_mission" in opts
     js(

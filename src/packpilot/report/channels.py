@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import re
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from packpilot.contract.bms import StatusValue
 from packpilot.contract.record import Result
+from packpilot.contract.soc_source import BATTERY, SOURCES, source_codes
 from packpilot.report.style import unit_of
 
 ChannelKind = Literal["numeric", "bool", "label"]
@@ -89,8 +90,11 @@ def _present(v: Any) -> bool:
     return v is not None and not (isinstance(v, float) and v != v)
 
 
-def status_channels(result: Result) -> dict[str, StatusChannel]:
-    """Every status channel of a run, aligned to the trace's steps and compressed.
+def status_channels(
+    result: Result, only: Sequence[str] | None = None
+) -> dict[str, StatusChannel]:
+    """Every status channel of a run (or those named in ``only``), aligned to the trace's
+    steps and compressed.
 
     A channel shorter than the run is taken to cover the run's end (how telemetry stores it:
     a channel starts at the first step that carried it); its earlier steps have no value.
@@ -98,7 +102,9 @@ def status_channels(result: Result) -> dict[str, StatusChannel]:
     n_s = len(result.trace.t_s)
     n_b = len(result.battery_names)
     out: dict[str, StatusChannel] = {}
-    for name, seqs in result.trace.status.items():
+    names = list(result.trace.status) if only is None else only
+    for name in names:
+        seqs = result.trace.status.get(name)
         if not seqs or n_s == 0:
             continue
         if len(seqs) > n_s:
@@ -121,6 +127,39 @@ def status_channels(result: Result) -> dict[str, StatusChannel]:
             name, _kind_of(values[:, list(columns)]), rows, values, columns, pack_level
         )
     return out
+
+
+SOC_CHANNELS = ("soc_est", "soc_observer_ok", "soc_sigma", "bms_soc")
+"""What the SOC the core used is read from (``contract/soc_source.py``)."""
+
+
+def expanded(ch: StatusChannel | None, n: int, b: int) -> NDArray[np.float64] | None:
+    """Battery ``b``'s column of a channel at every one of the run's ``n`` steps (NaN where
+    absent), or None without the channel."""
+    if ch is None or b >= ch.values.shape[1]:
+        return None
+    counts = np.diff(np.append(ch.rows, n))
+    return np.repeat(ch.numeric(b), counts)
+
+
+def core_soc(
+    channels: Mapping[str, StatusChannel], n: int, b: int, recorded: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The SOC the core used for battery ``b`` at each of ``n`` steps and its source there
+    (codes of ``contract/soc_source.SOURCES``): the observer's estimate where trusted, the
+    coulomb counter as fallback, the battery's own report without an estimator (what the BMS
+    read of it, ``bms_soc``, else ``recorded``, the trace's SOC column)."""
+    nan = np.full(n, math.nan)
+    est = expanded(channels.get("soc_est"), n, b)
+    ok = expanded(channels.get("soc_observer_ok"), n, b)
+    sigma = expanded(channels.get("soc_sigma"), n, b)
+    reported = expanded(channels.get("bms_soc"), n, b)
+    if reported is None:
+        reported = np.asarray(recorded, np.float64)
+    codes = source_codes(nan if est is None else est, nan if ok is None else ok,
+                         nan if sigma is None else sigma)  # fmt: skip
+    soc = np.where(codes == SOURCES.index(BATTERY), reported, nan if est is None else est)
+    return soc, codes
 
 
 def categories(ch: StatusChannel) -> list[str]:

@@ -24,9 +24,13 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
 from packpilot.contract.severity import Severity, row_of
+from packpilot.contract.soc_source import BATTERY, SOURCES
+from packpilot.contract.soc_source import LABELS as SOC_LABELS
 from packpilot.errors import InputError
 from packpilot.report import sections as S
 from packpilot.report.can_log import can_section
@@ -44,6 +48,7 @@ from packpilot.report.fmt import (
     table,
 )
 from packpilot.report.info import RunInfo, run_info_from_db
+from packpilot.report.sections import SHORT as SOC_SHORT
 from packpilot.report.style import ALARM_COLOR
 from packpilot.sim.verdict import Verdict
 
@@ -127,7 +132,9 @@ def _verdict(verdict: Verdict) -> str:
     return head + table(header, rows, cls="alarms", raw=True)
 
 
-def _kpis(result: Result, digest: RunDigest, verdict: Verdict) -> str:
+def _kpis(
+    result: Result, digest: RunDigest, verdict: Verdict, soc_end: list[tuple[float, str]]
+) -> str:
     """The headline numbers, as tiles: what a reader checks before anything else."""
     m = result.metrics
     span = digest.span_s
@@ -152,10 +159,10 @@ def _kpis(result: Result, digest: RunDigest, verdict: Verdict) -> str:
     tile("max_temp_c", "hottest cell", "°C")
     tile("peak_cross_current_a", "peak cross current", "A")
     tile("load_unsupplied_s", "load unsupplied", "s")
-    soc = digest.extreme("end_soc") if digest.n else []
-    for name, x in zip(result.battery_names, soc, strict=False):
+    for name, (x, src) in zip(result.battery_names, soc_end, strict=False):
         if math.isfinite(float(x)):
-            tiles.append((f"{fmt_num(100.0 * float(x))} %", f"SOC of {name} at the end", ""))
+            tiles.append((f"{fmt_num(100.0 * float(x))} %",
+                          f"SOC of {name} at the end ({SOC_SHORT[src]})", ""))  # fmt: skip
     tiles.append((f"{len(result.events):,}", "events", ""))
     body = "".join(
         f'<div class="kpi {esc(cls)}"><div class="v">{esc(v)}</div><div class="k">{esc(k)}'
@@ -165,7 +172,21 @@ def _kpis(result: Result, digest: RunDigest, verdict: Verdict) -> str:
     return f'<div class="kpis" id="kpis">{body}</div>'
 
 
-def _summary(result: Result, info: RunInfo, verdict: Verdict, digest: RunDigest) -> str:
+def core_soc_end(page: S.Page) -> list[tuple[float, str]]:
+    """Per battery: the last SOC the core used in the run and its source then
+    (``contract/soc_source.py``; NaN and "battery" when nothing was recorded)."""
+    out: list[tuple[float, str]] = []
+    for b in range(len(page.names)):
+        soc, codes = page.core_soc(b)
+        ok = np.flatnonzero(np.isfinite(soc))
+        k = int(ok[-1]) if ok.size else -1
+        out.append((float(soc[k]), SOURCES[int(codes[k])]) if k >= 0 else (math.nan, BATTERY))
+    return out
+
+
+def _summary(
+    result: Result, info: RunInfo, verdict: Verdict, digest: RunDigest, page: S.Page
+) -> str:
     n_s = digest.n
     names = result.battery_names
     roles = info.roles(names)
@@ -214,7 +235,7 @@ def _summary(result: Result, info: RunInfo, verdict: Verdict, digest: RunDigest)
         if scalar_rows
         else '<p class="note">No metrics recorded (the run did not finish).</p>'
     )
-    batt_tbl = _battery_table(result, info, digest, per_battery)
+    batt_tbl = _battery_table(result, info, digest, per_battery, core_soc_end(page))
     cfg = ""
     if info.config is not None:
         text = json.dumps(info.config, indent=2, default=str)
@@ -241,7 +262,7 @@ def _summary(result: Result, info: RunInfo, verdict: Verdict, digest: RunDigest)
         )
     return (
         warn
-        + _kpis(result, digest, verdict)
+        + _kpis(result, digest, verdict, core_soc_end(page))
         + '<div class="cols"><div><h3>Run</h3>'
         + run_tbl
         + "</div><div><h3>Metrics</h3>"
@@ -253,8 +274,9 @@ def _summary(result: Result, info: RunInfo, verdict: Verdict, digest: RunDigest)
 
 
 def _battery_table(
-    result: Result, info: RunInfo, digest: RunDigest, extra: list[tuple[str, list[Any]]]
-) -> str:
+    result: Result, info: RunInfo, digest: RunDigest, extra: list[tuple[str, list[Any]]],
+    soc_end: list[tuple[float, str]],
+) -> str:  # fmt: skip
     """Per battery figures over every sample (from the digest: a long run is never held)."""
     names = result.battery_names
     if digest.n == 0:
@@ -268,9 +290,12 @@ def _battery_table(
     if any(k is not None for k in kinds):
         rows.append(("switch", *[k or "–" for k in kinds]))
     out_ah, in_ah = digest.charge_ah()
+    if soc_end:
+        rows.append(("SOC the BMS used at end (%)", *[fmt_num(100 * x) for x, _ in soc_end]))
+        rows.append(("... from", *[SOC_LABELS[src] for _, src in soc_end]))
     stats: list[tuple[str, list[float]]] = [
-        ("SOC at start (%)", [100 * x for x in ext("soc_first")]),
-        ("SOC at end (%)", [100 * x for x in ext("soc_last")]),
+        ("true SOC at start (%, plant)", [100 * x for x in ext("soc_first")]),
+        ("true SOC at end (%, plant)", [100 * x for x in ext("soc_last")]),
         ("voltage min (V)", ext("v_min")),
         ("voltage max (V)", ext("v_max")),
         ("cell voltage min (V)", ext("cmin")),
@@ -469,7 +494,8 @@ def _alarm_marks(verdict: Verdict) -> list[tuple[float, str, str]]:
 def _sections(result: Result, info: RunInfo, verdict: Verdict, page: S.Page) -> dict[str, str]:
     """Every section's body, in page order."""
     page.marks.extend(_alarm_marks(verdict))
-    body = {"verdict": _verdict(verdict), "summary": _summary(result, info, verdict, page.digest)}
+    body = {"verdict": _verdict(verdict),
+            "summary": _summary(result, info, verdict, page.digest, page)}  # fmt: skip
     for key, (_, build) in S.METHODS.items():
         if info.enabled(key):
             body[key] = build(page)

@@ -22,7 +22,10 @@ from numpy.typing import NDArray
 
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
+from packpilot.contract.soc_source import LABELS as SOC_LABELS
+from packpilot.contract.soc_source import SOURCES
 from packpilot.errors import InputError
+from packpilot.report.channels import SOC_CHANNELS, core_soc, status_channels
 from packpilot.report.style import battery_color
 
 _FORMATS = ("png", "svg", "pdf")
@@ -154,11 +157,19 @@ def run_figure(result: Result) -> Figure:
     scale, t_label = _time_unit(tr.t_s)
     t = tr.t_s / scale
     ax_v, ax_i, ax_soc, ax_t = axes
+    soc_chans = status_channels(result, SOC_CHANNELS)
+    sources: set[str] = set()
     for b, name in enumerate(result.battery_names):
         color = battery_color(b)
         ax_v.plot(t, tr.channel("voltage_v")[:, b], color=color, lw=1.2, label=name)
         ax_i.plot(t, tr.channel("current_a")[:, b], color=color, lw=1.2, label=name)
-        ax_soc.plot(t, 100.0 * tr.channel("soc")[:, b], color=color, lw=1.2, label=name)
+        # the SOC the core used (solid), the plant's truth (dashed) where it differs
+        truth = tr.channel("soc")[:, b]
+        soc, codes = core_soc(soc_chans, len(t), b, truth)
+        sources |= {SOURCES[int(k)] for k in np.unique(codes)}
+        ax_soc.plot(t, 100.0 * soc, color=color, lw=1.2, label=name)
+        if not np.allclose(soc, truth, atol=1e-9, equal_nan=True):
+            ax_soc.plot(t, 100.0 * truth, color=color, lw=0.7, ls="--", label=f"{name} (plant)")
         ax_t.plot(t, tr.channel("temp_c")[:, b], color=color, lw=1.2, label=name)
     if _has_data(tr.bus_v):
         ax_v.plot(t, tr.bus_v, color="k", lw=0.8, ls="--", label="bus")
@@ -177,6 +188,9 @@ def run_figure(result: Result) -> Figure:
     ax_v.set_ylabel("voltage (V)")
     ax_i.set_ylabel("current (A)\n+ = discharge")
     ax_soc.set_ylabel("SOC (%)")
+    used = ", ".join(SOC_LABELS[x] for x in SOURCES if x in sources)
+    ax_soc.set_title(f"SOC the BMS used ({used}); dashed: the plant's truth", fontsize=8,
+                     loc="left")  # fmt: skip
     ax_t.set_ylabel("temperature (°C)")
     ax_t.set_xlabel(t_label)
     if np.isfinite(t).any() and np.nanmax(t) > np.nanmin(t):

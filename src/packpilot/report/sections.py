@@ -15,9 +15,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.contract.record import Result
+from packpilot.contract.soc_source import BATTERY, COUNTER, FALLBACK, OBSERVER, SOURCES
 from packpilot.report.channels import (
     StatusChannel,
     categories,
+    core_soc,
     family_of,
     group_base,
     natural_key,
@@ -85,6 +87,19 @@ class Page:
         counts = np.diff(np.append(ch.rows, len(self.t)))
         return self.store.add(f"{ch.name}/{b}", np.repeat(col, counts), q)
 
+    def status_at(self, name: str, k: int, b: int) -> object:
+        """A status channel's value for battery ``b`` at step ``k`` (None when absent)."""
+        ch = self.channels.get(name)
+        if ch is None or b >= ch.values.shape[1]:
+            return None
+        j = int(np.searchsorted(ch.rows, k, side="right")) - 1
+        return None if j < 0 else ch.values[j, b]
+
+    def core_soc(self, b: int) -> tuple[F64, NDArray[np.int64]]:
+        """The SOC the core used for battery ``b`` at every step and its source there
+        (``report/channels.py:core_soc``)."""
+        return core_soc(self.channels, len(self.t), b, self.result.trace.channel("soc")[:, b])
+
     # -- charts --------------------------------------------------------------------------
     def chart(self, chart: Chart, caption: str = "") -> str:
         """Register a chart; its placeholder (drawn by report.js)."""
@@ -148,11 +163,7 @@ def batteries(page: Page) -> str:
         i.series.append(Series(page.pack("load_demand_a"), "load demand", "#888888", dash=True))
     if digest.charger_any:
         i.series.append(Series(page.pack("charger_a"), "charger", "#6b8e23", dash=True))
-    soc = Chart("soc", "State of charge (%)", "%", marks=marks)
-    soc.series = [
-        Series(page.bat("soc", b), names[b], battery_color(b), scale=100.0)
-        for b in range(len(names))
-    ]
+    soc, soc_caption = soc_chart(page, marks)
     cell = Chart("cells", "Highest (solid) and lowest (dashed) cell voltage (V)", "V", marks=marks)
     for b in main:
         cell.series.append(Series(page.bat("max_cell_v", b), f"{names[b]} max", battery_color(b)))
@@ -163,8 +174,8 @@ def batteries(page: Page) -> str:
     temp.series = [
         Series(page.bat("temp_c", b), names[b], battery_color(b)) for b in range(len(names))
     ]
-    parts = [page.chart(v, v_caption), page.chart(i), page.chart(soc), page.chart(cell),
-             page.chart(temp)]  # fmt: skip
+    parts = [page.chart(v, v_caption), page.chart(i), page.chart(soc, soc_caption),
+             page.chart(cell), page.chart(temp)]  # fmt: skip
     if aux:
         va = Chart("aux-voltage", "Auxiliary battery voltage (V)", "V", height=130)
         va.series = [Series(page.bat("voltage_v", b), names[b], battery_color(b)) for b in aux]
@@ -190,6 +201,54 @@ def battery_v_range(volts: F64, pad: float = 0.06) -> tuple[float, float] | None
     lo, hi = float(finite.min()), float(finite.max())
     margin = max(pad * (hi - lo), 0.05)
     return lo - margin, hi + margin
+
+
+FALLBACK_COLOR = "#f5d9a8"
+"""Shading of the SOC chart where a battery's observer was not trusted (its fallback shown)."""
+
+
+def soc_share(codes: NDArray[np.int64]) -> str:
+    """"observer 93 %, fallback 7 %": how much of the run each source gave the SOC."""
+    n = max(len(codes), 1)
+    parts = [(int(np.sum(codes == k)), name) for k, name in enumerate(SOURCES)]
+    return ", ".join(f"{SHORT[name]} {100.0 * c / n:.0f} %" for c, name in
+                     sorted(parts, reverse=True) if c)  # fmt: skip
+
+
+SHORT = {OBSERVER: "observer", FALLBACK: "fallback (coulomb counter)",
+         COUNTER: "coulomb counter", BATTERY: "battery's own"}  # fmt: skip
+
+
+def soc_chart(page: Page, marks: list[tuple[float, str, str]]) -> tuple[Chart, str]:
+    """The SOC the core used (solid, ``contract/soc_source.py``) and the plant's true SOC
+    (dashed), per battery; where a battery's observer was not trusted (its fallback shown)
+    the chart is shaded, and the caption says which source gave each battery's SOC for how
+    much of the run."""
+    names, tr = page.names, page.result.trace
+    chart = Chart("soc", "State of charge (%): what the BMS used (solid) and the plant's truth "
+                  "(dashed)", "%", marks=marks)  # fmt: skip
+    said = []
+    fallback = np.zeros(len(page.t), dtype=bool)
+    for b in range(len(names)):
+        soc, codes = page.core_soc(b)
+        chart.series.append(Series(page.store.add(f"soc_core/{b}", soc), names[b],
+                                   battery_color(b), scale=100.0))  # fmt: skip
+        truth = np.asarray(tr.channel("soc")[:, b], np.float64)
+        if not np.allclose(truth, soc, atol=1e-9, equal_nan=True):
+            plant = Series(page.bat("soc", b), f"{names[b]} (plant)", battery_color(b),
+                           dash=True, width=1.0, scale=100.0)
+            chart.series.append(plant)
+        fallback |= codes == SOURCES.index(FALLBACK)
+        if b in page.traction or np.any(codes != SOURCES.index(BATTERY)):
+            said.append(f"{names[b]}: {soc_share(codes)}")
+    found = spans(np.asarray(page.t, np.float64), fallback)
+    chart.bands.extend((a, z, FALLBACK_COLOR) for a, z in found)
+    caption = "SOC from: " + "; ".join(said) + "."
+    if found:
+        caption += (" Shaded: a battery's observer was not trusted (settling after the start,"
+                    " or restarting after diverging) and its SOC is the fallback, the coulomb"
+                    " counter.")  # fmt: skip
+    return chart, caption
 
 
 def _range_on_batteries(chart: Chart, t: F64, volts: F64, bus_v: F64) -> str:
@@ -620,11 +679,15 @@ def _scenario(info: RunInfo) -> Any:
 
 def power(page: Page) -> str:
     """The pack's state of power along the run (``docs/power.md``): at up to 120 instants,
-    the largest discharge current it could have held for 10 and 30 s from the recorded state
-    (the same prediction ``run`` publishes as CCL/DCL), beside the current it carried. Empty
-    when the run's config does not read back or nothing was recorded."""
-    from packpilot.control.power import state_of_power
-    from packpilot.sim.power import inputs_from_core, params_of
+    the largest discharge and charge current it could have held for 2, 10 and 30 s, predicted
+    from the recorded state by ``sim/power_view.py`` (the function ``run`` publishes its
+    CCL/DCL and 0x231 from, and the dashboard shows: the core's SOC and its source, the
+    observer's polarisation and R0 where it was trusted), beside the current drawn; the
+    lowest of each over the run for the pack (A and W) and per battery (its share of the
+    pack's limit, and its limit alone). Empty when the run's config does not read back or
+    nothing was recorded."""
+    from packpilot.sim.power import params_of
+    from packpilot.sim.power_view import state_of_power_now, view_of_status
 
     cfg = _scenario(page.info)
     cols = page.traction
@@ -634,49 +697,71 @@ def power(page: Page) -> str:
     if prm.series.shape[0] != len(cols):
         return ""
     tr = page.result.trace
-    n = len(page.t)
+    n, nb, nh = len(page.t), len(cols), prm.horizons_s.shape[0]
     picks = np.unique(np.linspace(0, n - 1, min(MAX_SOP_POINTS, n)).astype(np.intp))
-    sop = np.full((3, n), math.nan)
+    pack = np.full((4, nh, n), math.nan)  # dsg A, dsg W, chg A, chg W
+    bat = np.full((4, nb, n), math.nan)  # 10 s: share dsg, alone dsg, share chg, alone chg
+    h10 = int(np.argmin(np.abs(prm.horizons_s - 10.0)))
     for k in picks:
 
-        def row(name: str, k: int = int(k)) -> F64:
-            return np.asarray(tr.channel(name)[k, cols], np.float64)
+        def at(name: str, b: int, k: int = int(k)) -> object:
+            return page.status_at(name, k, b)
 
-        here = np.isfinite(row("voltage_v")) & np.isfinite(row("soc"))
-        if not here.any():
-            continue
-        inp = inputs_from_core(
-            cfg, soc=row("soc"), temp_c=row("temp_c"), current_a=row("current_a"),
-            voltage_v=row("voltage_v"), min_cell_v=row("min_cell_v"),
-            max_cell_v=row("max_cell_v"), present=here, chg_on=row("chg_on") > 0.5,
-            dsg_on=row("dsg_on") > 0.5, prm=prm,
+        view = view_of_status(
+            tr.battery[k], at, cols, bus_v=float(tr.bus_v[k]), load_a=float(tr.load_a[k]),
+            mode=page.status_at("mode", int(k), cols[0]),
         )  # fmt: skip
-        out = state_of_power(prm, inp)
-        sop[:, k] = (out.pack_dsg_a[0, 1], out.pack_dsg_a[0, 2], out.pack_chg_a[0, 1])
-    held = np.maximum.accumulate(np.where(np.isfinite(sop[0]), np.arange(n), 0))
-    sop = sop[:, held]  # each prediction holds until the next one
+        out = state_of_power_now(cfg, prm, view)
+        if out is None:
+            continue
+        pack[:, :, k] = (out.pack_dsg_a[0], out.pack_dsg_w[0], out.pack_chg_a[0],
+                         out.pack_chg_w[0])  # fmt: skip
+        bat[:, :, k] = (out.share_dsg_a[0, :, h10], out.alone_dsg_a[0, :, h10],
+                        out.share_chg_a[0, :, h10], out.alone_chg_a[0, :, h10])  # fmt: skip
+    held = np.maximum.accumulate(np.where(np.isfinite(pack[0, 0]), np.arange(n), 0))
     drawn = np.nansum(tr.channel("current_a")[:, cols], axis=1)
-    chart = Chart("power", "Discharge state of power and the current drawn (A)", "A",
-                  height=200, marks=page.marks)  # fmt: skip
-    chart.series = [
-        Series(page.store.add("sop/dsg10", sop[0]), "10 s limit", "#1f77b4"),
-        Series(page.store.add("sop/dsg30", sop[1]), "30 s limit", "#1f77b4", dash=True),
-        Series(page.store.add("sop/drawn", drawn), "pack current", PACK_COLOR, width=1.0),
-    ]
-    headroom = sop[1] - drawn
+    chart = Chart("power", "State of power and the current drawn (A; charge below zero)", "A",
+                  height=220, marks=page.marks)  # fmt: skip
+    for h, secs in enumerate(prm.horizons_s.tolist()):
+        dash = h != h10
+        chart.series.append(Series(page.store.add(f"sop/dsg{secs:g}", pack[0, h][held]),
+                                   f"{secs:g} s discharge", "#1f77b4", dash=dash))  # fmt: skip
+        chart.series.append(Series(page.store.add(f"sop/chg{secs:g}", -pack[2, h][held]),
+                                   f"{secs:g} s charge", "#6b8e23", dash=dash))  # fmt: skip
+    chart.series.append(Series(page.store.add("sop/drawn", drawn), "pack current", PACK_COLOR,
+                               width=1.0))  # fmt: skip
+    i30 = int(np.argmax(prm.horizons_s))
+    headroom = pack[0, i30][held] - drawn
     low = float(np.nanmin(headroom)) if np.isfinite(headroom).any() else math.nan
     when = float(page.t[int(np.nanargmin(headroom))]) if math.isfinite(low) else math.nan
-    facts = table(("", "value"), [
-        ("lowest 30 s discharge limit (A)", fmt_num(float(np.nanmin(sop[1])))),
+
+    def lowest(x: F64) -> str:
+        return fmt_num(float(np.nanmin(x))) if np.isfinite(x).any() else "–"
+
+    rows = []
+    for h, secs in enumerate(prm.horizons_s.tolist()):
+        rows.append((f"{secs:g} s", lowest(pack[0, h]), lowest(pack[1, h]), lowest(pack[2, h]),
+                     lowest(pack[3, h])))  # fmt: skip
+    facts = table(("pack, lowest over the run", "discharge (A)", "discharge (W)", "charge (A)",
+                   "charge (W)"), rows, cls="sop")  # fmt: skip
+    facts += table(("", "value"), [
+        ("lowest 30 s discharge limit (A)", lowest(pack[0, i30])),
         ("least headroom, 30 s limit - current (A)", fmt_num(low)),
         ("... at", fmt_time(when) if math.isfinite(when) else "–"),
-        ("lowest 10 s charge limit (A)", fmt_num(float(np.nanmin(sop[2])))),
+        ("lowest 10 s charge limit (A)", lowest(pack[2, h10])),
     ])  # fmt: skip
+    per = [(page.names[b], *[lowest(bat[q, j]) for q in range(4)]) for j, b in enumerate(cols)]
+    facts += table(("battery, lowest over the run (10 s)", "share of the discharge (A)",
+                    "alone, discharge (A)", "share of the charge (A)", "alone, charge (A)"),
+                   per, cls="sop-battery")  # fmt: skip
     note = (
         '<p class="note">Predicted from the recorded state as <code>run</code> predicts '
-        "its CCL/DCL (SOC, temperatures, switch states; the cell set's resistances; no "
-        "polarisation), at up to 120 instants: the largest constant current the pack could "
-        "have held for that long without any battery crossing its cut-off, current or "
-        "temperature limit (docs/power.md).</p>"
+        "its CCL/DCL and the dashboard shows it (<code>sim/power_view.py</code>: the SOC the "
+        "core used, the observer's polarisation and R0 where it was trusted, the cell set's "
+        "resistances elsewhere; temperatures, switch states, the limits layer's limits), at up "
+        "to 120 instants: the largest constant current the pack could have held for that long "
+        "without any battery crossing its cut-off, current or temperature limit "
+        "(docs/power.md). A battery's share: what it carries while the pack draws its limit; "
+        "alone: its own limit with the others off the bus.</p>"
     )
     return note + facts + page.chart(chart)

@@ -154,7 +154,9 @@ class Hil:
     protection: dict[str, float]
     """The last ProtectionState frame (0x230) the platform decoded ..."""
     power: dict[str, float]
-    """... and the last StateOfPower frame (0x231)."""
+    """... the last StateOfPower frame (0x231) ..."""
+    soc: dict[str, float]
+    """... and the last StateOfCharge frame (0x232)."""
 
     def __init__(
         self,
@@ -209,7 +211,7 @@ class Hil:
             )  # fmt: skip
         self.inverter = InverterLog()
         self.aircraft = AircraftLog()
-        self.protection, self.power = {}, {}
+        self.protection, self.power, self.soc = {}, {}, {}
         """The last ProtectionState frame the platform was sent."""
         self.counters = FrameCounters()
         self.commands = 0
@@ -329,11 +331,8 @@ class Hil:
         self.counters.received += 1
         if kind in ("switch", "balancer", "aux"):
             self.commands += 1
-        if kind == "protection":
-            self.protection = vals
-            return
-        if kind == "power":
-            self.power = vals
+        if kind in ("protection", "power", "soc"):  # the platform keeps the last of each
+            setattr(self, kind, vals)
             return
         if kind == "aux" and self.aux is not None:
             if self.aux.command(bool(vals["AuxRelay"]), True, int(vals["Seq"]), t):

@@ -10,7 +10,8 @@ both limits because that mode opens every path.
 The state of power (``control/power``, ``docs/power.md``) is the core's prediction from the
 same state: the Pylontech CCL/DCL are the smaller of the limits layer's and the 30 s state of
 power (an inverter holds them continuously), and the ``StateOfPower`` frame (0x231) and
-DroneCAN ``BatteryPeriodic`` carry the 2 / 10 / 30 s figures.
+DroneCAN ``BatteryPeriodic`` carry the 2 / 10 / 30 s figures. The prediction is
+``sim/power_view.py:state_of_power_now``, the one the dashboard and the report show.
 
 Interpreted (a first run on a machine, ``coldstart.py``) the state of power costs about half
 a second of CPU (thousands of sub-steps of its bisections as plain Python) against ~1 µs
@@ -20,6 +21,14 @@ worker thread from a snapshot of the inputs taken at the publication (:class:`Po
 each publication carries the figure of the previous snapshot (about 1 s old, or NaN =
 unknown before the first), and the BMS period keeps its time (the worker yields the GIL every
 5 ms). Compiled it stays inline, as before: same figures, same frames.
+
+The SOC every frame carries (Pylontech 0x355, DroneCAN ``BatteryInfo`` of the pack and of each
+battery, the ``StateOfCharge`` frame 0x232) is the SOC the core uses
+(``contract/soc_source.py``): the observer's estimate where it is trusted, its fallback (the
+coulomb counter) otherwise, the battery's own report only without a ``[soc]`` estimator; 0x232
+says which, and DroneCAN's ``state_of_charge_pct_stdev`` carries the observer's deviation
+(a best guess elsewhere, :data:`FALLBACK_STDEV_PCT`). Before, every frame carried the
+batteries' own reported SOC, which the core does not act on.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from packpilot.config import ScenarioConfig
+from packpilot.contract import soc_source
 from packpilot.contract.events import value as field_value
 from packpilot.contract.topology import PackInfo
 from packpilot.control.core import Core
@@ -41,14 +51,20 @@ from packpilot.control.power import PowerInputs, PowerOut, PowerParams, state_of
 from packpilot.control.supervisor.rules import MODES
 from packpilot.io.can import dronecan_io as dc
 from packpilot.io.can import pylon
-from packpilot.io.can.battery import ProtectionReport, encode_power, encode_protection
+from packpilot.io.can.battery import (
+    ProtectionReport,
+    SocReport,
+    encode_power,
+    encode_protection,
+    encode_soc,
+)
 from packpilot.sim.power import inputs_from_core, params_of
+from packpilot.sim.power_view import TRIPPED_MODES, CoreView, sop_inputs
 
 HORIZON_CCL = 2
 """Index of the 30 s horizon in ``control.power.HORIZONS_S``: what CCL/DCL carry."""
 
 PERIOD_S = 1.0
-TRIPPED_MODES = ("fault", "shutdown")
 
 PYLON_BITS: dict[str, int] = {
     "cell_v_max": pylon.OVER_VOLTAGE,
@@ -192,6 +208,7 @@ class Publisher:
             out += pylon.encode_all(self.last, t)
         out.append(encode_protection(self.protection(), t))
         out.append(self.power_frame(t))
+        out.append(self.soc_frame(t))
         for info in self.battery_infos():
             out += dc.encode(info, self.node_id, self.transfer_id, t=t)
         out += dc.encode_periodic(self.periodic(), self.node_id, self.transfer_id, t=t)
@@ -212,17 +229,10 @@ class Publisher:
         if self.sop is not None:
             ccl = min(ccl, float(self.sop.pack_chg_a[0, HORIZON_CCL]))
             dcl = min(dcl, float(self.sop.pack_dsg_a[0, HORIZON_CCL]))
-        # A battery counts towards the SOC only with both capacities known: a NaN remaining
-        # beside a finite full capacity would read as empty and drag the pack's SOC down.
-        known = (
-            here
-            & np.isfinite(m.bat.full_capacity_ah[0])
-            & np.isfinite(m.bat.remaining_capacity_ah[0])
-        )
-        full = np.where(known, m.bat.full_capacity_ah[0], 0.0)
-        rem = np.where(known, m.bat.remaining_capacity_ah[0], 0.0)
+        soc = 100.0 * self.pack_soc()[0]
+        full = np.where(here & np.isfinite(m.bat.full_capacity_ah[0]), m.bat.full_capacity_ah[0],
+                        0.0)  # fmt: skip
         nominal = np.where(here, np.asarray(self.info.capacity_ah), 0.0)
-        soc = 100.0 * _ratio(float(np.nansum(rem)), float(np.nansum(full)))
         soh = 100.0 * _ratio(float(np.nansum(full)), float(np.nansum(nominal)))
         prot, warn = self._alarms(tripped)
         return pylon.PackAsBattery(
@@ -240,6 +250,47 @@ class Publisher:
             modules=int(here.sum()),
             name=self.name,
         )
+
+    # ------------------------------------------------------------------ SOC
+    def battery_soc(self) -> tuple[NDArray[np.float64], list[str]]:
+        """The SOC the core uses per battery (0..1) and its source
+        (``contract/soc_source.py``): the observer's estimate where trusted, the coulomb
+        counter as its fallback, the battery's own report only without an estimator."""
+        return self.view().soc()
+
+    def pack_soc(self) -> tuple[float, float, str, int, int]:
+        """(SOC 0..1, its standard deviation, source, batteries on the observer, on the
+        fallback) of the pack as one battery: the core's SOC of each present battery weighted
+        by its full capacity as it reports it (a battery without both counts nothing: a NaN
+        would read as empty and drag the pack's SOC down). The deviation is the observer's
+        (independent batteries, weighted the same way), NaN unless every battery counted is on
+        the observer; the source is the observer only when every battery counted is, else the
+        first of fallback, counter, battery's own that any battery counted is on."""
+        m = self.core.m
+        soc, sources = self.battery_soc()
+        full = np.asarray(m.bat.full_capacity_ah[0], np.float64)
+        known = self._present() & np.isfinite(full) & (full > 0) & np.isfinite(soc)
+        total = float(full[known].sum())
+        if total <= 0.0:
+            return math.nan, math.nan, soc_source.BATTERY, 0, 0
+        w = np.where(known, full / total, 0.0)
+        value = float(np.sum(w * np.where(known, soc, 0.0)))
+        used = [sources[i] for i in range(len(sources)) if known[i]]
+        n_obs = used.count(soc_source.OBSERVER)
+        n_fb = used.count(soc_source.FALLBACK)
+        sigma = np.array([self.ch.value("soc_sigma", i) for i in range(len(sources))])
+        sd = math.sqrt(float(np.sum((w * np.where(known, sigma, 0.0)) ** 2)))
+        if n_obs == len(used):
+            return value, sd, soc_source.OBSERVER, n_obs, n_fb
+        src = next(s for s in (soc_source.FALLBACK, soc_source.COUNTER, soc_source.BATTERY)
+                   if s in used)  # fmt: skip
+        return value, math.nan, src, n_obs, n_fb
+
+    def soc_frame(self, t: float) -> can.Message:
+        """0x232: the pack's SOC as the core estimates it, with its source and deviation."""
+        value, sd, src, n_obs, n_fb = self.pack_soc()
+        return encode_soc(SocReport(100.0 * value, 100.0 * sd, soc_source.SOURCES.index(src),
+                                    n_obs, n_fb), t)  # fmt: skip
 
     def _voltage(self, here: np.ndarray) -> float:
         bus = float(self.core.m.bus_v[0])
@@ -263,6 +314,27 @@ class Publisher:
         return prot, warn
 
     # ------------------------------------------------------------------ state of power
+    def view(self) -> CoreView:
+        """What the core knows of the pack now (``sim/power_view.py``): the SOC method's
+        estimate and its source, the observer's polarisation and R0, the measurements, the
+        switch feedback, the limits layer's per-battery limits, the supervisor's mode."""
+        m, ch = self.core.m, self.ch
+        n = m.bat.reported.shape[1]
+
+        def per(name: str) -> NDArray[np.float64]:
+            return np.array([ch.value(name, i) for i in range(n)], np.float64)
+
+        return CoreView(
+            soc_est=per("soc_est"), observer_ok=per("soc_observer_ok") == 1.0,
+            soc_sigma=per("soc_sigma"), reported_soc=np.asarray(m.bat.soc[0], np.float64),
+            v_rc_v=per("soc_v_rc_v"), r0_ohm=per("soc_r0_ohm"), temp_c=m.bat.temp_c[0],
+            current_a=m.bat.current_a[0], voltage_v=m.bat.voltage_v[0],
+            min_cell_v=m.bat.min_cell_v[0], max_cell_v=m.bat.max_cell_v[0],
+            present=self._present(), chg_on=m.bat.sw_chg[0], dsg_on=m.bat.sw_dsg[0],
+            limit_dsg_a=per("limit_dsg_a"), limit_chg_a=per("limit_chg_a"),
+            tripped=mode(ch) in TRIPPED_MODES, bus_v=float(m.bus_v[0]),
+        )  # fmt: skip
+
     def state_of_power(self) -> PowerOut | None:
         """The core's state of power now (:meth:`power_inputs`); None when nothing can be
         predicted."""
@@ -270,41 +342,11 @@ class Publisher:
         return None if inp is None else state_of_power(self.power_prm, inp)
 
     def power_inputs(self) -> PowerInputs | None:
-        """What the state of power is computed from, from the state the core has: the SOC
-        method's estimate (else the batteries' own SOC), the switch feedback, the limits
-        layer's per-battery limits; the cell set's resistances (``sim/power.py:
-        inputs_from_core``, the observer's hook). A battery not reporting, or with no SOC,
-        counts as absent (the others are assumed to carry everything). Fresh arrays: a
-        snapshot the worker thread may read while the core steps on."""
-        m, ch = self.core.m, self.ch
-        n = self.power_prm.series.shape[0]
-        if m.bat.reported.shape[1] != n:
-            return None
-        est = np.array([ch.value("soc_est", i) for i in range(n)])
-        soc = np.where(np.isfinite(est), est, m.bat.soc[0])
-        here = self._present() & np.isfinite(soc)
-        if not here.any():
-            return None
-        inp = inputs_from_core(
-            self.cfg, soc=soc, temp_c=m.bat.temp_c[0], current_a=m.bat.current_a[0],
-            voltage_v=m.bat.voltage_v[0], min_cell_v=m.bat.min_cell_v[0],
-            max_cell_v=m.bat.max_cell_v[0], present=here, chg_on=m.bat.sw_chg[0],
-            dsg_on=m.bat.sw_dsg[0],
-            limit_dsg_a=np.array([ch.value("limit_dsg_a", i) for i in range(n)]),
-            limit_chg_a=np.array([ch.value("limit_chg_a", i) for i in range(n)]),
-            prm=self.power_prm, polarisation_v=self._observed("soc_v_rc_v", n),
-            r0_ohm=self._observed("soc_r0_ohm", n),
-        )  # fmt: skip
-        if mode(ch) in TRIPPED_MODES:
-            inp.present[0, :] = False
-        return inp
-
-    def _observed(self, name: str, n: int) -> NDArray[np.float64]:
-        """A channel of the SOC observer per battery, NaN where the observer is not
-        trusted (diverged, restarting, or not running)."""
-        ok = np.array([self.ch.value("soc_observer_ok", i) == 1.0 for i in range(n)])
-        values = np.array([self.ch.value(name, i) for i in range(n)])
-        return np.where(ok, values, math.nan)
+        """What the state of power is computed from: the state the core has (:meth:`view`),
+        through ``sim/power_view.py:sop_inputs``, the one function the dashboard and the
+        report use too. A battery not reporting, or with no SOC, counts as absent (the
+        others are assumed to carry everything). Fresh arrays."""
+        return sop_inputs(self.cfg, self.power_prm, self.view())
 
     def warm_up(self) -> None:
         """Compile (or load) the state-of-power kernels on a made-up state, before the
@@ -365,16 +407,20 @@ class Publisher:
         flags = self._flags(pack.current_a, bool(np.any(m.bat.sw_dsg[0] & here)), tripped)
         full_wh = float(np.nansum(np.where(here, m.bat.full_capacity_ah[0], 0.0))) * _finite0(v)
         rem_wh = full_wh * pack.soc_pct / 100.0
+        _, pack_sd, _, _, _ = self.pack_soc()
         out.append(dc.BatteryInfo(0, v, pack.current_a, pack.temp_c, pack.soc_pct, pack.soh_pct,
-                                  rem_wh, full_wh, flags, "PackPilot"))  # fmt: skip
+                                  rem_wh, full_wh, flags, "PackPilot",
+                                  soc_stdev_pct=_stdev_pct(pack_sd)))  # fmt: skip
+        soc, sources = self.battery_soc()
         for i in range(m.bat.reported.shape[1]):
             vi, cur = float(m.bat.voltage_v[0, i]), float(m.bat.current_a[0, i])
             full = float(m.bat.full_capacity_ah[0, i])
-            rem = float(m.bat.remaining_capacity_ah[0, i])
             fl = self._flags(cur, bool(m.bat.sw_dsg[0, i]), tripped or not here[i])
+            sd = self.ch.value("soc_sigma", i) if sources[i] == soc_source.OBSERVER else math.nan
             out.append(dc.BatteryInfo(i + 1, vi, cur, float(m.bat.temp_c[0, i]),
-                                      100.0 * float(m.bat.soc[0, i]), math.nan,
-                                      rem * vi, full * vi, fl, f"PackPilot-{i}"))  # fmt: skip
+                                      100.0 * float(soc[i]), math.nan,
+                                      float(soc[i]) * full * vi, full * vi, fl, f"PackPilot-{i}",
+                                      soc_stdev_pct=_stdev_pct(sd)))  # fmt: skip
         return out
 
     def periodic(self) -> dc.BatteryPeriodic:
@@ -422,6 +468,18 @@ def latest(times_s: Sequence[float]) -> float:
     """The latest of per-battery predicted times over the batteries that have one (the time
     to empty of the pack: the last battery to run out), NaN when none has one."""
     return max((x for x in times_s if math.isfinite(x)), default=math.nan)
+
+
+FALLBACK_STDEV_PCT = 10.0
+"""DroneCAN's ``state_of_charge_pct_stdev`` where the SOC is not the observer's (its DSDL: "use
+best guess if unknown"): the coulomb counter's RMS error measured under the acceptance's sensor
+errors, 2.6-14.8 %, median about 10 % (``benchmarks/RESULTS.md``, issue #28 observer figures,
+"today's" column). Sending 0, as before, claimed a perfect SOC."""
+
+
+def _stdev_pct(sd: float) -> float:
+    """The SOC deviation sent (percentage points): the observer's, else the best guess."""
+    return 100.0 * sd if math.isfinite(sd) else FALLBACK_STDEV_PCT
 
 
 def _finite0(x: float) -> float:

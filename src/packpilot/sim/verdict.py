@@ -37,6 +37,7 @@ from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Result, StepSample
 from packpilot.contract.severity import MATCH_FIELDS, VERDICTS, Severity, row_of
 from packpilot.contract.topology import Topology
+from packpilot.sim.fit_range import FitWatch
 
 F64 = NDArray[np.float64]
 B1 = NDArray[np.bool_]
@@ -288,6 +289,8 @@ class PhysicsWatch:
         """Per string: how long its cross-discharge has lasted at the end of the last chunk."""
         self._checks[("load", n)] = _Check("LoadLoss", "unsupplied", Severity.ALARM, None)
         self._last_t_s = math.nan
+        self.fit: Any = None
+        """A ``sim.fit_range.FitWatch`` fed the same chunks (set by :class:`RunWatch`)."""
 
     def feed_samples(self, samples: Sequence[StepSample]) -> None:
         """A chunk of the dashboard's samples."""
@@ -305,6 +308,8 @@ class PhysicsWatch:
         """A chunk of the trace: ``battery`` shaped (steps, strings, BATTERY_CHANNELS)."""
         if t_s.size == 0:
             return
+        if self.fit is not None:
+            self.fit.feed(t_s, battery)
         dt = np.diff(t_s, prepend=t_s[0] if math.isnan(self._last_t_s) else self._last_t_s)
         dt = np.where(dt > 0, dt, np.median(dt) if dt.size > 1 else 0.0)
         with np.errstate(invalid="ignore"):
@@ -504,14 +509,20 @@ def counted_verdict(
 
 
 class RunWatch:
-    """Events and physics of one run, streaming: what every view of a run asks for."""
+    """Events and physics of one run, streaming: what every view of a run asks for (the CLI's
+    verdict, the report's, the live dashboard's): the events' alarms, the physics checks and,
+    on a fitted cell set, the range it was fitted on (``OutsideFit``, #27 §4)."""
 
     def __init__(self, config: Mapping[str, Any] | None, names: Sequence[str]) -> None:
         self.events = EventAlarms(Topology.of_config(config, names))
         self.physics = PhysicsWatch(PhysicsLimits.of_config(config, names))
+        self.fit = FitWatch(config, names)
+        if self.fit.watch:
+            self.physics.fit = self.fit
 
     def verdict(self) -> Verdict:
-        return verdict_of([*self.events.alarms(), *self.physics.alarms()])
+        return verdict_of([*self.events.alarms(), *self.physics.alarms(),
+                           *_outside_fit(self.fit.found())])  # fmt: skip
 
 
 def run_verdict(result: Result, config: Mapping[str, Any] | None) -> Verdict:
@@ -521,16 +532,12 @@ def run_verdict(result: Result, config: Mapping[str, Any] | None) -> Verdict:
     if len(tr.t_s):
         watch.physics.feed(tr.t_s, tr.battery, tr.load_demand_a, tr.load_a, tr.charger_a)
     watch.events.feed(result.events)
-    return verdict_of([*watch.verdict().alarms, *_outside_fit(result, config)])
+    return watch.verdict()
 
 
-def _outside_fit(result: Result, config: Mapping[str, Any] | None) -> list[Alarm]:
+def _outside_fit(found: Mapping[str, Sequence[tuple[float, str]]]) -> list[Alarm]:
     """A warning per battery on a fitted cell set that the run took beyond the range the set
     was fitted on (:mod:`packpilot.sim.fit_range`): the answer there is extrapolated."""
-    from packpilot.sim.fit_range import excursions
-
-    tr = result.trace
-    found = excursions(config, result.battery_names, tr.t_s, tr.battery)
     return [
         Alarm(
             t_s=rows[0][0], battery=name, kind="OutsideFit", category="extrapolated",

@@ -91,7 +91,7 @@ def create_app(
     app.add_middleware(_BodyLimitMiddleware)  # outermost: sizes before authentication
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     page = (STATIC / "index.html").read_text(encoding="utf-8")
-    _read_routes(app, session, rules, page)
+    _read_routes(app, session, rules, page, fleet is not None)
     _control_routes(app, session, rules)
     _fleet_routes(app, fleet)
 
@@ -113,8 +113,10 @@ def create_app(
     return app
 
 
-def _read_routes(app: FastAPI, session: Session, rules: Guard, page: str) -> None:
-    """What any allowed client may read (in remote mode the middleware demands the token)."""
+def _read_routes(app: FastAPI, session: Session, rules: Guard, page: str, fleet: bool) -> None:
+    """What any allowed client may read (in remote mode the middleware demands the token).
+    The catalog says where the fleet view is (``--fleet``; null without one), so the page
+    links it."""
 
     @app.get("/", include_in_schema=False)
     async def index(request: Request) -> Response:
@@ -148,7 +150,8 @@ def _read_routes(app: FastAPI, session: Session, rules: Guard, page: str) -> Non
 
     @app.get("/api/catalog")
     async def catalog() -> Response:
-        return _json(await asyncio.to_thread(session.catalog))
+        cat = await asyncio.to_thread(session.catalog)
+        return _json({**cat, "fleet": "/fleet" if fleet else None})
 
     @app.get("/api/at")
     async def at(t_s: float = Query(..., description="simulated time to show")) -> Response:
@@ -157,7 +160,7 @@ def _read_routes(app: FastAPI, session: Session, rules: Guard, page: str) -> Non
             return _error(409, "not a recording: only a recorded run can be scrubbed")
         if not math.isfinite(t_s):
             return _error(422, "t_s must be finite")
-        return _json(rec.at(t_s))
+        return _json(await asyncio.to_thread(rec.at, t_s))
 
     @app.get("/report", include_in_schema=False)
     async def report() -> Response:
@@ -320,7 +323,7 @@ def _update(
     st: dict[str, Any], points: list[dict[str, Any]], events: list[dict[str, Any]], done: bool
 ) -> dict[str, Any]:
     keys = ("state", "t_s", "progress", "verdict", "latest", "error", "run_id", "speed",
-            "paused", "headline", "report", "notice")  # fmt: skip
+            "paused", "headline", "report", "notice", "power", "power_note")  # fmt: skip
     msg = {"type": "update", **{k: st[k] for k in keys}}
     msg.update(points=points, events=events, metrics=st["metrics"] if done else None)
     return msg

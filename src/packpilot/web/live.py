@@ -27,15 +27,19 @@ import numpy as np
 from packpilot.contract.bms import Event
 from packpilot.contract.record import BATTERY_CHANNELS, Recorder, StepSample
 from packpilot.contract.severity import row_of
+from packpilot.contract.soc_source import LABELS as SOC_LABELS
+from packpilot.contract.soc_source import shown_soc
 from packpilot.contract.topology import Topology
 from packpilot.errors import PackPilotError
 from packpilot.sim.verdict import RunWatch
+from packpilot.web.power import PowerPanel
 
 MAX_SPEED = 10_000.0
 """Fastest pace the page may ask for (simulated seconds per wall second); 0 means unpaced."""
 
 CHART_CHANNELS: tuple[str, ...] = ("voltage_v", "current_a", "soc", "temp_c")
-"""Per-battery channels kept in the chart history (the four charts of the page)."""
+"""Per-battery channels kept in the chart history (the four charts of the page); ``soc`` is
+the SOC the core uses (:func:`core_soc`), the others the recorded battery columns."""
 
 _CHART_COLS = [BATTERY_CHANNELS.index(c) for c in CHART_CHANNELS]
 
@@ -236,14 +240,35 @@ def _num(x: Any) -> float:
     return float(x) if isinstance(x, int | float) and math.isfinite(x) else 0.0
 
 
-def sample_summary(s: StepSample, names: Sequence[str]) -> dict[str, Any]:
-    """The latest step in full: pack values, every battery channel, every controller status."""
-    batteries = []
+def core_soc(s: StepSample) -> list[tuple[float, str]]:
+    """Per battery row of ``s``: the SOC the core uses and its source
+    (``contract/soc_source.py``; the battery's own report where the core has no estimate:
+    what the BMS read of it, ``bms_soc``, else the recorded value)."""
+
+    def at(name: str, i: int) -> object:
+        vals = s.status.get(name)
+        return vals[i] if vals is not None and i < len(vals) else None
+
+    soc_col = BATTERY_CHANNELS.index("soc")
+    out = []
     for i, row in enumerate(s.battery):
+        reported = at("bms_soc", i) if "bms_soc" in s.status else float(row[soc_col])
+        out.append(shown_soc(at("soc_est", i), at("soc_observer_ok", i), at("soc_sigma", i),
+                             reported))  # fmt: skip
+    return out
+
+
+def sample_summary(s: StepSample, names: Sequence[str]) -> dict[str, Any]:
+    """The latest step in full: pack values, every battery channel, every controller status,
+    and the SOC the core uses with its source (``soc_core``, ``soc_source``,
+    ``soc_source_label``)."""
+    batteries = []
+    for i, (row, (soc, source)) in enumerate(zip(s.battery, core_soc(s), strict=True)):
         bat: dict[str, Any] = {"name": names[i] if i < len(names) else str(i)}
         bat.update(zip(BATTERY_CHANNELS, row.tolist(), strict=True))
         bat["group_v"] = s.group_v[i].tolist() if i < len(s.group_v) else []
         bat["status"] = {k: v[i] for k, v in s.status.items() if i < len(v)}
+        bat.update(soc_core=soc, soc_source=source, soc_source_label=SOC_LABELS[source])
         batteries.append(bat)
     mode = s.status.get("mode")
     out: dict[str, Any] = {
@@ -263,6 +288,8 @@ def sample_summary(s: StepSample, names: Sequence[str]) -> dict[str, Any]:
 
 
 def _chart_point(s: StepSample) -> dict[str, Any]:
+    """One point of the chart history; its ``soc`` is the SOC the core uses (the page's SOC
+    chart shows what the BMS acts on, not the plant's truth)."""
     cols = s.battery[:, _CHART_COLS]
     point: dict[str, Any] = {
         "step": s.step,
@@ -273,6 +300,7 @@ def _chart_point(s: StepSample) -> dict[str, Any]:
     }
     for j, name in enumerate(CHART_CHANNELS):
         point[name] = cols[:, j].tolist()
+    point["soc"] = [x for x, _ in core_soc(s)]
     return point
 
 
@@ -342,6 +370,8 @@ class LiveRun:
         self._finished_wall: float | None = None
         self._watch = RunWatch(None, self.battery_names)
         self._pending: list[StepSample] = []
+        self.power = PowerPanel(None, self.battery_names, self.topology.roles)
+        """The state-of-power panel of this run (``web/power.py``)."""
 
     # ------------------------------------------------------------------ writer side
     def on_start(
@@ -354,6 +384,8 @@ class LiveRun:
             self.config = config
             self._watch = RunWatch(config, battery_names)
             self._pending = []
+            self.power = PowerPanel(config, battery_names, self.topology.roles,
+                                    on_done=self._touch)  # fmt: skip
             self.state = "running"
             self._started_wall = time.time()
             self._version += 1
@@ -404,6 +436,11 @@ class LiveRun:
                 self.state = "stopped" if self.stop_requested.is_set() else "error"
             self.error = error
             self._finished_wall = self._finished_wall or time.time()
+            self._version += 1
+
+    def _touch(self) -> None:
+        """Something readers show changed outside a sample (a state of power landed)."""
+        with self._lock:
             self._version += 1
 
     def _fold(self) -> None:
@@ -490,6 +527,7 @@ class LiveRun:
             state, metrics, error = self.state, self.metrics, self.error
             names = list(self.battery_names)
         verdict = self.verdict()
+        power = self.power.latest(latest, final=state in ("finished", "stopped", "error"))
         t_s = latest.t_s if latest is not None else 0.0
         summary = None if latest is None else sample_summary(latest, names)
         return jsonable_dict(
@@ -509,6 +547,8 @@ class LiveRun:
                 "report": self.report,
                 "notice": self.notice,
                 "headline": headline(summary, self.topology.roles),
+                "power": power,
+                "power_note": self.power.note,
                 "n_events": n_events,
                 "verdict": verdict,
                 "latest": summary,

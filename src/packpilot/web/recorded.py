@@ -253,6 +253,7 @@ class Recording:
                 "t_s": t,
                 "latest": summary,
                 "headline": headline(summary, self.live.topology.roles),
+                "power": self.live.power.compute(s),
                 "n_events": n_events,
             }
         )

@@ -39,6 +39,7 @@ from packpilot.io.can.dbcgen import (
     MAX_GROUPS,
     PLATFORM_MEAS,
     PROTECTION_STATE,
+    STATE_OF_CHARGE,
     STATE_OF_POWER,
     SWITCH_CMD,
     SWITCH_STATE,
@@ -59,7 +60,7 @@ SENTINEL_BITS = 16
 """Fields this wide carry "not available" as a sentinel count."""
 SINGLE: dict[int, str] = {
     AUX_CMD: "aux", PLATFORM_MEAS: "platform", PROTECTION_STATE: "protection",
-    STATE_OF_POWER: "power",
+    STATE_OF_POWER: "power", STATE_OF_CHARGE: "soc",
 }  # fmt: skip
 
 
@@ -232,6 +233,25 @@ def encode_power(dcl_2s_a: float, dcl_10s_a: float, dcl_30s_a: float, ccl_10s_a:
     return _frame(STATE_OF_POWER, vals, t)
 
 
+@dataclass(frozen=True, slots=True)
+class SocReport:
+    """The pack's SOC as the core estimates it (0x232): percent, its standard deviation
+    (NaN: not the observer's), the source's code (``contract/soc_source.py:SOURCES``) and how
+    many batteries are on the observer and on its fallback."""
+
+    soc_pct: float
+    stdev_pct: float
+    source: int
+    observed: int
+    fallback: int
+
+
+def encode_soc(r: SocReport, t: float = 0.0) -> can.Message:
+    vals = {"Soc": r.soc_pct, "SocStdev": r.stdev_pct, "Source": r.source,
+            "Observed": r.observed, "Fallback": r.fallback, "Reserved": 0}  # fmt: skip
+    return _frame(STATE_OF_CHARGE, vals, t)
+
+
 # ----------------------------------------------------------------------------- decode
 def decode(msg: can.Message) -> tuple[str, int, dict[str, float]]:
     """(kind, battery index or -1, physical values; NaN where not available) of a PackPilot
@@ -264,6 +284,7 @@ __all__ = [
     "SINGLE",
     "BatteryReport",
     "ProtectionReport",
+    "SocReport",
     "classify",
     "database",
     "decode",
@@ -273,6 +294,7 @@ __all__ = [
     "encode_platform",
     "encode_power",
     "encode_protection",
+    "encode_soc",
     "encode_switch",
     "encode_switch_state",
 ]

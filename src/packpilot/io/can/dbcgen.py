@@ -34,6 +34,7 @@ AUX_CMD = 0x210
 PLATFORM_MEAS = 0x220
 PROTECTION_STATE = 0x230
 STATE_OF_POWER = 0x231
+STATE_OF_CHARGE = 0x232
 
 
 @dataclass(frozen=True)
@@ -169,6 +170,18 @@ def pack_messages() -> list[Msg]:
                 Sig("Dcl10s", 16, 16, factor=0.1, unit="A", comment="discharge, 10 s"),
                 Sig("Dcl30s", 32, 16, factor=0.1, unit="A", comment="discharge, 30 s"),
                 Sig("Ccl10s", 48, 16, factor=0.1, unit="A", comment="charge, 10 s"),
+            )),
+        Msg("StateOfCharge", STATE_OF_CHARGE, 8, "BMS", "Platform",
+            "The pack's SOC as the core estimates it, every 1 s, and where it comes from "
+            "(contract/soc_source.py).", (
+                Sig("Soc", 0, 16, factor=0.01, unit="%", comment="capacity-weighted pack SOC"),
+                Sig("SocStdev", 16, 16, factor=0.01, unit="%",
+                    comment="its standard deviation (65535 = not the observer's)"),
+                Sig("Source", 32, 8, comment="0 battery's own, 1 coulomb counter, 2 observer, "
+                    "3 fallback (observer not trusted)"),
+                Sig("Observed", 40, 8, comment="batteries on the observer"),
+                Sig("Fallback", 48, 8, comment="batteries on the fallback"),
+                Sig("Reserved", 56, 8),
             )),
     ]
 

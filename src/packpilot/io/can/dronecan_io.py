@@ -53,6 +53,8 @@ class BatteryInfo:
     full_wh: float = math.nan
     status_flags: int = 0
     model_name: str = "PackPilot"
+    soc_stdev_pct: float = math.nan
+    """``state_of_charge_pct_stdev`` (percentage points, 0..127; NaN: 0 on the wire)."""
 
 
 def _f(x: float) -> float:
@@ -70,6 +72,11 @@ def _pct(x: float, unknown: int) -> int:
     return unknown if not math.isfinite(x) else min(max(round(x), 0), 127)
 
 
+def _stdev(x: float) -> int:
+    """A deviation rounded *up* to whole percent (at least 1: 0 would claim a perfect SOC)."""
+    return 0 if not math.isfinite(x) else min(max(math.ceil(x - 1e-9), 1), 127)
+
+
 def encode(
     info: BatteryInfo, node_id: int, transfer_id: int, priority: int = 16, t: float = 0.0
 ) -> list[can.Message]:
@@ -83,6 +90,7 @@ def encode(
         status_flags=info.status_flags & 0x7FF,
         state_of_health_pct=_pct(info.soh_pct, SOH_UNKNOWN),
         state_of_charge_pct=_pct(info.soc_pct, 0),
+        state_of_charge_pct_stdev=_stdev(info.soc_stdev_pct),
         battery_id=info.battery_id & 0xFF,
         model_name=info.model_name[:31],
     )
@@ -259,6 +267,7 @@ def decode(frames: Sequence[can.Message]) -> BatteryInfo:
         current_a=float(p.current),
         temp_c=float(p.temperature) - KELVIN,
         soc_pct=float(p.state_of_charge_pct),
+        soc_stdev_pct=float(p.state_of_charge_pct_stdev),
         soh_pct=math.nan if p.state_of_health_pct == SOH_UNKNOWN else float(p.state_of_health_pct),
         remaining_wh=float(p.remaining_capacity_wh),
         full_wh=float(p.full_charge_capacity_wh),

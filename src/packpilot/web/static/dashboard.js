@@ -29,7 +29,7 @@ const S = {
   names: [], points: [], events: [], latest: null, maxPoints: 2000, duration: 0, speed: 0,
   received: 0, updates: 0, state: "connecting", metrics: null, cards: [], dirty: false,
   kind: "live", layout: null, paused: false, cursorT: null, playing: null, sch: null,
-  finalLatest: null, headline: null,
+  finalLatest: null, headline: null, power: null, powerNote: null,
 };
 
 const $ = (id) => document.getElementById(id);
@@ -152,7 +152,9 @@ function onUpdate(msg) {
   if (S.cursorT === null) { // a scrubbed recording shows the moment chosen, not the end
     S.latest = S.finalLatest;
     S.headline = msg.headline;
+    S.power = msg.power || null;
   }
+  S.powerNote = msg.power_note || null;
   S.state = msg.state;
   S.metrics = msg.metrics;
   S.paused = !!msg.paused;
@@ -181,8 +183,59 @@ function renderLatest() {
     $("mode").textContent = L.mode || "—";
   }
   renderHeadline(S.headline);
+  renderPower(S.power);
   renderCards();
   renderSchematic();
+}
+
+// ------------------------------------------------------------------ state of power (#28)
+// The server's prediction (sim/power_view.py, the one the runtime publishes as CCL/DCL and
+// 0x231) from the core's state at one step; each figure carries data-sop="dsg:10" etc. and
+// its value in data-v, so a test reads exactly what is shown.
+const fmtA = (x) => (isNum(x) ? x.toFixed(1) + " A" : "—");
+const fmtW = (x) => (isNum(x) ? (Math.abs(x) >= 1000 ? (x / 1000).toFixed(2) + " kW" : x.toFixed(0) + " W") : "—");
+function sopCell(key, a, w) {
+  const td = el("td", "num", fmtA(a) + (w === undefined ? "" : " · " + fmtW(w)));
+  td.dataset.sop = key;
+  td.dataset.v = isNum(a) ? String(a) : "";
+  return td;
+}
+function renderPower(P) {
+  const none = $("power-none"), tab = $("power"), bt = $("power-bat");
+  const ok = P && P.horizons && !P.error;
+  none.hidden = !!ok;
+  tab.hidden = bt.hidden = !ok;
+  if (!ok) {
+    none.textContent = P && P.error ? "no prediction: " + P.error
+      : S.powerNote || (S.latest ? "computing…" : "—");
+    return;
+  }
+  const why = (w, who) => w === "none" ? "—" : w + (who ? ", battery " + who : "");
+  const body = tab.tBodies[0];
+  body.textContent = "";
+  for (const h of P.horizons) {
+    const tr = el("tr");
+    const s = String(h.horizon_s);
+    tr.append(el("td", null, s + " s"), sopCell("dsg:" + s, h.dsg_a, h.dsg_w),
+      el("td", null, why(h.why_dsg, h.who_dsg)), sopCell("chg:" + s, h.chg_a, h.chg_w),
+      el("td", null, why(h.why_chg, h.who_chg)));
+    body.append(tr);
+  }
+  const k10 = P.horizons.findIndex((h) => h.horizon_s === 10);
+  const bb = bt.tBodies[0];
+  bb.textContent = "";
+  for (const b of P.batteries) {
+    const tr = el("tr");
+    tr.dataset.battery = b.name;
+    const src = el("td", "src-" + b.soc_source, SOC_SOURCE_SHORT[b.soc_source] || b.soc_source);
+    tr.append(el("td", null, b.name + (b.present ? "" : " (absent)")), src,
+      sopCell("share_dsg:" + b.name, b.share_dsg_a[k10]), sopCell("alone_dsg:" + b.name, b.alone_dsg_a[k10]),
+      sopCell("share_chg:" + b.name, b.share_chg_a[k10]), sopCell("alone_chg:" + b.name, b.alone_chg_a[k10]));
+    bb.append(tr);
+  }
+  $("power-note").textContent = "(the largest constant current held for 2 / 10 / 30 s without any battery " +
+    "crossing its cut-off, current or temperature limit; predicted from the core's state at " +
+    fmtTime(P.t_s) + ")";
 }
 
 // ------------------------------------------------------------------ controls
@@ -252,6 +305,9 @@ async function loadCatalog() {
   $("example-pick").hidden = $("btn-start").hidden = !(cat.examples || []).length;
   fillSelect($("recording-select"), cat.recordings || []);
   $("recording-pick").hidden = $("btn-open").hidden = !(cat.recordings || []).length;
+  // the fleet view (#27: battery health across flights) when the server was given --fleet
+  $("fleet-link").hidden = $("fleet-api").hidden = !cat.fleet;
+  if (cat.fleet) $("fleet-link").href = cat.fleet;
 }
 
 // The example picker shows the example on show (not the first name in the list); when what is
@@ -329,6 +385,7 @@ async function scrubTo(t) {
   if (seq !== atSeq) return; // a later position was asked for meanwhile
   S.latest = r.latest;
   S.headline = r.headline;
+  S.power = r.power || null;
   $("t-s").textContent = fmtTime(r.t_s) + (S.duration ? " / " + fmtTime(S.duration) : "");
   renderLatest();
   renderEvents();
@@ -425,7 +482,7 @@ function buildSchematic() {
   const colW = compact ? 104 : 150;
   const left = compact ? 12 : L.charger ? 150 : 40, right = compact ? 12 : L.load ? 150 : 40;
   const W = Math.max(left + n * colW + right, top ? 300 : 0);
-  const busY = top ? 84 : 34, dy = busY - 34, H = 250 + dy;
+  const busY = top ? 84 : 34, dy = busY - 34, H = 284 + dy;
   const bx = compact ? (W - n * colW) / 2 : left; // batteries centred under the bus
   const g = svg("svg", { viewBox: "0 0 " + W + " " + H, width: W, height: H, role: "img",
     "aria-label": "pack schematic", id: "pack-svg", "data-layout": compact ? "compact" : "wide" });
@@ -475,8 +532,9 @@ function buildSchematic() {
       svg("text", { x: cx, y: 170 + dy, class: "lbl mid strong" }, b.name + (aux ? " (aux)" : "")));
     const v = svg("text", { x: cx, y: 190 + dy, class: "val mid" }, "—");
     const a = svg("text", { x: cx, y: 208 + dy, class: "val mid" }, "—");
-    g.append(v, a);
-    Object.assign(p, { fill, v, a, cx, dy });
+    const jg = svg("g", { class: "join", "data-join": b.name, "data-state": "none" });
+    g.append(v, a, jg);
+    Object.assign(p, { fill, v, a, cx, dy, join: { group: jg, peak: null, dv: null } });
     parts.bats.push(p);
   });
   root.append(g);
@@ -517,14 +575,40 @@ function renderSchematic() {
       setState(p.fets.DSG, switchState(b.dsg_on > 0.5, b.dsg_diode_a));
       setState(p.fets.CHG, switchState(b.chg_on > 0.5, b.chg_diode_a));
     }
-    const soc = isNum(b.soc) ? Math.max(0, Math.min(1, b.soc)) : 0;
+    const soc = isNum(b.soc_core) ? Math.max(0, Math.min(1, b.soc_core)) : 0;
     p.fill.setAttribute("height", String(70 * soc));
     p.fill.setAttribute("y", String(224 + p.dy - 70 * soc));
     p.v.textContent = fmt(b.voltage_v, 2, "V");
     const cur = b.current_a;
     p.a.textContent = isNum(cur) ? (cur > 0.05 ? "↑ " : cur < -0.05 ? "↓ " : "") +
       Math.abs(cur).toFixed(1) + " A" : "—";
+    renderJoin(p, joinOf(b.name));
   });
+}
+
+// The join planner (#28 §4) under a battery about to join (its path not fully closed while
+// others hold the bus): the predicted peak through its switch once it closes, against the
+// battery's limit in that direction, and the admissible voltage difference derived for it.
+function joinOf(name) {
+  const P = S.power;
+  return P && P.joins ? P.joins.find((j) => j.name === name) || null : null;
+}
+function renderJoin(p, j) {
+  const g = p.join;
+  g.group.setAttribute("data-state", j ? (j.within ? "ok" : "over") : "none");
+  // the texts exist only while there is a plan (an empty <text> would be a 0 px label)
+  if (!j) { g.group.textContent = ""; g.peak = g.dv = null; return; }
+  if (!g.peak) {
+    g.peak = svg("text", { x: p.cx, y: 248 + p.dy, class: "lbl mid small" }, "");
+    g.dv = svg("text", { x: p.cx, y: 264 + p.dy, class: "lbl mid small" }, "");
+    g.group.append(g.peak, g.dv);
+  }
+  g.peak.dataset.peak = isNum(j.peak_a) ? String(j.peak_a) : "";
+  g.peak.dataset.limit = isNum(j.limit_a) ? String(j.limit_a) : "";
+  g.peak.textContent = "join " + (isNum(j.peak_a) ? Math.abs(j.peak_a).toFixed(1) : "?") +
+    " A / " + (isNum(j.limit_a) ? j.limit_a.toFixed(0) : "∞") + " A";
+  g.dv.dataset.dv = isNum(j.dv_v) ? String(j.dv_v) : "";
+  g.dv.textContent = "ΔV " + fmt(j.dv_v, 2) + " (ok −" + fmt(j.dv_down_v, 1) + "…+" + fmt(j.dv_up_v, 1) + ")";
 }
 
 // ------------------------------------------------------------------ battery cards
@@ -540,11 +624,14 @@ function buildCards() {
     h.append(sw, el("span", null, name));
     const nums = el("div", "nums");
     const cells = {};
+    let socSource = null;
     for (const [k, label] of [["voltage_v", "V"], ["current_a", "A"], ["soc", "SOC"],
       ["temp_c", "°C"]]) {
       const n = el("div", "num");
       cells[k] = el("div", "v", "—");
-      n.append(cells[k], el("div", "k", label));
+      const lab = el("div", "k", label);
+      if (k === "soc") { socSource = lab; lab.classList.add("socsrc"); }
+      n.append(cells[k], lab);
       nums.append(n);
     }
     const socbar = el("div", "socbar");
@@ -564,7 +651,7 @@ function buildCards() {
     details.append(table);
     card.append(h, nums, socbar, plot, cellsLine, switches, prot, extra, details);
     root.append(card);
-    return { cells, socfill, bars, axis, cellsLine, switches, prot, extra, table, details };
+    return { cells, socfill, bars, axis, cellsLine, switches, prot, extra, table, details, socSource };
   });
 }
 
@@ -657,7 +744,27 @@ function renderCellBars(c, b, i) {
 // beside it only when the two disagree (a failed, frozen or stale sensor), so a card never
 // shows a healthy 20 °C while the BMS reads NaN (#17 §1).
 const MEASURED = { voltage_v: ["bms_v", 0.05], current_a: ["bms_a", 0.2],
-  soc: ["bms_soc", 0.02], temp_c: ["bms_degc", 1.0] };
+  temp_c: ["bms_degc", 1.0] };
+// The SOC a card shows is the one the core uses (contract/soc_source.py): the observer's
+// estimate while it is trusted, its fallback (the coulomb counter) otherwise, the battery's own
+// report without an estimator; the card says which, and a fallback is marked.
+const SOC_SOURCE_SHORT = { observer: "observer", fallback: "fallback: coulomb counter",
+  counter: "coulomb counter", battery: "battery's own" };
+function showSoc(c, b) {
+  const cell = c.cells.soc;
+  const v = b.soc_core;
+  cell.classList.remove("sensorbad");
+  cell.textContent = isNum(v) ? (100 * v).toFixed(1) + "%" : "no reading";
+  cell.dataset.v = isNum(v) ? String(v) : "";
+  cell.title = "the SOC the BMS uses: " + (b.soc_source_label || "—");
+  if (isNum(v) && isNum(b.soc) && Math.abs(v - b.soc) > 0.02)
+    cell.append(el("small", "plant", " plant " + (100 * b.soc).toFixed(1) + "%"));
+  const tag = c.socSource;
+  tag.textContent = "SOC · " + (SOC_SOURCE_SHORT[b.soc_source] || "—");
+  tag.title = b.soc_source_label || "";
+  tag.dataset.source = b.soc_source || "";
+  tag.classList.toggle("fallback", b.soc_source === "fallback");
+}
 function showMeasured(cell, st, b, key, text) {
   const [mk, tol] = MEASURED[key];
   cell.classList.remove("sensorbad");
@@ -687,9 +794,9 @@ function renderCards() {
     const stm = b.status || {};
     showMeasured(c.cells.voltage_v, stm, b, "voltage_v", (x) => fmt(x, 2));
     showMeasured(c.cells.current_a, stm, b, "current_a", (x) => fmt(x, 2));
-    showMeasured(c.cells.soc, stm, b, "soc", (x) => isNum(x) ? (100 * x).toFixed(1) + "%" : "—");
+    showSoc(c, b);
     showMeasured(c.cells.temp_c, stm, b, "temp_c", (x) => fmt(x, 1));
-    c.socfill.style.width = isNum(b.soc) ? Math.max(0, Math.min(100, 100 * b.soc)) + "%" : "0";
+    c.socfill.style.width = isNum(b.soc_core) ? Math.max(0, Math.min(100, 100 * b.soc_core)) + "%" : "0";
     renderCellBars(c, b, i);
     c.cellsLine.textContent = "";
     const spread = isNum(b.max_cell_v) && isNum(b.min_cell_v) ?

@@ -1,0 +1,203 @@
+"""What a pilot sees of the core's estimates, in a real headless Chromium (issue #28 §1-§4,
+#27 §4-5; the harness of ``test_web_browser.py``, loopback only): each card's SOC is the
+core's with its source named (the fallback marked while the observer settles, the observer
+after), the state-of-power panel shows the server's prediction, the schematic shows the join
+planner's peak under a battery waiting in STANDBY, a what-if beyond its fitted range shows
+``OutsideFit`` in the live alarms, and the fleet view is linked from the main page."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from packpilot.config import load_config, parse_config
+from packpilot.model.cell import load_parameter_set
+from packpilot.model.cell.params import params_to_dict
+from packpilot.sim.runner import Runner
+from packpilot.web.app import Dashboard
+from tests import test_web_browser as wb
+from tests.conftest import EXAMPLES
+from tests.test_web_power import wrong_start
+
+pytestmark = wb.pytestmark
+browser = wb.browser
+ARTIFACTS = "PACKPILOT_ARTIFACTS"
+
+
+def _serve(runner: Any, name: str, speed: float, **kw: Any) -> Iterator[Dashboard]:
+    dash = Dashboard(runner, scenario=name, speed=speed, host="127.0.0.1", port=0, **kw)
+    thread = threading.Thread(target=dash.serve, name=f"uvicorn-{name}", daemon=True)
+    dash.start()
+    thread.start()
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        try:
+            wb.get_json(dash.url + "api/status")
+            break
+        except OSError:
+            time.sleep(0.05)
+    yield dash
+    dash.stop()
+    thread.join(10.0)
+
+
+@pytest.fixture(scope="module")
+def standby() -> Iterator[Dashboard]:
+    """Sequencing, two batteries 2 V apart (B in STANDBY), [soc] with its observer."""
+    cfg = load_config(EXAMPLES / "sequencing_dual_hover.toml")
+    data = cfg.model_dump(mode="json")
+    data["sim"].update(duration_s=75.0, progress=False)
+    data.update(soc={}, limits={})
+    runner = Runner(parse_config(data), progress=False)
+    wrong_start(runner)  # the estimator starts ~10 % low: its SOC is not the plant's
+    yield from _serve(runner, "standby", 8.0)
+
+
+def _cards(browser: wb.Cdp) -> Any:
+    return browser.eval(
+        "Object.fromEntries([...document.querySelectorAll('.panel.bat')].map(c => [c.dataset"
+        ".battery, {v: c.querySelectorAll('.num .v')[2].dataset.v,"
+        " text: c.querySelectorAll('.num .v')[2].firstChild.textContent,"
+        " src: c.querySelector('.socsrc').dataset.source, tag: c.querySelector('.socsrc')"
+        ".textContent, marked: c.querySelector('.socsrc').classList.contains('fallback')}]))"
+    )
+
+
+def test_cards_power_panel_and_join_view(
+    browser: wb.Cdp, standby: Dashboard, tmp_path: Path
+) -> None:
+    browser.call("Page.navigate", url=standby.url)
+    # while the observer settles (its first 60 s) the card says the SOC is its fallback
+    browser.wait(
+        "S.latest && S.latest.t_s > 2 && S.latest.t_s < 55 && "
+        "document.querySelector('.socsrc') && "
+        "document.querySelector('.socsrc').dataset.source === 'fallback'", 90.0
+    )
+    early = _cards(browser)
+    assert all(c["src"] == "fallback" and c["marked"] for c in early.values()), early
+    assert all("fallback" in c["tag"] for c in early.values()), early
+    # B waits in STANDBY: the schematic shows the join planner's peak against its limit
+    browser.wait("document.querySelector('[data-join=B]').dataset.state !== 'none'", 30.0)
+    join = browser.eval(
+        "({dom: {state: document.querySelector('[data-join=B]').dataset.state, peak: Number("
+        "document.querySelector('[data-join=B] text').dataset.peak), limit: Number("
+        "document.querySelector('[data-join=B] text').dataset.limit), text: document"
+        ".querySelector('[data-join=B] text').textContent}, plan: S.power.joins.find(j =>"
+        " j.name === 'B'), a: document.querySelector('[data-join=A]').dataset.state})"
+    )
+    plan, dom = join["plan"], join["dom"]
+    assert join["a"] == "none"  # A is on the bus: nothing to join
+    assert dom["peak"] == plan["peak_a"] and dom["limit"] == plan["limit_a"], join
+    assert dom["state"] == ("ok" if plan["within"] else "over")
+    assert f"{abs(plan['peak_a']):.1f} A" in dom["text"]
+    # at the end (75 s) the observer is trusted: the card says so and shows soc_est
+    browser.wait_body(lambda d: d.get("state") == "finished", 120.0)
+    deadline = time.monotonic() + 60.0
+    api = wb.get_json(standby.url + "api/status")
+    while not (api["power"] and api["power"]["step"] == api["latest"]["step"]):
+        assert time.monotonic() < deadline, "the last step's state of power never came"
+        time.sleep(0.1)  # the server predicts the run's last step once it has finished
+        api = wb.get_json(standby.url + "api/status")
+    browser.wait(f"S.latest && S.latest.step === {api['latest']['step']} && S.power"
+                 f" && S.power.step === {api['power']['step']}", 30.0)  # fmt: skip
+    cards = _cards(browser)
+    for b in api["latest"]["batteries"]:
+        est = b["status"]["soc_est"]
+        assert float(cards[b["name"]]["v"]) == est  # the core's SOC, not bms_soc / the plant
+        assert cards[b["name"]]["text"] == f"{100 * est:.1f}%"
+        assert cards[b["name"]]["src"] == "observer" and not cards[b["name"]]["marked"]
+    # the state-of-power panel shows the server's prediction, figure by figure
+    shown = browser.eval(
+        "Object.fromEntries([...document.querySelectorAll('[data-sop]')].map(td =>"
+        " [td.dataset.sop, Number(td.dataset.v)]))"
+    )
+    for h in api["power"]["horizons"]:
+        key = f"{h['horizon_s']:g}"
+        assert shown[f"dsg:{key}"] == h["dsg_a"] and shown[f"chg:{key}"] == h["chg_a"]
+    for b in api["power"]["batteries"]:
+        assert shown[f"share_dsg:{b['name']}"] == b["share_dsg_a"][1]
+        assert shown[f"alone_chg:{b['name']}"] == b["alone_chg_a"][1]
+    assert browser.eval("document.getElementById('fleet-link').hidden") is True  # no --fleet
+    shot = base64.b64decode(browser.call("Page.captureScreenshot", format="png")["data"])
+    (Path(os.environ.get(ARTIFACTS, tmp_path)) / "dashboard_power.png").write_bytes(shot)
+
+
+def _fitted(path: Path) -> Path:
+    """A "fitted" cell set: the shipped uav_5ah with the notes ``packpilot fit`` writes
+    (the logs covered 40-95 % SOC at 0-20 A per cell, no temperature, fitted as at 25 degC)."""
+    data = params_to_dict(load_parameter_set("uav_5ah"))
+    data["notes"] = {"window": {"soc_min": 0.4, "soc_max": 0.95, "current_min_a": 0.0,
+                                "current_max_a": 20.0, "temp_min_c": None,
+                                "temp_max_c": None}, "reference_temp_c": 25.0}  # fmt: skip
+    path.write_text(json.dumps(data))
+    return path
+
+
+@pytest.fixture(scope="module")
+def cold_whatif(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
+    """A what-if at -10 degC on the fitted set: it leaves the fitted range from 0 s."""
+    cell = _fitted(tmp_path_factory.mktemp("fit") / "mine.json")
+    data = {
+        "pack": {"cell": str(cell), "ambient_c": -10.0,
+                 "batteries": [{"name": "A", "series_groups": 3, "soc0": 0.9}]},
+        "load": {"kind": "current", "value": 10.0},
+        "sim": {"dt_s": 0.5, "duration_s": 600.0, "progress": False},
+    }  # fmt: skip
+    yield from _serve(Runner(parse_config(data), progress=False), "cold", 2.0)
+
+
+def test_a_whatif_beyond_its_fitted_range_warns_live(
+    browser: wb.Cdp, cold_whatif: Dashboard
+) -> None:
+    browser.call("Page.navigate", url=cold_whatif.url)
+    live = browser.wait_body(lambda d: d.get("verdict") == "WARNING", 60.0)
+    assert live["state"] == "running"  # while it runs, not only in the report at the end
+    rows = browser.eval(
+        "[...document.querySelectorAll('#alarms tbody tr')].map(r =>"
+        " [...r.cells].map(c => c.textContent))"
+    )
+    fit = [r for r in rows if r[3].startswith("OutsideFit")]
+    assert fit and fit[0][1] == "A" and fit[0][2] == "warning", rows
+    assert "start temperature -10.0 degC" in fit[0][4] and "fitted as at 25.0" in fit[0][4]
+    api = wb.get_json(cold_whatif.url + "api/status")["verdict"]
+    assert any(a["kind"] == "OutsideFit" and a["category"] == "extrapolated"
+               for a in api["alarms"])  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def fleet_only(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
+    """A fleet of two batteries, two flights each (``packpilot fleet add``'s records)."""
+    import numpy as np
+
+    from packpilot.model.fit.synthetic import Truth, synthetic_log
+    from packpilot.replay.fleet import connect, flight_record, store
+
+    db = tmp_path_factory.mktemp("fleet") / "fleet.sqlite"
+    con = connect(db)
+    for name in ("P1", "P2"):
+        for k in range(2):
+            prof = synthetic_log(Truth(soc0=0.95), 1.0, seconds=120, seed=k + len(name))
+            cells = prof.voltage_v[:, None] + np.array([0.0, -0.006, 0.0])
+            store(con, flight_record(name, f"{name}-{k}", f"{name}-{k}", "A", prof, 3, "", cells))
+    con.close()
+    yield from _serve(None, "fleet", 10.0, fleet=db)
+
+
+def test_the_main_page_links_the_fleet(browser: wb.Cdp, fleet_only: Dashboard) -> None:
+    browser.call("Page.navigate", url=fleet_only.url)
+    href = browser.wait(
+        "!document.getElementById('fleet-link').hidden &&"
+        " document.getElementById('fleet-link').href", 30.0
+    )
+    assert href == fleet_only.url + "fleet"
+    browser.call("Page.navigate", url=href)
+    text = browser.wait("document.querySelector('#fleet') && document.body.innerText", 30.0)
+    assert "P1" in text and "P2" in text
