@@ -476,6 +476,13 @@ SEQUENCING = [
        "tot += c if can_charge[k] or not c < 0.0 else 0.0", "tot += c",
        "#26: a standby battery's implausible negative current (its charge path open) puts "
        "the pack in charge mode and opens the healthy battery's discharge FET"),
+    _m("sequencing", "zero-load-observer-ignored",
+       "        if status[p, k, s_ok] == 1.0 and 0.0 < r0 <= r_max:\n", "        if False:\n",
+       "#28: the zero-load prediction keeps the -dV/dI resistance, which takes in the "
+       "polarisation after a long heavy load, although the observer's R0 is trusted"),
+    _m("sequencing", "zero-load-source-with-polarisation-r",
+       "            ez[k] = volt[k] + cur[k] * r0\n", "            ez[k] = ef[k]\n",
+       "#28: the source voltage behind R0 is V + I x r with the polarised -dV/dI r"),
 ]
 
 
@@ -571,6 +578,7 @@ TESTS: dict[str, list[str]] = {
         "tests/test_runtime_fault_suite.py::test_a_standby_batterys_current_never_moves_the_other",
         "tests/test_runtime_fault_suite.py::test_a_frozen_loaded_battery_rejoins_without"
         "_charging_its_sibling",
+        "tests/test_sequencing_zero_load.py::test_the_zero_load_prediction_uses_the_observers_r0",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],

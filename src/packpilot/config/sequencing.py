@@ -171,8 +171,36 @@ class SequencingConfig(Strict):
         ),
     )
 
+    zero_load_observer: bool = Field(
+        True,
+        description=(
+            "Take the zero-load prediction's resistances from the battery observer ([soc], "
+            "issue #28) where it runs and is trusted: fast voltage V + I x R0 and conductance "
+            "1 / R0 with the observer's R0, which excludes the polarisation the -dV/dI "
+            "estimate takes in over a long period. False (or no trusted observer): the -dV/dI "
+            "estimate, as before."
+        ),
+    )
+    zero_load_open_ratio: float = Field(
+        0.95,
+        gt=0.0,
+        le=1.0,
+        description=(
+            "Rule 8b (issue #28): an engaged battery whose zero-load prediction, from the "
+            "trusted observer, exceeds zero_load_open_ratio x its charge limit has its charge "
+            "FET opened (not one R3 closed). Must be >= charge_limit_margin, where the engage "
+            "rule closes it again (hysteresis)."
+        ),
+    )
+
     @model_validator(mode="after")
     def _check_relations(self) -> SequencingConfig:
+        if self.zero_load_open_ratio < self.charge_limit_margin:
+            raise ValueError(
+                f"zero_load_open_ratio ({self.zero_load_open_ratio}) must be >= "
+                f"charge_limit_margin ({self.charge_limit_margin}): the engage rule would close "
+                "a battery rule 8b opens at once (chatter)"
+            )
         if self.v_co > self.v_th:
             raise ValueError(
                 f"v_co ({self.v_co} V) must be <= v_th ({self.v_th} V): a standby battery "
