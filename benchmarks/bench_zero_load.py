@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from packpilot.config import ScenarioConfig, parse_config
+from packpilot.control.sequencing.rules import R3_HOLD_S
 from packpilot.model import loads
 from packpilot.sim.loop import ClosedLoop
 
@@ -134,13 +135,16 @@ def run_case(case: Case, hook: bool, sensors: bool = False) -> dict[str, Any]:
     ]
     tr = np.array(loop.plant.topology.traction)
     lim = 0.5 * np.array(case.capacity_ah)
-    n_steps = int(round(end / DT_S))
+    n_steps = round(end / DT_S)
     worst = 0.0
     at: dict[str, Any] = {"t_s": math.nan, "battery": -1}
     pred_before = np.zeros(len(lim))
     risk_before = np.zeros(len(lim), bool)
     ok_before = np.zeros(len(lim), bool)
     unsupplied = False
+    at_loss = np.full(len(lim), np.nan)
+    r3_forced = np.zeros(len(lim), bool)
+    seq = next(x for x in loop.core.compiled if x.method.name == "sequencing")
     s_chg = slots["seq_chg_on"]
     last_chg = None
     changes = 0
@@ -148,11 +152,16 @@ def run_case(case: Case, hook: bool, sensors: bool = False) -> dict[str, Any]:
         t0 = loop.plant.t_s
         loop.step(k, DT_S)
         into = np.maximum(-loop.plant.pack.string_a[0, tr], 0.0) / lim
+        first_off = t0 >= t_off - 1e-9 and np.isnan(at_loss[0])
+        if first_off:  # the period in which the load vanished
+            at_loss = -loop.plant.pack.string_a[0, tr] / lim
+            # R3 closed it (its diode carried current) within the hold rule 8b leaves it
+            r3_forced = t0 - seq.st.forced_s[0] < R3_HOLD_S
         j = int(np.argmax(into))
         if into[j] > worst:
             worst = float(into[j])
             at = {"t_s": float(t0), "battery": j, "after_loss": bool(t0 >= t_off - 1e-9)}
-        if t0 < t_off - 1e-9:  # what the controller held when the load vanished
+        if t0 < t_off - 1e-9 or first_off:  # the decision in force when the load vanished
             st = loop.core.status[0]
             pred_before = st[:, s_pred] / lim
             risk_before = st[:, s_risk] > 0.5
@@ -172,9 +181,12 @@ def run_case(case: Case, hook: bool, sensors: bool = False) -> dict[str, Any]:
         **at,
         "predicted": float(pred_before[j]) if j >= 0 else math.nan,
         "flagged": bool(risk_before[j]) if j >= 0 else False,
+        "r3_forced": bool(r3_forced[j]) if j >= 0 else False,
         "observer_ok": bool(ok_before.all()),
         "unsupplied": unsupplied,
         "fet_changes_per_min": changes / (case.hold_s / 60.0),
+        "predicted_all": [float(x) for x in pred_before],
+        "at_loss_all": [float(x) for x in at_loss],
     }
 
 
@@ -200,6 +212,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "cases above the limit": len(bad),
         "of them after the loss": sum(1 for r in bad if r.get("after_loss")),
         "of them flagged": sum(1 for r in bad if r["flagged"]),
+        "of them R3-forced": sum(1 for r in bad if r["r3_forced"]),
         "charge-FET changes per minute of hold (median / max)": "{:.2f} / {:.2f}".format(
             float(np.median([r["fet_changes_per_min"] for r in rows])),
             max(r["fet_changes_per_min"] for r in rows),
@@ -239,6 +252,7 @@ def main(argv: list[str]) -> int:
                 f"{'hook' if h else 'base'} {res[h][i]['worst']:.3f}"
                 f" b{res[h][i]['battery']} t{res[h][i]['t_s']:.0f}"
                 f" p{res[h][i]['predicted']:.2f}{'F' if res[h][i]['flagged'] else ''}"
+                f"{'R' if res[h][i]['r3_forced'] else ''}"
                 f" fpm{res[h][i]['fet_changes_per_min']:.1f}"
                 for h in hooks
             )

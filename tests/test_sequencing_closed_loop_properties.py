@@ -283,8 +283,13 @@ SOAK_4 = Case(
 )
 
 
-@pytest.mark.xfail(strict=True, reason="open: the zero-load prediction 35 % low at 0.5 s "
-                   "periods right after R3 (SOAK_4's comment)")  # fmt: skip
+# Issue #28: with the battery observer trusted the prediction no longer drops after R3 and
+# the same case passes (tests/test_sequencing_zero_load.py::
+# test_soak_4_with_the_observer_trusted_flags_what_r3_forces, after a minute's rest). This
+# scenario has no [soc] and its load falls at 13 s, before any observer is trusted (its 60 s
+# window): the -dV/dI fallback, so it stays open here.
+@pytest.mark.xfail(strict=True, reason="open without an observer: the -dV/dI zero-load "
+                   "prediction 35 % low at 0.5 s right after R3 (SOAK_4's comment)")  # fmt: skip
 def test_closed_loop_invariants_open_counterexample() -> None:
     _check_invariants(SOAK_4, comparator=False)
 

@@ -188,19 +188,13 @@ class SequencingConfig(Strict):
         description=(
             "Rule 8b (issue #28): an engaged battery whose zero-load prediction, from the "
             "trusted observer, exceeds zero_load_open_ratio x its charge limit has its charge "
-            "FET opened (not one R3 closed). Must be >= charge_limit_margin, where the engage "
-            "rule closes it again (hysteresis)."
+            "FET opened (not one R3 closed). Below charge_limit_margin it counts as that "
+            "margin (the engage rule closes a battery up to the margin: no chatter)."
         ),
     )
 
     @model_validator(mode="after")
     def _check_relations(self) -> SequencingConfig:
-        if self.zero_load_open_ratio < self.charge_limit_margin:
-            raise ValueError(
-                f"zero_load_open_ratio ({self.zero_load_open_ratio}) must be >= "
-                f"charge_limit_margin ({self.charge_limit_margin}): the engage rule would close "
-                "a battery rule 8b opens at once (chatter)"
-            )
         if self.v_co > self.v_th:
             raise ValueError(
                 f"v_co ({self.v_co} V) must be <= v_th ({self.v_th} V): a standby battery "

@@ -680,7 +680,6 @@ def _discharge_tick(
     initialized = st.initialized
     v_ref_v = st.v_ref_v
     ef = st.ef
-    g = st.g
     i_lim = st.i_lim
     pred = st.pred
     grp = st.grp
