@@ -77,7 +77,7 @@ def draw(seed: int) -> Case:
     return Case(seed, rnd(cap), rnd(res), rnd(soc0), round(amps, 3), round(held, 1), hold)
 
 
-def scenario(case: Case, hook: bool, sensors: bool = False) -> ScenarioConfig:
+def scenario(case: Case, hook: bool, sensors: bool = False, open_: bool = True) -> ScenarioConfig:
     bats = [
         {
             "name": f"B{k}",
@@ -104,7 +104,7 @@ def scenario(case: Case, hook: bool, sensors: bool = False) -> ScenarioConfig:
         },
         "load": {"kind": "current", "value": 1.0, "v_min_v": 15.0},
         "controller": ["sequencing"],
-        "sequencing": {"zero_load_observer": hook},
+        "sequencing": {"zero_load_observer": hook, "zero_load_open": open_},
         "soc": {},
         "sim": {"dt_s": DT_S, "duration_s": duration_s(case), "progress": False},
     }
@@ -117,10 +117,12 @@ def duration_s(case: Case) -> float:
     return REST_S + case.hold_s + AFTER_S
 
 
-def run_case(case: Case, hook: bool, sensors: bool = False) -> dict[str, Any]:
+def run_case(
+    case: Case, hook: bool, sensors: bool = False, open_: bool = True
+) -> dict[str, Any]:
     """The worst ratio of current into a battery to its charge limit over every period of the
     run (and where it happened), with what the controller predicted for it."""
-    cfg = scenario(case, hook, sensors)
+    cfg = scenario(case, hook, sensors, open_)
     loop = ClosedLoop.of(cfg, 1)
     t_off = REST_S + case.hold_s
     end = duration_s(case)
@@ -190,14 +192,29 @@ def run_case(case: Case, hook: bool, sensors: bool = False) -> dict[str, Any]:
     }
 
 
+VARIANTS = {
+    "8a+8b": (True, True),
+    "8a": (True, False),
+    "base": (False, False),
+}
+"""(zero_load_observer, zero_load_open) of each column: the observer's prediction and rule 8b
+(opt-in), the prediction alone (the default), the -dV/dI prediction (the baseline)."""
+LABELS = {
+    "8a+8b": "observer prediction + rule 8b (zero_load_open = true)",
+    "8a": "observer prediction alone (default)",
+    "base": "baseline: -dV/dI (zero_load_observer = false)",
+}
+
+
 def campaign(
-    n_cases: int, seed0: int = 0, sensors: bool = False, hooks: tuple[bool, ...] = (True, False)
-) -> dict[bool, list[dict[str, Any]]]:
-    out: dict[bool, list[dict[str, Any]]] = {h: [] for h in hooks}
+    n_cases: int, seed0: int = 0, sensors: bool = False, hooks: tuple[str, ...] = tuple(VARIANTS)
+) -> dict[str, list[dict[str, Any]]]:
+    out: dict[str, list[dict[str, Any]]] = {h: [] for h in hooks}
     for s in range(seed0, seed0 + n_cases):
         case = draw(s)
         for h in hooks:
-            out[h].append(run_case(case, h, sensors))
+            hook, open_ = VARIANTS[h]
+            out[h].append(run_case(case, hook, sensors, open_))
     return out
 
 
@@ -227,11 +244,7 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
 def run() -> list[dict[str, Any]]:
     """``make bench`` (``run_all.py``): the 500 cases with and without the hook."""
     res = campaign(500)
-    rows = []
-    for hook, label in ((True, "observer hook"), (False, "baseline (-dV/dI)")):
-        s = summary(res[hook])
-        rows.append({"prediction": label, **s})
-    return rows
+    return [{"prediction": LABELS[h], **summary(res[h])} for h in res]
 
 
 def main(argv: list[str]) -> int:
@@ -239,17 +252,17 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--cases", type=int, default=500)
     ap.add_argument("--seed0", type=int, default=0)
     ap.add_argument("--sensors", action="store_true")
-    ap.add_argument("--hook-only", action="store_true")
+    ap.add_argument("--variant", action="append", choices=list(VARIANTS), default=[])
     ap.add_argument("--verbose", action="store_true")
     a = ap.parse_args(argv)
-    hooks = (True,) if a.hook_only else (True, False)
+    hooks = tuple(a.variant) or tuple(VARIANTS)
     t0 = time.process_time()
     res = campaign(a.cases, a.seed0, a.sensors, hooks)
     cpu = time.process_time() - t0
     if a.verbose:
         for i in range(a.cases):
             line = " | ".join(
-                f"{'hook' if h else 'base'} {res[h][i]['worst']:.3f}"
+                f"{h} {res[h][i]['worst']:.3f}"
                 f" b{res[h][i]['battery']} t{res[h][i]['t_s']:.0f}"
                 f" p{res[h][i]['predicted']:.2f}{'F' if res[h][i]['flagged'] else ''}"
                 f"{'R' if res[h][i]['r3_forced'] else ''}"
@@ -262,8 +275,7 @@ def main(argv: list[str]) -> int:
     print("|---" * (1 + len(summary(res[hooks[0]]))) + "|")
     for h in hooks:
         s = summary(res[h])
-        label = "observer hook" if h else "baseline (-dV/dI)"
-        print(f"| {label} | " + " | ".join(
+        print(f"| {LABELS[h]} | " + " | ".join(
             f"{v:.3f}" if isinstance(v, float) else str(v) for v in s.values()) + " |")
     print(f"cases {a.cases}, sensors {a.sensors}, dt {DT_S} s, CPU {cpu:.1f} s")
     return 0

@@ -27,7 +27,7 @@ def test_an_abrupt_load_loss_never_pushes_more_than_the_charge_limit(seed: int) 
     prediction put it above its limit, flagged in that step: the documented R3 exception
     (docs/parallel_discharge.md rule 8b, "not held by it"; seeds 23 and 63 of this subset),
     which only the comparator removes."""
-    res = run_case(draw(seed), hook=True)
+    res = run_case(draw(seed), hook=True, open_=True)
     assert not res["unsupplied"], res
     assert res["worst"] <= 1.0 or (res["flagged"] and res["r3_forced"]), res
 

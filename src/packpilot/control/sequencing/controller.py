@@ -238,7 +238,11 @@ def build(
         r_batt_ohm=float(config.r_batt_ohm),
         i_step=float(config.i_step),
         zero_load_observer=bool(config.zero_load_observer),
-        open_ratio=max(float(config.zero_load_open_ratio), float(config.charge_limit_margin)),
+        open_ratio=(
+            max(float(config.zero_load_open_ratio), float(config.charge_limit_margin))
+            if config.zero_load_open
+            else math.inf
+        ),
         reads_slot=np.full(len(READS), -1, np.int64),
         n_batteries=int(n),
         fault_text=fault,
