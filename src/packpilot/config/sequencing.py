@@ -186,7 +186,7 @@ class SequencingConfig(Strict):
         description=(
             "Rule 8b (issue #28), opt-in: open an engaged battery whose trusted zero-load "
             "prediction exceeds zero_load_open_ratio x its charge limit. Off by default: it "
-            "holds the charge limit on 490 of 500 randomized load losses (430 without) at the "
+            "holds the charge limit on 490 of 500 randomized load losses (460 without) at the "
             "price of more FET changes (median 3.8 per minute of hold against 0.35) and, on "
             "uav_mission, an A/B hand-over cycle every ~20 s for the first 4 minutes after "
             "the join instead of co-discharge (docs/parallel_discharge.md rule 8b)."
