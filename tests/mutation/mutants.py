@@ -483,6 +483,10 @@ SEQUENCING = [
     _m("sequencing", "zero-load-source-with-polarisation-r",
        "            ez[k] = volt[k] + cur[k] * r0\n", "            ez[k] = ef[k]\n",
        "#28: the source voltage behind R0 is V + I x r with the polarised -dV/dI r"),
+    _m("sequencing", "zero-load-open-dropped",
+       "    _open_predicted(prm, st, ev, src, p, t)\n", "    pass\n",
+       "#28 rule 8b (opt-in): an engaged battery the observer predicts above its charge limit "
+       "stays engaged after a join (seed 25: 1.40x at the loss)"),
 ]
 
 
@@ -579,6 +583,8 @@ TESTS: dict[str, list[str]] = {
         "tests/test_runtime_fault_suite.py::test_a_frozen_loaded_battery_rejoins_without"
         "_charging_its_sibling",
         "tests/test_sequencing_zero_load.py::test_the_zero_load_prediction_uses_the_observers_r0",
+        "tests/test_sequencing_zero_load.py::test_an_abrupt_load_loss_never_pushes_more_than_the"
+        "_charge_limit[25]",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],
