@@ -64,9 +64,15 @@ def cases(draw: st.DrawFn) -> Case:
 
 
 def simulate(
-    case: Case, sequencing: dict[str, float] | None = None, comparator: bool = False
+    case: Case,
+    sequencing: dict[str, float] | None = None,
+    comparator: bool = False,
+    observer: bool = False,
+    duration_s: float = DURATION_S,
 ) -> tuple[Result, np.ndarray]:
-    """Run the case; also return each battery's open-circuit voltage after every period."""
+    """Run the case; also return each battery's open-circuit voltage after every period.
+    ``observer``: with ``[soc]`` (the battery observer, whose R0 the zero-load prediction
+    then reads, issue #28)."""
     bats = []
     for k, (v, r) in enumerate(zip(case.ocv0_v, case.r_ohm, strict=True)):
         b: dict[str, object] = {
@@ -78,28 +84,29 @@ def simulate(
         if case.insert is not None and case.insert[0] == k:
             b["present_from_s"] = case.insert[1]
         bats.append(b)
-    cfg = parse_config(
-        {
-            "pack": {
-                "cell": "uav_5ah",
-                "switch": {
-                    "kind": "mosfet_pair",
-                    "on_ohm": 0.0001,
-                    "diode_drop_v": 0.6,
-                    "reverse_comparator": comparator,
-                },
-                "batteries": bats,
+    data: dict[str, object] = {
+        "pack": {
+            "cell": "uav_5ah",
+            "switch": {
+                "kind": "mosfet_pair",
+                "on_ohm": 0.0001,
+                "diode_drop_v": 0.6,
+                "reverse_comparator": comparator,
             },
-            "load": {"kind": "current", "value": 1.0, "v_min_v": 15.0},
-            "controller": ["sequencing"],
-            "sequencing": sequencing or {},
-            "sim": {"dt_s": case.dt_s, "duration_s": DURATION_S, "progress": False},
-        }
-    )
+            "batteries": bats,
+        },
+        "load": {"kind": "current", "value": 1.0, "v_min_v": 15.0},
+        "controller": ["sequencing"],
+        "sequencing": sequencing or {},
+        "sim": {"dt_s": case.dt_s, "duration_s": duration_s, "progress": False},
+    }
+    if observer:
+        data["soc"] = {}
+    cfg = parse_config(data)
     runner = Runner(cfg)
     runner.profile = loads.LoadProfile(
         kind="current",
-        t_s=np.array([*case.load_t_s, DURATION_S + 1.0]),
+        t_s=np.array([*case.load_t_s, duration_s + 1.0]),
         value=np.array([*case.load_a, 0.0]),
     )
     n = len(bats)
@@ -276,8 +283,13 @@ SOAK_4 = Case(
 )
 
 
-@pytest.mark.xfail(strict=True, reason="open: the zero-load prediction 35 % low at 0.5 s "
-                   "periods right after R3 (SOAK_4's comment)")  # fmt: skip
+# Issue #28: with the battery observer trusted the prediction no longer drops after R3 and
+# the same case passes (tests/test_sequencing_zero_load.py::
+# test_soak_4_with_the_observer_trusted_flags_what_r3_forces, after a minute's rest). This
+# scenario has no [soc] and its load falls at 13 s, before any observer is trusted (its 60 s
+# window): the -dV/dI fallback, so it stays open here.
+@pytest.mark.xfail(strict=True, reason="open without an observer: the -dV/dI zero-load "
+                   "prediction 35 % low at 0.5 s right after R3 (SOAK_4's comment)")  # fmt: skip
 def test_closed_loop_invariants_open_counterexample() -> None:
     _check_invariants(SOAK_4, comparator=False)
 
@@ -299,8 +311,10 @@ def test_closed_loop_invariants_known_counterexample(case: Case, comparator: boo
         assert peak <= TRIP_A
 
 
-def _check_invariants(case: Case, comparator: bool = False) -> Result:
-    res, _ocv = simulate(case, comparator=comparator)
+def _check_invariants(
+    case: Case, comparator: bool = False, observer: bool = False, duration_s: float = DURATION_S
+) -> Result:
+    res, _ocv = simulate(case, comparator=comparator, observer=observer, duration_s=duration_s)
     tr = res.trace
     n = len(case.ocv0_v)
     cur = tr.channel("current_a")

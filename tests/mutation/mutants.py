@@ -476,6 +476,17 @@ SEQUENCING = [
        "tot += c if can_charge[k] or not c < 0.0 else 0.0", "tot += c",
        "#26: a standby battery's implausible negative current (its charge path open) puts "
        "the pack in charge mode and opens the healthy battery's discharge FET"),
+    _m("sequencing", "zero-load-observer-ignored",
+       "        if status[p, k, s_ok] == 1.0 and 0.0 < r0 <= r_max:\n", "        if False:\n",
+       "#28: the zero-load prediction keeps the -dV/dI resistance, which takes in the "
+       "polarisation after a long heavy load, although the observer's R0 is trusted"),
+    _m("sequencing", "zero-load-source-with-polarisation-r",
+       "            ez[k] = volt[k] + cur[k] * r0\n", "            ez[k] = ef[k]\n",
+       "#28: the source voltage behind R0 is V + I x r with the polarised -dV/dI r"),
+    _m("sequencing", "zero-load-open-dropped",
+       "    _open_predicted(prm, st, ev, src, p, t)\n", "    pass\n",
+       "#28 rule 8b (opt-in): an engaged battery the observer predicts above its charge limit "
+       "stays engaged after a join (seed 25: 1.40x at the loss)"),
 ]
 
 
@@ -571,6 +582,9 @@ TESTS: dict[str, list[str]] = {
         "tests/test_runtime_fault_suite.py::test_a_standby_batterys_current_never_moves_the_other",
         "tests/test_runtime_fault_suite.py::test_a_frozen_loaded_battery_rejoins_without"
         "_charging_its_sibling",
+        "tests/test_sequencing_zero_load.py::test_the_zero_load_prediction_uses_the_observers_r0",
+        "tests/test_sequencing_zero_load.py::test_an_abrupt_load_loss_never_pushes_more_than_the"
+        "_charge_limit[25]",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],

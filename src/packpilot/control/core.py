@@ -167,6 +167,7 @@ class Core:
         for x in self.compiled:
             x.s0 = s0
             s0 += len(x.method.status)
+        self._link_reads()
         self.sources = [
             Source(x.method.reasons, x.method.labels(x.prm)) if isinstance(x, Part)
             else Source((), {})
@@ -190,6 +191,16 @@ class Core:
         )
         self._foreign: list[Event] = []
         self._foreign_status: dict[int, dict[str, list[StatusValue]]] = {}
+
+    def _link_reads(self) -> None:
+        """Tell each part that reads another part's status channels (``Method.reads``) where
+        they are: their slots into its ``reads_slot`` parameter, -1 where none publishes it."""
+        slots = {
+            ch.name: x.s0 + j for x in self.compiled for j, ch in enumerate(x.method.status)
+        }
+        for x in self.compiled:
+            for j, name in enumerate(x.method.reads):
+                x.prm.reads_slot[j] = slots.get(name, -1)
 
     def _home(self, status: StatusBuf, ev: EventBuf, cmd: CmdArrays, m: MeasArrays) -> None:
         """Move every array of the core into one arena: Python keeps views, and a kernel gets

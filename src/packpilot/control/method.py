@@ -82,6 +82,12 @@ class Method:
     """``after(prm, st, tp, m, cmd)``: sees the step's final, merged commands, in part order
     (sequencing may still turn a path off, "off wins": a charge FET whose discharge FET any layer
     opened; plausibility, after it, compares switch feedback with what was commanded)."""
+    reads: tuple[str, ...] = ()
+    """Status channels of *other* parts this method reads, by name (methods never import each
+    other: a channel's name is the contract). The core writes each one's slot in the status
+    array into the parameters' ``reads_slot`` (same order; -1 where no part publishes it)
+    before the first step; the kernel reads ``status[p, i, slot]``, which holds the value
+    that part wrote in the previous step when it runs later in the order."""
 
 
 def status_values(

@@ -180,9 +180,15 @@ REASONS = (
         "{source} at the present load",
         fields("current_a", "i_rev", "path:l:path", "_battery:i", "source:i"),
     ),
+    Reason(
+        "CrossCurrentRisk",
+        "battery {battery}: charge FET off, {predicted_a:.2f} A (over its {i_limit_a:.2f} A "
+        "charge limit x the open ratio) would flow into it if the load vanished",
+        fields("predicted_a", "i_limit_a", "_battery:i"),
+    ),
 )
 assert [r.kind for r in REASONS][rules.FAULT_CLEARED] == "FaultCleared"
-assert len(REASONS) == rules.HANDOVER + 1
+assert len(REASONS) == rules.ZERO_LOAD_OPEN + 1
 assert [r.kind for r in REASONS][rules.RISK] == "CrossCurrentRisk"
 
 STATUS = (
@@ -199,6 +205,11 @@ STATUS = (
 fast voltage; None outside discharge), the zero-load prediction of the engaged set (0 outside
 discharge), whether that exceeds its charge limit, and how long its diode has conducted."""
 assert STATUS[rules.ST_DIODE].name == "seq_diode_s"
+
+
+READS = ("soc_r0_ohm", "soc_observer_ok")
+"""The battery observer's channels the zero-load prediction reads (``Method.reads``; the
+``[soc]`` layer publishes them): each battery's R0 and whether the observer is trusted."""
 
 
 def build(
@@ -226,6 +237,13 @@ def build(
         default_capacity_ah=float(config.default_capacity_ah),
         r_batt_ohm=float(config.r_batt_ohm),
         i_step=float(config.i_step),
+        zero_load_observer=bool(config.zero_load_observer),
+        open_ratio=(
+            max(float(config.zero_load_open_ratio), float(config.charge_limit_margin))
+            if config.zero_load_open
+            else math.inf
+        ),
+        reads_slot=np.full(len(READS), -1, np.int64),
         n_batteries=int(n),
         fault_text=fault,
     )
@@ -259,9 +277,14 @@ def build(
         v_ref_v=nan((P,)),
         zero_load_valid=no((P,)),
         fault=fault,
+        forced_s=nan(pb),
+        zl_open_s=nan(pb),
         held=no(pb),
         ef=nan(b),
         g=nan(b),
+        ez=nan(b),
+        gz=nan(b),
+        zl_obs=no(b),
         i_lim=nan(b),
         pred=np.zeros(b),
         grp=idx(),
@@ -296,6 +319,7 @@ METHOD = Method(
     labels=labels,
     max_events=lambda info: rules.max_events(info.n_batteries),
     after=rules.close_out_packs,
+    reads=READS,
 )
 
 

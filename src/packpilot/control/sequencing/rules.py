@@ -80,6 +80,11 @@ B1 = NDArray[np.bool_]
 
 EPS_S = 1e-9
 """Tolerance for comparing accumulated times, so 0.1 + 0.1 + 0.1 counts as 0.3 s."""
+R3_HOLD_S = 5.0
+"""Rule 8b does not open a battery R3 closed less than this long ago (``forced_s``)."""
+ZL_DWELL_S = 30.0
+"""A battery rule 8b opened stays open at least this long (about the RC time constant of the
+cell sets shipped, uav_5ah's 30 s): the engage rule does not close it before."""
 
 # Battery states (the order of ``SeqState``).
 DISCHARGING = 0
@@ -129,6 +134,9 @@ HANDOVER = 13
 """A sibling would charge this engaged battery at the present load once a cut or an R3 closure
 has changed the engaged set: its charge FET opened (ReverseCurrent, predicted, no state
 change)."""
+ZERO_LOAD_OPEN = 14
+"""The observer-based zero-load prediction put this engaged battery above ``open_ratio`` x its
+charge limit: its charge FET opened (CrossCurrentRisk, no state change; rule 8b)."""
 
 # Slots of a state-change event: from, to, reason, battery (message only), then the data.
 V_FROM = 0
@@ -187,6 +195,14 @@ class SequencingParams(NamedTuple):
     """Capacity assumed where the topology does not state one (replay logs)."""
     r_batt_ohm: float
     i_step: float
+    zero_load_observer: bool
+    """Take the zero-load prediction's R0 from the battery observer where it is trusted."""
+    open_ratio: float
+    """Rule 8b: an engaged battery whose trusted zero-load prediction exceeds this fraction of
+    its charge limit has its charge FET opened."""
+    reads_slot: I64
+    """Status slots of the observer's channels (``controller.READS``: its battery R0 and its
+    trust flag), written by the core (``Method.reads``); -1 = no observer in this core."""
     n_batteries: int
     fault_text: F64
     """The State's ``fault`` array itself: the event renderer formats the fail-safe reason
@@ -229,6 +245,17 @@ class SequencingState(NamedTuple):
     fault: F64
     """(P, N_FAULT) the last fail-safe reason: code (FAULT_*), then its numbers; kept after
     the fault clears (the FaultCleared event names it)."""
+    forced_s: F64
+    """(P, B) when R3 last closed this battery's charge FET (its diode carried current; NaN:
+    not since it was engaged): rule 8b leaves it engaged for ``R3_HOLD_S`` after that
+    (opening it at once could put the current back on the diode, R3 would close it again
+    in the next period: chatter)."""
+    zl_open_s: F64
+    """(P, B) when rule 8b opened this battery's charge FET (NaN: it has been engaged since,
+    or never): the engage rule closes it again only ``ZL_DWELL_S`` later and with its own
+    prediction within ``risk_clear_ratio`` x its limit (not ``charge_limit_margin``), so an
+    opened battery does not chatter about the threshold (its prediction jumps by I x the
+    error of R0 when it takes current again, and its polarisation builds again)."""
     held: B1
     """(P, B) another layer (protection, limits, plausibility, the supervisor) opened this
     MOSFET-pair battery's discharge FET in the last step although sequencing commanded it on:
@@ -240,6 +267,13 @@ class SequencingState(NamedTuple):
     """Fast voltage V + I*R of each battery."""
     g: F64
     """1 / R estimate."""
+    ez: F64
+    """Fast voltage for the zero-load prediction: V + I * R0 with the observer's R0 where
+    it is trusted, else ``ef`` (:func:`_zero_load_sources`)."""
+    gz: F64
+    """1 / R0 for the zero-load prediction (else ``g``)."""
+    zl_obs: B1
+    """This battery's ``ez``/``gz`` are the observer's (trusted) this period."""
     i_lim: F64
     """Charge limit (A) of each battery in this pack."""
     pred: F64
@@ -474,8 +508,20 @@ def _held_out(st: SequencingState, ev: EventBuf, src: int, p: int, t: float) -> 
 
 
 @kernel_inline
+def _zl_may_engage(
+    prm: SequencingParams, st: SequencingState, p: int, k: int, pred: float, lim: float,
+    t: float,
+) -> bool:  # fmt: skip
+    """May the engage rule close battery ``k`` again (rule 8b's dwell and hysteresis)?"""
+    since = st.zl_open_s[p, k]
+    if math.isnan(since):
+        return True
+    return t - since >= ZL_DWELL_S - EPS_S and pred <= prm.risk_clear_ratio * lim
+
+
+@kernel_inline
 def _engage(
-    prm: SequencingParams, st: SequencingState, p: int, pres: B1, load_a: float
+    prm: SequencingParams, st: SequencingState, p: int, pres: B1, load_a: float, t: float
 ) -> None:  # fmt: skip
     """Engage rule (R2's FET action; embodiment 5: the charge FET is on only while discharge
     current flows): close the charge FET of an admitted battery when, with it engaged, it
@@ -511,10 +557,12 @@ def _engage(
                 ok = False
         if not ok:
             continue
-        _share(grp, m2, ef, g, 0.0, pred)
+        _share(grp, m2, st.ez, st.gz, 0.0, pred)
         for q in range(m2):
             j = grp[q]
             if pred[j] > prm.charge_limit_margin * i_lim[j]:
+                ok = False
+            if j == k and not _zl_may_engage(prm, st, p, k, pred[j], i_lim[j], t):
                 ok = False
         if not ok:
             continue
@@ -565,6 +613,59 @@ def _open_charged(
 
 
 @kernel_inline
+def _open_predicted(
+    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, t: float
+) -> None:  # fmt: skip
+    """Rule 8b (issue #28): open, worst first, the charge FET of every engaged battery that
+    the zero-load prediction puts above ``open_ratio`` x its charge limit, predicting the rest
+    again after each; only while every engaged battery's prediction sources are the trusted
+    observer's (the -dV/dI estimate is too uncertain to act on: the old guard that acted on it
+    defeated co-discharge), and never a battery R3 closed (``skip``, ``forced``: its diode
+    would carry the current again). It stays admitted: the engage rule closes it again once
+    the prediction with it engaged is within ``charge_limit_margin`` x the limits and it would
+    discharge. Why: after a join the joiner polarises and its fast voltage falls below the
+    others' while nothing changes the FETs; the circulating current at a load loss then grows
+    past the limit (``bench_zero_load`` seed 25: 1.40x after 30 s, predicted 1.47x)."""
+    state = st.state
+    chg_on = st.chg_on
+    pred = st.pred
+    grp = st.grp
+    i_lim = st.i_lim
+    forced_s = st.forced_s
+    skip = st.skip
+    zl = st.zl_obs
+    while True:
+        m = _engaged(state, chg_on, p, grp, -1)
+        if m < 2:
+            break
+        trusted = True
+        for q in range(m):
+            if not zl[grp[q]]:
+                trusted = False
+        if not trusted:
+            break
+        _share(grp, m, st.ez, st.gz, 0.0, pred)
+        j = -1
+        for q in range(m):
+            x = grp[q]
+            held_r3 = t - forced_s[p, x] < R3_HOLD_S - EPS_S  # False when NaN
+            if held_r3 or skip[x] or not pred[x] > prm.open_ratio * i_lim[x]:
+                continue
+            if j < 0 or pred[x] / i_lim[x] > pred[j] / i_lim[j]:
+                j = x
+        if j < 0:
+            break
+        chg_on[p, j] = False
+        st.cut[j] = True
+        st.zl_open_s[p, j] = t
+        st.conduct_since_s[p, j] = np.nan
+        r = emit(ev, p, src, ZERO_LOAD_OPEN, j, t)
+        ev.val[r, 0] = pred[j]
+        ev.val[r, 1] = i_lim[j]
+        ev.val[r, 2] = j
+
+
+@kernel_inline
 def _discharge_tick(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, volt: F64,
     cur: F64, pres: B1, t: float, dt: float, n_inserted: int,
@@ -579,7 +680,6 @@ def _discharge_tick(
     initialized = st.initialized
     v_ref_v = st.v_ref_v
     ef = st.ef
-    g = st.g
     i_lim = st.i_lim
     pred = st.pred
     grp = st.grp
@@ -702,7 +802,7 @@ def _discharge_tick(
                 ev.val[r, V_DATA + 2] = ef[k] - e_ref
 
     # Engage (R2 switches the joiner's charge FET; also re-closes one the reverse cut opened).
-    _engage(prm, st, p, pres, _charge_in(pres, cur, was_c))
+    _engage(prm, st, p, pres, _charge_in(pres, cur, was_c), t)
 
     # R3: charge diode conducting (charge FET off, discharge FET on, discharge current).
     # Only current measured over a period in which this controller held the charge FET off
@@ -733,6 +833,7 @@ def _discharge_tick(
         else:
             chg_on[p, k] = True
         skip[k] = True
+        st.forced_s[p, k] = t
         any_r3 = True
     # Hand-over: if the batteries R3 closed, now engaged, would charge an engaged sibling by
     # more than i_rev at the present load, they are the higher ones (embodiment 5: discharge
@@ -742,6 +843,9 @@ def _discharge_tick(
     if any_r3:
         _open_charged(prm, st, ev, src, p, _charge_in(pres, cur, was_c), t)
 
+    # Rule 8b: open an engaged battery the trusted zero-load prediction puts above its limit.
+    _open_predicted(prm, st, ev, src, p, t)
+
     # Zero-load prediction of the engaged set: an engaged battery that would take more than
     # its charge limit if the load vanished (R3 closed it across a wider gap, or the fast
     # voltages drifted apart during co-discharge) is flagged once per episode; the reverse cut
@@ -750,7 +854,7 @@ def _discharge_tick(
     m = _engaged(state, chg_on, p, grp, -1)
     for k in range(n):
         pred[k] = 0.0
-    _share(grp, m, ef, g, 0.0, pred)
+    _share(grp, m, st.ez, st.gz, 0.0, pred)
     for k in range(n):
         # Raised near the limit, cleared only well below it: the prediction is an estimate.
         risk = pred[k] > prm.charge_limit_margin * i_lim[k] or (
@@ -763,6 +867,10 @@ def _discharge_tick(
             ev.val[r, 2] = k
         at_risk[p, k] = risk
         zero_load_into_a[p, k] = pred[k]
+        if not (state[p, k] == DISCHARGING and chg_on[p, k]):
+            st.forced_s[p, k] = np.nan
+        if state[p, k] != DISCHARGING or chg_on[p, k]:
+            st.zl_open_s[p, k] = np.nan
     zero_load_valid[p] = True
     v_ref_v[p] = _max_discharging(state, p, ef)
 
@@ -966,6 +1074,46 @@ def _update_resistance(
 
 
 @kernel_inline
+def _zero_load_sources(
+    prm: SequencingParams, st: SequencingState, status: F64, p: int, volt: F64, cur: F64,
+    pres: B1,
+) -> None:  # fmt: skip
+    """Fast voltage and conductance of each battery for the zero-load prediction (issue #28).
+
+    The prediction asks what flows the instant the load vanishes: each battery is then its
+    EMF less its polarisation, ``EMF - v_rc`` (what it shows before the RC branch has had
+    time to relax), behind its ohmic resistance R0. By the observer's own model the terminal
+    voltage is ``EMF - R0 * I - v_rc``, so that source voltage is ``V + I * R0`` with the
+    observer's R0, read here from the measured V (the observer tracks one cell x the series
+    count, and runs after this method: its EMF and v_rc are one period old and miss the
+    other cells' spread). The -dV/dI estimate (``ef``, ``g``), taken over a whole period,
+    takes in part of the polarisation: a resistance too high, a source voltage too high for
+    a battery under load, and a circulating current predicted low (1.34x the charge limit
+    flowed where 0.9x was predicted). Where the observer is off, restarting or diverged
+    (its trust flag not 1), or its R0 is not plausible, the -dV/dI estimate stays."""
+    ez = st.ez
+    gz = st.gz
+    ef = st.ef
+    g = st.g
+    s_r0 = prm.reads_slot[0]
+    s_ok = prm.reads_slot[1]
+    use = prm.zero_load_observer and s_r0 >= 0 and s_ok >= 0
+    r_max = 20.0 * prm.r_batt_ohm
+    zl = st.zl_obs
+    for k in range(pres.shape[0]):
+        ez[k] = ef[k]
+        gz[k] = g[k]
+        zl[k] = False
+        if not use or not pres[k]:
+            continue
+        r0 = status[p, k, s_r0]
+        if status[p, k, s_ok] == 1.0 and 0.0 < r0 <= r_max:
+            ez[k] = volt[k] + cur[k] * r0
+            gz[k] = 1.0 / r0
+            zl[k] = True
+
+
+@kernel_inline
 def _update_mode(
     prm: SequencingParams, mode: I64, mode_evidence_since_s: F64, initialized: B1,
     conduct_since_s: F64, ev: EventBuf, src: int, p: int, cur: F64, pres: B1, docked: bool,
@@ -1105,6 +1253,7 @@ def step_pack(
             n_ins += 1
 
     _update_resistance(prm, st.r_ohm, st.last_v_v, st.last_i_a, st.ef, st.g, p, volt, cur, pres)
+    _zero_load_sources(prm, st, status, p, volt, cur, pres)
     cap = tp.capacity_ah[p]
     i_lim = st.i_lim
     for k in range(n):
