@@ -127,3 +127,14 @@ def test_no_estimate_from_a_fallback_voltage() -> None:
     d.step(replace(_bm(5.0, 25.0, 3.60), min_cell_v=math.nan), 1.0)
     d.step(replace(_bm(25.0, 25.0, 3.50), min_cell_v=math.nan), 1.0)
     assert math.isnan(d.ctl.battery(0).resistance_ohm)
+
+
+def test_a_step_without_a_voltage_change_is_no_resistance() -> None:
+    """A 20 A step at an unchanged check voltage gives R = 0, which no cell has: it is not
+    learned, the resistance stays unknown and the row is the most conservative one, not the
+    low-resistance row (generated mutant b4d54e0b86: ``r_new > 0`` -> ``>= 0`` learned 0 Ohm)."""
+    d = Driver(R_TABLE)
+    d.step(_bm(5.0, 25.0, 3.60), 1.0)
+    d.step(_bm(25.0, 25.0, 3.60), 1.0)
+    assert math.isnan(d.ctl.battery(0).resistance_ohm)
+    assert _param(d) == "HIGH_R"

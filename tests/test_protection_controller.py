@@ -398,3 +398,20 @@ def test_one_row_baseline_ignores_status() -> None:
     assert d.trip_end_s is None
     d.run(1.0, 30.0, -10.0, 3.1)
     assert d.trip_end_s == 5.0
+
+
+def test_a_sustained_charge_starts_one_cycle_and_stays_started() -> None:
+    """A sustained charge starts one new discharge cycle, once: the battery's view says the
+    cycle started from charge_detect_s on and keeps saying so for the rest of the charge, with
+    one reset event; only the end of the charge re-arms it (generated mutant fbf8ba0c6a: the
+    flag never set, a new cycle restarted on every tick of the charge)."""
+    d = Driver()
+    d.run(2.0, 10.0, 25.0, 3.1)  # something to reset: 2 of P3's 5 s
+    d.run(9.0, -2.0, 25.0, 3.8)
+    assert not d.ctl.battery(0).charge_cycle_started
+    for _ in range(30):
+        d.run(1.0, -2.0, 25.0, 3.8)
+        assert d.ctl.battery(0).charge_cycle_started
+    assert len(d.events("ProtectionReset")) == 1
+    d.run(1.0, 0.0, 25.0, 3.8)
+    assert not d.ctl.battery(0).charge_cycle_started

@@ -158,3 +158,25 @@ def test_dt_ms_is_pythons_limit_denominator() -> None:
     for dt in [*(k / 7919.0 for k in range(1, 4000, 7)), *tiny]:
         want = Fraction(dt * 1000.0).limit_denominator(1000)
         assert dt_ms(dt) == (want.numerator, want.denominator), dt
+
+
+def test_ticks_of_coprime_lengths_round_the_sum_up_and_go_on() -> None:
+    """Tick lengths of 100 + 1/q ms for distinct primes q near 1000 make the exact sum's
+    denominator (their product) outgrow the integer range after a few ticks: the sum is then
+    rounded up to whole weighted microseconds and goes on, within a few microseconds of the
+    exact sum, and never jumps to a trip (acc_add's fallback; generated mutant cefe11f424: the
+    guard inverted, every rounded sum saturated and tripped at once). P3: 5 s allowance."""
+    ctl = ProtectionController(CFG, PACK)
+    params = {p.name: p for p in TABLE.params}
+    p3 = params[_reference_param(10.0, 25.0)]
+    assert p3.cutoff_v > 3.1
+    exact, t = Fraction(0), 0.0
+    for q in (997, 991, 983, 977, 971, 967, 953, 947, 941, 937):
+        dt = (100 * q + 1) / q / 1000.0
+        out = ctl.step(Measurements(t_s=t, batteries=(_bm(10.0, 25.0, 3.1),), bus_v=18.6), dt)
+        t += dt
+        exact += Fraction(100 * q + 1, q) / p3.t_max_ms
+        assert not ctl.battery(0).tripped
+        assert not any(e.kind == "ProtectionTripped" for e in out.events)
+    got = ctl.battery(0).acc_wms / TABLE.m_ms
+    assert float(exact) <= got <= float(exact) + 1e-4  # rounded up, by microseconds

@@ -325,3 +325,15 @@ def test_a_battery_refused_after_it_was_accepted_is_logged() -> None:
     assert refused(0.2, 110.0) == []  # the same episode
     assert refused(0.3, 101.0) == []
     assert refused(0.4, 110.0) == [1]  # admitted in between: a new episode
+
+
+def test_init_ends_exactly_at_init_time_s() -> None:
+    """INIT lasts init_time_s, not a tick more: with 0.25 s ticks (exact in binary) and 1 s of
+    INIT the fourth tick, whose end is 1.0 s in the mode, is already IDLE (generated mutant
+    7954b947f3: ``<`` -> ``<=`` held INIT one tick longer)."""
+    sup = Supervisor(SupervisorConfig(init_time_s=1.0), _info(1, SwitchKind.MOSFET_PAIR))
+    modes = []
+    for k in range(5):
+        sup.step(Measurements(t_s=k * 0.25, batteries=(_bat(24.0),), bus_v=24.0), 0.25)
+        modes.append(sup.mode)
+    assert modes == [Mode.INIT] * 3 + [Mode.IDLE] * 2

@@ -27,4 +27,37 @@ EQUIVALENT: dict[str, str] = {
     "status, an event or any array another module reads; OK = 0 and BAD = 1 stay distinct.",
     "4d03f98d8c": "equalization step: `dt_s > 0.0` -> `>= 0.0` in `dt = dt_s if ... else 0.0`: "
     "at dt_s = 0 both give 0 (a -0.0 only ever added to timers: the same sums).",
+    # --- judged 2026-11-28 afternoon (h26mut), each with the reason no input can tell them
+    "67cf4e4e72": "plausibility _output: `status[p, i, s0 + ST_FAULTS]` -> `s0 - ST_FAULTS`: "
+    "ST_FAULTS = 0, so both index column s0.",
+    "a79edf1911": "plausibility _nonfinite_code: `x > 0.0` -> `x > 1.0`: it is only given "
+    "non-finite values (FAULT_TEXT needs a non-finite shown value; PACK_FAULT comes only from "
+    "_pack_finding, BAD only for a non-finite bus voltage / load current); NaN returns "
+    "earlier, and for +inf / -inf both comparisons agree.",
+    "a965343793": "plausibility _advance: the ok timer returned as 1.0 instead of 0.0 while "
+    "BAD (was_bad = True): ok_s is read only in the OK branch and only when was_bad is False, "
+    "and the OK step after a BAD one sets it to 0.0 before anything reads it (NONE holds "
+    "was_bad); st.ok_s is read nowhere else.",
+    "a5f144e36c": "plausibility _advance: the bad timer returned as 1.0 instead of 0.0 while "
+    "OK (was_bad = False): bad_s is read only in the BAD branch and only when was_bad is "
+    "True, and the first BAD step after an OK one sets it to 0.0 first; st.bad_s is read "
+    "nowhere else.",
+    "e3e60dd187": "plausibility step_pack: `pend_n > 0` -> `>= 0` before _flush_resets: with "
+    "pend_n = 0 the flush loops zero times and sets pend_n to 0 again (pend_n counts up from "
+    "0, never negative).",
+    "f249a36c54": "plausibility step_pack: `delay = 0.0` of the K_STALE detector deleted: the "
+    "detectors run in order k = 0, 1, ... and K_STUCK (k = 2, just before K_STALE = 3) always "
+    "sets delay = 0.0, so delay is already 0.0 there.",
+    "4ac5081d0a": "limits step_pack: `held_s = 0` out of context deleted: seen is reset to 0 "
+    "there, held_s is read only once seen >= debounce, debounce >= 1 (LimitRow validates "
+    "it), and the violating tick that raises seen from below debounce sets held_s = 0 first; "
+    "a stale held_s is always overwritten before it is read.",
+    "33e3da0a7c": "equalization _emit_recorded: `rec_n = 0` -> `1` after emitting: step_pack "
+    "sets rec_n = 0 before _pack at the start of every step, and nothing reads rec_n between "
+    "the emit and that reset (the controller never reads it).",
+    "c5254a89bd": "equalization _pack: `e < cap_rec` -> `<=` before recording a fault: a "
+    "battery records per step at most one fault / cleared record plus 15 BalancingUpdated "
+    "per group (14 formula changes + the subtraction, controller.EVENTS_PER_GROUP's note), "
+    "and cap_rec reserves 2 + 24 per group for each battery, so e <= cap_rec - 2 whenever a "
+    "fault is recorded; e == cap_rec never happens.",
 }
