@@ -60,4 +60,12 @@ EQUIVALENT: dict[str, str] = {
     "per group (14 formula changes + the subtraction, controller.EVENTS_PER_GROUP's note), "
     "and cap_rec reserves 2 + 24 per group for each battery, so e <= cap_rec - 2 whenever a "
     "fault is recorded; e == cap_rec never happens.",
+    "5c4a07342c": "supervisor _class_of: `ev.code[k] < ev_class.shape[1]` -> `<=`: the table "
+    "is Core._ev_class, (parts) x (the most reasons of any part), and a part's event has src = "
+    "its index and code < its own number of reasons <= shape[1]; code == shape[1] never "
+    "occurs (Python parts' events come as FOREIGN_SRC, handled before).",
+    "4b6ac385e2": "supervisor _class_of: the fallback `return 0` -> `return 1`: never reached "
+    "(no test reaches it either): every event _note_events reads is a part's (src < parts, "
+    "code < shape[1]) or FOREIGN_SRC; the supervisor's own events for pack p are emitted after "
+    "its _note_events for p, and later packs skip them by their pack index.",
 }
