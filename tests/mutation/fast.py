@@ -53,6 +53,9 @@ simulations, interpreted and traced (the full-budget map did not finish in 41 mi
 loaded box). Sound: every property test of such a map is marked ``partial`` and selected for
 every mutant of the module (its traced lines are only a lower bound); the plain tests are
 traced in full. Each mutant still runs under ``mutate`` (the full CI budget)."""
+PARTIAL_FACTOR = 10.0
+"""A partial (``dev``-budget) test's traced time x this is its expected time in a mutant run
+(``dev`` runs a tenth of the CI examples, at least 5): its timeout must not be a tenth of it."""
 TIMEOUT_MIN_S, TIMEOUT_FACTOR, TIMEOUT_PAD_S, RETRY_FACTOR = 30.0, 3.0, 10.0, 3.0
 PYTEST_ARGS = ["-x", "-q", "-p", "no:cacheprovider", "-p", "no:xdist"]
 
@@ -202,8 +205,11 @@ def select_tests(cmap: dict[str, Any], path: str, lines: set[int]) -> tuple[list
         if chosen:  # a spawned CLI runs every rule: it might reach the line unseen
             chosen |= {t for t, d in tests.items() if d.get("spawns")}
         chosen |= {t for t, d in tests.items() if d.get("partial")}  # traced on fewer examples
-    order = sorted(chosen, key=lambda t: (bool(tests[t].get("spawns")), tests[t]["seconds"]))
-    return order, sum(tests[t]["seconds"] for t in order)
+    def secs(t: str) -> float:
+        return float(tests[t]["seconds"]) * (PARTIAL_FACTOR if tests[t].get("partial") else 1.0)
+
+    order = sorted(chosen, key=lambda t: (bool(tests[t].get("spawns")), secs(t)))
+    return order, sum(secs(t) for t in order)
 
 
 # --- running ----------------------------------------------------------------------------------
