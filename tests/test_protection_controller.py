@@ -415,3 +415,45 @@ def test_a_sustained_charge_starts_one_cycle_and_stays_started() -> None:
     assert len(d.events("ProtectionReset")) == 1
     d.run(1.0, 0.0, 25.0, 3.8)
     assert not d.ctl.battery(0).charge_cycle_started
+
+
+def test_no_group_fallback_without_a_cell_count() -> None:
+    """A pack that does not say how many cells a group holds (cells_per_group 0) gives the
+    group voltages no meaning as cell voltages: without a min cell voltage the check voltage
+    is unknown (nothing accumulates, one voltage fault), never a group voltage divided by 0
+    (generated mutant bc3bb9e592: ``per_group > 0`` -> ``>= 0``)."""
+    pack = PackInfo(
+        n_batteries=1,
+        groups_per_battery=(6,),
+        cells_per_group=(0,),
+        switch_kind=(SwitchKind.MOSFET_PAIR,),
+    )
+    d = Driver(pack=pack)
+    out = d.step(_bm(10.0, 25.0, math.nan, groups=(3.1,) * 6, voltage_v=18.6), 1.0)
+    assert d.ctl.fraction(0) == 0.0
+    assert out.status["protection_time_to_trip_s"] == [None]
+    assert [f.data["field"] for f in d.events("Fault")] == ["min_cell_v"]  # type: ignore[attr-defined]
+
+
+def test_an_absent_battery_leaves_the_status_of_the_layer_before_it_alone() -> None:
+    """In a composed core protection writes only its own status columns: for a battery absent
+    from the start (no table row yet) it shows no parameter and no cut-off, and the limits
+    layer before it keeps every status value it published for that battery (generated mutant
+    3bdfb0ba7e: ``s0 + ST_CUTOFF`` -> ``s0 - ST_CUTOFF`` wrote NaN into the limits layer's last
+    column)."""
+    from packpilot.control.core import Core, Part
+    from packpilot.control.limits import LimitsConfig
+    from packpilot.control.limits.controller import METHOD as LIMITS
+    from packpilot.control.protection.controller import METHOD as PROTECTION
+
+    pack = PackInfo(n_batteries=2, groups_per_battery=(6, 6), cells_per_group=(1, 1),
+                    switch_kind=(SwitchKind.MOSFET_PAIR,) * 2, capacity_ah=(5.0, 5.0))  # fmt: skip
+    alone = Core([pack], [Part.build(LIMITS, LimitsConfig(), [pack])])
+    both = Core([pack], [Part.build(LIMITS, LimitsConfig(), [pack]),
+                         Part.build(PROTECTION, ProtectionConfig(), [pack])])  # fmt: skip
+    meas = Measurements(t_s=0.0, batteries=(_bm(5.0, 25.0, 3.7), _bm(0.0, 25.0, 3.7,
+                        present=False)), bus_v=22.2)  # fmt: skip
+    a = alone.step(meas, 1.0).status
+    b = both.step(meas, 1.0).status
+    assert {k: b[k] for k in a} == a
+    assert b["protection_param"][1] in (None, "") and b["protection_cutoff_v"][1] is None

@@ -180,3 +180,16 @@ def test_ticks_of_coprime_lengths_round_the_sum_up_and_go_on() -> None:
         assert not any(e.kind == "ProtectionTripped" for e in out.events)
     got = ctl.battery(0).acc_wms / TABLE.m_ms
     assert float(exact) <= got <= float(exact) + 1e-4  # rounded up, by microseconds
+
+
+def test_dt_ms_rounds_sub_microsecond_ticks_like_python() -> None:
+    """Ticks of 0.5 to 1 microsecond (below 1/1000 ms: the only candidates are 0/1 and
+    1/1000 ms) with full 53-bit mantissas: dt_ms picks 1/1000 above the midpoint and 0/1 at or
+    below it, as ``Fraction.limit_denominator(1000)`` does (generated mutant 50c4a9cc5c: every
+    such tick read as 0 ms)."""
+    from packpilot.control.protection.rules import dt_ms
+
+    for j in range(1, 500):
+        dt = math.nextafter((0.5 + j / 1000.0) * 1e-6, 1.0)
+        want = Fraction(dt * 1000.0).limit_denominator(1000)
+        assert dt_ms(dt) == (want.numerator, want.denominator), dt

@@ -68,4 +68,7 @@ EQUIVALENT: dict[str, str] = {
     "(no test reaches it either): every event _note_events reads is a part's (src < parts, "
     "code < shape[1]) or FOREIGN_SRC; the supervisor's own events for pack p are emitted after "
     "its _note_events for p, and later packs skip them by their pack index.",
+    "0ddaebaf7f": "protection dt_ms: `return -1, 1` (a tick of >= 2**62 ms, or inf / NaN) -> "
+    "`-2, 1`: dt_ms's only caller passes a_ms to acc_add, which saturates (trips) for any "
+    "a < 0; -1 and -2 do the same.",
 }
