@@ -71,4 +71,9 @@ EQUIVALENT: dict[str, str] = {
     "0ddaebaf7f": "protection dt_ms: `return -1, 1` (a tick of >= 2**62 ms, or inf / NaN) -> "
     "`-2, 1`: dt_ms's only caller passes a_ms to acc_add, which saturates (trips) for any "
     "a < 0; -1 and -2 do the same.",
+    "865c422295": "protection _new_cycle: the emptied sum 0/1 -> 0/2: the same rational; every "
+    "reader divides num by den (fraction, remaining time, the trip test num > m * den, "
+    "acc_wms), and the first acc_add reduces the new sum by its gcd to the same canonical "
+    "fraction; its overflow guards see den 2 instead of 1 only for a single tick beyond "
+    "LIM / (2 w) ms, which trips either way.",
 }
