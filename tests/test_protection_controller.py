@@ -432,7 +432,9 @@ def test_no_group_fallback_without_a_cell_count() -> None:
     out = d.step(_bm(10.0, 25.0, math.nan, groups=(3.1,) * 6, voltage_v=18.6), 1.0)
     assert d.ctl.fraction(0) == 0.0
     assert out.status["protection_time_to_trip_s"] == [None]
-    assert [f.data["field"] for f in d.events("Fault")] == ["min_cell_v"]  # type: ignore[attr-defined]
+    (fault,) = d.events("Fault")
+    assert fault.data["field"] == "min_cell_v"  # type: ignore[attr-defined]
+    assert "no accumulation until a voltage is available" in fault.message  # type: ignore[attr-defined]
 
 
 def test_an_absent_battery_leaves_the_status_of_the_layer_before_it_alone() -> None:
@@ -457,3 +459,19 @@ def test_an_absent_battery_leaves_the_status_of_the_layer_before_it_alone() -> N
     b = both.step(meas, 1.0).status
     assert {k: b[k] for k in a} == a
     assert b["protection_param"][1] in (None, "") and b["protection_cutoff_v"][1] is None
+
+
+def test_among_equal_cut_offs_the_shorter_allowance_is_more_conservative() -> None:
+    """Temperature unknown: of the parameters its known status allows, the most conservative
+    is the highest cut-off and, at an equal cut-off, the shorter t_max, wherever its row is in
+    the table (SHORT first or last; generated mutant 6fb64a0187: ``cut > best`` -> ``>=`` took
+    the last row of an equal cut-off, the longer allowance)."""
+    params = [{"name": "SHORT", "cutoff_v": 3.2, "t_max_s": 5},
+              {"name": "LONG", "cutoff_v": 3.2, "t_max_s": 10}]  # fmt: skip
+    for cold, warm in (("SHORT", "LONG"), ("LONG", "SHORT")):
+        cfg = ProtectionConfig.model_validate({"parameters": params, "table": [
+            {"param": cold, "ranges": {"temp_c": "(-inf, 20)"}},
+            {"param": warm, "ranges": {"temp_c": "[20, inf)"}},
+        ]})  # fmt: skip
+        out = Driver(cfg).step(_bm(10.0, math.nan, 3.9), 1.0)
+        assert out.status["protection_param"] == ["SHORT"], (cold, warm)
