@@ -193,3 +193,16 @@ def test_dt_ms_rounds_sub_microsecond_ticks_like_python() -> None:
         dt = math.nextafter((0.5 + j / 1000.0) * 1e-6, 1.0)
         want = Fraction(dt * 1000.0).limit_denominator(1000)
         assert dt_ms(dt) == (want.numerator, want.denominator), dt
+
+
+def test_dt_ms_of_half_millisecond_ticks() -> None:
+    """Ticks of a whole number of milliseconds and a half (0.5, 1.5, ... 199.5 ms): dt_ms gives
+    the exact (2k + 1) / 2 ms, as ``Fraction.limit_denominator(1000)`` does (generated mutant
+    6839332153: ``e <= 0`` -> ``<= 1`` shifted such ticks by a negative count)."""
+    from packpilot.control.protection.rules import dt_ms
+
+    for k in range(200):
+        dt = (k + 0.5) / 1000.0
+        want = Fraction(dt * 1000.0).limit_denominator(1000)
+        assert dt_ms(dt) == (want.numerator, want.denominator), dt
+    assert dt_ms(0.0015) == (3, 2)

@@ -76,4 +76,7 @@ EQUIVALENT: dict[str, str] = {
     "acc_wms), and the first acc_add reduces the new sum by its gcd to the same canonical "
     "fraction; its overflow guards see den 2 instead of 1 only for a single tick beyond "
     "LIM / (2 w) ms, which trips either way.",
+    "8e05efcc0e": "protection dt_ms: `while n % 2 == 0 and e > 0` -> `e >= 0`: at e = 0 (a "
+    "whole even number of ms) it halves once more to n / 2 with e = -1, and the integer "
+    "branch returns (n / 2) << 1 = n, the same tick.",
 }
