@@ -409,3 +409,19 @@ def test_s40_is_judged_on_the_lowest_battery_of_the_level() -> None:
     outs = run(ctrl, toy.measure(), 5)
     assert outs[-1].status["chg_stage"][0] == "S40"
     assert outs[-1].status["chg_target_v"][0] == pytest.approx(119.8)
+
+
+def test_an_s30_regroups_when_the_next_level_is_exactly_d1_above_it() -> None:
+    """S30 regroups once its batteries are within d1 of the next level (at that pair's Vr1):
+    the S30 of 80 / 81 V (Vt 91 V) with its batteries now at 81.5 V and the third at 82.5 V,
+    exactly d1 = 1 V above, decides afresh and connects the third (a 100 A dock: its join is
+    fit) (generated mutant 3679890a59: ``<= hi + d1`` -> ``<`` kept the old plan at exactly
+    d1)."""
+    cfg = ChargingConfig(r_comp_initial_ohm=0.05, charger_current_limit_a=100.0)
+    toy, ctrl = frozen([80.0, 81.0, 90.0], cfg)
+    outs = run(ctrl, toy.measure(), 5)
+    assert outs[-1].status["chg_stage"][0] == "S30"
+    assert outs[-1].commands.chg_on == (True, True, False)
+    assert 81.5 + cfg.d1_v == 82.5
+    outs = run(ctrl, ToyPack([81.5, 81.5, 82.5]).measure(), 2)
+    assert outs[-1].commands.chg_on == (True, True, True)
