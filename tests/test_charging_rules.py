@@ -425,3 +425,23 @@ def test_an_s30_regroups_when_the_next_level_is_exactly_d1_above_it() -> None:
     assert 81.5 + cfg.d1_v == 82.5
     outs = run(ctrl, ToyPack([81.5, 81.5, 82.5]).measure(), 2)
     assert outs[-1].commands.chg_on == (True, True, True)
+
+
+def test_the_dock_keeps_feeding_the_aux_battery_from_the_tick_charging_completes() -> None:
+    """Traction charging complete (both batteries at their cell limit) while the aux battery
+    still charges from the dock: the charger stays on for the aux DC/DC from the very tick the
+    ChargeComplete is reported, not one tick later (generated mutant f15ac3f19c: that tick's
+    ``complete`` flag lost, the charger dropped for one period)."""
+    from packpilot.contract.charger import CHARGER_OFF
+
+    toy = ToyPack([80.0, 90.0], aux_soc=0.5)
+    ctrl = ChargingController(CFG, pack_info(2, has_aux=True))
+    m = toy.measure()
+    full = patched(patched(m, 0, max_cell_v=CFG.cell_v_limit_v), 1, max_cell_v=CFG.cell_v_limit_v)
+    outs = run(ctrl, full, 40)
+    done = [k for k, o in enumerate(outs) if any(e.kind == "ChargeComplete" for e in o.events)]
+    assert len(done) == 1
+    k = done[0]
+    assert outs[k].commands.aux_relay_closed is True
+    assert outs[k].commands.charger not in (None, CHARGER_OFF)
+    assert outs[k].commands.charger == outs[k + 1].commands.charger
