@@ -445,3 +445,21 @@ def test_the_dock_keeps_feeding_the_aux_battery_from_the_tick_charging_completes
     assert outs[k].commands.aux_relay_closed is True
     assert outs[k].commands.charger not in (None, CHARGER_OFF)
     assert outs[k].commands.charger == outs[k + 1].commands.charger
+
+
+def test_a_current_that_moves_by_exactly_the_tolerance_still_counts_as_held() -> None:
+    """The settled estimate needs the stepped current held: within max(10 % of the step,
+    half of r_est_min_step_a) of it, inclusive. The held-step case of
+    test_a_held_current_step_teaches_the_settled_resistance with the current at -5 A + exactly
+    that tolerance during the windows still teaches 0.15 Ohm (generated mutant 65eead09c6:
+    ``>`` -> ``>=`` gave up at exactly the tolerance)."""
+    toy, ctrl = frozen([80.0, 90.0], docked=False)
+    m0 = toy.measure()
+    t_win = CFG.r_settle_s
+    tol = max(0.1 * 5.0, 0.5 * CFG.r_est_min_step_a)
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
+    ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=80.5), 1.0)
+    for k in range(1, int(2 * t_win) + 1):
+        v = 80.5 + 0.3 * k / t_win if k <= t_win else 80.8 + 0.05 * (k - t_win) / t_win
+        ctrl.step(patched(m0, 0, current_a=-5.0 + tol, voltage_v=v), 1.0)
+    assert ctrl.r_ohm[0] == pytest.approx(0.15, rel=1e-6)
