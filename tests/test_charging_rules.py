@@ -463,3 +463,38 @@ def test_a_current_that_moves_by_exactly_the_tolerance_still_counts_as_held() ->
         v = 80.5 + 0.3 * k / t_win if k <= t_win else 80.8 + 0.05 * (k - t_win) / t_win
         ctrl.step(patched(m0, 0, current_a=-5.0 + tol, voltage_v=v), 1.0)
     assert ctrl.r_ohm[0] == pytest.approx(0.15, rel=1e-6)
+
+
+def test_a_settled_resistance_beyond_the_ratio_to_the_step_one_is_rejected() -> None:
+    """A settled estimate is believed only up to r_settle_max_ratio (4) x the step estimate:
+    0 -> -5 A moving V by +0.5 V (0.1 Ohm), then +2.0 V more by T and no drift after gives
+    (2.5 - 0) / 5 = 0.5 Ohm, 5 x the step value: rejected, R stays 0.1 Ohm (generated mutant
+    c5ecb7f486: ``ratio * r_step`` -> ``ratio / r_step`` allowed up to 40 x)."""
+    toy, ctrl = frozen([80.0, 90.0], docked=False)
+    m0 = toy.measure()
+    t_win = CFG.r_settle_s
+    assert CFG.r_settle_max_ratio == 4.0 and CFG.r_comp_max_ohm >= 0.5
+    ctrl.step(patched(m0, 0, current_a=0.0, voltage_v=80.0), 1.0)
+    ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=80.5), 1.0)
+    for k in range(1, int(2 * t_win) + 1):
+        v = 80.5 + 2.0 * min(k, t_win) / t_win
+        ctrl.step(patched(m0, 0, current_a=-5.0, voltage_v=v), 1.0)
+    assert ctrl.r_ohm[0] == pytest.approx(0.1)
+
+
+def test_a_charger_fault_during_the_clear_time_restarts_it() -> None:
+    """After a charger fault the FAULT stage holds for charger_fault_clear_s (5 s) of good
+    status; a second fault inside that time restarts the count: 3 good periods, one offline,
+    then FAULT for 4 more good periods and out on the 5th (generated mutant 3c1dc6c338: the
+    count kept its 3 s and ended 3 periods early)."""
+    cfg = ChargingConfig(r_comp_initial_ohm=0.05, charger_fault_clear_s=5.0)
+    toy, ctrl = frozen([80.0, 90.0], cfg)
+    m = toy.measure()
+    assert m.charger is not None
+    bad = replace(m, charger=replace(m.charger, online=False))
+    run(ctrl, m, 3)
+    run(ctrl, bad, 1)
+    run(ctrl, m, 3)
+    run(ctrl, bad, 1)
+    stages = [o.status["chg_stage"][0] for o in run(ctrl, m, 6)]
+    assert stages[:4] == ["fault"] * 4 and stages[-1] != "fault"
