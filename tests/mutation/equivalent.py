@@ -79,4 +79,9 @@ EQUIVALENT: dict[str, str] = {
     "8e05efcc0e": "protection dt_ms: `while n % 2 == 0 and e > 0` -> `e >= 0`: at e = 0 (a "
     "whole even number of ms) it halves once more to n / 2 with e = -1, and the integer "
     "branch returns (n / 2) << 1 = n, the same tick.",
+    "cf0ffe5bf4": "sequencing _charge_tick: `conduct_since_s = nan` when the reverse-current "
+    "rule opens a charging battery's discharge FET, deleted: the R4 loop right after, in the "
+    "same tick, sees that battery CHARGING with its discharge FET off and cur > i_rev > 0, so "
+    "not conducting (that needs cur < -i_det < 0), and _diode_rule sets conduct_since_s = nan "
+    "before anything reads it.",
 }
