@@ -739,3 +739,18 @@ def test_a_small_discharge_of_a_battery_that_cannot_charge_counts_against_chargi
         b1 = replace(m.batteries[1], switch=SwitchState(chg_on=False, dsg_on=True))
         out = ctrl.step(replace(m, batteries=(b0, b1)), 0.1)
         assert out.status["seq_mode"][0] == "discharge", s
+
+
+def test_r2_waits_at_exactly_v_co_apart() -> None:
+    """R2 joins a standby battery whose fast voltage is *less* than v_co below the highest
+    discharging one's: exactly v_co apart (0.0625 V, binary-exact, at rest so the fast
+    voltages are the measured ones) it still waits (generated mutant 9dde65044f: ``>=`` ->
+    ``>`` joined at exactly v_co)."""
+    cfg = NO_EST.model_copy(update={"v_co": 0.0625})
+    ctrl, out = _standby_pair(cfg, 23.0)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "STANDBY"]
+    out = ctrl.step(meas(0.2, [23.5, 23.4375], [0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "STANDBY"]
+    assert not [e for e in out.events if e.kind == "BatteryJoined"]
+    out = ctrl.step(meas(0.3, [23.5, 23.4375 + 2.0**-10], [0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
