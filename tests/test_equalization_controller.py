@@ -281,3 +281,24 @@ def test_passive_top_balancer_bleeds_high_groups_while_charging() -> None:
     out = bal.step(meas(4.0, bad), 2.0)
     assert out.commands.balancer_a == ((0.0,) * 4,)
     assert [e.kind for e in out.events] == ["Fault"]
+
+
+def test_a_fault_names_the_group_and_the_voltage_that_stopped_it() -> None:
+    """The Fault event names the offending group and its voltage: group 2 at -1 V, not group
+    0 (generated mutant da180cd102: the group index never written into the record)."""
+    ctrl = EqualizationController(EqualizationConfig(), pack())
+    out = ctrl.step(meas(0.0, batt((13.0, 13.0, -1.0, 13.0), 1.0)), 1.0)
+    (ev,) = [e for e in out.events if e.kind == "Fault"]
+    assert ev.battery == 0
+    assert "group 2 voltage -1.0 is not a positive finite number" in ev.message
+
+
+def test_a_one_group_string_is_sampled_and_shows_its_dv() -> None:
+    """A battery of one group is sampled like any other: its only group is the average, so
+    its ΔV is 0 mV and nothing is owed (generated mutant 70f2cf5fef: ``n > 0`` -> ``n > 1``
+    never sampled it, its ΔV stayed unknown)."""
+    ctrl = EqualizationController(EqualizationConfig(), pack((1,)))
+    for k in range(5):
+        out = ctrl.step(meas(float(k), batt((13.0,), 1.0)), 1.0)
+    assert out.status["eq_dv_mv_g0"] == [0.0]
+    assert out.status["eq_owed_ah_g0"] == [0.0]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 from pydantic import ValidationError
 
@@ -213,3 +214,30 @@ def test_config_defaults() -> None:
     assert CFG.ah_per == "cell"  # the claims: one unit balancing Ah per cell
     assert EqualizationConfig(n_ah=0.0).n_ah == 0.0
     assert EqualizationConfig(n_ah=1.0).n_ah == 1.0
+
+
+def test_the_group_average_is_fsum_exactly_at_half_way_cases() -> None:
+    """The average group voltage uses ``math.fsum`` (rules.exact_sum: Shewchuk's partials and
+    CPython's half-even rounding across them). CPython's own fsum cases where that last
+    correction decides (a sum exactly half-way between two floats, with a tiny partial below
+    it that breaks the tie) must come out as fsum's, and so must the dv of every group
+    (generated mutants b12c5bfc04: the correction skipped with two partials left;
+    87b65a253d: applied when only one of the two partials agreed in sign)."""
+    from packpilot.control.equalization.rules import exact_sum
+
+    cases = [
+        [2.0**53, 1.0, 2.0**-100],
+        [2.0**53, 1.0, -(2.0**-100)],
+        [2.0**53 + 10.0, 1.0, 2.0**-100],
+        [2.0**53 - 4.0, 0.5, 2.0**-54],
+        [2.0**53, -0.5, -(2.0**-54)],
+        [1.0, 1e100, 1.0, -1e100],
+        [1e16, 1.0, 1e-16],
+        [13.0, 13.0 + 2.0**-49, 13.0, 13.0 - 2.0**-49],
+    ]
+    for xs in cases:
+        arr = np.array(xs, np.float64)
+        assert exact_sum(arr, len(xs), np.zeros(len(xs) + 1)) == math.fsum(xs), xs
+        res = sample_groups(xs, [0.0] * len(xs), [0.0] * len(xs), [0.0] * len(xs), 1.0, CFG)
+        avg = math.fsum(xs) / len(xs)
+        assert res.dv_v == tuple(avg - x for x in xs), xs

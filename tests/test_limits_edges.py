@@ -226,3 +226,46 @@ def test_an_absent_battery_takes_no_charging_context_from_its_neighbour() -> Non
     d.step(charged, None, docked=False)  # type: ignore[arg-type]
     assert d.ctl.reset_trips(1) >= 1
     assert not d.ctl.is_active(1, k)
+
+
+def test_a_battery_not_charged_has_a_charge_c_rate_of_zero() -> None:
+    """At rest or discharging the charge C-rate is 0, however small the battery: a 0.25 Ah
+    battery at 0 A or at +1 A (discharge) never reaches the over-current-charge rows (2 / 2.5 /
+    3 C) and keeps its table charge limit (generated mutant e604a6a3b4: ``fmax(1.0, -cur)``
+    read 1 A / 0.25 Ah = 4 C at rest and tripped the charge path)."""
+    info = dataclasses.replace(pack(1), capacity_ah=(0.25,))
+    for cur in (0.0, 1.0):
+        ctl = LimitsController(LimitsConfig(), info)
+        for k in range(40):  # 4 s: beyond every over-current-charge row's debounce + delay
+            bm = healthy(current_a=cur, full_capacity_ah=0.25)
+            out = ctl.step(Measurements(t_s=0.1 * k, batteries=(bm,), bus_v=22.2), 0.1)
+        assert ctl.active_tier(0, "over_current_charge") == "ok"
+        assert out.status["limit_chg_a"] == [pytest.approx(2.0 * 0.25)]  # 2C at 3.7 V, 25 degC
+
+
+def test_a_conducting_battery_with_an_unknown_limit_makes_the_pack_limit_unknown() -> None:
+    """The pack limit is N x the smallest battery limit only if every conducting battery's
+    limit is known: one with an unknown capacity (limit NaN) makes the pack's charge and
+    discharge limits unknown, not 2 x the other's (generated mutant 0155fc093a: the charge
+    side's "any unknown" turned into "all unknown")."""
+    for order in ((CAP, math.nan), (math.nan, CAP)):
+        info = dataclasses.replace(pack(2), capacity_ah=order)
+        ctl = LimitsController(LimitsConfig(), info)
+        bms = tuple(healthy(switch=CLOSED, full_capacity_ah=0.0 if math.isnan(c) else CAP)
+                    for c in order)  # fmt: skip
+        ctl.step(Measurements(t_s=0.0, batteries=bms, bus_v=22.2), 0.1)
+        assert math.isnan(ctl.pack_limit_chg_a)
+        assert math.isnan(ctl.pack_limit_dsg_a)
+
+
+def test_with_an_unknown_capacity_any_charge_current_is_charging() -> None:
+    """The charging context needs a charge current beyond context_current_c x capacity; with
+    the capacity unknown the band is 0, so 0.5 A of charge undocked already counts and a
+    charge-only over-temperature trips (generated mutant 73738ae471: a 1 A band hid it)."""
+    k, row = _charge_trip()
+    info = dataclasses.replace(pack(1), capacity_ah=(math.nan,))
+    ctl = LimitsController(LimitsConfig(), info)
+    for j in range(30):
+        bm = healthy(current_a=-0.5, full_capacity_ah=0.0, temp_c=row.threshold + 1.0)
+        ctl.step(Measurements(t_s=0.1 * j, batteries=(bm,), bus_v=22.2), 0.1)
+    assert ctl.is_active(0, k)

@@ -236,3 +236,18 @@ def test_a_stratified_sample_holds_every_module_and_is_reproducible() -> None:
     per = {mod: sum(m.module == mod for m in a) for mod in {m.module for m in gen}}
     assert min(per.values()) >= 12 and 400 <= len(a) <= 440
     assert [m.id for m in a] != [m.id for m in fast.stratified(gen, 400, 27, 12)]
+
+
+def test_a_partial_map_selects_its_property_tests_for_every_mutant() -> None:
+    """A map traced under a smaller Hypothesis budget (fast.MAP_PROFILE) marks its property
+    tests ``partial``: they are selected for every mutant of the module, even one whose lines
+    no traced test reached (their lines are only a lower bound); plain tests by their lines."""
+    cmap = {
+        "tests": {"t.py::plain": {"seconds": 1.0}, "t.py::prop": {"seconds": 5.0, "partial": True}},
+        "lines": {"": {}, "t.py::plain": {"m.py": [3]}, "t.py::prop": {"m.py": [7]}},
+    }
+    assert fast.select_tests(cmap, "m.py", {3})[0] == ["t.py::plain", "t.py::prop"]
+    assert fast.select_tests(cmap, "m.py", {9}) == (["t.py::prop"], 5.0 * fast.PARTIAL_FACTOR)
+    del cmap["tests"]["t.py::prop"]["partial"]
+    assert fast.select_tests(cmap, "m.py", {9})[0] == []
+    assert "sequencing" in fast.MAP_PROFILE

@@ -127,3 +127,40 @@ def test_no_estimate_from_a_fallback_voltage() -> None:
     d.step(replace(_bm(5.0, 25.0, 3.60), min_cell_v=math.nan), 1.0)
     d.step(replace(_bm(25.0, 25.0, 3.50), min_cell_v=math.nan), 1.0)
     assert math.isnan(d.ctl.battery(0).resistance_ohm)
+
+
+def test_a_step_without_a_voltage_change_is_no_resistance() -> None:
+    """A 20 A step at an unchanged check voltage gives R = 0, which no cell has: it is not
+    learned, the resistance stays unknown and the row is the most conservative one, not the
+    low-resistance row (generated mutant b4d54e0b86: ``r_new > 0`` -> ``>= 0`` learned 0 Ohm)."""
+    d = Driver(R_TABLE)
+    d.step(_bm(5.0, 25.0, 3.60), 1.0)
+    d.step(_bm(25.0, 25.0, 3.60), 1.0)
+    assert math.isnan(d.ctl.battery(0).resistance_ohm)
+    assert _param(d) == "HIGH_R"
+
+
+SOH_TABLE = ProtectionConfig.model_validate(
+    {
+        "parameters": [
+            {"name": "NEW", "cutoff_v": 3.0, "t_max_s": 10},
+            {"name": "AGED", "cutoff_v": 3.1, "t_max_s": 5},
+        ],
+        "table": [
+            {"param": "NEW", "ranges": {"soh": "[0.8, inf)"}},
+            {"param": "AGED", "ranges": {"soh": "(-inf, 0.8)"}},
+        ],
+    }
+)
+
+
+def test_soh_axis_is_full_over_nominal_capacity() -> None:
+    """The SOH axis is the reported full capacity over the pack's nominal one (5 Ah): 5 Ah is
+    SOH 1.0 (the NEW row, no axis fault), 3.5 Ah is 0.7 (AGED) (generated mutant 31a8b923ce:
+    ``cap > 0`` -> ``cap < 0`` made every SOH unknown, the most conservative row)."""
+    d = Driver(SOH_TABLE)
+    d.step(_bm(5.0, 25.0, 3.6), 1.0)
+    assert _param(d) == "NEW"
+    assert not d.events("Fault")
+    d.step(replace(_bm(5.0, 25.0, 3.6), full_capacity_ah=3.5), 1.0)
+    assert _param(d) == "AGED"

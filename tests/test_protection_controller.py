@@ -398,3 +398,80 @@ def test_one_row_baseline_ignores_status() -> None:
     assert d.trip_end_s is None
     d.run(1.0, 30.0, -10.0, 3.1)
     assert d.trip_end_s == 5.0
+
+
+def test_a_sustained_charge_starts_one_cycle_and_stays_started() -> None:
+    """A sustained charge starts one new discharge cycle, once: the battery's view says the
+    cycle started from charge_detect_s on and keeps saying so for the rest of the charge, with
+    one reset event; only the end of the charge re-arms it (generated mutant fbf8ba0c6a: the
+    flag never set, a new cycle restarted on every tick of the charge)."""
+    d = Driver()
+    d.run(2.0, 10.0, 25.0, 3.1)  # something to reset: 2 of P3's 5 s
+    d.run(9.0, -2.0, 25.0, 3.8)
+    assert not d.ctl.battery(0).charge_cycle_started
+    for _ in range(30):
+        d.run(1.0, -2.0, 25.0, 3.8)
+        assert d.ctl.battery(0).charge_cycle_started
+    assert len(d.events("ProtectionReset")) == 1
+    d.run(1.0, 0.0, 25.0, 3.8)
+    assert not d.ctl.battery(0).charge_cycle_started
+
+
+def test_no_group_fallback_without_a_cell_count() -> None:
+    """A pack that does not say how many cells a group holds (cells_per_group 0) gives the
+    group voltages no meaning as cell voltages: without a min cell voltage the check voltage
+    is unknown (nothing accumulates, one voltage fault), never a group voltage divided by 0
+    (generated mutant bc3bb9e592: ``per_group > 0`` -> ``>= 0``)."""
+    pack = PackInfo(
+        n_batteries=1,
+        groups_per_battery=(6,),
+        cells_per_group=(0,),
+        switch_kind=(SwitchKind.MOSFET_PAIR,),
+    )
+    d = Driver(pack=pack)
+    out = d.step(_bm(10.0, 25.0, math.nan, groups=(3.1,) * 6, voltage_v=18.6), 1.0)
+    assert d.ctl.fraction(0) == 0.0
+    assert out.status["protection_time_to_trip_s"] == [None]
+    (fault,) = d.events("Fault")
+    assert fault.data["field"] == "min_cell_v"  # type: ignore[attr-defined]
+    assert "no accumulation until a voltage is available" in fault.message  # type: ignore[attr-defined]
+
+
+def test_an_absent_battery_leaves_the_status_of_the_layer_before_it_alone() -> None:
+    """In a composed core protection writes only its own status columns: for a battery absent
+    from the start (no table row yet) it shows no parameter and no cut-off, and the limits
+    layer before it keeps every status value it published for that battery (generated mutant
+    3bdfb0ba7e: ``s0 + ST_CUTOFF`` -> ``s0 - ST_CUTOFF`` wrote NaN into the limits layer's last
+    column)."""
+    from packpilot.control.core import Core, Part
+    from packpilot.control.limits import LimitsConfig
+    from packpilot.control.limits.controller import METHOD as LIMITS
+    from packpilot.control.protection.controller import METHOD as PROTECTION
+
+    pack = PackInfo(n_batteries=2, groups_per_battery=(6, 6), cells_per_group=(1, 1),
+                    switch_kind=(SwitchKind.MOSFET_PAIR,) * 2, capacity_ah=(5.0, 5.0))  # fmt: skip
+    alone = Core([pack], [Part.build(LIMITS, LimitsConfig(), [pack])])
+    both = Core([pack], [Part.build(LIMITS, LimitsConfig(), [pack]),
+                         Part.build(PROTECTION, ProtectionConfig(), [pack])])  # fmt: skip
+    meas = Measurements(t_s=0.0, batteries=(_bm(5.0, 25.0, 3.7), _bm(0.0, 25.0, 3.7,
+                        present=False)), bus_v=22.2)  # fmt: skip
+    a = alone.step(meas, 1.0).status
+    b = both.step(meas, 1.0).status
+    assert {k: b[k] for k in a} == a
+    assert b["protection_param"][1] in (None, "") and b["protection_cutoff_v"][1] is None
+
+
+def test_among_equal_cut_offs_the_shorter_allowance_is_more_conservative() -> None:
+    """Temperature unknown: of the parameters its known status allows, the most conservative
+    is the highest cut-off and, at an equal cut-off, the shorter t_max, wherever its row is in
+    the table (SHORT first or last; generated mutant 6fb64a0187: ``cut > best`` -> ``>=`` took
+    the last row of an equal cut-off, the longer allowance)."""
+    params = [{"name": "SHORT", "cutoff_v": 3.2, "t_max_s": 5},
+              {"name": "LONG", "cutoff_v": 3.2, "t_max_s": 10}]  # fmt: skip
+    for cold, warm in (("SHORT", "LONG"), ("LONG", "SHORT")):
+        cfg = ProtectionConfig.model_validate({"parameters": params, "table": [
+            {"param": cold, "ranges": {"temp_c": "(-inf, 20)"}},
+            {"param": warm, "ranges": {"temp_c": "[20, inf)"}},
+        ]})  # fmt: skip
+        out = Driver(cfg).step(_bm(10.0, math.nan, 3.9), 1.0)
+        assert out.status["protection_param"] == ["SHORT"], (cold, warm)

@@ -191,3 +191,11 @@ def test_time_to_trip_none_for_a_flat_voltage_above_the_cut_off() -> None:
     d = Driver()
     d.run(5.0, 10.0, 25.0, 3.5)  # slope exactly 0: no crossing predicted
     assert _ttt(d) is None
+
+
+def test_time_to_empty_of_a_negative_remaining_capacity_is_zero() -> None:
+    """A gauge that reads below empty (-0.5 Ah, as coulomb counters drift) means empty now:
+    0 s, never a negative time (generated mutant 6a99f4f03e: the early 0 dropped, -180 s)."""
+    d = Driver()
+    d.step(replace(_bm(10.0, 25.0, 3.6), remaining_capacity_ah=-0.5), 1.0)
+    assert _tte(d) == 0.0

@@ -158,3 +158,51 @@ def test_dt_ms_is_pythons_limit_denominator() -> None:
     for dt in [*(k / 7919.0 for k in range(1, 4000, 7)), *tiny]:
         want = Fraction(dt * 1000.0).limit_denominator(1000)
         assert dt_ms(dt) == (want.numerator, want.denominator), dt
+
+
+def test_ticks_of_coprime_lengths_round_the_sum_up_and_go_on() -> None:
+    """Tick lengths of 100 + 1/q ms for distinct primes q near 1000 make the exact sum's
+    denominator (their product) outgrow the integer range after a few ticks: the sum is then
+    rounded up to whole weighted microseconds and goes on, within a few microseconds of the
+    exact sum, and never jumps to a trip (acc_add's fallback; generated mutant cefe11f424: the
+    guard inverted, every rounded sum saturated and tripped at once). P3: 5 s allowance."""
+    ctl = ProtectionController(CFG, PACK)
+    params = {p.name: p for p in TABLE.params}
+    p3 = params[_reference_param(10.0, 25.0)]
+    assert p3.cutoff_v > 3.1
+    exact, t = Fraction(0), 0.0
+    for q in (997, 991, 983, 977, 971, 967, 953, 947, 941, 937):
+        dt = (100 * q + 1) / q / 1000.0
+        out = ctl.step(Measurements(t_s=t, batteries=(_bm(10.0, 25.0, 3.1),), bus_v=18.6), dt)
+        t += dt
+        exact += Fraction(100 * q + 1, q) / p3.t_max_ms
+        assert not ctl.battery(0).tripped
+        assert not any(e.kind == "ProtectionTripped" for e in out.events)
+    got = ctl.battery(0).acc_wms / TABLE.m_ms
+    assert float(exact) <= got <= float(exact) + 1e-4  # rounded up, by microseconds
+
+
+def test_dt_ms_rounds_sub_microsecond_ticks_like_python() -> None:
+    """Ticks of 0.5 to 1 microsecond (below 1/1000 ms: the only candidates are 0/1 and
+    1/1000 ms) with full 53-bit mantissas: dt_ms picks 1/1000 above the midpoint and 0/1 at or
+    below it, as ``Fraction.limit_denominator(1000)`` does (generated mutant 50c4a9cc5c: every
+    such tick read as 0 ms)."""
+    from packpilot.control.protection.rules import dt_ms
+
+    for j in range(1, 500):
+        dt = math.nextafter((0.5 + j / 1000.0) * 1e-6, 1.0)
+        want = Fraction(dt * 1000.0).limit_denominator(1000)
+        assert dt_ms(dt) == (want.numerator, want.denominator), dt
+
+
+def test_dt_ms_of_half_millisecond_ticks() -> None:
+    """Ticks of a whole number of milliseconds and a half (0.5, 1.5, ... 199.5 ms): dt_ms gives
+    the exact (2k + 1) / 2 ms, as ``Fraction.limit_denominator(1000)`` does (generated mutant
+    6839332153: ``e <= 0`` -> ``<= 1`` shifted such ticks by a negative count)."""
+    from packpilot.control.protection.rules import dt_ms
+
+    for k in range(200):
+        dt = (k + 0.5) / 1000.0
+        want = Fraction(dt * 1000.0).limit_denominator(1000)
+        assert dt_ms(dt) == (want.numerator, want.denominator), dt
+    assert dt_ms(0.0015) == (3, 2)

@@ -10,6 +10,7 @@ survives SIGKILL. ``make faults`` runs the whole set, the slow ones included.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -301,3 +302,101 @@ def test_a_frame_counts_from_its_timestamp_not_from_when_it_was_read() -> None:
     finally:
         rx.shutdown()
         tx.shutdown()
+
+
+# -- the freshness and presence judgement alone, lock-step on a virtual bus (generated mutants
+# of #26 item 4 that the closed-loop fault runs above do not reach) ---------------------------
+
+_REPORT = bc.BatteryReport(22.0, 0.0, 3.6, 3.7, 25.0, 24.0, 0.5, True, True, True, 5.0, 2.5,
+                           1.0, ())  # fmt: skip
+
+
+class _Lockstep:
+    """One battery node's frames, fed by hand with chosen times and counters (no wall clock:
+    a frame counts at the plant's time)."""
+
+    def __init__(self, channel: str, period_s: float = 0.1) -> None:
+        self.rx = can.Bus(interface="virtual", channel=channel)
+        self.tx = can.Bus(interface="virtual", channel=channel)
+        self.plant = CanPlant(self.rx, BatteryMap(traction=(0,), groups=(0,)),
+                              period_s=period_s, stale_s=2.0)  # fmt: skip
+
+    def feed(self, t: float, counter: int, present: bool = True) -> None:
+        self.plant.t_s = t
+        r = dataclasses.replace(_REPORT, present=present)
+        for m in bc.encode_battery(0, r, counter, t):
+            self.tx.send(m)
+        self.plant.poll()
+
+    def detected(self, kind: str) -> list[float]:
+        return [d.t_s for d in self.plant.detections if d.kind == kind]
+
+    def close(self) -> None:
+        self.rx.shutdown()
+        self.tx.shutdown()
+
+
+def test_frames_lost_in_between_are_new_not_a_reboot() -> None:
+    """Counters 0, 1, then (three periods lost) 5 at 0.5 s: the jump is what the periods
+    since the last frame allow, so the frame is new, not a resync (no TelemetryResync) and
+    not out of order (generated mutant ee4d41ca02: the allowance ignored periods <= 1 s)."""
+    ls = _Lockstep("packpilot-mut-lost")
+    try:
+        ls.feed(0.0, 0)
+        ls.feed(0.1, 1)
+        ls.feed(0.5, 5)
+        f = ls.plant.freshness
+        assert (f.resyncs, f.out_of_order, f.duplicates) == (0, 0, 0)
+        assert ls.detected("TelemetryResync") == []
+    finally:
+        ls.close()
+
+
+def test_without_a_period_a_counter_jump_is_out_of_order_not_a_reboot() -> None:
+    """With no period known (``period_s = 0``) no silence proves a reboot: a counter that
+    jumps from 0 to 10 after 5 s is out of order, not a resync (generated mutant 339d3c3b3c:
+    ``period_s > 0`` -> ``>= 0`` took every jump for a rebooted node)."""
+    ls = _Lockstep("packpilot-mut-noperiod", period_s=0.0)
+    try:
+        ls.feed(0.0, 0)
+        ls.feed(5.0, 10)
+        f = ls.plant.freshness
+        assert f.resyncs == 0 and f.out_of_order >= 1
+        assert ls.detected("TelemetryResync") == []
+    finally:
+        ls.close()
+
+
+def test_a_frozen_counter_makes_one_suspect_node() -> None:
+    """The same counter four periods in a row: the node is suspect from the second bad
+    period, counted once in the freshness counters with one TelemetrySuspect (generated
+    mutant 90bd5645a0: the count went down)."""
+    ls = _Lockstep("packpilot-mut-frozen")
+    try:
+        ls.feed(0.0, 7)
+        for k in range(1, 5):
+            ls.feed(0.1 * k, 7)
+        assert ls.plant.node[0].suspect
+        assert ls.plant.freshness.suspect == 1
+        assert len(ls.detected("TelemetrySuspect")) == 1
+    finally:
+        ls.close()
+
+
+def test_a_present_bit_held_its_debounce_time_is_believed_at_that_frame() -> None:
+    """The Present bit clear from t = 0 is believed at the first frame at least
+    PRESENT_DEBOUNCE_S later, up to 1 ns of float noise: a frame exactly
+    PRESENT_DEBOUNCE_S - 1e-9 later confirms the removal (generated mutants 8f134fa1ca: the
+    1 ns allowance turned into a 1 ns excess; 0879e5197e: ``>=`` -> ``>``)."""
+    from packpilot.io.can.plant import PRESENT_DEBOUNCE_S
+
+    ls = _Lockstep("packpilot-mut-present")
+    try:
+        ls.feed(-0.1, 0)
+        ls.feed(0.0, 1, present=False)
+        assert ls.detected("PresenceConfirmed") == []
+        t = PRESENT_DEBOUNCE_S - 1e-9
+        ls.feed(t, 2, present=False)
+        assert ls.detected("PresenceConfirmed") == [t]
+    finally:
+        ls.close()

@@ -718,3 +718,39 @@ def test_controller_is_deterministic() -> None:
         run = closed_loop(plant, lambda t: 0.0 if t < 1.0 else 35.0, t_end=300.0)
         runs.append([(o.commands, tuple(o.events)) for o in run.outputs])
     assert runs[0] == runs[1]
+
+
+def test_a_small_discharge_of_a_battery_that_cannot_charge_counts_against_charging() -> None:
+    """Charge mode needs the pack's net current to be charging: a battery whose charge path
+    does not conduct counts its discharge current, however small, and only its negative
+    readings are left out. Battery 0 takes 0.8 A while battery 1 (charge FET off) gives
+    0.5 A: net 0.3 A, less than i_det (0.5 A): no charge mode after t_mode (generated mutant
+    155290c562: a discharge below 1 A of such a battery was left out, -0.8 A net)."""
+    from dataclasses import replace
+
+    from packpilot.contract.bms import SwitchState
+
+    cfg = SequencingConfig()
+    assert cfg.i_det == 0.5 and cfg.t_mode == 1.0
+    ctrl = SequencingController(cfg, pack_info(2))
+    for s in range(30):
+        m = meas(0.1 * s, [23.0, 23.0], [-0.8, 0.5])
+        b0 = replace(m.batteries[0], switch=SwitchState(chg_on=True, dsg_on=True))
+        b1 = replace(m.batteries[1], switch=SwitchState(chg_on=False, dsg_on=True))
+        out = ctrl.step(replace(m, batteries=(b0, b1)), 0.1)
+        assert out.status["seq_mode"][0] == "discharge", s
+
+
+def test_r2_waits_at_exactly_v_co_apart() -> None:
+    """R2 joins a standby battery whose fast voltage is *less* than v_co below the highest
+    discharging one's: exactly v_co apart (0.0625 V, binary-exact, at rest so the fast
+    voltages are the measured ones) it still waits (generated mutant 9dde65044f: ``>=`` ->
+    ``>`` joined at exactly v_co)."""
+    cfg = NO_EST.model_copy(update={"v_co": 0.0625})
+    ctrl, out = _standby_pair(cfg, 23.0)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "STANDBY"]
+    out = ctrl.step(meas(0.2, [23.5, 23.4375], [0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "STANDBY"]
+    assert not [e for e in out.events if e.kind == "BatteryJoined"]
+    out = ctrl.step(meas(0.3, [23.5, 23.4375 + 2.0**-10], [0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]

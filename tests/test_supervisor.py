@@ -325,3 +325,58 @@ def test_a_battery_refused_after_it_was_accepted_is_logged() -> None:
     assert refused(0.2, 110.0) == []  # the same episode
     assert refused(0.3, 101.0) == []
     assert refused(0.4, 110.0) == [1]  # admitted in between: a new episode
+
+
+def test_init_ends_exactly_at_init_time_s() -> None:
+    """INIT lasts init_time_s, not a tick more: with 0.25 s ticks (exact in binary) and 1 s of
+    INIT the fourth tick, whose end is 1.0 s in the mode, is already IDLE (generated mutant
+    7954b947f3: ``<`` -> ``<=`` held INIT one tick longer)."""
+    sup = Supervisor(SupervisorConfig(init_time_s=1.0), _info(1, SwitchKind.MOSFET_PAIR))
+    modes = []
+    for k in range(5):
+        sup.step(Measurements(t_s=k * 0.25, batteries=(_bat(24.0),), bus_v=24.0), 0.25)
+        modes.append(sup.mode)
+    assert modes == [Mode.INIT] * 3 + [Mode.IDLE] * 2
+
+
+def test_a_compiled_layers_trip_event_shuts_the_pack_down() -> None:
+    """The supervisor classes the events of compiled layers by their kind (the core's
+    (source, code) table), not only those of Python layers: the protection layer's own
+    ProtectionTripped, for the only battery undocked, means SHUTDOWN with both paths open
+    (generated mutant 91fed9ca12: every compiled layer's event classed as nothing)."""
+    from packpilot.control.protection import ProtectionConfig, ProtectionController
+
+    info = _info(1, SwitchKind.MOSFET_PAIR)
+    prot = ProtectionController(ProtectionConfig(), info)
+    sup = Supervisor(SupervisorConfig(init_time_s=0.0), info, safety=[prot])
+    low = BatteryMeasurement(voltage_v=6 * 3.1, current_a=10.0, temp_c=25.0, min_cell_v=3.1,
+                             max_cell_v=3.1, soc=0.1, full_capacity_ah=5.0,
+                             remaining_capacity_ah=0.5)  # fmt: skip
+    for k in range(7):  # P3 (10 A, 25 degC, 3.1 V): trips at 5 s
+        out = sup.step(Measurements(t_s=float(k), batteries=(low,), bus_v=18.6), 1.0)
+    assert sup.mode is Mode.SHUTDOWN
+    assert out.commands.chg_on == (False,) and out.commands.dsg_on == (False,)
+
+
+def test_a_mosfet_pack_has_no_join_limit() -> None:
+    """The join limit is a relay rule (closing a relay joins two voltages at once); MOSFET
+    pairs join through their diodes: batteries 10 V apart all close (generated mutant
+    0332cb7a04: a MOSFET battery with its discharge path on counted as a closing relay)."""
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(3, SwitchKind.MOSFET_PAIR),
+                     methods=[_CloseAll()])  # fmt: skip
+    meas = Measurements(t_s=0.0, batteries=(_bat(96.0), _bat(97.0), _bat(106.0)), bus_v=0.0)
+    out = sup.step(meas, 0.1)
+    assert out.commands.chg_on == (True, True, True)
+    assert out.commands.dsg_on == (True, True, True)
+    assert not [e for e in out.events if e.kind == "CommandRefused"]
+
+
+def test_a_refusal_names_the_refused_batterys_voltage() -> None:
+    """The CommandRefused event carries the refused battery's own voltage beside the spread
+    and the limit (generated mutant 3c36832f9e: the voltage never written)."""
+    sup = Supervisor(SupervisorConfig(join_limit_v=3.0), _info(3), methods=[_CloseAll()])
+    meas = Measurements(t_s=0.0, batteries=(_bat(96.0), _bat(97.0), _bat(106.0)), bus_v=0.0)
+    out = sup.step(meas, 0.1)
+    (ev,) = [e for e in out.events if e.kind == "CommandRefused"]
+    assert ev.battery == 2 and ev.data["voltage_v"] == 106.0
+    assert ev.data["join_limit_v"] == 3.0

@@ -6,7 +6,9 @@ Loaded as ``-p tests.mutation.cover_plugin`` with ``MUTATE_COVER_FILES`` (the ru
 tracer and not coverage.py: it is not installed in the project's environment, and only a few
 files matter, so the tracer returns no local trace function for any other frame (cheap).
 Lines executed outside a test (at import, during collection) are recorded under ``""``; a test
-that starts a subprocess (whose lines this tracer cannot see) is marked ``spawns``.
+that starts a subprocess (whose lines this tracer cannot see) is marked ``spawns``; with
+``MUTATE_COVER_PARTIAL`` set (the map traced under a smaller Hypothesis budget than the mutant
+runs get) every property test is marked ``partial``.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ _KNOWN: dict[str, str | None] = {}
 _DATA: dict[str, dict[str, set[int]]] = {"": {}}
 _CUR: list[str] = [""]
 _TESTS: dict[str, dict[str, Any]] = {}
+_PARTIAL = bool(os.environ.get("MUTATE_COVER_PARTIAL"))
+"""The map is traced under a smaller Hypothesis budget than the mutant runs: mark every
+property test ``partial`` (its lines are a lower bound; the runner selects it always)."""
 
 
 def _file(name: str) -> str | None:
@@ -88,6 +93,8 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     node = _IDS[item.nodeid] = _nodeid(item)
     _CUR[0] = node
     _TESTS.setdefault(node, {})
+    if _PARTIAL and getattr(getattr(item, "obj", None), "is_hypothesis_test", False):
+        _TESTS[node]["partial"] = True  # traced on fewer examples than a mutant run gives it
     t0 = time.monotonic()
     yield
     _TESTS[node]["seconds"] = round(time.monotonic() - t0, 3)

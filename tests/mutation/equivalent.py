@@ -27,4 +27,61 @@ EQUIVALENT: dict[str, str] = {
     "status, an event or any array another module reads; OK = 0 and BAD = 1 stay distinct.",
     "4d03f98d8c": "equalization step: `dt_s > 0.0` -> `>= 0.0` in `dt = dt_s if ... else 0.0`: "
     "at dt_s = 0 both give 0 (a -0.0 only ever added to timers: the same sums).",
+    # --- judged 2026-11-28 afternoon (h26mut), each with the reason no input can tell them
+    "67cf4e4e72": "plausibility _output: `status[p, i, s0 + ST_FAULTS]` -> `s0 - ST_FAULTS`: "
+    "ST_FAULTS = 0, so both index column s0.",
+    "a79edf1911": "plausibility _nonfinite_code: `x > 0.0` -> `x > 1.0`: it is only given "
+    "non-finite values (FAULT_TEXT needs a non-finite shown value; PACK_FAULT comes only from "
+    "_pack_finding, BAD only for a non-finite bus voltage / load current); NaN returns "
+    "earlier, and for +inf / -inf both comparisons agree.",
+    "a965343793": "plausibility _advance: the ok timer returned as 1.0 instead of 0.0 while "
+    "BAD (was_bad = True): ok_s is read only in the OK branch and only when was_bad is False, "
+    "and the OK step after a BAD one sets it to 0.0 before anything reads it (NONE holds "
+    "was_bad); st.ok_s is read nowhere else.",
+    "a5f144e36c": "plausibility _advance: the bad timer returned as 1.0 instead of 0.0 while "
+    "OK (was_bad = False): bad_s is read only in the BAD branch and only when was_bad is "
+    "True, and the first BAD step after an OK one sets it to 0.0 first; st.bad_s is read "
+    "nowhere else.",
+    "e3e60dd187": "plausibility step_pack: `pend_n > 0` -> `>= 0` before _flush_resets: with "
+    "pend_n = 0 the flush loops zero times and sets pend_n to 0 again (pend_n counts up from "
+    "0, never negative).",
+    "f249a36c54": "plausibility step_pack: `delay = 0.0` of the K_STALE detector deleted: the "
+    "detectors run in order k = 0, 1, ... and K_STUCK (k = 2, just before K_STALE = 3) always "
+    "sets delay = 0.0, so delay is already 0.0 there.",
+    "4ac5081d0a": "limits step_pack: `held_s = 0` out of context deleted: seen is reset to 0 "
+    "there, held_s is read only once seen >= debounce, debounce >= 1 (LimitRow validates "
+    "it), and the violating tick that raises seen from below debounce sets held_s = 0 first; "
+    "a stale held_s is always overwritten before it is read.",
+    "33e3da0a7c": "equalization _emit_recorded: `rec_n = 0` -> `1` after emitting: step_pack "
+    "sets rec_n = 0 before _pack at the start of every step, and nothing reads rec_n between "
+    "the emit and that reset (the controller never reads it).",
+    "c5254a89bd": "equalization _pack: `e < cap_rec` -> `<=` before recording a fault: a "
+    "battery records per step at most one fault / cleared record plus 15 BalancingUpdated "
+    "per group (14 formula changes + the subtraction, controller.EVENTS_PER_GROUP's note), "
+    "and cap_rec reserves 2 + 24 per group for each battery, so e <= cap_rec - 2 whenever a "
+    "fault is recorded; e == cap_rec never happens.",
+    "5c4a07342c": "supervisor _class_of: `ev.code[k] < ev_class.shape[1]` -> `<=`: the table "
+    "is Core._ev_class, (parts) x (the most reasons of any part), and a part's event has src = "
+    "its index and code < its own number of reasons <= shape[1]; code == shape[1] never "
+    "occurs (Python parts' events come as FOREIGN_SRC, handled before).",
+    "4b6ac385e2": "supervisor _class_of: the fallback `return 0` -> `return 1`: never reached "
+    "(no test reaches it either): every event _note_events reads is a part's (src < parts, "
+    "code < shape[1]) or FOREIGN_SRC; the supervisor's own events for pack p are emitted after "
+    "its _note_events for p, and later packs skip them by their pack index.",
+    "0ddaebaf7f": "protection dt_ms: `return -1, 1` (a tick of >= 2**62 ms, or inf / NaN) -> "
+    "`-2, 1`: dt_ms's only caller passes a_ms to acc_add, which saturates (trips) for any "
+    "a < 0; -1 and -2 do the same.",
+    "865c422295": "protection _new_cycle: the emptied sum 0/1 -> 0/2: the same rational; every "
+    "reader divides num by den (fraction, remaining time, the trip test num > m * den, "
+    "acc_wms), and the first acc_add reduces the new sum by its gcd to the same canonical "
+    "fraction; its overflow guards see den 2 instead of 1 only for a single tick beyond "
+    "LIM / (2 w) ms, which trips either way.",
+    "8e05efcc0e": "protection dt_ms: `while n % 2 == 0 and e > 0` -> `e >= 0`: at e = 0 (a "
+    "whole even number of ms) it halves once more to n / 2 with e = -1, and the integer "
+    "branch returns (n / 2) << 1 = n, the same tick.",
+    "cf0ffe5bf4": "sequencing _charge_tick: `conduct_since_s = nan` when the reverse-current "
+    "rule opens a charging battery's discharge FET, deleted: the R4 loop right after, in the "
+    "same tick, sees that battery CHARGING with its discharge FET off and cur > i_rev > 0, so "
+    "not conducting (that needs cur < -i_det < 0), and _diode_rule sets conduct_since_s = nan "
+    "before anything reads it.",
 }

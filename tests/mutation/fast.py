@@ -46,6 +46,16 @@ from tests.mutation.generate import GenMutant, compiles, generate, iter_targets
 from tests.mutation.mutants import TESTS
 
 ROOT = Path(__file__).resolve().parents[2]
+MAP_PROFILE: dict[str, str] = {"sequencing": "dev"}
+"""Modules whose map is traced under a smaller Hypothesis budget than the mutant runs (profile
+``dev``: a tenth of the examples): sequencing's closed-loop properties are 200 whole plant
+simulations, interpreted and traced (the full-budget map did not finish in 41 min on the
+loaded box). Sound: every property test of such a map is marked ``partial`` and selected for
+every mutant of the module (its traced lines are only a lower bound); the plain tests are
+traced in full. Each mutant still runs under ``mutate`` (the full CI budget)."""
+PARTIAL_FACTOR = 10.0
+"""A partial (``dev``-budget) test's traced time x this is its expected time in a mutant run
+(``dev`` runs a tenth of the CI examples, at least 5): its timeout must not be a tenth of it."""
 TIMEOUT_MIN_S, TIMEOUT_FACTOR, TIMEOUT_PAD_S, RETRY_FACTOR = 30.0, 3.0, 10.0, 3.0
 PYTEST_ARGS = ["-x", "-q", "-p", "no:cacheprovider", "-p", "no:xdist"]
 
@@ -150,7 +160,8 @@ def build_map(tree: Path, module: str, cache: Path,
     """Which test executes which line of ``paths`` (default: every rules file), for
     ``module``'s tests on the unmutated ``tree`` (cached by content)."""
     paths = rules_files() if paths is None else paths
-    key = _map_key(tree, module, paths)
+    profile = MAP_PROFILE.get(module, "mutate")
+    key = _map_key(tree, module, paths) + ("" if profile == "mutate" else f"-{profile}")
     path = cache / f"{module}-{key}.json"
     if path.exists():
         return dict(json.loads(path.read_text()))
@@ -158,6 +169,8 @@ def build_map(tree: Path, module: str, cache: Path,
     env = _env(tree)
     env["MUTATE_COVER_FILES"] = os.pathsep.join(str(tree / p) for p in paths)
     env["MUTATE_COVER_OUT"] = str(path.with_suffix(".tmp"))
+    if profile != "mutate":
+        env.update(HYPOTHESIS_PROFILE=profile, MUTATE_COVER_PARTIAL="1")
     t0 = time.monotonic()
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
                            "-p", "tests.mutation.cover_plugin", *TESTS[module]],
@@ -191,8 +204,12 @@ def select_tests(cmap: dict[str, Any], path: str, lines: set[int]) -> tuple[list
         chosen = {t for t in tests if lines & set(cmap["lines"].get(t, {}).get(path, ()))}
         if chosen:  # a spawned CLI runs every rule: it might reach the line unseen
             chosen |= {t for t, d in tests.items() if d.get("spawns")}
-    order = sorted(chosen, key=lambda t: (bool(tests[t].get("spawns")), tests[t]["seconds"]))
-    return order, sum(tests[t]["seconds"] for t in order)
+        chosen |= {t for t, d in tests.items() if d.get("partial")}  # traced on fewer examples
+    def secs(t: str) -> float:
+        return float(tests[t]["seconds"]) * (PARTIAL_FACTOR if tests[t].get("partial") else 1.0)
+
+    order = sorted(chosen, key=lambda t: (bool(tests[t].get("spawns")), secs(t)))
+    return order, sum(secs(t) for t in order)
 
 
 # --- running ----------------------------------------------------------------------------------
@@ -226,7 +243,7 @@ class Server:
 
 
 def run_one(server: Server, mu: GenMutant, cmap: dict[str, Any], spans: Any,
-            full: bool = False) -> FastResult:  # fmt: skip
+            full: bool = False, only: list[str] | None = None) -> FastResult:  # fmt: skip
     target = server.tree / mu.path
     original = target.read_text()
     base: dict[str, Any] = dict(id=mu.id, module=mu.module, line=mu.line, operator=mu.operator,
@@ -234,7 +251,9 @@ def run_one(server: Server, mu: GenMutant, cmap: dict[str, Any], spans: Any,
     if not compiles(mu, original):
         return FastResult(**base, outcome="invalid", seconds=0.0, detail="does not compile",
                           tests=0)  # fmt: skip
-    if full:
+    if only:  # a confirmation: these tests (a new one), no map, the minimum timeout x 10
+        tests, base_s = list(only), TIMEOUT_MIN_S * 3
+    elif full:
         tests = sorted((t for t, d in cmap["tests"].items() if not d.get("failed")),
                        key=lambda t: cmap["tests"][t].get("seconds", 0.0))  # fmt: skip
         base_s = sum(cmap["tests"][t].get("seconds", 0.0) for t in tests)
@@ -277,7 +296,8 @@ def _logged(log: Path) -> set[str]:
 
 
 def run_many(mutants: list[GenMutant], log: Path, cache: Path, full: bool = False,
-             jobs: int = 1, root: Path | None = None) -> list[FastResult]:  # fmt: skip
+             jobs: int = 1, root: Path | None = None,
+             only: list[str] | None = None) -> list[FastResult]:  # fmt: skip
     """Run ``mutants`` (``jobs`` at a time, each job its own tree and server), appending each
     result to ``log`` (JSON lines) as it ends; ids already in ``log`` are skipped (a stopped
     run resumes where it was)."""
@@ -303,14 +323,17 @@ def run_many(mutants: list[GenMutant], log: Path, cache: Path, full: bool = Fals
         maps: dict[str, dict[str, Any]] = {}
         mods = list(dict.fromkeys(m.module for m in todo))
 
+        own = {mod: sorted({m.path for m in todo if m.module == mod}) for mod in mods}
+
         def mapper(j: int) -> None:  # every map before any mutant, ``jobs`` at a time
-            for mod in mods[j::jobs]:
-                maps[mod] = build_map(trees[j], mod, cache, None if root is None else paths)
+            for mod in mods[j::jobs]:  # traced: only the module's own file (cheaper)
+                maps[mod] = build_map(trees[j], mod, cache, own[mod])
                 print(f"fast: map of {mod}: {len(maps[mod]['tests'])} tests, "
                       f"{maps[mod].get('seconds')} s", flush=True)  # fmt: skip
 
-        with ThreadPoolExecutor(jobs) as pool:
-            list(pool.map(mapper, range(jobs)))
+        if not only:
+            with ThreadPoolExecutor(jobs) as pool:
+                list(pool.map(mapper, range(jobs)))
 
         def worker(j: int) -> None:
             server = Server(trees[j])
@@ -318,7 +341,8 @@ def run_many(mutants: list[GenMutant], log: Path, cache: Path, full: bool = Fals
                 for mu in todo[j::jobs]:
                     if mu.id in _logged(log):  # another process sharing the log ran it
                         continue
-                    res = run_one(server, mu, maps[mu.module], spans[mu.path], full)
+                    res = run_one(server, mu, maps.get(mu.module, {}), spans[mu.path], full,
+                                  only)  # fmt: skip
                     with lock:
                         done[mu.id] = res
                         count[0] += 1
@@ -338,28 +362,77 @@ def run_many(mutants: list[GenMutant], log: Path, cache: Path, full: bool = Fals
 OUTCOMES = ("killed", "timeout", "survived", "invalid", "error")
 
 
-def report(results: list[FastResult], equivalent: set[str] = frozenset()) -> str:  # type: ignore[assignment]
+def report(
+    results: list[FastResult],
+    equivalent: set[str] = frozenset(),  # type: ignore[assignment]
+    later: set[str] = frozenset(),
+) -> str:  # type: ignore[assignment]
+    """The per-module table of a log. ``later``: ids of survivors that a test added after the
+    run kills (confirmed with ``--with-test``, its own log): counted as **killed by a new
+    test**. Kill rate = every kill / (run - equivalent - invalid - error)."""
     rows: dict[str, dict[str, float]] = {}
     for r in results:
         for key in (r.module, "all"):
-            empty = {**dict.fromkeys(OUTCOMES, 0), "equivalent": 0, "s": 0.0, "n": 0}
+            empty = {**dict.fromkeys(OUTCOMES, 0), "equivalent": 0, "new test": 0, "s": 0.0,
+                     "n": 0}  # fmt: skip
             row = rows.setdefault(key, empty)
-            o = "equivalent" if (r.outcome == "survived" and r.id in equivalent) else r.outcome
+            o = r.outcome
+            if o == "survived" and r.id in equivalent:
+                o = "equivalent"
+            elif o == "survived" and r.id in later:
+                o = "new test"
             row[o] += 1
             row["s"] += r.seconds
             row["n"] += 1
     rows["all"] = rows.pop("all")
-    out = ["| module | sampled | killed | by timeout | survived | equivalent | invalid | error | "
-           "kill rate (equivalents excluded) | s / mutant |",
-           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    out = ["| module | run | killed | by timeout | killed by a new test | survived | equivalent "
+           "| invalid | error | kill rate (equivalents excluded) | s / mutant |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for mod, row in rows.items():
-        valid = row["killed"] + row["timeout"] + row["survived"]
-        rate = f"{100 * (row['killed'] + row['timeout']) / valid:.1f} %" if valid else "-"
+        kills = row["killed"] + row["timeout"] + row["new test"]
+        valid = kills + row["survived"]
+        rate = f"{100 * kills / valid:.1f} %" if valid else "-"
         out.append(f"| {mod} | {row['n']:.0f} | {row['killed']:.0f} | {row['timeout']:.0f} | "
-                   f"{row['survived']:.0f} | {row['equivalent']:.0f} | {row['invalid']:.0f} | "
-                   f"{row['error']:.0f} | {rate} | {row['s'] / max(row['n'], 1):.1f} |"
-                   )  # fmt: skip
+                   f"{row['new test']:.0f} | {row['survived']:.0f} | {row['equivalent']:.0f} | "
+                   f"{row['invalid']:.0f} | {row['error']:.0f} | {rate} | "
+                   f"{row['s'] / max(row['n'], 1):.1f} |")  # fmt: skip
     return "\n".join(out)
+
+
+def read_log(path: Path) -> list[FastResult]:
+    if not path.exists():
+        return []
+    return [FastResult(**json.loads(ln)) for ln in path.read_text().splitlines() if ln.strip()]
+
+
+def read_ids(path: Path) -> list[str]:
+    """The ids of a frozen sample file: one per line (``id module``), ``#`` comments."""
+    out = []
+    for ln in path.read_text().splitlines():
+        ln = ln.split("#", 1)[0].strip()
+        if ln:
+            out.append(ln.split()[0])
+    return out
+
+
+def print_report(log: Path, confirm: Path | None) -> int:
+    """The table of ``log``, then every mutant not killed with its judgement: equivalent (the
+    reason), killed by a new test (``confirm``, a ``--with-test`` log) or OPEN."""
+    res = read_log(log)
+    later = {r.id: r for r in read_log(confirm) if r.outcome in ("killed", "timeout")} \
+        if confirm else {}  # fmt: skip
+    print(report(res, set(EQUIVALENT), set(later)))
+    for r in res:
+        if r.outcome in ("killed", "timeout"):
+            continue
+        why = EQUIVALENT.get(r.id, r.detail) if r.outcome == "survived" else r.detail
+        if r.id in later:
+            why = f"killed by a new test: {later[r.id].detail}"
+        elif r.outcome == "survived" and r.id not in EQUIVALENT:
+            why = f"OPEN ({r.detail})"
+        print(f"- `{r.id}` {r.module}:{r.line} {r.operator} `{r.original.strip()}` -> "
+              f"`{r.mutated.strip()}`: {why}")  # fmt: skip
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -374,23 +447,42 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--log", type=Path, default=ROOT / "out" / "mutation_fast.jsonl")
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "mutation_map")
     ap.add_argument("--jobs", type=int, default=1, help="mutants run in parallel")
-    ap.add_argument("--reverse", action="store_true",
-                    help="from the end of the sample (a second process sharing --log)")
+    ap.add_argument(
+        "--reverse",
+        action="store_true",
+        help="from the end of the sample (a second process sharing --log)",
+    )
+    ap.add_argument(
+        "--ids-file", type=Path, help="a frozen sample: these ids (one per line), in this order"
+    )
+    ap.add_argument(
+        "--with-test",
+        action="append",
+        default=[],
+        help="run only this test (node id) against each chosen mutant, no map: "
+        "confirms that a new test kills a survivor",
+    )
     ap.add_argument("--report", type=Path, help="only print the table of this log")
+    ap.add_argument(
+        "--confirm",
+        type=Path,
+        help="with --report: the --with-test log of survivors a new test kills",
+    )
     ap.add_argument("--list", action="store_true", help="only list the chosen mutants")
     args = ap.parse_args(argv)
     if args.report:
-        res = [FastResult(**json.loads(ln)) for ln in args.report.read_text().splitlines() if ln]
-        print(report(res, set(EQUIVALENT)))
-        for r in res:
-            if r.outcome not in ("killed", "timeout"):
-                why = EQUIVALENT.get(r.id, r.detail) if r.outcome == "survived" else r.detail
-                print(f"- `{r.id}` {r.module}:{r.line} {r.operator} ({r.outcome}): {why}")
-        return 0
+        return print_report(args.report, args.confirm)
     gen = generate(list(iter_targets(args.module)))
+    if args.ids_file:
+        want = read_ids(args.ids_file)
+        have = {m.id: m for m in gen}
+        gone = [i for i in want if i not in have and not args.module]
+        if gone:  # its line changed since the sample was drawn: that mutant no longer exists
+            print(f"fast: {len(gone)} id(s) of {args.ids_file} no longer exist: {gone}")
+        gen = [have[i] for i in want if i in have]
     if args.id:
         gen = [m for m in gen if m.id in args.id]
-    elif not args.all:
+    elif not args.all and not args.ids_file:
         gen = stratified(gen, args.sample, args.seed, args.floor)
     if args.reverse:
         gen = gen[::-1]
@@ -398,7 +490,8 @@ def main(argv: list[str] | None = None) -> int:
         for m in gen:
             print(f"{m.id} {m.module}:{m.line} {m.operator}  {m.why}")
         return 0
-    results = run_many(gen, args.log.resolve(), args.cache.resolve(), args.full, args.jobs)
+    results = run_many(gen, args.log.resolve(), args.cache.resolve(), args.full, args.jobs,
+                       only=args.with_test or None)  # fmt: skip
     print(report(results, set(EQUIVALENT)))
     alive = [r for r in results if r.outcome == "survived" and r.id not in EQUIVALENT]
     return 0 if not alive else 1

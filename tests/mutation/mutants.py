@@ -570,6 +570,10 @@ TESTS: dict[str, list[str]] = {
         "tests/test_protection_controller.py",
         "tests/test_protection_properties.py",
         "tests/test_protection_replay.py",
+        # the warning, time to trip / to empty and the resistance axis: behaviour of the same
+        # rules, left out until #26's generated mutants showed them unguarded here
+        "tests/test_protection_platform.py",
+        "tests/test_protection_axes.py",
     ],
     "sequencing": [
         "tests/test_sequencing_controller.py",
