@@ -312,3 +312,33 @@ def test_capacity_is_learned_within_5_percent_over_one_full_cycle(
     assert abs(res["cap_err_end"]) <= 0.05, res
     assert res["cap_sigma_rel"] < 0.05, res
     assert res["soc_max"] <= 0.03, res
+
+
+def test_the_observer_counts_the_equalizer_currents_of_the_group_it_reads() -> None:
+    """The cells of the group the observer reads carry the battery current, plus what every
+    equalizer draws from the battery as power (over the efficiency into a group), minus that
+    group's own equalizer current; the currents are the last step's final commands, clipped to
+    the equalizers' range (telecom_string's weakest group got 2.8 Ah over a recharge that the
+    battery's current sensor never saw)."""
+    from packpilot.contract.arrays import cmd_arrays
+    from packpilot.control.soc import rules
+
+    data = read_toml(EXAMPLES / "soc_observer_sensors.toml")
+    data["balancer"] = {"present": True, "max_current_a": 2.0, "efficiency": 0.8}
+    loop = ClosedLoop.of(parse_config(data, "equalizers"), 1)
+    part = next(x for x in loop.core.compiled if x.method.name == "soc")
+    prm, st = part.prm, part.st
+    for k in range(5):
+        loop.step(k, 0.1)
+    cmd = cmd_arrays(1, 1, 6)
+    cmd.balancer_set[0] = True
+    cmd.balancer_a[0, 0, :] = (0.0, 0.0, 7.0, 0.0, 0.5, 0.0)  # 7 A: beyond the 2 A range
+    rules.note_balancer_packs(prm, st, loop.core.tp, loop.m, cmd)
+    assert list(st.bal_a[0, 0]) == [0.0, 0.0, 2.0, 0.0, 0.5, 0.0]
+    st.weak_g[0, 0] = 2
+    gv = loop.m.bat.group_v[0, 0, :6]
+    drawn = (2.0 * gv[2] + 0.5 * gv[4]) / 0.8 / float(np.sum(gv))
+    got = rules._group_current(prm, st, loop.m, 0, 0, 10.0)
+    assert got == pytest.approx(10.0 + drawn - 2.0, rel=1e-12)
+    st.weak_g[0, 0] = -1  # the min cell, group unknown: the battery current
+    assert rules._group_current(prm, st, loop.m, 0, 0, 10.0) == 10.0
