@@ -11,6 +11,7 @@ load step; capacity against the plant's at the end. Then the core's speed with t
 (P = 1 ``ClosedLoop.step`` CPU time; P = 256 per pack-step).
 
     PYTHONPATH=src python benchmarks/bench_observer.py [EXAMPLE ...] [--speed-only]
+        [--no-speed] [--cutoff] [--capacity] [--aged]
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -190,6 +192,8 @@ def cutoff_figures(profile: bool, cutoff_v: float = 3.3) -> dict[str, float]:
     }
 
 
+CYCLE_BELIEFS = (0.90, 1.10)
+"""The capacity the BMS is told, as a factor on the cells' (both ways 10 % wrong)."""
 CYCLE_DISCHARGE_A = 10.0
 CYCLE_CHARGE_A = 5.0
 
@@ -293,6 +297,17 @@ def run() -> list[dict[str, Any]]:
                         f"{c['jumps_beyond_5pct_5s']:.0f}",
             "target": "<= 10 %; 0 jumps > 5 % + 5 s at steady load",
         })  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        for belief in CYCLE_BELIEFS:
+            c = capacity_cycle(belief, Path(tmp) / "cycle.csv")
+            rows.append({
+                "figure": f"capacity after one full cycle, BMS told {belief:.2f}x: error "
+                          "(after discharge / charge / end), 1-sigma",
+                "measured": f"{100 * c['cap_err_after_discharge']:+.1f} / "
+                            f"{100 * c['cap_err_after_charge']:+.1f} / "
+                            f"{100 * c['cap_err_end']:+.1f} %, {100 * c['cap_sigma_rel']:.1f} %",
+                "target": "within 5 %",
+            })  # fmt: skip
     for name in ("soc_observer_sensors", "uav_mission"):
         for k, v in speed(name).items():
             rows.append({"figure": k, "measured": f"{v:.2f}", "target": "P=1 <= 60; P=256 <= 6"})
@@ -305,6 +320,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--cutoff", action="store_true", help="the time-to-cut-off figures")
+    ap.add_argument("--capacity", action="store_true", help="capacity after one full cycle")
     ap.add_argument("--speed-example", action="append", default=[])
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--aged", action="store_true", help="resistance 1.3x, capacity 7 % wrong")
@@ -326,6 +342,12 @@ def main(argv: list[str]) -> int:
             what = "flight profile repeated" if prof else "constant 14 A"
             print(f"time to cut-off (3.3 V), {what}: " + ", ".join(
                 f"{k} {v:.3g}" for k, v in res.items()), flush=True)  # fmt: skip
+    if a.capacity:
+        with tempfile.TemporaryDirectory() as tmp:
+            for belief in CYCLE_BELIEFS:
+                res = capacity_cycle(belief, Path(tmp) / "cycle.csv")
+                print("capacity cycle: " + ", ".join(f"{k} {v:.4g}" for k, v in res.items()),
+                      flush=True)  # fmt: skip
     if not a.no_speed:
         for name in a.speed_example or ["soc_observer_sensors", "uav_mission"]:
             for k, v in speed(name).items():
