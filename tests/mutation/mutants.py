@@ -373,8 +373,12 @@ SOC = [
        "    if st.absent[p, i]:  # inserted: its first reading is open-circuit, it tells its SOC",
        "    if False:  # inserted: its first reading is open-circuit, it tells its SOC",
        "an inserted battery keeps the slot's stale belief (shown for a whole window)"),
+    _m("soc", "cutoff-capacity-state",
+       "    q = pred_capacity_ah(prm, st, p, i)\n    if cell_v_at(",
+       "    q = float(st.x[p, i, ob.X_CAP])\n    if cell_v_at(",
+       "time to cut-off from the slow capacity state, not the SOC's recent rate"),
     _m("soc", "equalizer-current-ignored",
-       "    return cur + p_in / v_sum - st.bal_a[p, i, g]\n", "    return cur\n",
+       "    return float(cur + p_in / v_sum - st.bal_a[p, i, g])\n", "    return cur\n",
        "the observer counts only the battery current, not the equalizers' into its group"),
 ]
 

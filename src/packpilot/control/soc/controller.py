@@ -147,6 +147,8 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
         bal_a=np.zeros((*shape, max(info.groups_per_battery, default=1))),
         pred_age_s=np.full(shape, np.inf),
         load_age_s=np.zeros(shape),
+        soc_rate_avg=nan.copy(),
+        soc_prev=nan.copy(),
         **{name: nan.copy() for name in _OUTPUTS},
     )
     return prm, st
