@@ -362,6 +362,24 @@ SOC = [
        "missing_ah = (1.0 - st.shown_soc[p, i]) * st.x[p, i, ob.X_CAP]",
        "missing_ah = st.shown_soc[p, i] * st.x[p, i, ob.X_CAP]",
        "time to full counts the charge present, not the charge missing"),
+    # issue #28, h28soc: what the observer reads and counts
+    Mutant("soc", "ocv-no-temperature", "    ocv = ocv + dtemp * (d0 + (d1 - d0) * fs)\n",
+           "    ocv = ocv + 0.0 * dtemp\n",
+           "the observer's OCV ignores the cell set's entropic term", file="observer.py"),
+    Mutant("soc", "capacity-not-learned", "    fm[p, i, X_SOC, X_CAP] = ic * k_ah / q\n",
+           "    fm[p, i, X_SOC, X_CAP] = 0.0\n",
+           "the capacity state never learns from the charge counted", file="observer.py"),
+    _m("soc", "insertion-keeps-stale-belief",
+       "    if st.absent[p, i]:  # inserted: its first reading is open-circuit, it tells its SOC",
+       "    if False:  # inserted: its first reading is open-circuit, it tells its SOC",
+       "an inserted battery keeps the slot's stale belief (shown for a whole window)"),
+    _m("soc", "cutoff-capacity-state",
+       "    q = pred_capacity_ah(prm, st, p, i)\n    if cell_v_at(",
+       "    q = float(st.x[p, i, ob.X_CAP])\n    if cell_v_at(",
+       "time to cut-off from the slow capacity state, not the SOC's recent rate"),
+    _m("soc", "equalizer-current-ignored",
+       "    return float(cur + p_in / v_sum - st.bal_a[p, i, g])\n", "    return cur\n",
+       "the observer counts only the battery current, not the equalizers' into its group"),
 ]
 
 EQUALIZATION = [

@@ -9,6 +9,7 @@ string index, the traction index and the name shown to a user.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -103,6 +104,21 @@ class PackInfo:
     """Cell R1, same layout."""
     ecm_tau_s: tuple[float, ...] = ()
     """Cell R1 * C1, same layout."""
+    ocv_ref_temp_c: float = math.nan
+    """The temperature at which ``ocv_v`` holds (degC); NaN: the OCV has no temperature term."""
+    ocv_dudt_temp_c: tuple[float, ...] = ()
+    """Temperature axis of the OCV's entropic coefficient ..."""
+    ocv_dudt_v_per_k: tuple[float, ...] = ()
+    """... dOCV/dT (V/K) at each temperature of that axis and each point of ``ocv_soc``,
+    temperature-major: the cell's OCV at T is ``ocv_v + (T - ocv_ref_temp_c) * dudt`` (the
+    plant's entropic term, issue #28); empty: none."""
+    balancer_max_a: float = 0.0
+    """The equalizers' current limit per group (A; 0: no equalizers) ..."""
+    balancer_bidirectional: bool = False
+    """... whether they can also take charge out of a group ..."""
+    balancer_efficiency: float = 1.0
+    """... and their efficiency: a group's equalizer current is drawn from its own string as
+    power (the observer counts both, issue #28)."""
     cell_v_min_v: float = 2.5
     """The traction cells' lower voltage limit (the cell set's ``v_min_v``)."""
     r_scale: tuple[float, ...] = ()

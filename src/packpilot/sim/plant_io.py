@@ -83,11 +83,15 @@ class SimulatedPlant:
             has_aux=pack.aux_index is not None,
             has_charger=cfg.charger.present,
             has_balancers=cfg.balancer.present,
+            balancer_max_a=float(cfg.balancer.max_current_a) if cfg.balancer.present else 0.0,
+            balancer_bidirectional=bool(cfg.balancer.bidirectional),
+            balancer_efficiency=float(cfg.balancer.efficiency),
             capacity_ah=tuple(float(pack.capacity_ah[p, pack.cell_string == i].min()) for i in tr),
             ocv_soc=tuple(float(x) for x in params.ocv_soc),
             ocv_v=tuple(float(x) for x in params.ocv_table_v),
             names=tuple(bats[i].name for i in tr),
             **_ecm(params),
+            **_entropic(params),
             cell_v_min_v=float(params.v_min_v),
             r_scale=tuple(float(pack.nominal_r_scale[pack.cell_string == i].mean()) for i in tr),
         )
@@ -140,7 +144,7 @@ class SimulatedPlant:
         return self.pack.step(dt_s, kind or self.cfg.load.kind, demand, reuse=True)
 
 
-def _ecm(params: Any) -> dict[str, tuple[float, ...]]:
+def _ecm(params: Any) -> dict[str, Any]:
     """The cell set's R0, R1 and tau = R1 C1 at zero current over (temperature, SOC), as the
     BMS's observer has them (the column of the current axis nearest 0 A)."""
     j = int(np.argmin(np.abs(params.rc_current_a)))
@@ -153,6 +157,29 @@ def _ecm(params: Any) -> dict[str, tuple[float, ...]]:
         "ecm_r0_ohm": tuple(float(x) for x in r0.ravel()),
         "ecm_r1_ohm": tuple(float(x) for x in r1.ravel()),
         "ecm_tau_s": tuple(float(x) for x in tau.ravel()),
+    }
+
+
+def _entropic(params: Any) -> dict[str, Any]:
+    """The cell set's entropic term as the observer has it: dOCV/dT at every point of the OCV
+    table and every temperature of the set's dU/dT axis (looked up as the plant does: on the
+    OCV axis or the SOC axis, clamped or extended like the set), with its reference
+    temperature; none (NaN, empty) when the set has no reference temperature."""
+    if params.ocv_ref_temp_c is None:
+        return {}
+    clamp = params.extrapolation == "clamp"
+    x = params.ocv_table_v if params.dudt_axis == "ocv_v" else params.ocv_soc
+    ax = params.dudt_x
+    k = np.clip(np.searchsorted(ax, x, side="right") - 1, 0, ax.size - 2)
+    f = (x - ax[k]) / (ax[k + 1] - ax[k])
+    if clamp:
+        f = np.clip(f, 0.0, 1.0)
+    du = params.dudt_v_per_k  # (len(dudt_x), len(dudt_temp_c))
+    rows = [du[k, j] * (1 - f) + du[k + 1, j] * f for j in range(du.shape[1])]
+    return {
+        "ocv_ref_temp_c": float(params.ocv_ref_temp_c),
+        "ocv_dudt_temp_c": tuple(float(t) for t in params.dudt_temp_c),
+        "ocv_dudt_v_per_k": tuple(float(v) for row in rows for v in row),
     }
 
 

@@ -88,6 +88,11 @@ def check_ocv(
     return volts, soc
 
 
+WEAK_TAU_S = 30.0
+"""Low-pass of the group voltages that pick the weakest group: long against the noise of one
+sample (at 0.1-5 s periods, 6-300 samples), short against how fast the weakest changes."""
+
+
 def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocState]:
     info = infos[0]
     n = info.n_batteries
@@ -112,6 +117,11 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
         ocv_v=np.array(volts, np.float64),
         ocv_soc=np.array(soc, np.float64),
         series_cells=series,
+        cells_per_group=np.array(info.cells_per_group, np.int64),
+        bal_lo_a=-float(info.balancer_max_a) if info.balancer_bidirectional else 0.0,
+        bal_hi_a=float(info.balancer_max_a),
+        bal_eff=float(info.balancer_efficiency),
+        weak_tau_s=WEAK_TAU_S,
         **_observer_params(config, info),
     )
     shape = (len(infos), n)
@@ -131,8 +141,14 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
         nis_avg=np.ones(shape),
         obs_age_s=np.zeros(shape),
         obs_ok=np.zeros(shape, np.bool_),
+        absent=np.zeros(shape, np.bool_),
+        grp_lp=np.full((*shape, max(info.groups_per_battery, default=1)), np.nan),
+        weak_g=np.full(shape, -1, np.int64),
+        bal_a=np.zeros((*shape, max(info.groups_per_battery, default=1))),
         pred_age_s=np.full(shape, np.inf),
         load_age_s=np.zeros(shape),
+        soc_rate_avg=nan.copy(),
+        soc_prev=nan.copy(),
         **{name: nan.copy() for name in _OUTPUTS},
     )
     return prm, st
@@ -181,6 +197,7 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
         "r0_tab": arr(info.ecm_r0_ohm, 4),
         "r1_tab": arr(info.ecm_r1_ohm, 4),
         "tau_tab": arr(info.ecm_tau_s, 4),
+        **_entropic(info),
         "r_nom": np.array(r_nom, np.float64),
         "sig0": np.array(sig0, np.float64),
         "walk": np.array(walk, np.float64),
@@ -193,6 +210,21 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
             config.cutoff_cell_v if config.cutoff_cell_v is not None else info.cell_v_min_v
         ),
         "predict_every_s": 1.0,
+    }
+
+
+def _entropic(info: PackInfo) -> dict[str, Any]:
+    """The OCV's temperature term of :class:`SocParams` from ``info`` (none where the cell set
+    has no reference temperature or the table does not fit the OCV table)."""
+    nt, n = len(info.ocv_dudt_temp_c), len(info.ocv_soc)
+    tab = info.ocv_dudt_v_per_k
+    have = math.isfinite(info.ocv_ref_temp_c) and nt >= 2 and len(tab) == nt * n
+    if have and not all(_finite(x) for x in tab + info.ocv_dudt_temp_c):
+        raise ConfigError("soc: the cell set's dU/dT table must be finite")
+    return {
+        "du_t": np.array(info.ocv_dudt_temp_c if have else (0.0, 1.0), np.float64),
+        "du_tab": np.array(tab, np.float64) if have else np.zeros(2 * n),
+        "t_ref_c": float(info.ocv_ref_temp_c) if have else math.nan,
     }
 
 
@@ -210,6 +242,7 @@ METHOD = Method(
     status=STATUS,
     labels=_labels,
     max_events=lambda info: 2 * info.n_batteries,
+    after=rules.note_balancer_packs,
 )
 
 

@@ -94,6 +94,32 @@ def ocv_at(ocv_soc: F64, ocv_v: F64, soc: float) -> tuple[float, float]:
 
 
 @kernel_inline
+def ocv_temp_at(
+    ocv_soc: F64, ocv_v: F64, du_t: F64, du_tab: F64, t_ref: float, soc: float, temp_c: float,
+) -> tuple[float, float]:  # fmt: skip
+    """(OCV, dOCV/dSOC) of the cell at ``soc`` and ``temp_c``: the reference table
+    (:func:`ocv_at`) plus the cell set's entropic term ``(T - t_ref) * dU/dT(T, soc)``, the
+    plant's OCV (``du_tab[t * n_ocv + s]`` on the temperature axis ``du_t`` and the OCV table's
+    points, linear between points, clamped at the ends of both axes). No term when ``t_ref`` is
+    NaN or the temperature is unknown."""
+    ocv, slope = ocv_at(ocv_soc, ocv_v, soc)
+    if not (math.isfinite(t_ref) and math.isfinite(temp_c)) or du_t.shape[0] < 2:
+        return ocv, slope
+    n = ocv_soc.shape[0]
+    ks, fs = _bracket(soc, ocv_soc)
+    kt, ft = _bracket(temp_c, du_t)
+    k0 = kt * n + ks
+    k1 = k0 + n
+    d0: float = du_tab[k0] + (du_tab[k1] - du_tab[k0]) * ft
+    d1: float = du_tab[k0 + 1] + (du_tab[k1 + 1] - du_tab[k0 + 1]) * ft
+    dtemp = temp_c - t_ref
+    ocv = ocv + dtemp * (d0 + (d1 - d0) * fs)
+    if ocv_soc[0] < soc < ocv_soc[n - 1]:  # the term's slope within the table; clamped beyond
+        slope = slope + dtemp * (d1 - d0) / (ocv_soc[ks + 1] - ocv_soc[ks])
+    return ocv, slope
+
+
+@kernel_inline
 def reset(x: F64, cov: F64, p: int, i: int, soc: float, cap_ah: float, r_scale: float,
           sig: F64) -> None:  # fmt: skip
     """Start the filter of battery ``i`` at ``soc`` with the prior ``sig`` (standard deviations
@@ -163,15 +189,17 @@ def predict(
 @kernel_inline
 def correct(
     x: F64, cov: F64, hv: F64, kv: F64, wk: F64, p: int, i: int, y_v: float, cur_a: float,
-    r0: float, ocv_soc: F64, ocv_v: F64, var_v: float,
+    r0: float, ocv_soc: F64, ocv_v: F64, du_t: F64, du_tab: F64, t_ref: float, temp_c: float,
+    var_v: float,
 ) -> float:  # fmt: skip
-    """Measurement update with the cell voltage ``y_v``; returns the normalised innovation
-    squared (innovation^2 / its predicted variance), NaN when the measurement was unusable."""
+    """Measurement update with the cell voltage ``y_v`` (the OCV at ``temp_c``,
+    :func:`ocv_temp_at`); returns the normalised innovation squared (innovation^2 / its
+    predicted variance), NaN when the measurement was unusable."""
     if not math.isfinite(y_v):
         return math.nan
     rs = x[p, i, X_RSCALE]
     ic = cur_a - x[p, i, X_OFFSET]
-    ocv, slope = ocv_at(ocv_soc, ocv_v, x[p, i, X_SOC])
+    ocv, slope = ocv_temp_at(ocv_soc, ocv_v, du_t, du_tab, t_ref, x[p, i, X_SOC], temp_c)
     nu: float = y_v - (ocv - rs * r0 * ic - x[p, i, X_V1])
     hv[p, i, X_SOC] = slope
     hv[p, i, X_V1] = -1.0
@@ -225,6 +253,7 @@ __all__ = [
     "bound",
     "correct",
     "ocv_at",
+    "ocv_temp_at",
     "predict",
     "reset",
     "table2",
