@@ -52,3 +52,18 @@ def test_the_charger_is_on_only_if_no_controller_said_off(opinions: tuple[bool, 
     assert bool(cmd.charger_set[0])
     got = (float(cmd.charger_v[0]), float(cmd.charger_a[0]), bool(cmd.charger_enable[0]))
     assert got == ((92.0, 7.0, True) if all(opinions) else (0.0, 0.0, False))
+
+
+def test_a_full_event_buffer_keeps_every_event_it_has_room_for_and_counts_each_one_lost() -> None:
+    """The core's event buffer (``commands.emit``): ``capacity`` events are kept in emission
+    order, each one beyond is counted once in ``dropped`` and written to the scratch row only
+    (generated mutants 32f861ca18, room for one less, and befa36d66e, a loss counted twice,
+    survived every test: no test filled the buffer)."""
+    from packpilot.contract.arrays import event_buf
+    from packpilot.control.commands import emit
+
+    ev = event_buf(4)
+    rows = [emit(ev, 0, 1, 10 + i, i, float(i)) for i in range(7)]
+    assert rows == [0, 1, 2, 3, 4, 4, 4]  # the last three land in the scratch row
+    assert int(ev.n[0]) == 4 and int(ev.dropped[0]) == 3
+    assert ev.code[:4].tolist() == [10, 11, 12, 13] and ev.t_s[:4].tolist() == [0, 1, 2, 3]
