@@ -105,8 +105,8 @@ def pytest_terminal_summary(terminalreporter: Any) -> None:
     tr = terminalreporter
     wall = time.perf_counter() - t.t0
     tr.section("where the time went (tests/timing.py)")
-    tr.write_line(f"wall since pytest started {wall:.0f} s; per worker: test wall / own CPU / waited "
-                  "children's CPU / numba compile CPU (s)")  # fmt: skip
+    tr.write_line(f"wall since pytest started {wall:.0f} s; per worker: test wall / own CPU / "
+                  "waited children's CPU / numba compile CPU (s)")  # fmt: skip
     for name, (w, c, ch, co) in sorted(t.worker.items()):
         tr.write_line(f"  {name}: {w:.0f} / {c:.0f} / {ch:.0f} / {co:.0f}")
     s = [sum(v[i] for v in t.tests.values()) for i in range(4)]
