@@ -310,15 +310,15 @@ def test_uav_mission_flight_over_dronecan_matches_simulate() -> None:
     assert sim_cuts and all(any(key(a) == key(x) and abs(a.t_s - x.t_s) <= EVENT_TOLERANCE_S
                                 for x in cuts) for a in sim_cuts)  # fmt: skip
     seq = cfg.sequencing
-    i_lim = [seq.charge_limit_margin * seq.charge_limit_c * c
-             for c in ls.hil.plant.infos[0].capacity_ah]  # fmt: skip
+    i_lim = [seq.charge_limit_margin * seq.charge_limit_c * cap
+             for cap in ls.hil.plant.infos[0].capacity_ah]  # fmt: skip
     cycles = assert_switching_with_reverse_cycles(
         sim_chg,
         np.array(ls.chg).reshape(n, b),
         cuts,
         cfg.sim.dt_s,
         seq.i_rev,
-        round(join_tol_s / cfg.sim.dt_s),
+        round(join_tol_s / cfg.sim.dt_s),  # B's charge FET closes with its join
         np.array(measured),
         i_lim,
     )
