@@ -59,7 +59,12 @@ browser:
 # fast. CI must prove the kernels compile from source, so .ci/run calls `make test
 # COLD_KERNELS=1`: NUMBA_CACHE_DIR then names a fresh empty directory for the whole run (every
 # test process and subprocess compiles from scratch and shares what it compiled; the in-tree
-# cache is neither read nor touched), removed afterwards.
+# cache is neither read nor touched), removed afterwards. Before pytest, tests/precompile.py
+# compiles every kernel the shipped examples run, each once, split over the 2 cores (#25: the two
+# xdist workers used to compile the same kernels at the same time, and CLI subprocesses with
+# them); the tests then load them from that cache. It does nothing when every example's kernels
+# are compiled already (a warm in-tree cache). tests/timing.py ends the run with where its time
+# went: per worker and per test, wall, CPU, subprocesses' CPU and numba compile CPU.
 COLD_KERNELS ?=
 test: $(TEST_STAMP) browser
 	@set -e; \
@@ -69,8 +74,10 @@ test: $(TEST_STAMP) browser
 		export NUMBA_CACHE_DIR="$$cache"; \
 		echo "test: no cached kernels (NUMBA_CACHE_DIR=$$cache)"; \
 	fi; \
-	echo "PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider"; \
-	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider
+	echo "PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.precompile --jobs 2"; \
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m tests.precompile --jobs 2; \
+	echo "PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider -p tests.timing"; \
+	PYBAMM_DISABLE_TELEMETRY=true $(PY) -m pytest -n 2 -q -p no:cacheprovider -p tests.timing
 
 # Mutation testing (#18 §1, #26 item 4): every hand-listed mutant of a safety rule
 # (tests/mutation/mutants.py) plus a seeded, stratified random sample of MUTATE_N tool-generated
