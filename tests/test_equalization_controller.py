@@ -302,3 +302,20 @@ def test_a_one_group_string_is_sampled_and_shows_its_dv() -> None:
         out = ctrl.step(meas(float(k), batt((13.0,), 1.0)), 1.0)
     assert out.status["eq_dv_mv_g0"] == [0.0]
     assert out.status["eq_owed_ah_g0"] == [0.0]
+
+
+def test_an_update_after_a_cleared_fault_is_reported_as_an_update() -> None:
+    """A step's event records reuse the rows of earlier steps: the update must write its own
+    code, not inherit the row's last one (generated mutant 53c2d1039f dropped that write; it
+    survived because BalancingUpdated is code 0, the arrays' initial value, and no test had
+    a fault record in the row first). A NaN current records a fault at t = 0, the next valid
+    sample clears it (a second record in row 0), and formula 1 fires 120 samples later."""
+    cfg = EqualizationConfig(equalizer_max_a=5.0)
+    ctrl = EqualizationController(cfg, pack())
+    outs = [ctrl.step(meas(0.0, batt(LOW0, math.nan)), 1.0)]
+    outs += [ctrl.step(meas(float(k), batt(LOW0, 10.0)), 1.0) for k in range(1, 140)]
+    kinds = [e.kind for o in outs for e in o.events]
+    assert kinds.count("BalancingUpdated") == 1, kinds
+    upd = next(e for o in outs for e in o.events if e.kind == "BalancingUpdated")
+    assert upd.data["formula"] == "formula1" and upd.data["new"] == 0.25
+    assert len(kinds) == 3, kinds  # the fault, its clearing, the update

@@ -234,6 +234,12 @@ def test_the_group_average_is_fsum_exactly_at_half_way_cases() -> None:
         [1.0, 1e100, 1.0, -1e100],
         [1e16, 1.0, 1e-16],
         [13.0, 13.0 + 2.0**-49, 13.0, 13.0 - 2.0**-49],
+        # partials whose top two add exactly, so the smallest one is still to come (generated
+        # mutant c6ec6d8aaf: the top-down loop stopped one partial early; found by a random
+        # search against math.fsum)
+        [4.323455642275676e17, -917504.0, -1.7462298274040222e-10, 0.0234375,
+         -4.323455642275676e17],
+        [-2.7939677238464355e-09, -8.0, 3145728.0, 1.7462298274040222e-10, -4194304.0],
     ]
     for xs in cases:
         arr = np.array(xs, np.float64)

@@ -84,4 +84,14 @@ EQUIVALENT: dict[str, str] = {
     "same tick, sees that battery CHARGING with its discharge FET off and cur > i_rev > 0, so "
     "not conducting (that needs cur < -i_det < 0), and _diode_rule sets conduct_since_s = nan "
     "before anything reads it.",
+    # --- judged 2026-11-28 evening (owner), the resumed sample's last survivors
+    "4914977f4c": "plausibility _nonfinite_code: `x > 0.0` -> `x >= 0.0`. Called only for a "
+    "non-finite x; NaN returns before the comparison, and +inf / -inf compare the same with "
+    "either operator (x is never 0).",
+    "72261c977f": "equalization step: `x1 = 0.0` -> `1.0` (its initial value). x1 is read only "
+    "in the fault record (`fault = code >= 0`), and every branch that sets a fault code sets x1 "
+    "with it (group count, group voltage, current); the cleared record does not read it.",
+    "6c66adceb0": "equalization step: `code < 0` -> `code <= 0` before the current check. code "
+    "is -1 or a fault code, all >= 1 (FAULT_GROUP_COUNT 1, FAULT_GROUP_VOLTAGE 2, "
+    "FAULT_CURRENT 3); it is never 0.",
 }
