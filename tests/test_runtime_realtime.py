@@ -94,6 +94,23 @@ def _start(args: list[str], err: Path, **env: str) -> subprocess.Popen[str]:
                                 env={**os.environ, **env} if env else None)  # fmt: skip
 
 
+def _hub_args(hub: CanHub) -> list[str]:
+    """The CLI's bus options for the loopback hub (python-can's ``socketcand`` client)."""
+    return ["--can-interface", "socketcand", "--can-channel", "pack",
+            "--can-arg", "host=127.0.0.1", "--can-arg", f"port={hub.port}"]  # fmt: skip
+
+
+def _start_twin(bus: list[str], err: Path) -> subprocess.Popen[str]:
+    """`packpilot hil uav_mission` on ``bus``, once it says it runs."""
+    twin = _start(["hil", "uav_mission", *bus], err)
+    try:
+        _wait(twin, err, lambda: "packpilot hil:" in err.read_text(), "hil")
+    except BaseException:
+        twin.kill()  # never left running when it did not start
+        raise
+    return twin
+
+
 def _wait(proc: subprocess.Popen[str], err: Path, done: Any, what: str) -> None:
     """Until ``done()``; fails with the process's stderr if it exits or never gets there."""
     deadline = time.monotonic() + START_TIMEOUT_S
@@ -118,12 +135,10 @@ def test_two_processes_over_the_can_hub(tmp_path: Path) -> None:
     silent), both by SIGTERM."""
     db, twin_err, run_err = tmp_path / "run.sqlite", tmp_path / "hil.err", tmp_path / "run.err"
     with CanHub("127.0.0.1", 0) as hub:
-        bus = ["--can-interface", "socketcand", "--can-channel", "pack",
-               "--can-arg", "host=127.0.0.1", "--can-arg", f"port={hub.port}"]  # fmt: skip
-        twin = _start(["hil", "uav_mission", *bus], twin_err)
+        bus = _hub_args(hub)
+        twin = _start_twin(bus, twin_err)
         run = None
         try:
-            _wait(twin, twin_err, lambda: "packpilot hil:" in twin_err.read_text(), "hil")
             run = _start(["run", "uav_mission", *bus, "--db", str(db), "--json"], run_err)
             _wait(run, run_err, lambda: samples_committed(db) >= 50, "run recorded < 50 periods")
             # the dashboard's reader attaches to the running process's file and follows it
@@ -179,12 +194,10 @@ def test_an_interpreted_run_keeps_its_period_while_publishing(tmp_path: Path) ->
     Python whatever the kernel cache holds, and starts no background compile."""
     twin_err, run_err = tmp_path / "hil.err", tmp_path / "run.err"
     with CanHub("127.0.0.1", 0) as hub:
-        bus = ["--can-interface", "socketcand", "--can-channel", "pack",
-               "--can-arg", "host=127.0.0.1", "--can-arg", f"port={hub.port}"]  # fmt: skip
-        twin = _start(["hil", "uav_mission", *bus], twin_err)
+        bus = _hub_args(hub)
+        twin = _start_twin(bus, twin_err)
         run = None
         try:
-            _wait(twin, twin_err, lambda: "packpilot hil:" in twin_err.read_text(), "hil")
             run = _start(["run", "uav_mission", *bus, "--duration", "6", "--json"], run_err,
                          PACKPILOT_START="interpreted")  # fmt: skip
             run_out, _ = run.communicate(timeout=300)
