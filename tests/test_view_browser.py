@@ -10,7 +10,6 @@ from __future__ import annotations
 import base64
 import json
 import os
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -33,20 +32,7 @@ ARTIFACTS = "PACKPILOT_ARTIFACTS"
 
 
 def _serve(runner: Any, name: str, speed: float, **kw: Any) -> Iterator[Dashboard]:
-    dash = Dashboard(runner, scenario=name, speed=speed, host="127.0.0.1", port=0, **kw)
-    thread = threading.Thread(target=dash.serve, name=f"uvicorn-{name}", daemon=True)
-    dash.start()
-    thread.start()
-    deadline = time.monotonic() + 10.0
-    while time.monotonic() < deadline:
-        try:
-            wb.get_json(dash.url + "api/status")
-            break
-        except OSError:
-            time.sleep(0.05)
-    yield dash
-    dash.stop()
-    thread.join(10.0)
+    yield from wb.serve(runner, name, speed, **kw)
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ import struct
 import threading
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -94,11 +94,13 @@ def get_json(url: str) -> Any:
         return json.loads(resp.read())
 
 
-@pytest.fixture(scope="module")
-def server() -> Iterator[Dashboard]:
-    runner = Runner(parse_config(scenario()), progress=False)
-    dash = Dashboard(runner, scenario="browser_test", speed=20.0, host="127.0.0.1", port=0)
-    thread = threading.Thread(target=dash.serve, name="uvicorn-test", daemon=True)
+def serve(
+    runner: Runner, scenario: str, speed: float, **kw: Any
+) -> Generator[Dashboard, None, bool]:
+    """A dashboard of ``runner`` on a loopback port, answering, until the caller's fixture
+    ends (``yield from``); returns whether its server thread was still alive after stopping."""
+    dash = Dashboard(runner, scenario=scenario, speed=speed, host="127.0.0.1", port=0, **kw)
+    thread = threading.Thread(target=dash.serve, name=f"uvicorn-{scenario}", daemon=True)
     dash.start()
     thread.start()
     deadline = time.monotonic() + 10.0
@@ -111,7 +113,14 @@ def server() -> Iterator[Dashboard]:
     yield dash
     dash.stop()
     thread.join(10.0)
-    assert not thread.is_alive(), "the server did not shut down"
+    return thread.is_alive()
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[Dashboard]:
+    runner = Runner(parse_config(scenario()), progress=False)
+    alive = yield from serve(runner, "browser_test", 20.0)
+    assert not alive, "the server did not shut down"
 
 
 def test_page_streams_live_samples(browser: Cdp, server: Dashboard) -> None:

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import base64
 import os
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,21 +29,7 @@ ARTIFACTS = "PACKPILOT_ARTIFACTS"
 
 def _serve(data: dict[str, object], scenario: str) -> Iterator[Dashboard]:
     """A dashboard of ``data`` at 4x real time on a loopback port, until the fixture ends."""
-    runner = Runner(parse_config(data), progress=False)
-    dash = Dashboard(runner, scenario=scenario, speed=4.0, host="127.0.0.1", port=0)
-    thread = threading.Thread(target=dash.serve, name=f"uvicorn-{scenario}", daemon=True)
-    dash.start()
-    thread.start()
-    deadline = time.monotonic() + 10.0
-    while time.monotonic() < deadline:
-        try:
-            wb.get_json(dash.url + "api/status")
-            break
-        except OSError:
-            time.sleep(0.05)
-    yield dash
-    dash.stop()
-    thread.join(10.0)
+    yield from wb.serve(Runner(parse_config(data), progress=False), scenario, 4.0)
 
 
 @pytest.fixture(scope="module")
