@@ -9,13 +9,29 @@ import re
 
 import pytest
 
-from packpilot.config import load_config
+from packpilot.config import ScenarioConfig, load_config
+from packpilot.contract.record import Trace
 from packpilot.report.html import build_html
 from packpilot.report.info import RunInfo
 from packpilot.sim.power import params_of
 from packpilot.sim.power_view import state_of_power_now, view_of_status
 from packpilot.sim.runner import Runner
 from tests.conftest import EXAMPLES
+
+
+def sop_30s_at(cfg: ScenarioConfig, tr: Trace, k: int) -> float:
+    """The pack's 30 s discharge limit predicted from the state recorded at step ``k`` of a
+    two-battery trace, by the function ``run`` publishes from."""
+
+    def status(name: str, b: int) -> object:
+        vals = tr.status.get(name)
+        return vals[k][b] if vals is not None else None
+
+    view = view_of_status(tr.battery[k], status, [0, 1], bus_v=float(tr.bus_v[k]),
+                          load_a=float(tr.load_a[k]), mode=status("mode", 0))  # fmt: skip
+    out = state_of_power_now(cfg, params_of(cfg), view)
+    assert out is not None
+    return float(out.pack_dsg_a[0, 2])
 
 
 def test_the_report_draws_the_state_of_power_along_the_run() -> None:
@@ -31,19 +47,7 @@ def test_the_report_draws_the_state_of_power_along_the_run() -> None:
     # the same prediction from the first and the last recorded state (the batteries 2 V
     # apart before they share the load; the lowest SOC), by the function run publishes from
     tr = result.trace
-
-    def at(k: int) -> float:
-        def status(name: str, b: int) -> object:
-            vals = tr.status.get(name)
-            return vals[k][b] if vals is not None else None
-
-        view = view_of_status(tr.battery[k], status, [0, 1], bus_v=float(tr.bus_v[k]),
-                              load_a=float(tr.load_a[k]), mode=status("mode", 0))  # fmt: skip
-        out = state_of_power_now(cfg, params_of(cfg), view)
-        assert out is not None
-        return float(out.pack_dsg_a[0, 2])
-
-    ends = min(at(0), at(len(tr.t_s) - 1))
+    ends = min(sop_30s_at(cfg, tr, 0), sop_30s_at(cfg, tr, len(tr.t_s) - 1))
     assert lowest <= ends + 1e-6
     assert lowest == pytest.approx(ends, rel=0.05)
     # the pack carried far less than it could: headroom stays positive

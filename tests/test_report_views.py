@@ -21,11 +21,10 @@ from packpilot.report.html import build_html
 from packpilot.report.info import RunInfo
 from packpilot.report.plots import run_figure
 from packpilot.sim.fit_range import FitWatch, excursions
-from packpilot.sim.power import params_of
-from packpilot.sim.power_view import state_of_power_now, view_of_status
 from packpilot.sim.runner import Runner
 from packpilot.sim.verdict import run_verdict
 from tests.conftest import EXAMPLES
+from tests.test_power_report import sop_30s_at
 from tests.test_web_power import wrong_start
 
 
@@ -88,22 +87,13 @@ def test_the_reports_state_of_power_is_the_published_prediction(observed: Any) -
     page = build_html(result, RunInfo.from_config(cfg.model_dump(mode="json"), status="ok"))
     facts = dict(re.findall(r"<tr><td>([^<]+)</td><td>([^<]+)</td></tr>", page))
     lowest = float(facts["lowest 30 s discharge limit (A)"])
-    tr, k = result.trace, len(result.trace.t_s) - 1
-
-    def status(name: str, b: int) -> object:
-        vals = tr.status.get(name)
-        return vals[k][b] if vals is not None else None
-
-    view = view_of_status(tr.battery[k], status, [0, 1], bus_v=float(tr.bus_v[k]),
-                          load_a=float(tr.load_a[k]), mode=status("mode", 0))  # fmt: skip
-    out = state_of_power_now(cfg, params_of(cfg), view)
-    assert out is not None
-    last = float(out.pack_dsg_a[0, 2])
+    last = sop_30s_at(cfg, result.trace, len(result.trace.t_s) - 1)
     assert lowest <= last + 1e-6 and lowest == pytest.approx(last, rel=0.05)
     assert 'class="sop"' in page and 'class="sop-battery"' in page
 
 
-def _fitted(path: Path) -> Path:
+def fitted_set(path: Path) -> Path:
+    """uav_5ah written as a fitted set whose window is SOC 0.4-0.95, 0-20 A, no temperature."""
     data = params_to_dict(load_parameter_set("uav_5ah"))
     data["notes"] = {"window": {"soc_min": 0.4, "soc_max": 0.95, "current_min_a": 0.0,
                                 "current_max_a": 20.0, "temp_min_c": None,
@@ -113,7 +103,7 @@ def _fitted(path: Path) -> Path:
 
 
 def test_outside_fit_in_every_verdict_and_streamed_in_blocks(tmp_path: Path) -> None:
-    cell = _fitted(tmp_path / "mine.json")
+    cell = fitted_set(tmp_path / "mine.json")
     cfg = parse_config({
         "pack": {"cell": str(cell), "ambient_c": -10.0,
                  "batteries": [{"name": "A", "series_groups": 3, "soc0": 0.9}]},

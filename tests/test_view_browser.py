@@ -8,7 +8,6 @@ planner's peak under a battery waiting in STANDBY, a what-if beyond its fitted r
 from __future__ import annotations
 
 import base64
-import json
 import os
 import time
 from collections.abc import Iterator
@@ -18,12 +17,11 @@ from typing import Any
 import pytest
 
 from packpilot.config import load_config, parse_config
-from packpilot.model.cell import load_parameter_set
-from packpilot.model.cell.params import params_to_dict
 from packpilot.sim.runner import Runner
 from packpilot.web.app import Dashboard
 from tests import test_web_browser as wb
 from tests.conftest import EXAMPLES
+from tests.test_report_views import fitted_set
 from tests.test_web_power import wrong_start
 
 pytestmark = wb.pytestmark
@@ -116,21 +114,10 @@ def test_cards_power_panel_and_join_view(
     (Path(os.environ.get(ARTIFACTS, tmp_path)) / "dashboard_power.png").write_bytes(shot)
 
 
-def _fitted(path: Path) -> Path:
-    """A "fitted" cell set: the shipped uav_5ah with the notes ``packpilot fit`` writes
-    (the logs covered 40-95 % SOC at 0-20 A per cell, no temperature, fitted as at 25 degC)."""
-    data = params_to_dict(load_parameter_set("uav_5ah"))
-    data["notes"] = {"window": {"soc_min": 0.4, "soc_max": 0.95, "current_min_a": 0.0,
-                                "current_max_a": 20.0, "temp_min_c": None,
-                                "temp_max_c": None}, "reference_temp_c": 25.0}  # fmt: skip
-    path.write_text(json.dumps(data))
-    return path
-
-
 @pytest.fixture(scope="module")
 def cold_whatif(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Dashboard]:
     """A what-if at -10 degC on the fitted set: it leaves the fitted range from 0 s."""
-    cell = _fitted(tmp_path_factory.mktemp("fit") / "mine.json")
+    cell = fitted_set(tmp_path_factory.mktemp("fit") / "mine.json")
     data = {
         "pack": {"cell": str(cell), "ambient_c": -10.0,
                  "batteries": [{"name": "A", "series_groups": 3, "soc0": 0.9}]},
