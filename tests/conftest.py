@@ -40,6 +40,31 @@ def dual_pack(
     }
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "long(cpu_s): a test measured to take cpu_s CPU seconds; run first (see "
+        "pytest_collection_modifyitems)",
+    )
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Start the longest tests first, longest first.
+
+    ``make test`` runs pytest-xdist's load scheduling on 2 workers: a worker gets consecutive
+    items as it asks for them, so a 390 s test collected near the end runs while the other
+    worker has nothing left (the fresh-clone CI of e035b38: workers busy 555 s and 1,065 s).
+    Started first, the long tests run beside the rest of the suite. The order is a pure
+    function of the collection, so every worker collects the same list, as xdist requires.
+    """
+
+    def cpu_s(item: pytest.Item) -> float:
+        mark = item.get_closest_marker("long")
+        return float(mark.kwargs.get("cpu_s", 0.0)) if mark is not None else 0.0
+
+    items.sort(key=lambda item: -cpu_s(item))  # stable: the rest keep pytest's order
+
+
 @pytest.fixture
 def examples_dir() -> Path:
     return EXAMPLES

@@ -193,6 +193,7 @@ def test_runner_classifies_killed_survived_invalid_and_timeout(tiny_tree: Path) 
     assert survived.id in run.gen_table([survived], "x")
 
 
+@pytest.mark.long(cpu_s=35)
 def test_fast_runs_a_mutant_against_only_the_tests_that_reach_it(
     tiny_tree: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

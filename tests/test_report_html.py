@@ -154,6 +154,7 @@ def test_report_cli_writes_a_self_contained_page(
     assert "data-chart" in section(page, "batteries") and "data-chart" in section(page, "switches")
 
 
+@pytest.mark.long(cpu_s=44)
 def test_simulate_report_in_one_go(tmp_path: Path) -> None:
     """simulate --report from the in-memory Result: protection, events and controllers shown."""
     out = tmp_path / "sim.html"

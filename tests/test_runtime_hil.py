@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Collection
 
 import numpy as np
+import pytest
 
 from packpilot.cli import scenario_path
 from packpilot.config import ScenarioConfig, load_config
@@ -121,6 +122,7 @@ def assert_same_switching(sim: np.ndarray, can: np.ndarray) -> None:
     assert np.mean(sim == can) > 0.999
 
 
+@pytest.mark.long(cpu_s=31)
 def test_uav_mission_flight_matches_simulate() -> None:
     """The flight part (20 min of flight and landing) of uav_mission, run over CAN."""
     cfg = scenario("uav_mission", 1250.0)
@@ -130,6 +132,7 @@ def test_uav_mission_flight_matches_simulate() -> None:
     assert all(ls.supplied)  # the load was never unsupplied in flight
 
 
+@pytest.mark.long(cpu_s=389)
 def test_evtol_charging_matches_simulate() -> None:
     """The whole staged charge (5 h: every stage, every battery full) over CAN."""
     compare(scenario("evtol_charging", 18000.0), allow_unmonitored=True)
@@ -272,6 +275,7 @@ def group_soc_spread(pack: Pack) -> np.ndarray:
     return np.array([np.ptp(soc[pack.cell_string == s]) for s in range(pack.n_strings)])
 
 
+@pytest.mark.long(cpu_s=39)
 def test_uav_mission_flight_over_dronecan_matches_simulate() -> None:
     """The flight part of uav_mission with both batteries on DroneCAN BatteryInfo +
     BatteryInfoAux: the same safety-relevant events and switch decisions as simulate, the
@@ -347,6 +351,7 @@ later). Over the whole 5 h charge the rise slows near V_sat: measured 8-92 s lat
 (docs/runtime.md)."""
 
 
+@pytest.mark.long(cpu_s=144)
 def test_evtol_charging_over_dronecan_first_hand_over() -> None:
     """evtol_charging's six batteries and its aux battery on DroneCAN: the staged charge to
     its first hand-over (S20 → S30, then S30 regroups as the second pair joins: since issue
