@@ -28,6 +28,7 @@ with R fitted at the same time still sees the curve's shape.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,11 +79,19 @@ class OcvShape:
         out: F64 = self.base_v + c
         return self.soc, out
 
+    def params_for(self, soc: F64, correction_v: F64) -> F64:
+        """The parameters closest to a correction given at other knots (a re-placement)."""
+        c = np.interp(self.knots, soc, correction_v)
+        p = np.concatenate([[c[0]], np.diff(c) / np.diff(self.knots)])
+        out: F64 = np.clip(p, np.array(self.lo) + 1e-9, np.array(self.hi) - 1e-9)
+        return out
+
     def prior(self, p: F64, noise_v: float) -> F64:
         """Regularisation residuals toward the default (see the module)."""
         c = self.values(p)
         curv = np.diff(c, 2) if len(c) > 2 else np.zeros(0)
-        out: F64 = np.concatenate([c / PRIOR_V, curv / CURVATURE_V]) * noise_v
+        rows = [c / PRIOR_V, curv / CURVATURE_V]
+        out: F64 = np.concatenate(rows) * noise_v
         return out
 
     def jacobian(self) -> F64:
@@ -106,7 +115,7 @@ def shape(soc_lo: float, soc_hi: float, ocv_soc: F64, ocv_v: F64) -> OcvShape:
         knots = np.linspace(soc_lo, soc_hi, n_seg + 1)
     lo, hi = [-0.5], [0.5]
     slope = np.diff(ocv_v) / np.diff(ocv_soc)
-    for a, b in zip(knots[:-1], knots[1:], strict=True):
+    for a, b in itertools.pairwise(knots):
         seg = (ocv_soc[1:] > a) & (ocv_soc[:-1] < b)
         smin = float(slope[seg].min()) if seg.any() else float(np.interp(a, ocv_soc[1:], slope))
         lo.append(-(1.0 - SLOPE_MARGIN) * max(smin, 0.0))
@@ -144,6 +153,26 @@ class OcvFit:
         )
 
 
+def _bound_flags(sh: OcvShape, p: F64) -> list[str]:
+    """A correction on a bound: the default's shape is too far from this cell's for a
+    regularised correction to reach, and what the correction cannot absorb goes into the
+    capacity (flagged with it, see fit.py)."""
+    out = []
+    for k, (v, lo, hi) in enumerate(zip(p, sh.lo, sh.hi, strict=True)):
+        edge = 1e-3 * max(hi - lo, 1e-9)
+        if v - lo > edge and hi - v > edge:
+            continue
+        if k == 0:
+            out.append(f"ocv_correction@{sh.knots[0]:.2f}: not identifiable (at its bound, "
+                       f"{1000 * v:+.0f} mV)")  # fmt: skip
+        else:
+            a, b = sh.knots[k - 1], sh.knots[k]
+            why = ("the corrected curve as flat as monotonicity allows" if v - lo <= edge
+                   else "at the slope bound")  # fmt: skip
+            out.append(f"ocv_correction {a:.2f}..{b:.2f}: not identifiable ({why})")
+    return out
+
+
 def summarise(sh: OcvShape, p: F64, cov_p: F64, rest_points: int) -> OcvFit:
     """Values, one-sigma and identifiability per knot from the parameters' covariance."""
     a = sh.jacobian()
@@ -156,6 +185,7 @@ def summarise(sh: OcvShape, p: F64, cov_p: F64, rest_points: int) -> OcvFit:
             "ocv_shape: not identifiable (the data swing the SOC by less than "
             f"{100 * MIN_SHAPE_SWING:.0f} %: one offset fitted, the default's shape kept)"
         )
+    flags += _bound_flags(sh, p)
     for s, sd, good in zip(sh.knots, sig, ok, strict=True):
         if not good:
             flags.append(
