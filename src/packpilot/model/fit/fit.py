@@ -1,7 +1,8 @@
 """Fit an equivalent-circuit cell to logged flights: capacity, the initial state of charge of
-each log, R0, R1 / tau1 (a second RC pair only where the data resolve it), the OCV from the
-chemistry's default (corrected where the logs rest at several states of charge) and, when the
-logs span temperatures, an Arrhenius law for the resistances.
+each log, R0, R1 / tau1 (a second RC pair only where the data resolve it), the OCV as the
+chemistry's default corrected over the SOC window the data cover (:mod:`.ocv`; kept only where
+the data ask for it) and, when the logs span temperatures, an Arrhenius law for the
+resistances.
 
 Bounded least squares (``scipy.optimize.least_squares``, trust region) on log-scaled
 parameters (a resistance of 2 mOhm and one of 200 mOhm are equally far from a start), from
@@ -392,9 +393,9 @@ def _keep_ocv(res: F64, res2: F64, n_data: int, k: int) -> tuple[bool, str]:
     """Schwarz's criterion (BIC) on the training samples: the correction's k parameters are
     kept when ``n ln(RSS_default / RSS_corrected) > k ln n``. On plant-made logs whose OCV *is*
     the default the correction lowered the training RMSE by 0.01-0.17 % (BIC 24-34 against it)
-    while moving the capacity by up to 6 %: a free correction trades with the capacity (the
-    data see the voltage against the charge drawn, not against the SOC), so it is kept only
-    where the data ask for it."""
+    while moving the capacity by up to 5 % (knots placed once): a free correction trades with
+    the capacity (the data see the voltage against the charge drawn, not against the SOC), so
+    it is kept only where the data ask for it."""
     rss0 = float(res[:n_data] @ res[:n_data])
     rss1 = float(res2[:n_data] @ res2[:n_data])
     gain = n_data * math.log(max(rss0, 1e-30) / max(rss1, 1e-30))
