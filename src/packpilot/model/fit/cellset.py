@@ -102,8 +102,11 @@ def _ocv_notes(v: Validation, chemistry: str) -> dict[str, Any]:
 
 def _provenance(v: Validation, chemistry: str) -> str:
     logs = ", ".join(c.name for c in v.checks)
+    o = v.result.ocv_fit
+    ocv = (f"OCV {chemistry}'s corrected on SOC {o.window[0]:.2f}-{o.window[1]:.2f} (held at "
+           "its edge value outside); " if o is not None else "OCV, ")  # fmt: skip
     return (
-        f"Fitted by packpilot fit to {logs}; OCV, dU/dT, thermal data and voltage limits from "
+        f"Fitted by packpilot fit to {logs}; {ocv}dU/dT, thermal data and voltage limits from "
         f"{chemistry}; verdict: {v.verdict}. See notes."
     )
 
