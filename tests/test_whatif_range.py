@@ -57,6 +57,11 @@ def test_the_cold_and_the_longer_mission_are_flagged(fitted: Path) -> None:
     # the same flight at 25 degC: only its part past the fit's training window (SOC)
     assert len(same) == 1 and "start temperature" not in same[0].cause
     assert f"fitted on {100 * window['soc_min']:.0f}-" in same[0].cause
+    # the set's OCV was corrected on the training window: beyond it the row says so
+    ocv = json.loads(fitted.read_text())["notes"]["ocv"]
+    lo, hi = ocv["window_soc"]
+    assert f"OCV was corrected from the data on {100 * lo:.0f}-{100 * hi:.0f} %" in same[0].cause
+    assert "held at its edge value" in same[0].cause
     cold = _outside(fitted, ambient_c=-10.0)
     assert len(cold) == 1 and cold[0].t_s == 0.0, cold
     assert "start temperature -10.0 degC" in cold[0].cause and "fitted as at 25.0" in cold[0].cause

@@ -77,6 +77,14 @@ class Excursions:
                             CURRENT_MARGIN_MIN_A)  # fmt: skip
         self.t_lo, self.t_hi = _temperature_range(notes)
         self.logged = _logged_temperature(notes)
+        ocv = notes.get("ocv")
+        win = ocv.get("window_soc") if isinstance(ocv, dict) else None
+        self.ocv_note = (
+            f"; its OCV was corrected from the data on {100 * float(win[0]):.0f}-"
+            f"{100 * float(win[1]):.0f} % and that correction is held at its edge value "
+            "beyond (not fitted there)"
+            if isinstance(win, list) and len(win) == 2 else ""
+        )  # fmt: skip
         self.first: dict[str, float] = {}
         self.ext = {"soc_min": np.inf, "soc_max": -np.inf, "i_min": np.inf, "i_max": -np.inf,
                     "t_min": np.inf, "t_max": -np.inf}  # fmt: skip
@@ -125,7 +133,7 @@ class Excursions:
                              ("soc_high", "up to", e["soc_max"])):  # fmt: skip
             if key in f:
                 out.append((f[key], f"SOC {word} {100 * x:.0f} %, fitted on "
-                                    f"{100 * lo:.0f}-{100 * hi:.0f} %"))  # fmt: skip
+                                    f"{100 * lo:.0f}-{100 * hi:.0f} %{self.ocv_note}"))  # fmt: skip
         for key, x in (("i_high", e["i_max"]), ("i_low", e["i_min"])):
             if key in f:
                 out.append((f[key], f"cell current {x:.1f} A, fitted on "

@@ -4,10 +4,12 @@ parameter's value, uncertainty and identifiability, the data window the set hold
 was assumed, and the validation verdict.
 
 What the logs cannot tell comes from the chemistry's template set (a shipped set): the OCV
-curve (unless corrected from rest points), dU/dT, the thermal data and the voltage limits. The
-resistances are constant in current and SOC; in temperature they follow the fitted Arrhenius
-law when the logs spanned temperatures, else the template's R0 temperature dependence
-normalised at the reference temperature (borrowed, recorded as an assumption).
+curve (corrected from the data over the SOC window they cover when they ask for it; the
+``notes.ocv`` block says which, where, and what holds outside), dU/dT, the thermal data and
+the voltage limits. The resistances are constant in current and SOC; in temperature they
+follow the fitted Arrhenius law when the logs spanned temperatures, else the template's R0
+temperature dependence normalised at the reference temperature (borrowed, recorded as an
+assumption).
 """
 
 from __future__ import annotations
@@ -81,10 +83,30 @@ def _law_note(v: Validation, chemistry: str) -> list[str]:
     ]
 
 
+def _ocv_notes(v: Validation, chemistry: str) -> dict[str, Any]:
+    """What the file's OCV table is: the chemistry's default, or the default corrected over
+    the SOC window the data covered (knots, correction, one sigma, whether the data set each
+    knot) and what it does outside that window."""
+    o = v.result.ocv_fit
+    if o is None:
+        return {"source": f"{chemistry} default", "note": v.result.ocv_note}
+    return {
+        "source": f"{chemistry} default, corrected from the data",
+        "window_soc": list(o.window),
+        "knots_soc": o.knots_soc, "correction_v": o.correction_v, "sigma_v": o.sigma_v,
+        "resolved": o.resolved, "relaxed_rest_points": o.rest_points,
+        "outside_window": "the correction held at its edge value: extrapolated, not fitted",
+        "note": v.result.ocv_note,
+    }  # fmt: skip
+
+
 def _provenance(v: Validation, chemistry: str) -> str:
     logs = ", ".join(c.name for c in v.checks)
+    o = v.result.ocv_fit
+    ocv = (f"OCV {chemistry}'s corrected on SOC {o.window[0]:.2f}-{o.window[1]:.2f} (held at "
+           "its edge value outside); " if o is not None else "OCV, ")  # fmt: skip
     return (
-        f"Fitted by packpilot fit to {logs}; OCV, dU/dT, thermal data and voltage limits from "
+        f"Fitted by packpilot fit to {logs}; {ocv}dU/dT, thermal data and voltage limits from "
         f"{chemistry}; verdict: {v.verdict}. See notes."
     )
 
@@ -100,6 +122,7 @@ def fit_notes(v: Validation, chemistry: str) -> dict[str, Any]:
         "initial_soc": {k: asdict(p) for k, p in r.soc0.items()},
         "not_identifiable": r.flags(),
         "window": asdict(r.window),
+        "ocv": _ocv_notes(v, chemistry),
         "reference_temp_c": r.values.t_ref_c,
         "assumptions": [
             *r.assumptions,

@@ -41,6 +41,23 @@ def plant_params(truth: Truth, base: str = "uav_5ah") -> CellParams:
     )  # fmt: skip
 
 
+def ocv_bump(soc: F64, height_v: float = 0.08, centre: float = 0.75, width: float = 0.1) -> F64:
+    """A known departure from the default OCV for tests: a smooth bump of ``height_v`` at
+    ``centre`` (the corrected curve stays increasing for heights up to ~0.1 V)."""
+    out: F64 = height_v * np.exp(-(((soc - centre) / width) ** 2))
+    return out
+
+
+def ocv_plant_params(truth: Truth, correction_v: F64, base: str = "uav_5ah") -> CellParams:
+    """The plant of :func:`plant_params` with its OCV table moved by ``correction_v`` (one
+    value per point of the template's OCV table): a cell whose OCV is *not* the default."""
+    p = plant_params(truth, base)
+    v = np.asarray(p.ocv_table_v, np.float64) + correction_v
+    if not np.all(np.diff(v) > 0):
+        raise ValueError("the corrected plant OCV must increase with SOC")
+    return replace(p, name=f"synthetic_ocv_{base}", ocv_table_v=v)
+
+
 def heating_plant_params(truth: Truth, b_k: float, heat_c_j_per_k: float, heat_g_w_per_k: float,
                          t_ref_c: float = 25.0, base: str = "uav_5ah", *,
                          entropic: bool = True) -> CellParams:  # fmt: skip
@@ -118,5 +135,6 @@ def synthetic_log(
 
 
 __all__ = [
-    "Truth", "flight_current", "heating_plant_params", "plant_params", "synthetic_log",
+    "Truth", "flight_current", "heating_plant_params", "ocv_bump", "ocv_plant_params",
+    "plant_params", "synthetic_log",
 ]

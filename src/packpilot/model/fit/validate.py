@@ -106,7 +106,7 @@ def _check(p: Profile, r: FitResult, split: int) -> LogCheck:
 
 def fit_and_validate(
     profiles: Sequence[Profile], ocv_soc: F64, ocv_v: F64, *, train_share: float = TRAIN_SHARE,
-    max_rc: int = 2, ref_temp_c: float = 25.0,
+    max_rc: int = 2, ref_temp_c: float = 25.0, fit_ocv: bool = True,
 ) -> Validation:  # fmt: skip
     """Fit on the first ``train_share`` of every log, test on the rest."""
     if not 0.2 <= train_share <= 0.9:
@@ -119,7 +119,7 @@ def fit_and_validate(
                 f"(at least {MIN_TEST_SAMPLES}); the log is too short to validate a fit"
             )
     train = [p.window(0, s) for p, s in zip(profiles, splits, strict=True)]
-    result = fit(train, ocv_soc, ocv_v, max_rc=max_rc, ref_temp_c=ref_temp_c)
+    result = fit(train, ocv_soc, ocv_v, max_rc=max_rc, ref_temp_c=ref_temp_c, fit_ocv=fit_ocv)
     checks = [_check(p, result, s) for p, s in zip(profiles, splits, strict=True)]
     verdict, reasons = _verdict(result, checks)
     return Validation(result, checks, verdict, reasons)
