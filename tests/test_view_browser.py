@@ -109,9 +109,48 @@ def test_cards_power_panel_and_join_view(
     for b in api["power"]["batteries"]:
         assert shown[f"share_dsg:{b['name']}"] == b["share_dsg_a"][1]
         assert shown[f"alone_chg:{b['name']}"] == b["alone_chg_a"][1]
+    _check_battery_watts(browser, api)
     assert browser.eval("document.getElementById('fleet-link').hidden") is True  # no --fleet
     shot = base64.b64decode(browser.call("Page.captureScreenshot", format="png")["data"])
     (Path(os.environ.get(ARTIFACTS, tmp_path)) / "dashboard_power.png").write_bytes(shot)
+
+
+def _check_battery_watts(browser: wb.Cdp, api: dict[str, Any]) -> None:
+    """Each battery's power at its 10 s limits (issue #28 §3, computed by the server): shown
+    as computed, its share at the bus voltage the pack's power is taken at, and alone a
+    voltage its equivalent circuit allows: discharging at least half its ohmic drop (the
+    observer's R0) below its source voltage (EMF less polarisation) and above its cells' lower
+    limit, charging at least that above it. A power taken at the present voltage or at the pack's bus voltage fails."""
+    watts = browser.eval(
+        "Object.fromEntries([...document.querySelectorAll('[data-sop][data-w]')].map(td =>"
+        " [td.dataset.sop, Number(td.dataset.w)]))"
+    )
+    h10 = api["power"]["horizons"][1]
+    assert h10["horizon_s"] == 10
+    st = {b["name"]: b["status"] for b in api["latest"]["batteries"]}
+    judged: list[str] = []
+    for b in api["power"]["batteries"]:
+        name, r0 = b["name"], st[b["name"]]["soc_r0_ohm"]
+        src = st[name]["soc_emf_v"] - st[name]["soc_v_rc_v"]  # its source voltage now
+        for key in ("share_dsg", "alone_dsg", "share_chg", "alone_chg"):
+            assert watts[f"{key}:{name}"] == b[f"{key}_w"][1], (key, name)
+            w = b[f"{key}_w"][1]
+            assert (f"{w / 1000:.2f} kW" if abs(w) >= 1000 else f"{w:.0f} W") in browser.eval(
+                f"document.querySelector('[data-sop=\"{key}:{name}\"]').textContent")
+        for d in ("dsg", "chg"):
+            bus = h10[f"{d}_w"] / h10[f"{d}_a"]
+            assert b[f"share_{d}_w"][1] == pytest.approx(b[f"share_{d}_a"][1] * bus, rel=1e-12)
+        for d in ("dsg", "chg"):
+            a, w = b[f"alone_{d}_a"][1], b[f"alone_{d}_w"][1]
+            if a == 0.0:  # its path that way is open (B in STANDBY cannot charge)
+                assert w == 0.0
+                continue
+            judged.append(f"{name}:{d}")
+            if d == "dsg":
+                assert 6 * 2.5 < w / a < src - 0.5 * a * r0, (name, w / a, src, a, r0)
+            else:
+                assert src + 0.5 * a * r0 < w / a <= 6 * 4.2 + 0.6, (name, w / a, src, a, r0)
+    assert {"A:dsg", "A:chg", "B:dsg"} <= set(judged), judged
 
 
 @pytest.fixture(scope="module")
