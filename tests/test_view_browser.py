@@ -118,9 +118,11 @@ def test_cards_power_panel_and_join_view(
 def _check_battery_watts(browser: wb.Cdp, api: dict[str, Any]) -> None:
     """Each battery's power at its 10 s limits (issue #28 §3, computed by the server): shown
     as computed, its share at the bus voltage the pack's power is taken at, and alone a
-    voltage its equivalent circuit allows: discharging at least half its ohmic drop (the
-    observer's R0) below its source voltage (EMF less polarisation) and above its cells' lower
-    limit, charging at least that above it. A power taken at the present voltage or at the pack's bus voltage fails."""
+    voltage its equivalent circuit allows: discharging at least its ohmic drop at that
+    current (the observer's R0) below its source voltage (EMF less polarisation) and at most
+    three times that (polarisation grows, a body diode adds 0.6 V), charging likewise above.
+    A power taken at the present voltage or, alone, at the pack's bus voltage fails (each
+    checked by hand on such a change of ``battery_watts``)."""
     watts = browser.eval(
         "Object.fromEntries([...document.querySelectorAll('[data-sop][data-w]')].map(td =>"
         " [td.dataset.sop, Number(td.dataset.w)]))"
@@ -131,7 +133,8 @@ def _check_battery_watts(browser: wb.Cdp, api: dict[str, Any]) -> None:
     judged: list[str] = []
     for b in api["power"]["batteries"]:
         name, r0 = b["name"], st[b["name"]]["soc_r0_ohm"]
-        src = st[name]["soc_emf_v"] - st[name]["soc_v_rc_v"]  # its source voltage now
+        emf = st[name]["soc_emf_v"]
+        src = emf - st[name]["soc_v_rc_v"]  # its source voltage now
         for key in ("share_dsg", "alone_dsg", "share_chg", "alone_chg"):
             assert watts[f"{key}:{name}"] == b[f"{key}_w"][1], (key, name)
             w = b[f"{key}_w"][1]
@@ -146,10 +149,11 @@ def _check_battery_watts(browser: wb.Cdp, api: dict[str, Any]) -> None:
                 assert w == 0.0
                 continue
             judged.append(f"{name}:{d}")
-            if d == "dsg":
-                assert 6 * 2.5 < w / a < src - 0.5 * a * r0, (name, w / a, src, a, r0)
+            v, drop = w / a, a * r0
+            if d == "dsg":  # a body diode may add 0.6 V; polarisation grows with the load
+                assert src - 3.0 * drop - 0.6 <= v < src - drop, (name, v, src, a, r0)
             else:
-                assert src + 0.5 * a * r0 < w / a <= 6 * 4.2 + 0.6, (name, w / a, src, a, r0)
+                assert src + drop < v <= emf + 3.0 * drop + 0.6, (name, v, src, a, r0)
     assert {"A:dsg", "A:chg", "B:dsg"} <= set(judged), judged
 
 

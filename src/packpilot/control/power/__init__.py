@@ -251,11 +251,11 @@ __all__ = [
     "PowerParams",
     "PowerWork",
     "admissible_dv",
+    "held_bus_v",
     "make_params",
     "new_inputs",
     "new_out",
     "new_work",
-    "held_bus_v",
     "plan_join",
     "state_of_power",
 ]
