@@ -585,7 +585,7 @@ def cv_taper_s(prm: SocParams, st: SocState, p: int, i: int, soc: float, v1: flo
     constant at the start), the crossing interpolated within its step. Why not the voltage
     equation itself: on R0 ~ 2 mOhm a 5 mV model error is 2.5 A; its derivative carries no
     offset. NaN when it does not taper within ``N_CV`` steps (an OCV flat to its end)."""
-    i_end = -prm.full_current_a[i]
+    i_end: float = -prm.full_current_a[i]
     if cur >= i_end:
         return 0.0
     rs: float = st.x[p, i, ob.X_RSCALE]
