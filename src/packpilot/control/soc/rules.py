@@ -648,15 +648,15 @@ def time_to_full(prm: SocParams, st: SocState, m: MeasArrays, p: int, i: int, ch
     if not (chg_a >= prm.rest_current_a):
         st.cv_left_s[p, i] = math.nan
         return math.nan
+    if math.isfinite(st.cv_left_s[p, i]):  # in the CV phase: its taper counted down
+        st.cv_left_s[p, i] = fmax(0.0, st.cv_left_s[p, i] - elapsed_s)
+        return float(st.cv_left_s[p, i])
     q: float = st.x[p, i, ob.X_CAP]
     soc0: float = st.x[p, i, ob.X_SOC]
     ocv0, _ = ocv_t(prm, soc0, temp)
     mean = soc_from_ocv_t(prm, ocv0 + _mean_cell_above_v(st, m, p, i), temp)
     soc0 = fmax(soc0, mean) if math.isfinite(mean) else soc0
     v_full = prm.full_cell_v
-    if math.isfinite(st.cv_left_s[p, i]):  # in the CV phase: its taper counted down
-        st.cv_left_s[p, i] = fmax(0.0, st.cv_left_s[p, i] - elapsed_s)
-        return float(st.cv_left_s[p, i])
     if _cc_cell_v(prm, st, p, i, soc0, chg_a, temp, 0.0, q) >= v_full:
         st.cv_left_s[p, i] = cv_taper_s(prm, st, p, i, soc0, st.x[p, i, ob.X_V1], -chg_a,
                                         temp, q)  # fmt: skip
