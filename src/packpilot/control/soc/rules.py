@@ -591,7 +591,7 @@ def cv_taper_s(prm: SocParams, st: SocState, p: int, i: int, soc: float, v1: flo
     rs: float = st.x[p, i, ob.X_RSCALE]
     r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, soc)
     r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, soc)
-    _, slope = ocv_t(prm, soc, temp)
+    _v, slope = ocv_t(prm, soc, temp)
     if not (slope > 0.0 and r0 > 0.0):
         return math.nan
     h = 3600.0 * q * (r0 + r1) / slope / 8.0
@@ -600,7 +600,7 @@ def cv_taper_s(prm: SocParams, st: SocState, p: int, i: int, soc: float, v1: flo
         r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, soc)
         r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, soc)
         tau = ob.table2(prm.tau_tab, prm.ax_t, prm.ax_s, temp, soc)
-        _, slope = ocv_t(prm, soc, temp)
+        _v, slope = ocv_t(prm, soc, temp)
         a = fmax(0.0, slope) / (3600.0 * q)
         k = h / tau
         nxt = (r0 * cur + k * v1 / (1.0 + k)) / (r0 + h * a + k * r1 / (1.0 + k))
@@ -624,7 +624,7 @@ def _cc_cell_v(prm: SocParams, st: SocState, p: int, i: int, soc0: float, chg_a:
     r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, soc)
     r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, soc)
     tau = ob.table2(prm.tau_tab, prm.ax_t, prm.ax_s, temp, soc)
-    ocv, _ = ocv_t(prm, soc, temp)
+    ocv, _d = ocv_t(prm, soc, temp)
     v_ss = -r1 * chg_a
     v1: float = v_ss + (st.x[p, i, ob.X_V1] - v_ss) * math.exp(-t / tau)
     return ocv + r0 * chg_a - v1
@@ -653,7 +653,7 @@ def time_to_full(prm: SocParams, st: SocState, m: MeasArrays, p: int, i: int, ch
         return float(st.cv_left_s[p, i])
     q: float = st.x[p, i, ob.X_CAP]
     soc0: float = st.x[p, i, ob.X_SOC]
-    ocv0, _ = ocv_t(prm, soc0, temp)
+    ocv0, _d = ocv_t(prm, soc0, temp)
     mean = soc_from_ocv_t(prm, ocv0 + _mean_cell_above_v(st, m, p, i), temp)
     soc0 = fmax(soc0, mean) if math.isfinite(mean) else soc0
     v_full = prm.full_cell_v
