@@ -191,25 +191,43 @@ def test_time_to_cutoff_and_to_go_match_the_plant_at_constant_load() -> None:
     assert np.all(np.abs(arr[late, 2] - arr[late, 3]) <= tol)
 
 
-@pytest.mark.xfail(
-    reason="h28soc regression, open: since the observer reads the weakest group's cell "
-    "(commit 3351d71) the time to full here is 2,095 s against the plant's 2,298 (-9 %, "
-    "tolerance 5 %); cause not found by the deadline (capacity state or SOC during the charge)",
-    strict=False,
-)
 def test_time_to_full_while_charging_and_none_while_discharging() -> None:
+    """A CC/CV charge from 30 % at 5 A to 25.2 V (4.2 V per cell), with the example's sensor
+    errors: sampled every 10 s from 10 minutes in to the end, the predicted time to full is
+    within 5 % (or 15 s) of the time the plant takes until its charge current has tapered to
+    the end current (C/20); the CV phase is part of it (a constant-current-to-100 % rule reads
+    -9 % in the CC phase and cannot follow the taper). While charging there is no time to go
+    or to cut-off, while discharging no time to full."""
     cfg = constant_load(-5.0, 0.30, 3.3, 0.5)
     loop = ClosedLoop.of(cfg, 1)
     st = soc_state(loop)
-    for k in range(600):
+    prm = next(x for x in loop.core.compiled if x.method.name == "soc").prm
+    end_a = float(prm.full_current_a[0])
+    assert end_a == pytest.approx(0.05 * float(np.min(loop.plant.pack.capacity_ah[0])))
+    rows: list[tuple[float, float, float]] = []
+    k = 0
+    while loop.plant.t_s < 200.0 or -float(loop.plant.pack.string_a[0, 0]) > end_a:
         loop.step(k, 0.5)
-    pack = loop.plant.pack
-    soc, _ = pack.cell_states()
-    missing = float(np.max((1.0 - soc[0]) * pack.capacity_ah[0]))
-    amps = -float(pack.string_a[0, 0])
-    assert amps == pytest.approx(5.0, rel=0.05)
-    assert st.time_to_full_s[0, 0] == pytest.approx(missing * 3600.0 / amps, rel=0.05)
-    assert np.isnan(st.time_to_go_s[0, 0]) and np.isnan(st.time_to_cutoff_s[0, 0])
+        k += 1
+        if k % 20 == 0:
+            rows.append((loop.plant.t_s, float(st.time_to_full_s[0, 0]),
+                         -float(loop.plant.pack.string_a[0, 0])))  # fmt: skip
+            assert np.isnan(st.time_to_go_s[0, 0]) and np.isnan(st.time_to_cutoff_s[0, 0])
+        assert k < 20000
+    t_end = loop.plant.t_s
+    arr = np.array(rows)
+    cv = arr[arr[:, 2] < 0.95 * 5.0, 0]
+    assert cv.size and t_end - cv[0] > 300.0  # the taper is a real part of the charge
+    judged = arr[:, 0] >= 600.0
+    left = t_end - arr[judged, 0]
+    err = np.abs(arr[judged, 1] - left)
+    assert np.all(err <= np.maximum(0.05 * left, 15.0)), float(np.max(err / left))
+    dsg = constant_load(14.0, 0.95, 3.3, 0.5)
+    loop = ClosedLoop.of(dsg, 1)
+    for k in range(20):
+        loop.step(k, 0.5)
+    assert np.isfinite(soc_state(loop).time_to_go_s[0, 0])
+    assert np.isnan(soc_state(loop).time_to_full_s[0, 0])
 
 
 def test_time_to_cutoff_moves_smoothly_through_the_flight_profile() -> None:

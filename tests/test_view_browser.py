@@ -109,9 +109,52 @@ def test_cards_power_panel_and_join_view(
     for b in api["power"]["batteries"]:
         assert shown[f"share_dsg:{b['name']}"] == b["share_dsg_a"][1]
         assert shown[f"alone_chg:{b['name']}"] == b["alone_chg_a"][1]
+    _check_battery_watts(browser, api)
     assert browser.eval("document.getElementById('fleet-link').hidden") is True  # no --fleet
     shot = base64.b64decode(browser.call("Page.captureScreenshot", format="png")["data"])
     (Path(os.environ.get(ARTIFACTS, tmp_path)) / "dashboard_power.png").write_bytes(shot)
+
+
+def _check_battery_watts(browser: wb.Cdp, api: dict[str, Any]) -> None:
+    """Each battery's power at its 10 s limits (issue #28 §3, computed by the server): shown
+    as computed, its share at the bus voltage the pack's power is taken at, and alone a
+    voltage its equivalent circuit allows: discharging at least its ohmic drop at that
+    current (the observer's R0) below its source voltage (EMF less polarisation) and at most
+    three times that (polarisation grows, a body diode adds 0.6 V), charging likewise above.
+    A power taken at the present voltage or, alone, at the pack's bus voltage fails (each
+    checked by hand on such a change of ``battery_watts``)."""
+    watts = browser.eval(
+        "Object.fromEntries([...document.querySelectorAll('[data-sop][data-w]')].map(td =>"
+        " [td.dataset.sop, Number(td.dataset.w)]))"
+    )
+    h10 = api["power"]["horizons"][1]
+    assert h10["horizon_s"] == 10
+    st = {b["name"]: b["status"] for b in api["latest"]["batteries"]}
+    judged: list[str] = []
+    for b in api["power"]["batteries"]:
+        name, r0 = b["name"], st[b["name"]]["soc_r0_ohm"]
+        emf = st[name]["soc_emf_v"]
+        src = emf - st[name]["soc_v_rc_v"]  # its source voltage now
+        for key in ("share_dsg", "alone_dsg", "share_chg", "alone_chg"):
+            assert watts[f"{key}:{name}"] == b[f"{key}_w"][1], (key, name)
+            w = b[f"{key}_w"][1]
+            assert (f"{w / 1000:.2f} kW" if abs(w) >= 1000 else f"{w:.0f} W") in browser.eval(
+                f"document.querySelector('[data-sop=\"{key}:{name}\"]').textContent")
+        for d in ("dsg", "chg"):
+            bus = h10[f"{d}_w"] / h10[f"{d}_a"]
+            assert b[f"share_{d}_w"][1] == pytest.approx(b[f"share_{d}_a"][1] * bus, rel=1e-12)
+        for d in ("dsg", "chg"):
+            a, w = b[f"alone_{d}_a"][1], b[f"alone_{d}_w"][1]
+            if a == 0.0:  # its path that way is open (B in STANDBY cannot charge)
+                assert w == 0.0
+                continue
+            judged.append(f"{name}:{d}")
+            v, drop = w / a, a * r0
+            if d == "dsg":  # a body diode may add 0.6 V; polarisation grows with the load
+                assert src - 3.0 * drop - 0.6 <= v < src - drop, (name, v, src, a, r0)
+            else:
+                assert src + drop < v <= emf + 3.0 * drop + 0.6, (name, v, src, a, r0)
+    assert {"A:dsg", "A:chg", "B:dsg"} <= set(judged), judged
 
 
 @pytest.fixture(scope="module")

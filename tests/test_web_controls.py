@@ -4,6 +4,7 @@ scrubbing it, the report link, headline times, and battery names in event messag
 
 from __future__ import annotations
 
+import math
 import time
 import tomllib
 from pathlib import Path
@@ -240,6 +241,13 @@ def test_headline_times_from_the_observer() -> None:
     h = headline(summary([bat(-3.0, 0.5, -2.0, float("nan"))]), ["traction"])
     assert h["time_to_full_s"] == pytest.approx(2.5 * 3600 / 2.0)
     assert h["time_to_go_s"] is None and h["time_to_cutoff_s"] is None
+    # the core's CC/CV time to full where every battery has it: the last one to finish
+    two = [bat(-3.0, 0.5, -2.0, math.nan), bat(-3.0, 0.6, -2.0, math.nan)]
+    two[0]["status"]["soc_time_to_full_s"], two[1]["status"]["soc_time_to_full_s"] = 900.0, 1200.0
+    assert headline(summary(two), ["traction", "traction"])["time_to_full_s"] == 1200.0
+    two[1]["status"]["soc_time_to_full_s"] = math.nan  # one unknown: the Ah-based bound
+    assert headline(summary(two), ["traction", "traction"])["time_to_full_s"] == pytest.approx(
+        (2.5 + 2.0) * 3600 / 4.0)
 
 
 def test_headline_on_a_live_protected_run() -> None:

@@ -10,7 +10,13 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, model_validator
 
-from packpilot.config.base import DETECT_MAX_A, MAX_TIME_S, Strict, load_section_model
+from packpilot.config.base import (
+    DETECT_MAX_A,
+    MAX_CURRENT_A,
+    MAX_TIME_S,
+    Strict,
+    load_section_model,
+)
 
 VoltageSource = Literal["min", "avg"]
 
@@ -107,6 +113,28 @@ class SocConfig(Strict):
         description="Cell voltage whose crossing the time to cut-off predicts (V); default: "
         "the cell set's lower voltage limit. Set it to the protection's cut-off.",
     )
+    full_cell_v: float | None = Field(
+        default=None,
+        description="The charger's constant voltage per cell, where the time to full's CV "
+        "phase begins (V); default: the cell set's upper voltage limit. Set it to the "
+        "charger's CV setpoint over the series cells.",
+    )
+    full_current_a: float | None = Field(
+        default=None,
+        description="The charge current at which the charge counts as full (A, > 0; the time "
+        "to full's end point); default: C/20 of each battery's capacity.",
+    )
+
+    @model_validator(mode="after")
+    def _check_full(self) -> SocConfig:
+        """The time to full's end point: a cell voltage and a positive current."""
+        f = self.full_cell_v
+        if f is not None and not (_finite(f) and 0.0 < f <= 5.0):
+            raise ValueError(f"full_cell_v must be within 0..5 V, got {f}")
+        a = self.full_current_a
+        if a is not None and not (_finite(a) and 0.0 < a <= MAX_CURRENT_A):
+            raise ValueError(f"full_current_a must be > 0 A, got {a}")
+        return self
 
     @model_validator(mode="after")
     def _check(self) -> SocConfig:

@@ -121,6 +121,8 @@ class PackInfo:
     power (the observer counts both, issue #28)."""
     cell_v_min_v: float = 2.5
     """The traction cells' lower voltage limit (the cell set's ``v_min_v``)."""
+    cell_v_max_v: float = math.nan
+    """Their upper voltage limit (the cell set's ``v_max_v``; NaN: unknown)."""
     r_scale: tuple[float, ...] = ()
     """Per battery, the stated resistance as a factor on the cell tables (1: the tables;
     empty: 1 for every battery)."""

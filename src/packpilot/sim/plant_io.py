@@ -93,6 +93,7 @@ class SimulatedPlant:
             **_ecm(params),
             **_entropic(params),
             cell_v_min_v=float(params.v_min_v),
+            cell_v_max_v=float(params.v_max_v),
             r_scale=tuple(float(pack.nominal_r_scale[pack.cell_string == i].mean()) for i in tr),
         )
 

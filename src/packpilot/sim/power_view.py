@@ -31,6 +31,7 @@ from packpilot.control.power import (
     PowerOut,
     PowerParams,
     admissible_dv,
+    held_bus_v,
     plan_join,
     state_of_power,
 )
@@ -159,13 +160,38 @@ def join_plans(
     return out
 
 
+def battery_watts(prm: PowerParams, inp: PowerInputs, out: PowerOut) -> dict[str, F64]:
+    """Each battery's power at its limits, (B, H) W per direction: its share of the pack's
+    limit times the bus voltage the pack's power is taken at (the lowest on the way
+    discharging, the highest charging: ``pack_dsg_w / pack_dsg_a``), and its own limit alone
+    on the bus times the bus voltage while it alone holds that limit for the horizon
+    (:func:`~packpilot.control.power.held_bus_v`). Power delivered to (taken from) the bus;
+    0 where the limit is 0. Why here and not in the page: one function serves every view."""
+    n, hs = inp.soc.shape[1], prm.horizons_s.tolist()
+    res = {k: np.zeros((n, len(hs))) for k in ("share_dsg_w", "share_chg_w", "alone_dsg_w",
+                                               "alone_chg_w")}  # fmt: skip
+    for h, secs in enumerate(hs):
+        for d, sign in (("dsg", 1.0), ("chg", -1.0)):
+            pack_a = float(getattr(out, f"pack_{d}_a")[0, h])
+            bus = float(getattr(out, f"pack_{d}_w")[0, h]) / pack_a if pack_a > 0.0 else 0.0
+            res[f"share_{d}_w"][:, h] = getattr(out, f"share_{d}_a")[0, :, h] * bus + 0.0  # no -0
+            for i in range(n):
+                a = float(getattr(out, f"alone_{d}_a")[0, i, h])
+                if not (a > 0.0 and inp.present[0, i]):
+                    continue
+                lo, hi = held_bus_v(prm, inp, sign * a, secs, only=i)
+                res[f"alone_{d}_w"][i, h] = a * (lo if sign > 0.0 else hi)
+    return res
+
+
 def power_summary(
     cfg: ScenarioConfig, prm: PowerParams, view: CoreView, names: Sequence[str]
 ) -> dict[str, Any] | None:
     """Everything a page shows of the pack's power now (JSON-able; NaN stays NaN for the
     caller's encoder): per horizon the pack's discharge and charge limit (A, W) with what
     stops more and in which battery, per battery its share of the pack's limit and its limit
-    alone, the join plans, and the SOC source each battery's prediction started from."""
+    alone, each in W too (:func:`battery_watts`), the join plans, and the SOC source each
+    battery's prediction started from."""
     inp = sop_inputs(cfg, prm, view)
     if inp is None:
         return None
@@ -184,6 +210,7 @@ def power_summary(
             "why_dsg": WHY_NAMES[int(out.why_dsg[0, h])], "who_dsg": who(int(out.who_dsg[0, h])),
             "why_chg": WHY_NAMES[int(out.why_chg[0, h])], "who_chg": who(int(out.who_chg[0, h])),
         })  # fmt: skip
+    watts = battery_watts(prm, inp, out)
     batteries = [
         {
             "name": names[i] if i < len(names) else str(i),
@@ -193,6 +220,7 @@ def power_summary(
             "share_chg_a": out.share_chg_a[0, i].tolist(),
             "alone_dsg_a": out.alone_dsg_a[0, i].tolist(),
             "alone_chg_a": out.alone_chg_a[0, i].tolist(),
+            **{k: w[i].tolist() for k, w in watts.items()},
         }
         for i in range(inp.soc.shape[1])
     ]
@@ -257,6 +285,7 @@ __all__ = [
     "HORIZONS_S",
     "TRIPPED_MODES",
     "CoreView",
+    "battery_watts",
     "join_plans",
     "joining",
     "power_summary",

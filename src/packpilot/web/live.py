@@ -181,8 +181,9 @@ def headline(latest: Mapping[str, Any] | None, roles: Sequence[str]) -> dict[str
       bound: the constant-voltage taper makes the real charge longer).
 
     With the battery observer (``[soc]``, issue #28) all three come from it instead: its SOC
-    and capacity at the recent average load (3 minutes, so the figures move smoothly), and the
-    soonest battery's time to cut-off solved forward on its model (``docs/safety.md`` §2a).
+    and capacity at the recent average load (3 minutes, so the figures move smoothly), the
+    soonest battery's time to cut-off solved forward on its model, and the last battery's time
+    to the end of its CC/CV charge (``soc_time_to_full_s``; ``docs/safety.md`` §2a).
     """
     out: dict[str, Any] = {"time_to_go_s": None, "time_to_cutoff_s": None, "time_to_full_s": None}
     if not latest:
@@ -229,10 +230,15 @@ def _observer_headline(bats: Sequence[Mapping[str, Any]]) -> dict[str, Any] | No
         for r in rows
         if isinstance(t := r.get("soc_time_to_cutoff_s"), int | float) and math.isfinite(t)
     ]
+    ttf = [r.get("soc_time_to_full_s") for r in rows]
+    if all(isinstance(t, int | float) and math.isfinite(t) for t in ttf):
+        to_full = max(float(t) for t in ttf if isinstance(t, int | float))  # the last one
+    else:  # a recording without the core's CC/CV prediction (before h28ttf)
+        to_full = (full - left) * 3600.0 / -avg
     return {
         "time_to_go_s": left * 3600.0 / avg if avg > MOVING_A else None,
         "time_to_cutoff_s": min(ttc) if ttc and avg > MOVING_A else None,
-        "time_to_full_s": (full - left) * 3600.0 / -avg if avg < -MOVING_A else None,
+        "time_to_full_s": to_full if avg < -MOVING_A else None,
     }
 
 

@@ -173,6 +173,21 @@ def state_of_power(prm: PowerParams, inp: PowerInputs) -> PowerOut:
     return out
 
 
+def held_bus_v(prm: PowerParams, inp: PowerInputs, current_a: float, horizon_s: float, *,
+               pack: int = 0, only: int = -1) -> tuple[float, float]:  # fmt: skip
+    """The lowest and highest bus voltage while pack ``pack`` (or battery ``only`` alone)
+    holds ``current_a`` (positive discharging) for ``horizon_s``, as :func:`state_of_power`
+    judges it (NaN, NaN where it cannot be held to the end): the voltage a limit's power is
+    that current times."""
+    _check(prm, inp)
+    P, B = inp.soc.shape
+    wk = new_work(P, B)
+    why = rules.hold(prm, inp, wk, pack, only, float(current_a), float(horizon_s))
+    if why != rules.WHY_NONE:
+        return math.nan, math.nan
+    return float(wk.bus_lo[pack]), float(wk.bus_hi[pack])
+
+
 @dataclass(frozen=True)
 class JoinPlan:
     """What closing battery ``j``'s switch onto the bus is predicted to cause."""
@@ -236,6 +251,7 @@ __all__ = [
     "PowerParams",
     "PowerWork",
     "admissible_dv",
+    "held_bus_v",
     "make_params",
     "new_inputs",
     "new_out",

@@ -157,7 +157,7 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
 _OUTPUTS = (
     "emf_v", "r0_ohm", "r0_var_ohm2", "r1_ohm", "tau_s", "v_rc_v", "v_rc_var_v2", "soc_var",
     "capacity_ah", "capacity_var_ah2", "offset_a", "offset_var_a2", "load_avg_a",
-    "time_to_go_s", "time_to_cutoff_s", "time_to_full_s",
+    "time_to_go_s", "time_to_cutoff_s", "time_to_full_s", "cv_left_s",
 )  # fmt: skip
 
 
@@ -210,7 +210,23 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
             config.cutoff_cell_v if config.cutoff_cell_v is not None else info.cell_v_min_v
         ),
         "predict_every_s": 1.0,
+        **_full(config, info),
     }
+
+
+def _full(config: SocConfig, info: PackInfo) -> dict[str, Any]:
+    """Where the time to full ends: the charger's CV voltage per cell (default the cell set's
+    upper voltage limit, else its OCV at 100 %) and the end current (default C/20 of each
+    battery's capacity, the common CC/CV termination)."""
+    v = config.full_cell_v
+    if v is None:
+        v = info.cell_v_max_v
+    if not (_finite(v) and v > 0.0):
+        v = float(np.interp(1.0, info.ocv_soc, info.ocv_v)) if info.ocv_soc else 4.2
+    cap = info.capacity_ah or (1.0,) * info.n_batteries
+    ends = [config.full_current_a if config.full_current_a is not None else 0.05 * c
+            for c in cap]  # fmt: skip
+    return {"full_cell_v": float(v), "full_current_a": np.array(ends, np.float64)}
 
 
 def _entropic(info: PackInfo) -> dict[str, Any]:

@@ -198,6 +198,7 @@ function sopCell(key, a, w) {
   const td = el("td", "num", fmtA(a) + (w === undefined ? "" : " · " + fmtW(w)));
   td.dataset.sop = key;
   td.dataset.v = isNum(a) ? String(a) : "";
+  if (w !== undefined) td.dataset.w = isNum(w) ? String(w) : "";
   return td;
 }
 function renderPower(P) {
@@ -229,8 +230,10 @@ function renderPower(P) {
     tr.dataset.battery = b.name;
     const src = el("td", "src-" + b.soc_source, SOC_SOURCE_SHORT[b.soc_source] || b.soc_source);
     tr.append(el("td", null, b.name + (b.present ? "" : " (absent)")), src,
-      sopCell("share_dsg:" + b.name, b.share_dsg_a[k10]), sopCell("alone_dsg:" + b.name, b.alone_dsg_a[k10]),
-      sopCell("share_chg:" + b.name, b.share_chg_a[k10]), sopCell("alone_chg:" + b.name, b.alone_chg_a[k10]));
+      sopCell("share_dsg:" + b.name, b.share_dsg_a[k10], b.share_dsg_w[k10]),
+      sopCell("alone_dsg:" + b.name, b.alone_dsg_a[k10], b.alone_dsg_w[k10]),
+      sopCell("share_chg:" + b.name, b.share_chg_a[k10], b.share_chg_w[k10]),
+      sopCell("alone_chg:" + b.name, b.alone_chg_a[k10], b.alone_chg_w[k10]));
     bb.append(tr);
   }
   $("power-note").textContent = "(the largest constant current held for 2 / 10 / 30 s without any battery " +
