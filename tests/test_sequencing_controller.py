@@ -941,3 +941,20 @@ def test_equal_fast_voltages_are_engaged_in_battery_order() -> None:
     assert out.commands.chg_on == (True, False, True)
     zl = [float(x) for x in out.status["seq_zero_load_into_a"]]
     assert zl[2] == 2.0 and zl[2] <= 0.5 * 5.0
+
+
+def test_r2_and_the_bus_reference_use_the_highest_admitted_battery() -> None:
+    """The bus reference (``seq_v_ref_v``, and R2's ``e_ref``) is the *highest* fast voltage
+    of the admitted batteries: a standby battery 20 mV below the lower of two admitted ones
+    but 0.42 V below the higher one still waits, it would be charged by the higher one
+    (generated mutant 9c62d17393: the lowest admitted taken as the reference, so it joined)."""
+    ctrl = SequencingController(NO_EST, pack_info(3))
+    out = ctrl.step(meas(0.0, [24.0, 23.6, 23.4], [0.0, 0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING", "STANDBY"]
+    out = ctrl.step(meas(0.1, [24.0, 23.6, 23.58], [0.0, 0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING", "STANDBY"]
+    assert not [e for e in out.events if e.kind == "BatteryJoined"]
+    assert list(out.status["seq_v_ref_v"]) == [24.0] * 3
+    # Within v_co of the highest it joins.
+    out = ctrl.step(meas(0.2, [24.0, 23.6, 23.96], [0.0, 0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING"] * 3
