@@ -110,4 +110,12 @@ EQUIVALENT: dict[str, str] = {
     "scratch `pred` (every later reader - the next candidate, _open_charged, _open_predicted, "
     "the risk loop - rewrites pred for the batteries it reads first) and _zl_may_engage, "
     "which only reads. Its sums cannot raise (every conductance > 0, voltages validated).",
+    "d65e1ed2a9": "sequencing _discharge_tick: the R3 loop's reset `skip[k] = False` -> "
+    "`True`. skip is read after it only by _open_charged (the hand-over) and _open_predicted "
+    "(rule 8b), and only for engaged batteries (DISCHARGING, charge FET on). The R3 loop "
+    "visits every battery and overwrites skip for each one that is then engaged: `skip = "
+    "through` where its charge FET is already on, True where R3 closes it (the only closing "
+    "in the loop). The reset value stays only on batteries that are not engaged, which no "
+    "reader looks at; the next period sets skip afresh (`skip = cur > i_det`) before the "
+    "cascade reads it. Re-check if a rule comes to read skip of a battery not engaged.",
 }
