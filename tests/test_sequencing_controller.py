@@ -7,6 +7,7 @@ the closed-loop acceptance runs on the project plant in phase 2.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -754,3 +755,206 @@ def test_r2_waits_at_exactly_v_co_apart() -> None:
     assert not [e for e in out.events if e.kind == "BatteryJoined"]
     out = ctrl.step(meas(0.3, [23.5, 23.4375 + 2.0**-10], [0.0, 0.0]), 0.1)
     assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+
+
+# ----------------------------------------------------------------------------- #26 sample (h26seq)
+# Behaviour the generated mutants of the frozen #26 sample showed untested (each test names the
+# mutant it kills; confirmed with ``tests.mutation.fast --id ID --with-test NODE``).
+
+
+def _diode_conducting_standby(cfg: SequencingConfig, dt: float, steps: int) -> list[ControlOutput]:
+    """Battery 0 engaged at 40 A, battery 1 standing by 1 V below with its charge diode
+    carrying 2 A (the bus sagged a diode drop below it) for ``steps`` samples."""
+    ctrl = SequencingController(cfg, pack_info(2))
+    outs = [ctrl.step(meas(0.0, [25.0, 24.0], [0.0, 0.0]), dt)]
+    for s in range(1, steps + 1):
+        outs.append(ctrl.step(meas(s * dt, [24.2, 23.5], [40.0, 2.0]), dt))
+    return outs
+
+
+def test_the_diode_status_counts_the_conduction_time_and_reads_zero_otherwise() -> None:
+    """``seq_diode_s`` is how long a battery's diode has conducted in the present episode: 0.0
+    for a battery whose diode does not conduct (an engaged one, or before any sample with diode
+    current), then the time since the first such sample, back to 0.0 when R3 closes the FET
+    (generated mutants 39d63af775: the channel written into another slot; 5ab29e841b: NaN
+    instead of 0.0 for a battery with no episode)."""
+    cfg = NO_EST.model_copy(update={"t_debounce": 0.08})
+    outs = _diode_conducting_standby(cfg, 0.02, 5)
+    diode = [[float(x) for x in o.status["seq_diode_s"]] for o in outs]
+    assert [d[0] for d in diode] == [0.0] * 6, "an engaged battery's diode never conducts"
+    assert [d[1] for d in diode] == pytest.approx([0.0, 0.0, 0.02, 0.04, 0.06, 0.0], abs=1e-9)
+    assert [o.commands.chg_on[1] for o in outs] == [False] * 5 + [True]
+
+
+def test_an_r3_join_names_the_voltage_and_current_it_saw() -> None:
+    """The BatteryJoined event of an R3 join carries the joiner's voltage and the diode current
+    of the sample that closed its FET, and the DiodeBypassed event the conduction time
+    (generated mutant 8bedae86a5: the voltage left unwritten, NaN)."""
+    cfg = NO_EST.model_copy(update={"t_debounce": 0.08})
+    outs = _diode_conducting_standby(cfg, 0.02, 5)
+    events = [e for o in outs for e in o.events]
+    (join,) = [e for e in events if e.kind == "BatteryJoined"]
+    assert (join.battery, join.data["reason"]) == (1, "R3")
+    assert join.data["v"] == 23.5 and join.data["current_a"] == 2.0
+    (bypass,) = [e for e in events if e.kind == "DiodeBypassed"]
+    assert bypass.data["conduction_s"] == pytest.approx(0.08, abs=1e-9)
+
+
+def test_r1_names_each_batterys_voltage_and_the_highest() -> None:
+    """R1's state changes at power-up carry the battery's voltage and the highest voltage it
+    was judged against, the first event of the step included (generated mutant d1321541f5:
+    the data written only for events after the first row)."""
+    ctrl = SequencingController(SequencingConfig(), pack_info(3))
+    out = ctrl.step(meas(0.0, [24.0, 25.0, 24.75], [0.0, 0.0, 0.0]), 0.1)
+    r1 = [(e.battery, e.data["to"], e.data["v"], e.data["v_max"]) for e in out.events
+          if e.kind == "StateChanged"]  # fmt: skip
+    assert r1 == [(0, "STANDBY", 24.0, 25.0), (1, "DISCHARGING", 25.0, 25.0),
+                  (2, "DISCHARGING", 24.75, 25.0)]  # fmt: skip
+
+
+def test_a_reverse_current_of_exactly_i_rev_is_tolerated() -> None:
+    """The fast reverse cut acts on *more* than i_rev: an engaged battery taking exactly i_rev
+    (0.5 A, binary-exact) from a sibling for one period keeps its charge FET (the slow cut has
+    counted only 0.05 A s of its 0.5 A s); 1 mA more is cut at once (generated mutant
+    85a8636cb9: ``<`` -> ``<=``, cut at exactly i_rev)."""
+    ctrl, v = _engaged_three()
+    out = ctrl.step(meas(0.3, v, [4.0, -0.5, 1.0]), 0.1)
+    assert out.commands.chg_on == (True, True, True)
+    assert not out.events
+    ctrl, v = _engaged_three()
+    out = ctrl.step(meas(0.3, v, [4.0, -0.501, 1.0]), 0.1)
+    assert out.commands.chg_on == (True, False, True)
+
+
+def test_the_zero_load_status_reads_zero_outside_discharge_mode() -> None:
+    """``seq_zero_load_into_a`` is the zero-load prediction in discharge mode and 0.0 outside
+    it (charge mode, the fail-safe): no battery is at risk from a vanishing load while the
+    dock charges them (generated mutant 70f8c487c4: 1.0 A reported)."""
+    ctrl = SequencingController(SequencingConfig(), pack_info(2))
+    out = ctrl.step(meas(0.0, [23.0, 23.2], [0.0, 0.0], docked=True), 0.1)
+    assert set(out.status["seq_mode"]) == {"charge"}
+    assert list(out.status["seq_zero_load_into_a"]) == [0.0, 0.0]
+    assert list(out.status["seq_at_risk"]) == [False, False]
+    out = ctrl.step(meas(0.1, [23.0, math.nan], [0.0, 0.0], docked=True), 0.1)
+    assert set(out.status["seq_mode"]) == {"fault"}
+    assert list(out.status["seq_zero_load_into_a"]) == [0.0, 0.0]
+
+
+def test_the_pack_is_back_in_discharge_mode_the_period_its_fault_clears() -> None:
+    """After the fail-safe the first valid sample clears the fault: the mode reads discharge
+    in that period (not after t_mode) and FaultCleared is emitted once, not every period
+    (generated mutant 1f1740409a, the mode left at fault, is also caught by
+    test_sequencing_properties.py's consistency property; this says it directly)."""
+    ctrl = SequencingController(SequencingConfig(), pack_info(2))
+    v = [24.0, 23.0]
+    ctrl.step(meas(0.0, v, [5.0, 0.0]), 0.1)
+    out = ctrl.step(meas(0.1, [24.0, math.nan], [5.0, 0.0]), 0.1)
+    assert set(out.status["seq_mode"]) == {"fault"}
+    cleared = []
+    for s in range(2, 6):
+        out = ctrl.step(meas(0.1 * s, v, [5.0, 0.0]), 0.1)
+        assert set(out.status["seq_mode"]) == {"discharge"}, s
+        cleared += [e for e in out.events if e.kind == "FaultCleared"]
+    assert len(cleared) == 1 and cleared[0].t_s == pytest.approx(0.2)
+
+
+def test_an_implausible_resistance_step_is_not_believed() -> None:
+    """The resistance estimate takes -dV/dI of a current step only up to 20 x r_batt_ohm: a
+    step that says 21 x (0.65625 ohm with r_batt 1/32 ohm) leaves the estimate unknown, one
+    of exactly 20 x is taken (generated mutant 81c1aa07c9: 22 x accepted)."""
+    cfg = SequencingConfig(r_batt_ohm=0.03125)
+    for r, known in ((0.65625, False), (0.625, True)):
+        ctrl = SequencingController(cfg, pack_info(2))
+        ctrl.step(meas(0.0, [24.0, 24.0], [0.0, 0.0]), 0.1)
+        ctrl.step(meas(0.1, [24.0 - 2.0 * r, 24.0], [2.0, 0.0]), 0.1)
+        assert math.isnan(ctrl.r_ohm[0]) is not known, r
+        if known:
+            assert ctrl.r_ohm[0] == r
+
+
+def test_a_zero_load_prediction_exactly_at_the_margin_engages_unflagged() -> None:
+    """The engage rule and the risk flag both act on a zero-load prediction *above*
+    charge_limit_margin x the charge limit: a joiner predicted to take exactly that (4.0 A =
+    0.5 x 8 A, binary-exact: 1/32 ohm each, fast voltages 0.25 V apart) engages with no
+    CrossCurrentRisk; 1/1024 V lower it stays open (generated mutant 53bda1b4b7: flagged at
+    exactly the margin)."""
+    cfg = SequencingConfig(i_step=1e3, r_batt_ohm=0.03125, v_co=0.5, default_capacity_ah=4.0,
+                           charge_limit_c=2.0, charge_limit_margin=0.5,
+                           risk_clear_ratio=0.4)  # fmt: skip
+    for dv, engaged in ((0.0, True), (2.0**-10, False)):
+        ctrl = SequencingController(cfg, pack_info(2))
+        ctrl.step(meas(0.0, [24.0, 23.0], [0.0, 0.0]), 0.1)
+        # Battery 0 at 16 A: terminal 23.5 V, fast voltage 24.0 V; battery 1 at rest.
+        out = ctrl.step(meas(0.1, [23.5, 23.75 - dv], [16.0, 0.0]), 0.1)
+        assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING"]
+        assert out.commands.chg_on == (True, engaged), dv
+        if engaged:
+            assert float(out.status["seq_zero_load_into_a"][1]) == 4.0
+        assert not [e for e in out.events if e.kind == "CrossCurrentRisk"], dv
+
+
+def test_fault_cleared_names_the_fault_it_clears() -> None:
+    """Fault and FaultCleared both name the fail-safe's reason (generated mutant bf30b2d7bb:
+    FaultCleared's pack slot left unwritten, no reason)."""
+    ctrl = SequencingController(SequencingConfig(), pack_info(2))
+    ctrl.step(meas(0.0, [24.0, 23.0], [5.0, 0.0]), 0.1)
+    out = ctrl.step(meas(0.1, [24.0, -1.0], [5.0, 0.0]), 0.1)
+    (fault,) = [e for e in out.events if e.kind == "Fault"]
+    out = ctrl.step(meas(0.2, [24.0, 23.0], [5.0, 0.0]), 0.1)
+    (cleared,) = [e for e in out.events if e.kind == "FaultCleared"]
+    reason = "battery 1: voltage -1.0 is not a finite value >= 0"
+    assert fault.data["reason"] == cleared.data["reason"] == reason
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_at_power_up_the_highest_battery_engages_whatever_its_index(n: int) -> None:
+    """The engage rule closes the highest fast voltage first: at power-up with every battery
+    admitted (within v_th) the highest engages alone, wherever it sits, and the lower ones,
+    which it would charge at zero load, wait (generated mutant a95bf0c8b1, the ranking's
+    insertion sort stepping by 2, which leaves two batteries in index order, is also caught by
+    a closed-loop property; this says it directly)."""
+    volts = [24.0 + 0.03 * k for k in range(n)]  # the highest last
+    ctrl = SequencingController(SequencingConfig(), pack_info(n))
+    out = ctrl.step(meas(0.0, volts, [0.0] * n), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING"] * n
+    assert out.commands.chg_on == (False,) * (n - 1) + (True,)
+
+
+def test_equal_fast_voltages_are_engaged_in_battery_order() -> None:
+    """The engage rule ranks by fast voltage with ties in battery order (a stable ranking,
+    docs/parallel_discharge.md: deterministic whatever the arrays' history), each candidate
+    judged against what is engaged so far. Batteries 1 and 2 wait admitted at the same fast
+    voltage, 0.125 V below the engaged battery 0 (1/32 ohm each): tried first, battery 1
+    (3 A limit) would take 2.0 A at zero load with battery 0 alone, over 0.5 x 3 A: it stays
+    open; battery 2 (5 A limit) engages. Tried the other way round, battery 1 would have been
+    judged with battery 2 already engaged (1.33 A) and closed as well (generated mutant
+    2cf6091915: the ranking's ``<`` -> ``<=``, ties reversed)."""
+    cfg = SequencingConfig(i_step=1e3, r_batt_ohm=0.03125, charge_limit_c=1.0,
+                           charge_limit_margin=0.5, risk_clear_ratio=0.4)  # fmt: skip
+    info = dataclasses.replace(pack_info(3), capacity_ah=(5.0, 3.0, 5.0))
+    ctrl = SequencingController(cfg, info)
+    out = ctrl.step(meas(0.0, [24.0, 23.875, 23.875], [0.0, 0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING"] * 3
+    assert out.commands.chg_on == (True, False, False)
+    # 8 A from battery 0 (terminal 23.75 V, fast 24.0 V): both others would discharge.
+    out = ctrl.step(meas(0.1, [23.75, 23.875, 23.875], [8.0, 0.0, 0.0]), 0.1)
+    assert out.commands.chg_on == (True, False, True)
+    zl = [float(x) for x in out.status["seq_zero_load_into_a"]]
+    assert zl[2] == 2.0 and zl[2] <= 0.5 * 5.0
+
+
+def test_r2_and_the_bus_reference_use_the_highest_admitted_battery() -> None:
+    """The bus reference (``seq_v_ref_v``, and R2's ``e_ref``) is the *highest* fast voltage
+    of the admitted batteries: a standby battery 20 mV below the lower of two admitted ones
+    but 0.42 V below the higher one still waits, it would be charged by the higher one
+    (generated mutant 9c62d17393: the lowest admitted taken as the reference, so it joined)."""
+    ctrl = SequencingController(NO_EST, pack_info(3))
+    out = ctrl.step(meas(0.0, [24.0, 23.6, 23.4], [0.0, 0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING", "STANDBY"]
+    out = ctrl.step(meas(0.1, [24.0, 23.6, 23.58], [0.0, 0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING", "DISCHARGING", "STANDBY"]
+    assert not [e for e in out.events if e.kind == "BatteryJoined"]
+    assert list(out.status["seq_v_ref_v"]) == [24.0] * 3
+    # Within v_co of the highest it joins.
+    out = ctrl.step(meas(0.2, [24.0, 23.6, 23.96], [0.0, 0.0, 0.0]), 0.1)
+    assert list(out.status["seq_state"]) == ["DISCHARGING"] * 3

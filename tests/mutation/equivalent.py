@@ -94,4 +94,28 @@ EQUIVALENT: dict[str, str] = {
     "6c66adceb0": "equalization step: `code < 0` -> `code <= 0` before the current check. code "
     "is -1 or a fault code, all >= 1 (FAULT_GROUP_COUNT 1, FAULT_GROUP_VOLTAGE 2, "
     "FAULT_CURRENT 3); it is never 0.",
+    # --- judged 2026-11-28 evening (h26seq), sequencing's 41 mutants of the frozen sample
+    "5281d221d6": "sequencing _r1: `v_max = 0.0` -> `1.0` (its initial value). v_max is the "
+    "highest voltage of the present batteries no other layer holds open; the first such "
+    "battery replaces the initial value (`not have or ...`). It is read for a battery only "
+    "when that battery is present and not held (then `have` is True: it counted itself), or "
+    "into the event of a held battery whose state R1 changes; a held battery is STANDBY by "
+    "then (_held_out demotes a DISCHARGING one first; held needs its discharge FET commanded "
+    "on in the last step, so it was not OFF; and held is never set in charge mode, so it is "
+    "not CHARGING), R1 sets it STANDBY, no state change, no event: the initial value is "
+    "written nowhere.",
+    "39b5cc9ecd": "sequencing _engage: the first `if not ok: continue` -> pass. With ok False "
+    "the zero-load check then runs: it can only set ok False again, so the second `if not "
+    "ok: continue` skips the candidate as before; its side effects are a _share into the "
+    "scratch `pred` (every later reader - the next candidate, _open_charged, _open_predicted, "
+    "the risk loop - rewrites pred for the batteries it reads first) and _zl_may_engage, "
+    "which only reads. Its sums cannot raise (every conductance > 0, voltages validated).",
+    "d65e1ed2a9": "sequencing _discharge_tick: the R3 loop's reset `skip[k] = False` -> "
+    "`True`. skip is read after it only by _open_charged (the hand-over) and _open_predicted "
+    "(rule 8b), and only for engaged batteries (DISCHARGING, charge FET on). The R3 loop "
+    "visits every battery and overwrites skip for each one that is then engaged: `skip = "
+    "through` where its charge FET is already on, True where R3 closes it (the only closing "
+    "in the loop). The reset value stays only on batteries that are not engaged, which no "
+    "reader looks at; the next period sets skip afresh (`skip = cur > i_det`) before the "
+    "cascade reads it. Re-check if a rule comes to read skip of a battery not engaged.",
 }
