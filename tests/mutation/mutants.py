@@ -505,6 +505,14 @@ SEQUENCING = [
        "    _open_predicted(prm, st, ev, src, p, t)\n", "    pass\n",
        "#28 rule 8b (opt-in): an engaged battery the observer predicts above its charge limit "
        "stays engaged after a join (seed 25: 1.40x at the loss)"),
+    _m("sequencing", "diode-hold-dropped",
+       "        elif _diode_holds(prm, st, p, k, cur[k]):\n", "        elif False:\n",
+       "#28 rule 8c: R3 closes a lower battery whose diode conducts under a heavy load although "
+       "the zero-load prediction puts it above its limit (SOAK_4 observed: 2.64 A > 2.5 A)"),
+    _m("sequencing", "diode-hold-no-cap", "    if not cur_a <= prm.diode_hold_a:\n",
+       "    if False:\n",
+       "#28 rule 8c: the diode is left carrying more than diode_hold_a (its rating) past R3's "
+       "deadline"),
 ]
 
 
@@ -607,6 +615,10 @@ TESTS: dict[str, list[str]] = {
         "tests/test_sequencing_zero_load.py::test_the_zero_load_prediction_uses_the_observers_r0",
         "tests/test_sequencing_zero_load.py::test_an_abrupt_load_loss_never_pushes_more_than_the"
         "_charge_limit[25]",
+        "tests/test_sequencing_zero_load.py::test_r3_leaves_a_lower_battery_on_its_diode_while"
+        "_closing_it_would_exceed_its_limit",
+        "tests/test_sequencing_zero_load.py::test_a_diode_carrying_more_than_diode_hold_a_is"
+        "_closed_on_r3s_deadline",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],
