@@ -123,6 +123,18 @@ def duration_s(case: Case) -> float:
     return REST_S + case.hold_s + AFTER_S
 
 
+def _loop(case: Case, cfg: ScenarioConfig) -> ClosedLoop:
+    """The closed loop of ``cfg`` with the case's load: rest, hold, then nothing."""
+    loop = ClosedLoop.of(cfg, 1)
+    t_off = REST_S + case.hold_s
+    loop.profile = loads.LoadProfile(
+        kind="current",
+        t_s=np.array([0.0, REST_S, t_off, duration_s(case) + 1.0]),
+        value=np.array([0.0, case.load_a, 0.0, 0.0]),
+    )
+    return loop
+
+
 def run_case(
     case: Case,
     hook: bool,
@@ -134,15 +146,9 @@ def run_case(
     run (and where it happened), with what the controller predicted for it, the charge-FET
     changes per minute of hold, and what the charge diodes carried (seconds, joules, the
     largest power in one period: the cost of rule 8c)."""
-    cfg = scenario(case, hook, sensors, open_, extra)
-    loop = ClosedLoop.of(cfg, 1)
+    loop = _loop(case, scenario(case, hook, sensors, open_, extra))
     t_off = REST_S + case.hold_s
     end = duration_s(case)
-    loop.profile = loads.LoadProfile(
-        kind="current",
-        t_s=np.array([0.0, REST_S, t_off, end + 1.0]),
-        value=np.array([0.0, case.load_a, 0.0, 0.0]),
-    )
     slots = {ch.name: s for s, ch, _ in loop.core.status_channels()}
     s_pred, s_risk, s_ok = (
         slots["seq_zero_load_into_a"],
@@ -164,6 +170,7 @@ def run_case(
     s_chg = slots["seq_chg_on"]
     last_chg = None
     changes = 0
+    exposed_s = 0.0
     pack = loop.plant.pack
     diode_w = 0.0
     for k in range(n_steps):
@@ -190,6 +197,10 @@ def run_case(
         chg = loop.core.status[0][:, s_chg] > 0.5
         if last_chg is not None and REST_S <= t0 < t_off - 1e-9:
             changes += int(np.sum(chg != last_chg))
+            # Exposed: a loss of the load in this period would push more than the charge
+            # limit into some engaged battery (the observer's prediction, within ~7 %).
+            pred_now = loop.core.status[0][:, s_pred] / lim
+            exposed_s += DT_S if float(np.max(pred_now)) > 1.0 else 0.0
         last_chg = chg
     j = at["battery"]
     return {
@@ -205,6 +216,7 @@ def run_case(
         "observer_ok": bool(ok_before.all()),
         "unsupplied": unsupplied,
         "fet_changes_per_min": changes / (case.hold_s / 60.0),
+        "exposed_share": exposed_s / case.hold_s,
         "diode_s": float(np.max(pack.chg_diode_s[0, tr])),
         "diode_j": float(np.max(pack.chg_diode_j[0, tr])),
         "diode_w": diode_w,
@@ -261,6 +273,13 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             float(np.median([r["fet_changes_per_min"] for r in rows])),
             max(r["fet_changes_per_min"] for r in rows),
         ),
+        "holds exposed (a loss then would exceed; cases / median / max share of the hold)": (
+            "{} / {:.1%} / {:.1%}".format(
+                sum(1 for r in rows if r["exposed_share"] > 0.0),
+                float(np.median([r["exposed_share"] for r in rows])),
+                max(r["exposed_share"] for r in rows),
+            )
+        ),
         "load unsupplied": sum(1 for r in rows if r["unsupplied"]),
         "charge-diode s / J per case (median / max)": "{:.0f} / {:.0f} s, {:.0f} / {:.0f} J".format(
             float(np.median([r["diode_s"] for r in rows])),
@@ -294,6 +313,7 @@ def main(argv: list[str]) -> int:
         for h, (hook, open_, extra) in list(VARIANTS.items()):
             if "diode_hold_a" in extra:
                 VARIANTS[h] = (hook, open_, {**extra, "diode_hold_a": a.hold})
+                LABELS[h] = LABELS[h].replace("diode_hold_a = 5", f"diode_hold_a = {a.hold:g}")
     hooks = tuple(a.variant) or tuple(VARIANTS)
     t0 = time.process_time()
     res = campaign(a.cases, a.seed0, a.sensors, hooks)
@@ -306,6 +326,7 @@ def main(argv: list[str]) -> int:
                 f" p{res[h][i]['predicted']:.2f}{'F' if res[h][i]['flagged'] else ''}"
                 f"{'R' if res[h][i]['r3_forced'] else ''}"
                 f" fpm{res[h][i]['fet_changes_per_min']:.1f}"
+                f" x{100 * res[h][i]['exposed_share']:.0f}%"
                 f" d{res[h][i]['diode_s']:.0f}s/{res[h][i]['diode_j']:.0f}J"
                 f"/{res[h][i]['diode_w']:.1f}W"
                 for h in hooks

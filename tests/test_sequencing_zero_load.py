@@ -165,3 +165,18 @@ def test_a_diode_carrying_more_than_diode_hold_a_is_closed_on_r3s_deadline() -> 
         longest = max(longest, run)
     assert longest <= limit, (longest, float(diode.max()))
     assert not _held_events(res)
+
+
+HOLD_10 = {"diode_hold_a": 10.0}
+
+
+@pytest.mark.parametrize("seed", [*R3_FORCED, 230])
+def test_rules_8b_and_8c_together_hold_the_charge_limit_where_r3_forced_it(seed: int) -> None:
+    """Rule 8b alone leaves the R3-forced class (seeds 23 and 63: 1.30x and 1.37x; 230: 2.50x):
+    8b opens a battery, its diode conducts under the load, R3 closes it again within seconds
+    and the load goes. With rule 8c (diode up to 10 A) R3 leaves it on its diode while the
+    prediction is above the limit, and 8b may open a battery R3 closed within the cap at once
+    (seed 230: 1.13x three seconds after such a closure while 8b waited R3_HOLD_S)."""
+    res = run_case(draw(seed), hook=True, open_=True, extra=HOLD_10)
+    assert not res["unsupplied"], res
+    assert res["worst"] <= 1.0, res

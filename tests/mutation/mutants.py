@@ -513,6 +513,12 @@ SEQUENCING = [
        "    if False:\n",
        "#28 rule 8c: the diode is left carrying more than diode_hold_a (its rating) past R3's "
        "deadline"),
+    Mutant("sequencing", "diode-hold-at-open-ratio",
+           "        hold_ratio=float(config.charge_limit_margin),\n",
+           "        hold_ratio=max(float(config.zero_load_open_ratio), 0.9),\n",
+           "#28 rule 8c: R3 closes a held battery at rule 8b's 0.95 x the limit, not the engage "
+           "rule's 0.9: no room for its polarisation after the closure (seed 230: 1.13x)",
+           file="controller.py"),
 ]
 
 
@@ -619,6 +625,8 @@ TESTS: dict[str, list[str]] = {
         "_closing_it_would_exceed_its_limit",
         "tests/test_sequencing_zero_load.py::test_a_diode_carrying_more_than_diode_hold_a_is"
         "_closed_on_r3s_deadline",
+        "tests/test_sequencing_zero_load.py::test_rules_8b_and_8c_together_hold_the_charge_limit"
+        "_where_r3_forced_it",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],

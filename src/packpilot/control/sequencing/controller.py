@@ -189,7 +189,7 @@ REASONS = (
     Reason(
         "CrossCurrentRisk",
         "battery {battery}: charge FET held off, its diode carrying {current_a:.2f} A: "
-        "{predicted_a:.2f} A (over its {i_limit_a:.2f} A charge limit x the open ratio) would "
+        "{predicted_a:.2f} A (over its {i_limit_a:.2f} A charge limit x the margin) would "
         "flow into it if it were closed and the load vanished",
         fields("predicted_a", "i_limit_a", "current_a", "_battery:i"),
     ),
@@ -251,7 +251,7 @@ def build(
             else math.inf
         ),
         diode_hold_a=float(config.diode_hold_a),
-        hold_ratio=max(float(config.zero_load_open_ratio), float(config.charge_limit_margin)),
+        hold_ratio=float(config.charge_limit_margin),
         reads_slot=np.full(len(READS), -1, np.int64),
         n_batteries=int(n),
         fault_text=fault,

@@ -209,8 +209,10 @@ class SequencingParams(NamedTuple):
     (A) and the trusted zero-load prediction with it engaged puts it above ``hold_ratio`` x its
     charge limit; 0 = off (R3 closes on its deadline, as the spec says)."""
     hold_ratio: float
-    """Rule 8c's threshold (a fraction of the charge limit; rule 8b's ratio, at least
-    ``charge_limit_margin``)."""
+    """Rule 8c's threshold, a fraction of the charge limit: ``charge_limit_margin`` (the
+    engage rule's), below rule 8b's ``open_ratio``. A held battery R3 closes takes more current
+    and polarises, so its prediction rises after the closure; at 0.95 it crossed the limit
+    within 3 s, before rule 8b may open a battery R3 closed (``bench_zero_load`` seed 230)."""
     reads_slot: I64
     """Status slots of the observer's channels (``controller.READS``: its battery R0 and its
     trust flag), written by the core (``Method.reads``); -1 = no observer in this core."""
@@ -695,6 +697,8 @@ def _diode_holds(
     """Rule 8c (issue #28): must R3 leave battery ``k``'s charge FET off although its diode
     conducts? Yes while the diode carries at most ``diode_hold_a`` and the trusted zero-load
     prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its charge limit.
+    A sibling it would expose is no reason: ``k`` is then the higher one, and the hand-over
+    and rule 8b open the sibling, as the spec's R3 does.
 
     Embodiment 5 closes the FET because discharge current means "the battery is the higher
     one, no other battery can charge it". Under a heavy load that premise fails: the bus sags
