@@ -77,7 +77,13 @@ def draw(seed: int) -> Case:
     return Case(seed, rnd(cap), rnd(res), rnd(soc0), round(amps, 3), round(held, 1), hold)
 
 
-def scenario(case: Case, hook: bool, sensors: bool = False, open_: bool = True) -> ScenarioConfig:
+def scenario(
+    case: Case,
+    hook: bool,
+    sensors: bool = False,
+    open_: bool = True,
+    extra: dict[str, Any] | None = None,
+) -> ScenarioConfig:
     bats = [
         {
             "name": f"B{k}",
@@ -104,7 +110,7 @@ def scenario(case: Case, hook: bool, sensors: bool = False, open_: bool = True) 
         },
         "load": {"kind": "current", "value": 1.0, "v_min_v": 15.0},
         "controller": ["sequencing"],
-        "sequencing": {"zero_load_observer": hook, "zero_load_open": open_},
+        "sequencing": {"zero_load_observer": hook, "zero_load_open": open_, **(extra or {})},
         "soc": {},
         "sim": {"dt_s": DT_S, "duration_s": duration_s(case), "progress": False},
     }
@@ -117,24 +123,38 @@ def duration_s(case: Case) -> float:
     return REST_S + case.hold_s + AFTER_S
 
 
-def run_case(
-    case: Case, hook: bool, sensors: bool = False, open_: bool = True
-) -> dict[str, Any]:
-    """The worst ratio of current into a battery to its charge limit over every period of the
-    run (and where it happened), with what the controller predicted for it."""
-    cfg = scenario(case, hook, sensors, open_)
+def _loop(case: Case, cfg: ScenarioConfig) -> ClosedLoop:
+    """The closed loop of ``cfg`` with the case's load: rest, hold, then nothing."""
     loop = ClosedLoop.of(cfg, 1)
     t_off = REST_S + case.hold_s
-    end = duration_s(case)
     loop.profile = loads.LoadProfile(
         kind="current",
-        t_s=np.array([0.0, REST_S, t_off, end + 1.0]),
+        t_s=np.array([0.0, REST_S, t_off, duration_s(case) + 1.0]),
         value=np.array([0.0, case.load_a, 0.0, 0.0]),
     )
+    return loop
+
+
+def run_case(
+    case: Case,
+    hook: bool,
+    sensors: bool = False,
+    open_: bool = True,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The worst ratio of current into a battery to its charge limit over every period of the
+    run (and where it happened), with what the controller predicted for it, the charge-FET
+    changes per minute of hold, and what the charge diodes carried (seconds, joules, the
+    largest power in one period: the cost of rule 8c)."""
+    loop = _loop(case, scenario(case, hook, sensors, open_, extra))
+    t_off = REST_S + case.hold_s
+    end = duration_s(case)
     slots = {ch.name: s for s, ch, _ in loop.core.status_channels()}
-    s_pred, s_risk, s_ok = slots["seq_zero_load_into_a"], slots["seq_at_risk"], slots[
-        "soc_observer_ok"
-    ]
+    s_pred, s_risk, s_ok = (
+        slots["seq_zero_load_into_a"],
+        slots["seq_at_risk"],
+        slots["soc_observer_ok"],
+    )
     tr = np.array(loop.plant.topology.traction)
     lim = 0.5 * np.array(case.capacity_ah)
     n_steps = round(end / DT_S)
@@ -150,7 +170,11 @@ def run_case(
     s_chg = slots["seq_chg_on"]
     last_chg = None
     changes = 0
+    exposed_s = 0.0
+    pack = loop.plant.pack
+    diode_w = 0.0
     for k in range(n_steps):
+        j0 = pack.chg_diode_j[0, tr].copy()
         t0 = loop.plant.t_s
         loop.step(k, DT_S)
         into = np.maximum(-loop.plant.pack.string_a[0, tr], 0.0) / lim
@@ -169,9 +193,14 @@ def run_case(
             risk_before = st[:, s_risk] > 0.5
             ok_before = st[:, s_ok] > 0.5
         unsupplied = unsupplied or not bool(loop.was_supplied[0])
+        diode_w = max(diode_w, float(np.max(pack.chg_diode_j[0, tr] - j0)) / DT_S)
         chg = loop.core.status[0][:, s_chg] > 0.5
         if last_chg is not None and REST_S <= t0 < t_off - 1e-9:
             changes += int(np.sum(chg != last_chg))
+            # Exposed: a loss of the load in this period would push more than the charge
+            # limit into some engaged battery (the observer's prediction, within ~7 %).
+            pred_now = loop.core.status[0][:, s_pred] / lim
+            exposed_s += DT_S if float(np.max(pred_now)) > 1.0 else 0.0
         last_chg = chg
     j = at["battery"]
     return {
@@ -187,19 +216,29 @@ def run_case(
         "observer_ok": bool(ok_before.all()),
         "unsupplied": unsupplied,
         "fet_changes_per_min": changes / (case.hold_s / 60.0),
+        "exposed_share": exposed_s / case.hold_s,
+        "diode_s": float(np.max(pack.chg_diode_s[0, tr])),
+        "diode_j": float(np.max(pack.chg_diode_j[0, tr])),
+        "diode_w": diode_w,
         "predicted_all": [float(x) for x in pred_before],
         "at_loss_all": [float(x) for x in at_loss],
     }
 
 
-VARIANTS = {
-    "8a+8b": (True, True),
-    "8a": (True, False),
-    "base": (False, False),
+VARIANTS: dict[str, tuple[bool, bool, dict[str, Any]]] = {
+    "8a+8b+8c": (True, True, {"diode_hold_a": 5.0}),
+    "8a+8c": (True, False, {"diode_hold_a": 5.0}),
+    "8a+8b": (True, True, {}),
+    "8a": (True, False, {}),
+    "base": (False, False, {}),
 }
-"""(zero_load_observer, zero_load_open) of each column: the observer's prediction and rule 8b
-(opt-in), the prediction alone (the default), the -dV/dI prediction (the baseline)."""
+"""(zero_load_observer, zero_load_open, other [sequencing] fields) of each column: the
+observer's prediction with rule 8b and rule 8c (R3 leaves a battery on its diode, up to
+5 A, while closing it would put it above its limit), ..., the -dV/dI prediction (the
+baseline)."""
 LABELS = {
+    "8a+8b+8c": "observer prediction + rule 8b + rule 8c (diode_hold_a = 5)",
+    "8a+8c": "observer prediction + rule 8c (diode_hold_a = 5)",
     "8a+8b": "observer prediction + rule 8b (zero_load_open = true)",
     "8a": "observer prediction alone (default)",
     "base": "baseline: -dV/dI (zero_load_observer = false)",
@@ -213,8 +252,8 @@ def campaign(
     for s in range(seed0, seed0 + n_cases):
         case = draw(s)
         for h in hooks:
-            hook, open_ = VARIANTS[h]
-            out[h].append(run_case(case, hook, sensors, open_))
+            hook, open_, extra = VARIANTS[h]
+            out[h].append(run_case(case, hook, sensors, open_, extra))
     return out
 
 
@@ -234,7 +273,21 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
             float(np.median([r["fet_changes_per_min"] for r in rows])),
             max(r["fet_changes_per_min"] for r in rows),
         ),
+        "holds exposed (a loss then would exceed; cases / median / max share of the hold)": (
+            "{} / {:.1%} / {:.1%}".format(
+                sum(1 for r in rows if r["exposed_share"] > 0.0),
+                float(np.median([r["exposed_share"] for r in rows])),
+                max(r["exposed_share"] for r in rows),
+            )
+        ),
         "load unsupplied": sum(1 for r in rows if r["unsupplied"]),
+        "charge-diode s / J per case (median / max)": "{:.0f} / {:.0f} s, {:.0f} / {:.0f} J".format(
+            float(np.median([r["diode_s"] for r in rows])),
+            max(r["diode_s"] for r in rows),
+            float(np.median([r["diode_j"] for r in rows])),
+            max(r["diode_j"] for r in rows),
+        ),
+        "largest diode power (W)": max(r["diode_w"] for r in rows),
         "worst case": f"seed {top['seed']} (n {top['n']}, {top['load_a']:.1f} A, "
         f"{top['hold_s']:.0f} s): battery {top['battery']} at {top['t_s']:.1f} s, "
         f"predicted {top['predicted']:.2f}",
@@ -254,7 +307,13 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--sensors", action="store_true")
     ap.add_argument("--variant", action="append", choices=list(VARIANTS), default=[])
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--hold", type=float, help="diode_hold_a of the 8c variants (A)")
     a = ap.parse_args(argv)
+    if a.hold is not None:
+        for h, (hook, open_, extra) in list(VARIANTS.items()):
+            if "diode_hold_a" in extra:
+                VARIANTS[h] = (hook, open_, {**extra, "diode_hold_a": a.hold})
+                LABELS[h] = LABELS[h].replace("diode_hold_a = 5", f"diode_hold_a = {a.hold:g}")
     hooks = tuple(a.variant) or tuple(VARIANTS)
     t0 = time.process_time()
     res = campaign(a.cases, a.seed0, a.sensors, hooks)
@@ -267,6 +326,9 @@ def main(argv: list[str]) -> int:
                 f" p{res[h][i]['predicted']:.2f}{'F' if res[h][i]['flagged'] else ''}"
                 f"{'R' if res[h][i]['r3_forced'] else ''}"
                 f" fpm{res[h][i]['fet_changes_per_min']:.1f}"
+                f" x{100 * res[h][i]['exposed_share']:.0f}%"
+                f" d{res[h][i]['diode_s']:.0f}s/{res[h][i]['diode_j']:.0f}J"
+                f"/{res[h][i]['diode_w']:.1f}W"
                 for h in hooks
             )
             r = res[hooks[0]][i]
@@ -275,8 +337,11 @@ def main(argv: list[str]) -> int:
     print("|---" * (1 + len(summary(res[hooks[0]]))) + "|")
     for h in hooks:
         s = summary(res[h])
-        print(f"| {LABELS[h]} | " + " | ".join(
-            f"{v:.3f}" if isinstance(v, float) else str(v) for v in s.values()) + " |")
+        print(
+            f"| {LABELS[h]} | "
+            + " | ".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in s.values())
+            + " |"
+        )
     print(f"cases {a.cases}, sensors {a.sensors}, dt {DT_S} s, CPU {cpu:.1f} s")
     return 0
 

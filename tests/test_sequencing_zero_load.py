@@ -8,12 +8,22 @@ comparator off; the benchmark runs 500 of them, this file a seeded subset that f
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from benchmarks.bench_zero_load import draw, run_case
 
+from packpilot.contract.bms import Event
+from packpilot.contract.record import Result
 from packpilot.sim.loop import ClosedLoop
-from tests.test_sequencing_closed_loop_properties import I_LIM, Case, _check_invariants
+from tests.test_sequencing_closed_loop_properties import (
+    CFG,
+    I_LIM,
+    Case,
+    _check_invariants,
+    simulate,
+)
 
 SUBSET = tuple(range(80))
 """Seeds of the CI subset (each a closed loop of up to ~2,450 periods of 0.5 s; the 80
@@ -103,3 +113,70 @@ def test_soak_4_with_the_observer_trusted_flags_what_r3_forces() -> None:
     res = _check_invariants(SOAK_4_OBSERVED, comparator=False, observer=True, duration_s=90.0)
     into = np.maximum(-res.trace.channel("current_a"), 0.0)
     assert float(into.max()) > I_LIM  # the R3-forced period is still there, flagged
+
+
+# Rule 8c (issue #28, ``diode_hold_a``): R3 leaves a battery on its charge diode while closing
+# it would put it above its charge limit at zero load and the diode carries at most the cap.
+HOLD = {"diode_hold_a": 5.0}
+
+
+def _held_events(res: Result) -> list[Event]:
+    return [e for e in res.events if e.kind == "CrossCurrentRisk" and "held off" in e.message]
+
+
+def test_r3_leaves_a_lower_battery_on_its_diode_while_closing_it_would_exceed_its_limit() -> None:
+    """SOAK_4 with the observer trusted: battery 4 (23.25 V) stands by while battery 5
+    (24.0 V) carries 52 A; the bus sags until battery 4's diode conducts. R3 closed it (its
+    deadline) and the loss of the load at 73 s pushed 2.64 A into it (limit 2.5 A). With rule
+    8c it stays on its diode, which carries a few amperes, and the loss pushes nothing into it
+    above the limit."""
+    res, _ = simulate(SOAK_4_OBSERVED, sequencing=HOLD, observer=True, duration_s=90.0)
+    into = np.maximum(-res.trace.channel("current_a"), 0.0)
+    assert float(into.max()) <= I_LIM, float(into.max())
+    held = _held_events(res)
+    assert held and all(e.battery == 4 for e in held), held
+    diode = res.trace.channel("chg_diode_a")[:, 4]
+    assert float(diode.max()) <= 1.2 * HOLD["diode_hold_a"], float(diode.max())
+
+
+# SOAK_4_OBSERVED with battery 4 at 23.6 V (admitted by R1, not engaged: 0.4 V over 47 mOhm
+# is 3.4x its limit) and a 90 A load: battery 4's diode takes 10-14 A at once, and closing it
+# stays above the limit for ~4 s (held, with no cap, for 9 periods).
+HEAVY_DIODE = Case(
+    ocv0_v=(21.0, 21.0, 21.0, 21.0, 23.6, 24.0),
+    r_ohm=SOAK_4_OBSERVED.r_ohm,
+    dt_s=0.5,
+    load_t_s=(0.0, 61.0, 75.0),
+    load_a=(0.0, 90.0, 0.0),
+    insert=None,
+)
+
+
+def test_a_diode_carrying_more_than_diode_hold_a_is_closed_on_r3s_deadline() -> None:
+    """The cap: battery 4's diode carries 10-14 A, above ``diode_hold_a`` = 2 A, so R3 closes
+    it on its deadline as without rule 8c (the diode must not carry more than its rating)."""
+    res, _ = simulate(HEAVY_DIODE, sequencing={"diode_hold_a": 2.0}, observer=True, duration_s=80.0)
+    diode = res.trace.channel("chg_diode_a")[:, 4]
+    assert float(diode.max()) > 5.0  # the case does put its diode above the cap
+    limit = math.ceil((CFG.t_on + HEAVY_DIODE.dt_s) / HEAVY_DIODE.dt_s - 1e-9)
+    run = longest = 0
+    for x in diode:
+        run = run + 1 if x > CFG.i_det else 0
+        longest = max(longest, run)
+    assert longest <= limit, (longest, float(diode.max()))
+    assert not _held_events(res)
+
+
+HOLD_10 = {"diode_hold_a": 10.0}
+
+
+@pytest.mark.parametrize("seed", [*R3_FORCED, 230])
+def test_rules_8b_and_8c_together_hold_the_charge_limit_where_r3_forced_it(seed: int) -> None:
+    """Rule 8b alone leaves the R3-forced class (seeds 23 and 63: 1.30x and 1.37x; 230: 2.50x):
+    8b opens a battery, its diode conducts under the load, R3 closes it again within seconds
+    and the load goes. With rule 8c (diode up to 10 A) R3 leaves it on its diode while the
+    prediction is above the limit, and 8b may open a battery R3 closed within the cap at once
+    (seed 230: 1.13x three seconds after such a closure while 8b waited R3_HOLD_S)."""
+    res = run_case(draw(seed), hook=True, open_=True, extra=HOLD_10)
+    assert not res["unsupplied"], res
+    assert res["worst"] <= 1.0, res

@@ -517,6 +517,20 @@ SEQUENCING = [
        "    _open_predicted(prm, st, ev, src, p, t)\n", "    pass\n",
        "#28 rule 8b (opt-in): an engaged battery the observer predicts above its charge limit "
        "stays engaged after a join (seed 25: 1.40x at the loss)"),
+    _m("sequencing", "diode-hold-dropped",
+       "        elif _diode_holds(prm, st, p, k, cur[k]):\n", "        elif False:\n",
+       "#28 rule 8c: R3 closes a lower battery whose diode conducts under a heavy load although "
+       "the zero-load prediction puts it above its limit (SOAK_4 observed: 2.64 A > 2.5 A)"),
+    _m("sequencing", "diode-hold-no-cap", "    if not cur_a <= prm.diode_hold_a:\n",
+       "    if False:\n",
+       "#28 rule 8c: the diode is left carrying more than diode_hold_a (its rating) past R3's "
+       "deadline"),
+    Mutant("sequencing", "diode-hold-at-open-ratio",
+           "        hold_ratio=float(config.charge_limit_margin),\n",
+           "        hold_ratio=max(float(config.zero_load_open_ratio), 0.9),\n",
+           "#28 rule 8c: R3 closes a held battery at rule 8b's 0.95 x the limit, not the engage "
+           "rule's 0.9: no room for its polarisation after the closure (seed 230: 1.13x)",
+           file="controller.py"),
 ]
 
 
@@ -619,6 +633,12 @@ TESTS: dict[str, list[str]] = {
         "tests/test_sequencing_zero_load.py::test_the_zero_load_prediction_uses_the_observers_r0",
         "tests/test_sequencing_zero_load.py::test_an_abrupt_load_loss_never_pushes_more_than_the"
         "_charge_limit[25]",
+        "tests/test_sequencing_zero_load.py::test_r3_leaves_a_lower_battery_on_its_diode_while"
+        "_closing_it_would_exceed_its_limit",
+        "tests/test_sequencing_zero_load.py::test_a_diode_carrying_more_than_diode_hold_a_is"
+        "_closed_on_r3s_deadline",
+        "tests/test_sequencing_zero_load.py::test_rules_8b_and_8c_together_hold_the_charge_limit"
+        "_where_r3_forced_it",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],

@@ -186,9 +186,16 @@ REASONS = (
         "charge limit x the open ratio) would flow into it if the load vanished",
         fields("predicted_a", "i_limit_a", "_battery:i"),
     ),
+    Reason(
+        "CrossCurrentRisk",
+        "battery {battery}: charge FET held off, its diode carrying {current_a:.2f} A: "
+        "{predicted_a:.2f} A (over its {i_limit_a:.2f} A charge limit x the margin) would "
+        "flow into it if it were closed and the load vanished",
+        fields("predicted_a", "i_limit_a", "current_a", "_battery:i"),
+    ),
 )
 assert [r.kind for r in REASONS][rules.FAULT_CLEARED] == "FaultCleared"
-assert len(REASONS) == rules.ZERO_LOAD_OPEN + 1
+assert len(REASONS) == rules.DIODE_HOLD + 1
 assert [r.kind for r in REASONS][rules.RISK] == "CrossCurrentRisk"
 
 STATUS = (
@@ -243,6 +250,8 @@ def build(
             if config.zero_load_open
             else math.inf
         ),
+        diode_hold_a=float(config.diode_hold_a),
+        hold_ratio=float(config.charge_limit_margin),
         reads_slot=np.full(len(READS), -1, np.int64),
         n_batteries=int(n),
         fault_text=fault,
@@ -279,6 +288,7 @@ def build(
         fault=fault,
         forced_s=nan(pb),
         zl_open_s=nan(pb),
+        diode_held=no(pb),
         held=no(pb),
         ef=nan(b),
         g=nan(b),

@@ -137,6 +137,10 @@ change)."""
 ZERO_LOAD_OPEN = 14
 """The observer-based zero-load prediction put this engaged battery above ``open_ratio`` x its
 charge limit: its charge FET opened (CrossCurrentRisk, no state change; rule 8b)."""
+DIODE_HOLD = 15
+"""R3 keeps this battery's charge FET off although its diode conducts: with it engaged the
+trusted zero-load prediction would put it above ``hold_ratio`` x its charge limit, and its
+diode carries no more than ``diode_hold_a`` (CrossCurrentRisk, once per episode; rule 8c)."""
 
 # Slots of a state-change event: from, to, reason, battery (message only), then the data.
 V_FROM = 0
@@ -200,6 +204,15 @@ class SequencingParams(NamedTuple):
     open_ratio: float
     """Rule 8b: an engaged battery whose trusted zero-load prediction exceeds this fraction of
     its charge limit has its charge FET opened."""
+    diode_hold_a: float
+    """Rule 8c: R3 leaves a battery on its charge diode while the diode carries at most this
+    (A) and the trusted zero-load prediction with it engaged puts it above ``hold_ratio`` x its
+    charge limit; 0 = off (R3 closes on its deadline, as the spec says)."""
+    hold_ratio: float
+    """Rule 8c's threshold, a fraction of the charge limit: ``charge_limit_margin`` (the
+    engage rule's), below rule 8b's ``open_ratio``. A held battery R3 closes takes more current
+    and polarises, so its prediction rises after the closure; at 0.95 it crossed the limit
+    within 3 s, before rule 8b may open a battery R3 closed (``bench_zero_load`` seed 230)."""
     reads_slot: I64
     """Status slots of the observer's channels (``controller.READS``: its battery R0 and its
     trust flag), written by the core (``Method.reads``); -1 = no observer in this core."""
@@ -256,6 +269,9 @@ class SequencingState(NamedTuple):
     prediction within ``risk_clear_ratio`` x its limit (not ``charge_limit_margin``), so an
     opened battery does not chatter about the threshold (its prediction jumps by I x the
     error of R0 when it takes current again, and its polarisation builds again)."""
+    diode_held: B1
+    """(P, B) rule 8c holds this battery's charge FET off in the present diode-conduction
+    episode (its event was emitted; cleared when the diode stops conducting)."""
     held: B1
     """(P, B) another layer (protection, limits, plausibility, the supervisor) opened this
     MOSFET-pair battery's discharge FET in the last step although sequencing commanded it on:
@@ -469,7 +485,6 @@ def _diode_rule(
     return due
 
 
-
 # ------------------------------------------------------------------------------ discharge mode
 
 
@@ -571,98 +586,136 @@ def _engage(
 
 
 @kernel_inline
-def _open_charged(
+def _trusted(zl: B1, grp: I64, m: int) -> bool:
+    """Are the zero-load sources of every battery in ``grp[:m]`` the trusted observer's?"""
+    for q in range(m):  # noqa: SIM110 (a generator in all() does not compile in numba)
+        if not zl[grp[q]]:
+            return False
+    return True
+
+
+@kernel_inline
+def _open_worst(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, load_a: float,
-    t: float,
+    t: float, zero_load: bool,
 ) -> None:  # fmt: skip
-    """Open, worst first, the charge FET of every engaged battery not in ``st.skip`` that its
-    engaged siblings would charge by more than ``i_rev`` at the present pack current, and
-    predict the rest again after each (opening one shifts the others). Used after the reverse
-    cut (so the remaining siblings do not pour the same current into the next battery in the
-    following period) and after R3 (the hand-over)."""
+    """Open, worst first, the charge FET of every engaged battery (not in ``st.skip``) that
+    its engaged siblings would charge past a criterion, predicting the rest again after each
+    (opening one shifts the others). The R3 hand-over, the reverse cut's cascade and rule 8b
+    are this one loop; they differ only in the criterion:
+
+    * ``zero_load`` False (hand-over, cascade): at the present pack current ``load_a`` with
+      rule 0's sources, more than ``i_rev`` into it (ranked by amperes);
+    * ``zero_load`` True (rule 8b): at zero load with the observer's sources (only while every
+      engaged battery's are trusted), more than ``open_ratio`` x its charge limit (ranked
+      relative to the limit), and not a battery R3 closed less than ``R3_HOLD_S`` ago."""
     state = st.state
     chg_on = st.chg_on
     ef = st.ef
     pred = st.pred
     grp = st.grp
     skip = st.skip
+    i_lim = st.i_lim
+    forced_s = st.forced_s
     while True:
         m = _engaged(state, chg_on, p, grp, -1)
         if m < 2:
             break
-        _share(grp, m, ef, st.g, load_a, pred)
+        if zero_load:
+            if not _trusted(st.zl_obs, grp, m):
+                break
+            _share(grp, m, st.ez, st.gz, 0.0, pred)
+        else:
+            _share(grp, m, ef, st.g, load_a, pred)
         j = -1
         top = -1
         for q in range(m):
             x = grp[q]
             if top < 0 or ef[x] > ef[top]:
                 top = x
-            if not skip[x] and pred[x] > prm.i_rev and (j < 0 or pred[x] > pred[j]):
+            if skip[x]:
+                continue
+            if zero_load:
+                held_r3 = t - forced_s[p, x] < R3_HOLD_S - EPS_S  # False when NaN
+                if held_r3 or not pred[x] > prm.open_ratio * i_lim[x]:
+                    continue
+                if j < 0 or pred[x] / i_lim[x] > pred[j] / i_lim[j]:
+                    j = x
+            elif pred[x] > prm.i_rev and (j < 0 or pred[x] > pred[j]):
                 j = x
         if j < 0:
             break
         chg_on[p, j] = False
         st.cut[j] = True
         st.conduct_since_s[p, j] = np.nan
-        r = emit(ev, p, src, HANDOVER, j, t)
-        ev.val[r, 0] = -pred[j]
-        ev.val[r, 1] = prm.i_rev
-        ev.val[r, 2] = PATH_CHG
-        ev.val[r, 3] = j
-        ev.val[r, 4] = top
+        if zero_load:
+            st.zl_open_s[p, j] = t
+            r = emit(ev, p, src, ZERO_LOAD_OPEN, j, t)
+            ev.val[r, 0] = pred[j]
+            ev.val[r, 1] = i_lim[j]
+            ev.val[r, 2] = j
+        else:
+            r = emit(ev, p, src, HANDOVER, j, t)
+            ev.val[r, 0] = -pred[j]
+            ev.val[r, 1] = prm.i_rev
+            ev.val[r, 2] = PATH_CHG
+            ev.val[r, 3] = j
+            ev.val[r, 4] = top
+
+
+@kernel_inline
+def _open_charged(
+    prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, load_a: float,
+    t: float,
+) -> None:  # fmt: skip
+    """The hand-over and the cascade (:func:`_open_worst` at the present load): used after the
+    reverse cut (so the remaining siblings do not pour the same current into the next battery
+    in the following period) and after R3 (the hand-over)."""
+    _open_worst(prm, st, ev, src, p, load_a, t, False)
 
 
 @kernel_inline
 def _open_predicted(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, t: float
 ) -> None:  # fmt: skip
-    """Rule 8b (issue #28): open, worst first, the charge FET of every engaged battery that
-    the zero-load prediction puts above ``open_ratio`` x its charge limit, predicting the rest
-    again after each; only while every engaged battery's prediction sources are the trusted
-    observer's (the -dV/dI estimate is too uncertain to act on: the old guard that acted on it
-    defeated co-discharge), and never a battery R3 closed (``skip``, ``forced``: its diode
-    would carry the current again). It stays admitted: the engage rule closes it again once
-    the prediction with it engaged is within ``charge_limit_margin`` x the limits and it would
-    discharge. Why: after a join the joiner polarises and its fast voltage falls below the
-    others' while nothing changes the FETs; the circulating current at a load loss then grows
-    past the limit (``bench_zero_load`` seed 25: 1.40x after 30 s, predicted 1.47x)."""
-    state = st.state
-    chg_on = st.chg_on
-    pred = st.pred
+    """Rule 8b (issue #28; :func:`_open_worst` at zero load): open an engaged battery the
+    trusted observer's prediction puts above ``open_ratio`` x its charge limit. The -dV/dI
+    estimate is too uncertain to act on (the old guard that acted on it defeated
+    co-discharge); a battery R3 closed is not opened (its diode would carry the current
+    again). It stays admitted: the engage rule closes it again after ``ZL_DWELL_S`` once the
+    prediction with it engaged is within ``risk_clear_ratio`` x the limits. Why: after a join
+    the joiner polarises and its fast voltage falls below the others' while nothing changes
+    the FETs; the circulating current at a load loss then grows past the limit
+    (``bench_zero_load`` seed 25: 1.40x after 30 s, predicted 1.47x)."""
+    _open_worst(prm, st, ev, src, p, 0.0, t, True)
+
+
+@kernel_inline
+def _diode_holds(
+    prm: SequencingParams, st: SequencingState, p: int, k: int, cur_a: float
+) -> bool:  # fmt: skip
+    """Rule 8c (issue #28): must R3 leave battery ``k``'s charge FET off although its diode
+    conducts? Yes while the diode carries at most ``diode_hold_a`` and the trusted zero-load
+    prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its charge limit.
+    A sibling it would expose is no reason: ``k`` is then the higher one, and the hand-over
+    and rule 8b open the sibling, as the spec's R3 does.
+
+    Embodiment 5 closes the FET because discharge current means "the battery is the higher
+    one, no other battery can charge it". Under a heavy load that premise fails: the bus sags
+    more than the diode drop below a *lower* battery, its diode conducts, and once R3 has
+    closed it the others push their EMF difference into it the moment the load goes (the
+    R3-forced class of ``bench_zero_load``). On its diode it cannot be charged; the diode
+    takes only what exceeds its 0.6 V drop, so its heat is bounded by the cap."""
+    if not cur_a <= prm.diode_hold_a:
+        return False
     grp = st.grp
-    i_lim = st.i_lim
-    forced_s = st.forced_s
-    skip = st.skip
-    zl = st.zl_obs
-    while True:
-        m = _engaged(state, chg_on, p, grp, -1)
-        if m < 2:
-            break
-        trusted = True
-        for q in range(m):
-            if not zl[grp[q]]:
-                trusted = False
-        if not trusted:
-            break
-        _share(grp, m, st.ez, st.gz, 0.0, pred)
-        j = -1
-        for q in range(m):
-            x = grp[q]
-            held_r3 = t - forced_s[p, x] < R3_HOLD_S - EPS_S  # False when NaN
-            if held_r3 or skip[x] or not pred[x] > prm.open_ratio * i_lim[x]:
-                continue
-            if j < 0 or pred[x] / i_lim[x] > pred[j] / i_lim[j]:
-                j = x
-        if j < 0:
-            break
-        chg_on[p, j] = False
-        st.cut[j] = True
-        st.zl_open_s[p, j] = t
-        st.conduct_since_s[p, j] = np.nan
-        r = emit(ev, p, src, ZERO_LOAD_OPEN, j, t)
-        ev.val[r, 0] = pred[j]
-        ev.val[r, 1] = i_lim[j]
-        ev.val[r, 2] = j
+    pred = st.pred
+    m = _engaged(st.state, st.chg_on, p, grp, k)
+    if m < 2 or not _trusted(st.zl_obs, grp, m):
+        return False
+    _share(grp, m, st.ez, st.gz, 0.0, pred)
+    above: bool = pred[k] > prm.hold_ratio * st.i_lim[k]
+    return above
 
 
 @kernel_inline
@@ -814,17 +867,34 @@ def _discharge_tick(
     for k in range(n):
         if state[p, k] != DISCHARGING and state[p, k] != STANDBY:
             conduct_since_s[p, k] = np.nan
+            st.diode_held[p, k] = False
             continue
         through = (not was_c[k]) and was_d[k] and cur[k] > i_det
         if chg_on[p, k]:
+            st.diode_held[p, k] = False
             # The engage rule closed it in this period while its diode carried discharge
             # current: like one R3 closes, it sources, so the hand-over must not reopen it
             # (it did, and the diode kept conducting past t_on: #18's deadline property).
             conduct_since_s[p, k] = np.nan
             skip[k] = through
             continue
+        if not through:
+            st.diode_held[p, k] = False
+        elif _diode_holds(prm, st, p, k, cur[k]):
+            # Rule 8c: on its diode it cannot be charged; the episode's clock runs on.
+            if math.isnan(conduct_since_s[p, k]):
+                conduct_since_s[p, k] = t
+            if not st.diode_held[p, k]:
+                st.diode_held[p, k] = True
+                r = emit(ev, p, src, DIODE_HOLD, k, t)
+                ev.val[r, 0] = pred[k]
+                ev.val[r, 1] = i_lim[k]
+                ev.val[r, 2] = cur[k]
+                ev.val[r, 3] = k
+            continue
         if not _diode_rule(prm, state, conduct_since_s, ev, src, p, k, through, t, dt):
             continue
+        st.diode_held[p, k] = False
         if state[p, k] == STANDBY:
             r = _set(sw, ev, src, p, k, DISCHARGING, True, t, JOIN_R3, R_R3)
             if r >= 0:
@@ -1314,4 +1384,4 @@ def close_out_packs(
 
 def max_events(n: int) -> int:
     """Upper bound of the events one pack can emit in one step (N batteries)."""
-    return n * n + 16 * n + 8
+    return n * n + 17 * n + 8
