@@ -404,3 +404,11 @@ def test_a_wrong_start_does_not_pass_into_the_capacity_while_charging_from_empty
     assert row["status"] == "ok", row.get("error")
     assert row["soc_err_rms"] <= 0.02 and row["soc_err_max"] <= 0.03, (
         row["soc_err_rms"], row["soc_err_max"])  # fmt: skip
+
+
+@pytest.mark.parametrize("swing", [-0.1, 1.5, math.nan])
+def test_capacity_swing_out_of_range_names_the_field(swing: float) -> None:
+    data = read_toml(EXAMPLES / "soc_observer_sensors.toml")
+    data["soc"] = {"ekf_capacity_swing": swing}
+    with pytest.raises(ConfigError, match="ekf_capacity_swing"):
+        parse_config(data, "soc_observer_sensors")
