@@ -392,15 +392,6 @@ SOC = [
     _m("soc", "equalizer-current-ignored",
        "    return float(cur + p_in / v_sum - st.bal_a[p, i, g])\n", "    return cur\n",
        "the observer counts only the battery current, not the equalizers' into its group"),
-    # issue #28, h28obs: the capacity held while the SOC converges
-    _m("soc", "capacity-open-from-start",
-       "    if st.swing_ah[p, i] < prm.cap_swing_min * st.x[p, i, ob.X_CAP]:\n        return\n",
-       "    if False:\n        return\n",
-       "the capacity learns while the SOC still converges from a wrong start (it soaks it)"),
-    Mutant("soc", "consider-capacity-moves",
-           "    if not learn_cap:\n        kv[p, i, X_CAP] = 0.0\n",
-           "    if False:\n        kv[p, i, X_CAP] = 0.0\n",
-           "a held (consider) capacity still takes its Kalman gain", file="observer.py"),
 ]
 
 EQUALIZATION = [

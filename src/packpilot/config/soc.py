@@ -72,13 +72,6 @@ class SocConfig(Strict):
         default=1e-6,
         description="Random walk of the capacity (relative, per sqrt(s)): slow, across cycles.",
     )
-    ekf_capacity_swing: float = Field(
-        default=0.4,
-        description="The capacity is learned only after the battery has moved this fraction "
-        "of its capacity (charge or discharge) since the observer (re)started (0..1; 0: from "
-        "the start): until then the SOC is still converging and its corrections would pass "
-        "into the capacity.",
-    )
     ekf_offset_walk_a: float = Field(
         default=2e-5, description="Random walk of the current-sensor offset (A per sqrt(s))."
     )
@@ -89,12 +82,7 @@ class SocConfig(Strict):
         default=0.1, description="Prior relative standard deviation of the resistance scale."
     )
     ekf_capacity_sigma0: float = Field(
-        default=0.05,
-        description="Prior relative standard deviation of the capacity (0.05; 0.1 until issue "
-        "#28's campaign: when the capacity opened to learning with a 10 % variance against an "
-        "over-confident SOC it soaked SOC error: +11..20 % on two sequencing examples, a "
-        "parallel run and staged charging missing 2 %/3 %). One full cycle still learns a "
-        "capacity 10 % off to within 1 %.",
+        default=0.1, description="Prior relative standard deviation of the capacity."
     )
     ekf_offset_sigma0_a: float = Field(
         default=0.0,
@@ -168,10 +156,6 @@ class SocConfig(Strict):
             v = getattr(self, name)
             if not (_finite(v) and 0.0 <= v <= 10.0):
                 raise ValueError(f"{name} must be within 0..10, got {v}")
-        if not (_finite(self.ekf_capacity_swing) and 0.0 <= self.ekf_capacity_swing <= 1.0):
-            raise ValueError(
-                f"ekf_capacity_swing must be within 0..1, got {self.ekf_capacity_swing}"
-            )
         if not (_finite(self.ekf_soc_sigma0) and 0.0 < self.ekf_soc_sigma0 <= 1.0):
             raise ValueError(f"ekf_soc_sigma0 must be within 0..1, got {self.ekf_soc_sigma0}")
         if not (_finite(self.rest_current_a) and 0.0 < self.rest_current_a <= DETECT_MAX_A):

@@ -190,17 +190,11 @@ def predict(
 def correct(
     x: F64, cov: F64, hv: F64, kv: F64, wk: F64, p: int, i: int, y_v: float, cur_a: float,
     r0: float, ocv_soc: F64, ocv_v: F64, du_t: F64, du_tab: F64, t_ref: float, temp_c: float,
-    var_v: float, learn_cap: bool,
+    var_v: float,
 ) -> float:  # fmt: skip
     """Measurement update with the cell voltage ``y_v`` (the OCV at ``temp_c``,
     :func:`ocv_temp_at`); returns the normalised innovation squared (innovation^2 / its
-    predicted variance), NaN when the measurement was unusable.
-
-    ``learn_cap`` False: the capacity is a *consider* state (Schmidt-Kalman): its gain is zero,
-    so this innovation does not move it, and the covariance is updated for exactly that gain
-    (``P - K H P - P H' K' + K S K'``): the capacity's variance stays, its correlations shrink
-    as the other states learn, and the SOC's variance keeps what the unknown capacity adds to
-    it. Why held: see ``rules._capacity_gate``."""
+    predicted variance), NaN when the measurement was unusable."""
     if not math.isfinite(y_v):
         return math.nan
     rs = x[p, i, X_RSCALE]
@@ -221,21 +215,12 @@ def correct(
         s += hv[p, i, r] * acc
     if not (s > 0.0):
         return math.nan
-    ph_cap = kv[p, i, X_CAP]  # (P H')[cap], before the gain is formed
     for r in range(N_X):
         kv[p, i, r] = kv[p, i, r] / s
-    if not learn_cap:
-        kv[p, i, X_CAP] = 0.0
-    for r in range(N_X):
         x[p, i, r] += kv[p, i, r] * nu
     for r in range(N_X):  # P -= K S K' (= K H P), kept symmetric
         for c in range(N_X):
             wk[p, i, r, c] = cov[p, i, r, c] - kv[p, i, r] * s * kv[p, i, c]
-    if not learn_cap:  # the consider row: P[cap, c] - (P H')[cap] K[c]
-        for c in range(N_X):
-            if c != X_CAP:
-                wk[p, i, X_CAP, c] = cov[p, i, X_CAP, c] - ph_cap * kv[p, i, c]
-                wk[p, i, c, X_CAP] = wk[p, i, X_CAP, c]
     for r in range(N_X):
         for c in range(N_X):
             cov[p, i, r, c] = 0.5 * (wk[p, i, r, c] + wk[p, i, c, r])

@@ -115,10 +115,6 @@ class SocParams(NamedTuple):
     offset (A/sqrt(s))."""
     var_v: float
     """Variance of the cell-voltage measurement (V^2): sensor noise plus model error."""
-    cap_swing_min: float
-    """The capacity state learns only once the tracked cell has moved this fraction of its
-    capacity (charge or discharge) since the observer (re)started (0: from the start); until
-    then it is a consider state (:func:`_capacity_gate`)."""
     nis_window_s: float
     nis_limit: float
     offset_max_a: float
@@ -157,11 +153,6 @@ class SocState(NamedTuple):
     """(P, B) time since the observer (re)started."""
     obs_ok: NDArray[np.bool_]
     """(P, B) the observer is the SOC source (passed its window test)."""
-    swing_ah: F64
-    """(P, B) charge through the tracked cell since the observer (re)started (Ah, both
-    directions counted)."""
-    cap_open: NDArray[np.bool_]
-    """(P, B) the capacity state learns (``swing_ah`` has reached ``cap_swing_min``)."""
     grp_lp: F64
     """(P, B, G) each group's mean cell voltage, low-passed over ``weak_tau_s`` (NaN: not
     read yet): the weakest group is the lowest."""
@@ -393,8 +384,6 @@ def _restart(prm: SocParams, st: SocState, tp: PackArrays, p: int, i: int) -> No
     ob.reset(st.x, st.cov, p, i, st.soc[p, i], tp.capacity_ah[p, i], prm.r_nom[i], prm.sig0)
     st.nis_avg[p, i] = 1.0
     st.obs_age_s[p, i] = 0.0
-    st.swing_ah[p, i] = 0.0
-    st.cap_open[p, i] = False
 
 
 @kernel_inline
@@ -432,39 +421,13 @@ def _start_from_ocv(
         _restart(prm, st, tp, p, i)
         return
     ob.reset(st.x, st.cov, p, i, s, tp.capacity_ah[p, i], prm.r_nom[i], prm.sig0)
-    st.swing_ah[p, i] = 0.0
-    st.cap_open[p, i] = False
     r0 = ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, s)
     ob.correct(st.x, st.cov, st.hv, st.kv, st.wk, p, i, y, cur, r0, prm.ocv_soc, prm.ocv_v,
-               prm.du_t, prm.du_tab, prm.t_ref_c, temp, prm.var_v, False)  # fmt: skip
+               prm.du_t, prm.du_tab, prm.t_ref_c, temp, prm.var_v)  # fmt: skip
     ob.bound(st.x, st.cov, p, i, tp.capacity_ah[p, i], prm.r_nom[i], prm.offset_max_a)
     st.nis_avg[p, i] = 1.0
     st.obs_age_s[p, i] = 0.0
     st.obs_ok[p, i] = _finite_state(st, p, i)
-
-
-@kernel_inline
-def _capacity_gate(prm: SocParams, st: SocState, p: int, i: int, cur: float, dt: float) -> None:
-    """Open the capacity to learning once the charge through the tracked cell since the
-    observer (re)started reaches ``cap_swing_min`` of the capacity; until then it is a consider
-    state (:func:`.observer.correct` with ``learn_cap`` False: no innovation moves it, the
-    SOC's variance keeps what its uncertainty adds). At the opening its correlations with the
-    other states are cleared: it learns from an anchor, only from the charge counted after the
-    SOC converged (a capacity is what one ampere-hour moves the SOC by, between SOCs the
-    voltage tells). Why: before that, each voltage correction of the SOC is also a correction
-    of the wrong start, and an open capacity took part of it (issue #28 campaign: staged
-    charging 95 -> 140 Ah in the first 4 minutes, the SOC then drifting 8 % over the charge;
-    LFP telecom 93 -> 102 Ah over the first discharge)."""
-    if st.cap_open[p, i]:
-        return
-    st.swing_ah[p, i] += abs(cur - st.x[p, i, ob.X_OFFSET]) * dt / 3600.0
-    if st.swing_ah[p, i] < prm.cap_swing_min * st.x[p, i, ob.X_CAP]:
-        return
-    st.cap_open[p, i] = True
-    for r in range(ob.N_X):
-        if r != ob.X_CAP:
-            st.cov[p, i, r, ob.X_CAP] = 0.0
-            st.cov[p, i, ob.X_CAP, r] = 0.0
 
 
 @kernel_inline
@@ -497,11 +460,10 @@ def _observe(
     r1 = ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, soc)
     tau = ob.table2(prm.tau_tab, prm.ax_t, prm.ax_s, temp, soc)
     ob.predict(st.x, st.cov, st.fm, st.wk, p, i, cur, dt, r1, tau, prm.walk)
-    _capacity_gate(prm, st, p, i, cur, dt)
     r0 = ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, st.x[p, i, ob.X_SOC])
     nis = ob.correct(st.x, st.cov, st.hv, st.kv, st.wk, p, i, y, cur, r0,
                      prm.ocv_soc, prm.ocv_v, prm.du_t, prm.du_tab, prm.t_ref_c, temp,
-                     prm.var_v, st.cap_open[p, i])  # fmt: skip
+                     prm.var_v)  # fmt: skip
     ob.bound(st.x, st.cov, p, i, tp.capacity_ah[p, i], prm.r_nom[i], prm.offset_max_a)
     st.obs_age_s[p, i] += dt
     if math.isfinite(nis):
