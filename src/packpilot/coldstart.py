@@ -55,12 +55,13 @@ PLANT_COMPILE_CPU_S = 45.0
 """Cold compile of the plant kernels, CPU s (docs/kernels.md: smart_battery, no method)."""
 METHOD_COMPILE_CPU_S = {
     "charging": 56.5, "sequencing": 46.9, "plausibility": 29.2, "limits": 18.3,
-    "protection": 12.6, "equalization": 7.1, "soc": 71.0, "supervisor": 24.5,
+    "protection": 12.6, "equalization": 7.1, "soc": 131.0, "supervisor": 24.5,
 }  # fmt: skip
 """Cold compile per method's ``step_packs`` (exclusive CPU s, docs/kernels.md); the
 supervisor's rules plus the fused step's own part for ``supervisor``. ``soc`` since #28's
 observer: 71-76 CPU s (``tests/precompile.py``'s per-job figures, docs/kernels.md CI section;
-the coulomb counter alone was 1.9 s)."""
+the coulomb counter alone was 1.9 s); 131 CPU s since the CC/CV time to full (its three
+kernels compiled once each; inlined into the rule they cost 517 CPU s)."""
 INTERP_STEP_S = 0.4e-3
 INTERP_CELL_STEP_S = 50e-6
 INTERP_METHOD_STEP_S = 0.16e-3

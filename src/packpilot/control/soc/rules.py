@@ -575,7 +575,7 @@ def _mean_cell_above_v(st: SocState, m: MeasArrays, p: int, i: int) -> float:
     return d if math.isfinite(d) and d > 0.0 else 0.0
 
 
-@kernel_inline
+@kernel
 def cv_taper_s(prm: SocParams, st: SocState, p: int, i: int, soc: float, v1: float,
                cur: float, temp: float, q: float) -> float:  # fmt: skip
     """Seconds for the charge current to taper from ``cur`` (< 0) to the end current with
@@ -613,7 +613,7 @@ def cv_taper_s(prm: SocParams, st: SocState, p: int, i: int, soc: float, v1: flo
     return math.nan
 
 
-@kernel_inline
+@kernel
 def _cc_cell_v(prm: SocParams, st: SocState, p: int, i: int, soc0: float, chg_a: float,
                temp: float, t: float, q: float) -> float:  # fmt: skip
     """The mean cell's terminal voltage ``t`` seconds into a charge at the constant
@@ -630,7 +630,7 @@ def _cc_cell_v(prm: SocParams, st: SocState, p: int, i: int, soc0: float, chg_a:
     return ocv + r0 * chg_a - v1
 
 
-@kernel_inline
+@kernel
 def time_to_full(prm: SocParams, st: SocState, m: MeasArrays, p: int, i: int, chg_a: float,
                  elapsed_s: float, temp: float) -> float:  # fmt: skip
     """Seconds until a CC/CV charge ends, on the battery's mean cell (the SOC whose OCV is
