@@ -89,3 +89,20 @@ def test_the_real_warming_flight_is_fitted_with_self_heating(tmp_path: Path) -> 
     cell = load_parameter_file(out)
     r0 = np.asarray(cell.r0_ohm)[:, 0, 0]
     assert r0[0] > r0[-1]  # colder = higher, warmer = lower
+
+
+def test_no_refit_takes_the_heat_capacity_below_what_a_cell_can_have() -> None:
+    """The real Maccor pulse test (no temperature logged): self-heating is kept at the first
+    fit (264 J/K), and the refits after it (OCV correction, second RC pair) used to take the
+    heat capacity to 18.0 J/K for 3.84 Ah = 4.7 J/(K Ah), below MIN_HEAT_J_PER_K_AH: a modelled
+    rise of 43 K in a cycler. The floor is now a bound of every refit; the reported per-cell
+    heat capacity is the per-Ah one times the capacity."""
+    real = Path(__file__).resolve().parents[1] / "examples" / "logs" / "real"
+    profs, _ = profiles_from_logs([real / "maccor_beep_xtesladiag_pulse.070"], None, None)
+    v = fit_and_validate(profs, UAV.ocv_soc, UAV.ocv_table_v)
+    p = v.result.params
+    assert "heat_c_j_per_k" in p
+    q = p["capacity_ah"].value
+    assert p["heat_c_j_per_k"].value / q >= fitmod.MIN_HEAT_J_PER_K_AH * (1.0 - 1e-9)
+    assert p["heat_c_j_per_k_ah"].value == pytest.approx(p["heat_c_j_per_k"].value / q)
+    assert v.result.values.heat_c_j_per_k == pytest.approx(p["heat_c_j_per_k"].value)
