@@ -15,8 +15,9 @@ from packpilot.cli import app
 from packpilot.model.cell import load_parameter_file, load_parameter_set, simulate_current
 from packpilot.model.fit.fit import fit
 from packpilot.model.fit.profile import EcmValues, Profile, predict
-from packpilot.model.fit.synthetic import Truth, synthetic_log
+from packpilot.model.fit.synthetic import Truth, ocv_bump, ocv_plant_params, synthetic_log
 from packpilot.model.fit.validate import fit_and_validate
+from packpilot.replay.fitlogs import profiles_from_logs
 
 UAV = load_parameter_set("uav_5ah")
 REAL = Path(__file__).resolve().parents[1] / "examples" / "logs" / "real"
@@ -99,7 +100,7 @@ def test_a_second_rc_pair_only_where_resolved() -> None:
     """One-RC plant: the second pair is not kept, and the notes say why."""
     prof = synthetic_log(Truth(), 1.0, noise_v=NOISE_V, seconds=900)
     r = fit([prof], UAV.ocv_soc, UAV.ocv_table_v)
-    assert r.n_rc == 1 and any("second RC pair not resolved" in n for n in r.notes)
+    assert r.n_rc == 1 and any(n.startswith("second RC pair not") for n in r.notes)
 
 
 def test_several_logs_share_one_cell_and_get_their_own_initial_soc() -> None:
@@ -174,3 +175,37 @@ def test_time_to_a_level_ignores_a_pulse_dip() -> None:
     v[60:] = 3.45
     assert _first_below(t, v, 3.5) == pytest.approx(65.0)
     assert _first_below(t, v, 3.3) is None
+
+
+def test_a_slow_branch_seen_through_its_capacitance_is_kept() -> None:
+    """The real Maccor pulse test (a 9.4 A pulse, 30 min of relaxation, a 2C charge, a 2C
+    discharge): its training part holds a rest after load, so the second RC pair is judged by
+    Schwarz's criterion (BIC +29) and kept although its R2 and tau2 are not identified one by
+    one — the data see it through C2 = tau2 / R2 — and the held-out discharge is predicted
+    better than PyBOP's CMA-ES on the same split (42.55-42.9 mV over three runs,
+    benchmarks/RESULTS.md). Before (a 10 % RMSE gain, here 7 %, and R2, tau2 each
+    identified): one pair, 53.5 mV."""
+    profs, _ = profiles_from_logs([REAL / "maccor_beep_xtesladiag_pulse.070"], None, None)
+    v = fit_and_validate(profs, UAV.ocv_soc, UAV.ocv_table_v)
+    r = v.result
+    assert r.n_rc == 2
+    kept = [n for n in r.notes if n.startswith("second RC pair kept")]
+    assert kept and "rest(s) after load" in kept[0] and "C2 = tau2 / R2" in kept[0]
+    taus = sorted(p.value for k, p in r.params.items() if k.startswith("tau"))
+    assert taus[1] > 3.0 * taus[0]
+    assert v.checks[0].rmse_v < 0.0425
+
+
+def test_without_a_rest_after_load_a_second_pair_needs_a_clear_gain() -> None:
+    """A plant-made 10 Hz flight whose OCV has an 80 mV bump (10 mV noise, one RC pair, no
+    rest after load): a second pair lowers the training RMSE from 10.19 to 10.15 mV, which
+    Schwarz's criterion alone accepts at 9,810 samples (+53); it then explains the corrected
+    OCV's leftover shape (held-out 27.7 mV against 12.8 with one pair). Without a rest after
+    load the second pair needs a 10 % gain: one pair kept, and the notes say why."""
+    plant = ocv_plant_params(Truth(), ocv_bump(UAV.ocv_soc, 0.08))
+    prof = synthetic_log(Truth(), 10.0, noise_v=NOISE_V, gain=1.01, rest_s=30, seed=1,
+                         plant=plant)  # fmt: skip
+    v = fit_and_validate([prof], UAV.ocv_soc, UAV.ocv_table_v)
+    assert v.result.n_rc == 1
+    assert any("no rest after load" in n for n in v.result.notes)
+    assert v.checks[0].rmse_v < 1.5 * NOISE_V
