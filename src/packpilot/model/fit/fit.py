@@ -579,7 +579,7 @@ def _maybe_self_heating(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequenc
         notes.append(
             f"self-heating rejected ({what}): the fit runs to the least heat capacity a Li-ion "
             f"cell can have ({MIN_HEAT_J_PER_K_AH:g} J/K per Ah, its bound): the data ask for "
-            "less, so the \"heat\" explains something else; constant resistances kept"
+            'less, so the "heat" explains something else; constant resistances kept'
         )
         return x, res, jac, lay
     if rmseh < (1.0 - SELF_HEATING_GAIN) * rmse1:
