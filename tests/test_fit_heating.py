@@ -106,3 +106,21 @@ def test_no_refit_takes_the_heat_capacity_below_what_a_cell_can_have() -> None:
     assert p["heat_c_j_per_k"].value / q >= fitmod.MIN_HEAT_J_PER_K_AH * (1.0 - 1e-9)
     assert p["heat_c_j_per_k_ah"].value == pytest.approx(p["heat_c_j_per_k"].value / q)
     assert v.result.values.heat_c_j_per_k == pytest.approx(p["heat_c_j_per_k"].value)
+
+
+def test_no_fit_cools_a_cell_less_than_still_air_over_its_share_of_a_pack() -> None:
+    """The dronekit tlog (3S 2650 mAh, no temperature logged): the self-heating conductance ran
+    to its old floor of 1 mW/K per cell, a pack heating with no cooling at all. It is now fitted
+    per Ah^(2/3) with MIN_HEAT_G_W_PER_K_AH23 as its lower bound (natural convection over a
+    cell's share of a cube-shaped pack): at least 7.7 mW/K for 2.65 Ah."""
+    real = Path(__file__).resolve().parents[1] / "examples" / "logs" / "real"
+    profs, _ = profiles_from_logs([real / "arducopter_dronekit_flight_battery.tlog"], 3, None)
+    v = fit_and_validate(profs, UAV.ocv_soc, UAV.ocv_table_v)
+    p = v.result.params
+    assert "heat_g_w_per_k" in p
+    q = p["capacity_ah"].value
+    g = p["heat_g_w_per_k"].value
+    assert g >= fitmod.MIN_HEAT_G_W_PER_K_AH23 * q ** (2.0 / 3.0) * (1.0 - 1e-9)
+    assert g > 2e-3  # the old floor was 1e-3 W/K for any cell
+    assert p["heat_g_w_per_k_ah23"].value == pytest.approx(g / q ** (2.0 / 3.0))
+    assert v.result.values.heat_g_w_per_k == pytest.approx(g)

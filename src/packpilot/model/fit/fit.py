@@ -82,6 +82,34 @@ every refit (the OCV correction's and the second RC pair's too: before, only the
 self-heating fit was checked, and the later refits took the Maccor pulse test's to 4.7
 J/(K Ah), a modelled rise of 43 K in a cycler); a first self-heating fit that runs to the bound
 is rejected, with the reason."""
+NATURAL_CONVECTION_W_PER_M2K = 5.0
+"""The least heat transfer coefficient from a pack's outer surface to air: the low end of
+natural convection in still air (5-10 W/(m2 K) for a small body a few K to tens of K above
+ambient), radiation (about 5.5 W/(m2 K) more for a wrap of emissivity 0.9 at 300 K) and any
+airflow (prop wash, the cycler's fan) left out: a floor, not an estimate."""
+MAX_WH_PER_L = 600.0
+"""The most energy per volume a Li-ion cell holds (Wh/L; high-energy pouch and cylindrical cells
+reach 500-700): the densest cell gives the least volume, hence the least surface, per Ah."""
+NOMINAL_CELL_V = 3.7
+"""Energy per Ah of a Li-ion cell (Wh/Ah, nominal voltage of LCO/NMC/LiPo; LFP's 3.2 V comes with
+a lower Wh/L, so a larger volume per Ah: 3.7 V over MAX_WH_PER_L is the least volume)."""
+MAX_CELLS_PER_PACK = 16
+"""A cell's share of its pack's outer surface falls as the pack grows (n^(-1/3) for a cube):
+the floor takes the largest pack PackPilot's logs come from (UAV packs up to 14S; 16 cells)."""
+MIN_HEAT_G_W_PER_K_AH23 = (
+    NATURAL_CONVECTION_W_PER_M2K
+    * 6.0
+    * (MAX_CELLS_PER_PACK * NOMINAL_CELL_V / (MAX_WH_PER_L * 1000.0)) ** (2.0 / 3.0)
+    / MAX_CELLS_PER_PACK
+)
+"""The least conductance to ambient a cell of capacity Q can have, per Ah^(2/3) (a surface
+scales with volume^(2/3)): h = NATURAL_CONVECTION_W_PER_M2K over the cell's share of the outer
+surface of a cube-shaped pack (the least surface a box of that volume has) of
+MAX_CELLS_PER_PACK cells at MAX_WH_PER_L: G_min = h * 6 (n * 3.7 V * Q / 600 Wh/L)^(2/3) / n
+= 4.0e-3 W/K per Ah^(2/3) (7.7 mW/K for a 2.65 Ah cell; a real 3S 2650 mAh pack, 135 x 43 x 22
+mm, has 4.2x that surface per cell). Before, G's floor was 1 mW/K for any cell, and the
+dronekit tlog's fit ran to it: a pack heating with no cooling at all. The conductance is
+fitted per Ah^(2/3) with this as its lower bound in every refit, like the heat capacity."""
 HEAT_B_K = 20000.0 / 8.314462618
 """Arrhenius constant of the resistances under self-heating (K): Ea = 20 kJ/mol, uav_5ah's and
 PyBaMM ECM_Example's law (src/packpilot/data/cells/README.md: inside the 11-53 kJ/mol of PyBaMM's
@@ -94,13 +122,14 @@ BOUNDS = {
     "tau2_s": (1.0, 20000.0),
     "b_k": (0.0, 8000.0),
     "heat_c_j_per_k_ah": (MIN_HEAT_J_PER_K_AH, 1000.0),
-    "heat_g_w_per_k": (1e-3, 50.0),
+    "heat_g_w_per_k_ah23": (MIN_HEAT_G_W_PER_K_AH23, 50.0),
 }
 """Bounds per cell: resistances 0.1 mOhm .. 1 Ohm, time constants 50 ms .. 50 min, heat
-capacity per Ah of capacity 9.9 .. 1000 J/(K Ah)."""
+capacity per Ah of capacity 9.9 .. 1000 J/(K Ah), conductance to ambient per Ah^(2/3)
+4.0e-3 .. 50 W/(K Ah^(2/3))."""
 UNITS = {"capacity_ah": "Ah", "r0_ohm": "Ohm", "r1_ohm": "Ohm", "tau1_s": "s",
          "r2_ohm": "Ohm", "tau2_s": "s", "b_k": "K", "heat_c_j_per_k": "J/K",
-         "heat_c_j_per_k_ah": "J/(K Ah)",
+         "heat_c_j_per_k_ah": "J/(K Ah)", "heat_g_w_per_k_ah23": "W/(K Ah^(2/3))",
          "heat_g_w_per_k": "W/K"}  # fmt: skip
 
 
@@ -190,8 +219,9 @@ class _Layout:
         heat = "heat_c_j_per_k_ah" in p
         b_k = self.heat_b_k if heat else p.get("b_k", 0.0)
         heat_c = p["heat_c_j_per_k_ah"] * p["capacity_ah"] if heat else 0.0
+        heat_g = p["heat_g_w_per_k_ah23"] * p["capacity_ah"] ** (2.0 / 3.0) if heat else 0.0
         vals = EcmValues(p["capacity_ah"], p["r0_ohm"], tuple(rc), b_k, t_ref_c,
-                         heat_c, p.get("heat_g_w_per_k", 0.0))  # fmt: skip
+                         heat_c, heat_g)  # fmt: skip
         return vals, soc0
 
 
@@ -201,7 +231,7 @@ def _layout(n_rc: int, law: bool, q_bounds: tuple[float, float], logs: list[str]
     names = ["capacity_ah", "r0_ohm", "r1_ohm", "tau1_s"]
     names += ["r2_ohm", "tau2_s"] if n_rc == 2 else []
     names += ["b_k"] if law else []
-    names += ["heat_c_j_per_k_ah", "heat_g_w_per_k"] if heat else []
+    names += ["heat_c_j_per_k_ah", "heat_g_w_per_k_ah23"] if heat else []
     lay = _Layout(names, logs)
     for n in names:
         lo, hi = q_bounds if n == "capacity_ah" else BOUNDS[n]
@@ -336,18 +366,28 @@ def _params(lay: _Layout, x: F64, sig: F64, period_s: float, swing: float
     return out, soc0
 
 
-def _heat_capacity(lay: _Layout, params: dict[str, FitParam], cov: F64) -> FitParam:
-    """The cell's heat capacity (J/K): fitted per Ah of capacity (bounded below by
-    MIN_HEAT_J_PER_K_AH in every refit, so no later step can take it below what a cell can
-    have), reported per cell; its uncertainty from both log-scaled factors and their
+def _thermal_per_cell(lay: _Layout, params: dict[str, FitParam], cov: F64) -> None:
+    """The heat capacity and the conductance per cell, from those fitted per Ah (C) and per
+    Ah^(2/3) (G)."""
+    params["heat_c_j_per_k"] = _per_cell(lay, params, cov, "heat_c_j_per_k",
+                                         "heat_c_j_per_k_ah", 1.0)  # fmt: skip
+    params["heat_g_w_per_k"] = _per_cell(lay, params, cov, "heat_g_w_per_k",
+                                         "heat_g_w_per_k_ah23", 2.0 / 3.0)  # fmt: skip
+
+
+def _per_cell(lay: _Layout, params: dict[str, FitParam], cov: F64, name: str, of: str,
+              power: float) -> FitParam:  # fmt: skip
+    """A thermal value per cell from the one fitted per Ah**power of capacity (the heat
+    capacity per Ah, bounded below by MIN_HEAT_J_PER_K_AH; the conductance per Ah^(2/3),
+    bounded below by MIN_HEAT_G_W_PER_K_AH23, in every refit, so no later step can take them
+    below what a cell can have); its uncertainty from both log-scaled factors and their
     covariance."""
-    k = lay.names.index("heat_c_j_per_k_ah")
-    var = cov[0, 0] + cov[k, k] + 2.0 * cov[0, k]
-    per_ah = params["heat_c_j_per_k_ah"]
-    value = per_ah.value * params["capacity_ah"].value
+    k = lay.names.index(of)
+    var = power**2 * cov[0, 0] + cov[k, k] + 2.0 * power * cov[0, k]
+    per = params[of]
+    value = per.value * params["capacity_ah"].value ** power
     rel = math.expm1(min(math.sqrt(max(float(var), 0.0)), 700.0))
-    return FitParam("heat_c_j_per_k", value, UNITS["heat_c_j_per_k"], rel, per_ah.identifiable,
-                    per_ah.reason)  # fmt: skip
+    return FitParam(name, value, UNITS[name], rel, per.identifiable, per.reason)
 
 
 def _merge_flags(out: dict[str, FitParam], period_s: float) -> None:
@@ -532,7 +572,7 @@ def fit(
     swing = max(np.ptp(predict(p, vals, s, *ocv)[1]) for p, s in zip(profs, soc0, strict=True))
     params, soc0p = _params(lay, x, _uncertainty(res, jac), period, float(swing))
     if "heat_c_j_per_k_ah" in params:
-        params["heat_c_j_per_k"] = _heat_capacity(lay, params, _covariance(res, jac))
+        _thermal_per_cell(lay, params, _covariance(res, jac))
     ocv_fit = _ocv_summary(lay, x, res, jac, profs, vals.capacity_ah)
     if ocv_fit is not None:
         q = params["capacity_ah"]
@@ -567,12 +607,14 @@ def _maybe_self_heating(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequenc
     heat = _layout(1, False, q_bounds, lay.logs, heat=True, like=lay)
     lo, hi = np.array(heat.lo), np.array(heat.hi)
     q0 = math.exp(x[0])
+    a23 = q0 ** (2.0 / 3.0)
     starts = [np.clip(np.array([*x[:4], math.log(c), math.log(g), *x[4:]]), lo + 1e-9, hi - 1e-9)
-              for c, g in ((50.0 / q0, 0.5), (200.0 / q0, 2.0), (20.0 / q0, 0.1))]  # fmt: skip
+              for c, g in ((50.0 / q0, 0.5 / a23), (200.0 / q0, 2.0 / a23),
+                           (20.0 / q0, 0.1 / a23))]  # fmt: skip
     xh, resh, jach = _solve(heat, profs, ocv, t_ref, starts)
     rmseh = float(np.sqrt(np.mean(resh**2)))
-    q, g_w = math.exp(xh[0]), math.exp(xh[5])
-    c_j = q * math.exp(xh[4])
+    q = math.exp(xh[0])
+    c_j, g_w = q * math.exp(xh[4]), q ** (2.0 / 3.0) * math.exp(xh[5])
     what = (f"RMSE {1000 * rmse1:.2f} mV with constant resistances, {1000 * rmseh:.2f} mV "
             f"self-heating (C {c_j:.3g} J/K, G {g_w:.3g} W/K per cell)")  # fmt: skip
     if xh[4] - heat.lo[4] < 1e-3 * (heat.hi[4] - heat.lo[4]):
