@@ -47,8 +47,9 @@ PYBOP = os.environ.get("PACKPILOT_PYBOP_PYTHON")
 unset = the PyBOP columns are left out."""
 
 
-def _pybop(prof: Any, split: int) -> dict[str, Any]:
-    """The same split fitted with PyBOP's CMA-ES, started where PackPilot's first start is."""
+def _pybop(prof: Any, split: int, uav: Any = None) -> dict[str, Any]:
+    """The same split fitted with PyBOP's CMA-ES, started where PackPilot's first start is,
+    with the same chemistry's OCV as PackPilot's fit (``uav``; default uav_5ah)."""
     if not PYBOP:
         return {}
     import numpy as np
@@ -56,7 +57,7 @@ def _pybop(prof: Any, split: int) -> dict[str, Any]:
     from packpilot.model.cell import load_parameter_set
     from packpilot.model.fit.fit import _guess_capacity, _soc_from_ocv
 
-    uav = load_parameter_set("uav_5ah")
+    uav = uav if uav is not None else load_parameter_set("uav_5ah")
     train = prof.window(0, split)
     q0 = _guess_capacity([train], uav.ocv_soc, uav.ocv_table_v)
     s0 = _soc_from_ocv(float(prof.voltage_v[0]), uav.ocv_soc, uav.ocv_table_v)
@@ -197,7 +198,7 @@ def _fit_row(prof: Any, uav: Any) -> dict[str, Any]:
         "self_heating": "heat_c_j_per_k" in p,
         "verdict": v.verdict,
     }  # fmt: skip
-    row.update(_pybop(prof, int(len(prof.t_s) * 0.6)))
+    row.update(_pybop(prof, int(len(prof.t_s) * 0.6), uav))
     return row
 
 

@@ -113,6 +113,30 @@ def test_uav_5ah_resistance_is_arrhenius_20_kj_per_mol() -> None:
     assert dcir(-20.0) / dcir(25.0) == pytest.approx(4.15, abs=0.01)
 
 
+def test_lipo_pouch_ocv_is_ecker2015_and_the_rest_uav_5ah() -> None:
+    """lipo_pouch (#27: a sourced LiPo pouch OCV for `packpilot fit --chemistry`): its OCV is
+    PyBaMM Ecker2015's full-cell curve (Kokam SLPB 75106100) between the 2.5 / 4.2 V limits,
+    recomputed here from the electrode OCPs; resistances and thermal data are uav_5ah's."""
+    pybamm = pytest.importorskip("pybamm")
+    p = load_parameter_set("lipo_pouch")
+    uav = load_parameter_set("uav_5ah")
+    pv = pybamm.ParameterValues("Ecker2015")
+    param = pybamm.LithiumIonParameters()
+    x0, x100, y100, y0 = pybamm.lithium_ion.ElectrodeSOHSolver(
+        pv, param
+    ).get_min_max_stoichiometries()
+    soc = np.array([0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0])
+    up = pv.evaluate(param.p.prim.U(pybamm.Vector(y0 + soc * (y100 - y0)), 298.15)).ravel()
+    un = pv.evaluate(param.n.prim.U(pybamm.Vector(x0 + soc * (x100 - x0)), 298.15)).ravel()
+    np.testing.assert_allclose(ocv_v(p, soc, 25.0), up - un, atol=1e-9)
+    np.testing.assert_allclose(ocv_v(p, [0.0, 1.0], 25.0), [2.5, 4.2], atol=1e-6)
+    assert np.all(np.diff(p.ocv_table_v) > 0)
+    np.testing.assert_array_equal(p.r0_ohm, uav.r0_ohm)
+    np.testing.assert_array_equal(p.c1_f, uav.c1_f)
+    assert p.thermal == uav.thermal
+    assert "Ecker2015" in p.provenance and "BSD-3-Clause" in p.provenance
+
+
 def test_lfp_storage_shape() -> None:
     p = load_parameter_set("lfp_storage")
     ocv = ocv_v(p, np.linspace(0, 1, 101), 25.0)

@@ -21,7 +21,7 @@ from packpilot.errors import ConfigError
 from packpilot.model.thermal import ThermalParams
 
 FORMAT = "packpilot-cell/1"
-PARAMETER_SETS = ("ecm_example", "uav_5ah", "lfp_storage")
+PARAMETER_SETS = ("ecm_example", "uav_5ah", "lfp_storage", "lipo_pouch")
 
 F64 = NDArray[np.float64]
 
@@ -357,7 +357,8 @@ _SET_CACHE: dict[str, CellParams] = {}
 
 
 def load_parameter_set(name: str) -> CellParams:
-    """Load a shipped parameter set: ``ecm_example``, ``uav_5ah`` or ``lfp_storage``.
+    """Load a shipped parameter set: ``ecm_example``, ``uav_5ah``, ``lfp_storage`` or
+    ``lipo_pouch``.
 
     Sets are immutable, so each is parsed once per process and shared.
     """
