@@ -49,8 +49,12 @@ def derive_lipo(uav: CellParams) -> CellParams:
     ocv[inside] = ecker_ocv(SOC[inside])
     slope = (ocv[inside][1] - ocv[inside][0]) / 0.01  # the curve's slope over its first 1 %
     ocv[~inside] = ocv[inside][0] + SOC[~inside] * slope
-    # uav_5ah's dU/dT is tabled on its OCV axis; carried over as a function of SoC
-    dudt_soc = np.interp(uav.dudt_x, uav.ocv_table_v, uav.ocv_soc)
+    # uav_5ah's dU/dT is tabled on its OCV axis; carried over as a function of SoC, on a
+    # uniform 5 % grid (O(1) lookup in the kernels): uav_5ah's value at its own OCV(SoC)
+    dudt_soc = np.round(np.linspace(-0.05, 1.05, 23), 10)
+    at_v = np.interp(dudt_soc, uav.ocv_soc, uav.ocv_table_v)
+    dudt = np.stack([np.interp(at_v, uav.dudt_x, uav.dudt_v_per_k[:, k])
+                     for k in range(uav.dudt_temp_c.size)], axis=1)  # fmt: skip
     provenance = (
         "OCV: PyBaMM 26.10 ParameterValues('Ecker2015') (BSD-3-Clause; Ecker et al., J. "
         "Electrochem. Soc. 162 (2015) A1836, Kokam SLPB 75106100 LiPo pouch cell, graphite / "
@@ -59,7 +63,7 @@ def derive_lipo(uav: CellParams) -> CellParams:
         "uniform 1 % grid to SoC 1.05; below SoC 0 (where the negative stoichiometry leaves its "
         f"table) extended linearly with the first 1 %'s slope ({slope:.2f} V per unit SoC). "
         "Everything else is uav_5ah's (capacity 5 Ah, R0/R1/C1 tables, thermal data, limits "
-        "2.5 / 4.2 V; dU/dT carried over as a function of SoC). Built by "
+        "2.5 / 4.2 V; dU/dT carried over as a function of SoC on a uniform 5 % grid). Built by "
         "derive_lipo_pouch.py; a template for LiPo packs' OCV shape, not a measured cell."
     )
     return CellParams(
@@ -71,7 +75,7 @@ def derive_lipo(uav: CellParams) -> CellParams:
         dudt_axis="soc",
         dudt_x=dudt_soc,
         dudt_temp_c=uav.dudt_temp_c,
-        dudt_v_per_k=uav.dudt_v_per_k,
+        dudt_v_per_k=dudt,
         rc_temp_c=uav.rc_temp_c,
         rc_current_a=uav.rc_current_a,
         rc_soc=uav.rc_soc,
