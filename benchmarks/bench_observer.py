@@ -148,13 +148,16 @@ def run_example(name: str, duration_s: float | None = None, aged: bool = False) 
     return out
 
 
-def cutoff_figures(profile: bool, cutoff_v: float = 3.3) -> dict[str, float]:
+def cutoff_figures(profile: bool, cutoff_v: float = 3.3,
+                   soc_error: float | None = SOC_ERROR0) -> dict[str, float]:  # fmt: skip
     """Time to cut-off against the plant: ``soc_observer_sensors`` with its sensor errors at a
     constant 14 A (``profile`` False) or on its flight profile repeated (True), from 95 % until
-    the weakest cell's true voltage reaches ``cutoff_v``. Over the last 10 minutes (after the
-    first 5): the largest error relative to the true remaining time (ignoring the last 10 s,
-    where one sample is already 10 %), and how often consecutive 1 s samples moved by more
-    than 5 % + 5 s while the recent load moved by less than 20 %."""
+    the weakest cell's true voltage reaches ``cutoff_v``, the BMS starting ``soc_error`` wrong
+    (toward the middle, as :func:`run_example`: the acceptance's 10 %; None: from the first
+    sample's OCV under load, as the BMS would). Over the last 10
+    minutes (after the first 5): the largest error relative to the true remaining time
+    (ignoring the last 10 s, where one sample is already 10 %), and how often consecutive 1 s
+    samples moved by more than 5 % + 5 s while the recent load moved by less than 20 %."""
     data: dict[str, Any] = read_toml(ROOT / "examples" / "soc_observer_sensors.toml")
     data["soc"] = {"cutoff_cell_v": cutoff_v}
     data["sim"]["duration_s"] = 20000.0
@@ -165,6 +168,9 @@ def cutoff_figures(profile: bool, cutoff_v: float = 3.3) -> dict[str, float]:
     cfg = parse_config(data, "cutoff")
     loop = ClosedLoop.of(cfg, 1)
     st = soc_part(loop).st
+    if soc_error is not None:
+        s0, _, _ = truth(loop)
+        st.soc[0, :] = np.where(s0 > 0.5, s0 - soc_error, s0 + soc_error)
     dt = cfg.sim.dt_s
     every = round(1.0 / dt)
     rows = []
@@ -320,12 +326,20 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--no-speed", action="store_true")
     ap.add_argument("--cutoff", action="store_true", help="the time-to-cut-off figures")
+    ap.add_argument(
+        "--cutoff-soc-error",
+        type=float,
+        default=SOC_ERROR0,
+        help="the BMS's initial SOC error in the time-to-cut-off runs (negative: "
+        "none set, the first sample's OCV)",
+    )
+    ap.add_argument("--skip-examples", action="store_true", help="no per-example SOC table")
     ap.add_argument("--capacity", action="store_true", help="capacity after one full cycle")
     ap.add_argument("--speed-example", action="append", default=[])
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--aged", action="store_true", help="resistance 1.3x, capacity 7 % wrong")
     a = ap.parse_args(argv)
-    if not a.speed_only:
+    if not (a.speed_only or a.skip_examples):
         print("example | battery | observer RMS / max % | today's RMS / max % | R0 err % | "
               "capacity err % | observer ok | observer RMS % vs the unclamped truth")
         for name in a.examples or EXAMPLES:
@@ -338,9 +352,11 @@ def main(argv: list[str]) -> int:
                       flush=True)  # fmt: skip
     if a.cutoff:
         for prof in (False, True):
-            res = cutoff_figures(prof)
+            err = a.cutoff_soc_error if a.cutoff_soc_error >= 0.0 else None
+            res = cutoff_figures(prof, soc_error=err)
             what = "flight profile repeated" if prof else "constant 14 A"
-            print(f"time to cut-off (3.3 V), {what}: " + ", ".join(
+            start = f"{err:.0%} wrong" if err is not None else "from the OCV under load"
+            print(f"time to cut-off (3.3 V, start {start}), {what}: " + ", ".join(
                 f"{k} {v:.3g}" for k, v in res.items()), flush=True)  # fmt: skip
     if a.capacity:
         with tempfile.TemporaryDirectory() as tmp:
