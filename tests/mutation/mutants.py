@@ -366,7 +366,7 @@ SOC = [
        " / -avg if avg <= -prm.rest_current_a else math.nan)\n",
        "the pre-h28ttf rule: the missing charge at constant current to 100 %, no CV taper"),
     _m("soc", "time-to-full-no-taper",
-       "    return hi + cv_taper_s(prm, st, p, i, soc, v1, -chg_a, temp, q)\n",
+       "    return hi + cv_taper_s(prm, st, p, i, soc, v1, -chg_a, t_cv, q)\n",
        "    return hi\n", "time to full ends where the CV phase begins"),
     _m("soc", "time-to-full-weakest-cell",
        "    soc0 = fmax(soc0, mean) if math.isfinite(mean) else soc0\n", "",
@@ -374,6 +374,39 @@ SOC = [
     _m("soc", "time-to-full-no-countdown",
        "        st.cv_left_s[p, i] = fmax(0.0, st.cv_left_s[p, i] - elapsed_s)\n", "",
        "the CV phase's taper is never counted down"),
+    # issue #28, h28full: the charge path, the exact taper and its temperature
+    _m("soc", "time-to-full-taper-no-charge-path",
+       "    rp: float = prm.full_path_ohm[i]\n    r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, "
+       "prm.ax_s, temp, soc) + rp\n    r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, "
+       "soc)\n    _v, slope",
+       "    rp: float = 0.0\n    r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, "
+       "prm.ax_s, temp, soc) + rp\n    r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, "
+       "soc)\n    _v, slope",
+       "the CV taper on the bare cell, without the charge path's resistance"),
+    _m("soc", "time-to-full-cc-no-charge-path",
+       "    rp: float = prm.full_path_ohm[i]\n    r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, "
+       "prm.ax_s, temp, soc) + rp\n    r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, "
+       "soc)\n    tau",
+       "    rp: float = 0.0\n    r0 = rs * ob.table2(prm.r0_tab, prm.ax_t, "
+       "prm.ax_s, temp, soc) + rp\n    r1 = rs * ob.table2(prm.r1_tab, prm.ax_t, prm.ax_s, temp, "
+       "soc)\n    tau",
+       "the CC phase ends when the cell terminals, not the charger, reach the CV voltage"),
+    _m("soc", "time-to-full-taper-implicit-euler",
+       "        c1, l1, c2, l2 = _taper_modes(r0, r1, tau, a, cur, v1)\n",
+       "        k = h / tau\n"
+       "        nxt = (r0 * cur + k * v1 / (1.0 + k)) / (r0 + h * a + k * r1 / (1.0 + k))\n"
+       "        if nxt >= i_end:\n"
+       "            return t + h * (i_end - cur) / (nxt - cur)\n"
+       "        v1 = (v1 + k * r1 * nxt) / (1.0 + k)\n"
+       "        soc -= nxt * h / (3600.0 * q)\n"
+       "        cur = nxt\n"
+       "        t += h\n"
+       "        continue\n"
+       "        c1, l1, c2, l2 = _taper_modes(r0, r1, tau, a, cur, v1)\n",
+       "the pre-h28full taper: implicit Euler at an eighth of its time constant (5 % long)"),
+    _m("soc", "time-to-full-taper-present-temp",
+       "    t_cv = fmin(temp, 0.5 * (temp + st.chg_temp0_c[p, i]))\n", "    t_cv = temp\n",
+       "the taper at the present temperature, as if the cells did not cool as it falls"),
     # issue #28, h28soc: what the observer reads and counts
     Mutant("soc", "ocv-no-temperature", "    ocv = ocv + dtemp * (d0 + (d1 - d0) * fs)\n",
            "    ocv = ocv + 0.0 * dtemp\n",

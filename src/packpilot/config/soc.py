@@ -124,6 +124,14 @@ class SocConfig(Strict):
         description="The charge current at which the charge counts as full (A, > 0; the time "
         "to full's end point); default: C/20 of each battery's capacity.",
     )
+    charge_path_ohm: float | None = Field(
+        default=None,
+        description="Resistance between the charger's regulation point and each battery's "
+        "cells while charging (ohm, >= 0; cable, switch, the charger's output slope): the CV "
+        "voltage reaches the cells lowered by it times the current, so the CV phase starts "
+        "earlier and tapers slower; default: the pack's switch plus the configured charger's "
+        "output slope.",
+    )
 
     @model_validator(mode="after")
     def _check_full(self) -> SocConfig:
@@ -134,6 +142,9 @@ class SocConfig(Strict):
         a = self.full_current_a
         if a is not None and not (_finite(a) and 0.0 < a <= MAX_CURRENT_A):
             raise ValueError(f"full_current_a must be > 0 A, got {a}")
+        r = self.charge_path_ohm
+        if r is not None and not (_finite(r) and 0.0 <= r <= 10.0):
+            raise ValueError(f"charge_path_ohm must be within 0..10 ohm, got {r}")
         return self
 
     @model_validator(mode="after")

@@ -126,6 +126,12 @@ class PackInfo:
     r_scale: tuple[float, ...] = ()
     """Per battery, the stated resistance as a factor on the cell tables (1: the tables;
     empty: 1 for every battery)."""
+    charge_path_ohm: tuple[float, ...] = ()
+    """Per battery, the resistance between the charger's regulation point and the battery's
+    cells while charging (ohm): its switch's charge path plus its share of the charger's
+    output slope (the charger's stated load regulation, over the batteries it feeds). A CC/CV
+    charger's constant voltage reaches the cells lowered by this times the current (the time
+    to full, issue #28); empty: 0 for every battery."""
 
 
 __all__ = ["PackInfo", "Topology"]

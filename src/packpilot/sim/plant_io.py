@@ -95,6 +95,21 @@ class SimulatedPlant:
             cell_v_min_v=float(params.v_min_v),
             cell_v_max_v=float(params.v_max_v),
             r_scale=tuple(float(pack.nominal_r_scale[pack.cell_string == i].mean()) for i in tr),
+            charge_path_ohm=self._charge_path_ohm(),
+        )
+
+    def _charge_path_ohm(self) -> tuple[float, ...]:
+        """Per traction battery, the resistance from the charger's regulation point to its
+        cells (:attr:`PackInfo.charge_path_ohm`): the closed switch's (a relay's contact, a
+        MOSFET pair's two channels in series) plus the charger's output slope times the
+        number of traction batteries (its drop is the slope times the *total* current; with
+        the current shared equally each battery sees that many times its own share)."""
+        pack, cfg = self.pack, self.cfg
+        tr = self.topology.traction
+        share = float(cfg.charger.r_out_ohm) * len(tr) if cfg.charger.present else 0.0
+        return tuple(
+            float(pack.sw_on_ohm[i]) * (1.0 if pack.sw_kind[i] == KIND_RELAY else 2.0) + share
+            for i in tr
         )
 
     def _traction_cell_params(self) -> Any:

@@ -8,6 +8,7 @@ from itertools import pairwise
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from packpilot.config.soc import SocConfig, VoltageSource
 from packpilot.contract.bms import Event, Measurements, SwitchKind
@@ -167,6 +168,7 @@ _OUTPUTS = (
     "emf_v", "r0_ohm", "r0_var_ohm2", "r1_ohm", "tau_s", "v_rc_v", "v_rc_var_v2", "soc_var",
     "capacity_ah", "capacity_var_ah2", "offset_a", "offset_var_a2", "load_avg_a",
     "time_to_go_s", "time_to_cutoff_s", "time_to_full_s", "cv_left_s",
+    "chg_temp0_c",
 )  # fmt: skip
 
 
@@ -236,7 +238,24 @@ def _full(config: SocConfig, info: PackInfo) -> dict[str, Any]:
     cap = info.capacity_ah or (1.0,) * info.n_batteries
     ends = [config.full_current_a if config.full_current_a is not None else 0.05 * c
             for c in cap]  # fmt: skip
-    return {"full_cell_v": float(v), "full_current_a": np.array(ends, np.float64)}
+    return {"full_cell_v": float(v), "full_current_a": np.array(ends, np.float64),
+            "full_path_ohm": _path_per_cell(config, info)}  # fmt: skip
+
+
+def _path_per_cell(config: SocConfig, info: PackInfo) -> NDArray[np.float64]:
+    """(B,) each battery's charge path (``charge_path_ohm``, else the pack's stated one, else
+    0) over its series cells: the time to full's model is one cell, so its share of the drop
+    that lowers the charger's CV voltage at the cells."""
+    n = info.n_batteries
+    stated = info.charge_path_ohm if len(info.charge_path_ohm) == n else (0.0,) * n
+    out = np.zeros(n, np.float64)
+    for b in range(n):
+        r = config.charge_path_ohm if config.charge_path_ohm is not None else stated[b]
+        known = b < min(len(info.groups_per_battery), len(info.cells_per_group))
+        series = info.groups_per_battery[b] * info.cells_per_group[b] if known else 0
+        if _finite(r) and r > 0.0 and series > 0:
+            out[b] = float(r) / series
+    return out
 
 
 def _entropic(info: PackInfo) -> dict[str, Any]:
