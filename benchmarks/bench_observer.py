@@ -337,7 +337,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--capacity", action="store_true", help="capacity after one full cycle")
     ap.add_argument("--speed-example", action="append", default=[])
     ap.add_argument("--duration", type=float, default=None)
-    ap.add_argument("--aged", action="store_true", help="resistance 1.3x, capacity 7 % wrong")
+    ap.add_argument("--aged", action="store_true", help="resistance 1.3x, capacity 7 %% wrong")
     a = ap.parse_args(argv)
     if not (a.speed_only or a.skip_examples):
         print("example | battery | observer RMS / max % | today's RMS / max % | R0 err % | "
