@@ -69,6 +69,7 @@ def simulate(
     comparator: bool = False,
     observer: bool = False,
     duration_s: float = DURATION_S,
+    switch: dict[str, float] | None = None,
 ) -> tuple[Result, np.ndarray]:
     """Run the case; also return each battery's open-circuit voltage after every period.
     ``observer``: with ``[soc]`` (the battery observer, whose R0 the zero-load prediction
@@ -92,6 +93,7 @@ def simulate(
                 "on_ohm": 0.0001,
                 "diode_drop_v": 0.6,
                 "reverse_comparator": comparator,
+                **(switch or {}),
             },
             "batteries": bats,
         },

@@ -10,8 +10,9 @@ from typing import overload
 
 import numpy as np
 
+from packpilot.config.base import DIODE_CONTINUOUS_A
 from packpilot.config.sequencing import SequencingConfig
-from packpilot.contract.bms import BatteryMeasurement
+from packpilot.contract.bms import BatteryMeasurement, SwitchKind
 from packpilot.contract.events import Labels, Reason, fields
 from packpilot.contract.topology import PackInfo
 from packpilot.control.method import CompiledController, Method, StatusChannel
@@ -219,6 +220,23 @@ READS = ("soc_r0_ohm", "soc_observer_ok")
 ``[soc]`` layer publishes them): each battery's R0 and whether the observer is trusted."""
 
 
+def diode_hold_a(config: SequencingConfig, info: PackInfo) -> F64:
+    """Rule 8c's cap per battery (A): its switch's body-diode continuous rating (the shipped
+    switch's where the pack does not state it, as in a replayed log); 0 (off) for a relay
+    (no diode), or with ``diode_hold`` or ``zero_load_open`` off (rule 8c is rule 8b's
+    complement: without 8b it holds nothing 8a's engage rule would close)."""
+    n = info.n_batteries
+    if not (config.diode_hold and config.zero_load_open):
+        return np.zeros(n)
+    rating = info.diode_continuous_a or (DIODE_CONTINUOUS_A,) * n
+    return np.array(
+        [
+            0.0 if kind == SwitchKind.RELAY else float(a)
+            for kind, a in zip(info.switch_kind, rating, strict=True)
+        ]
+    )
+
+
 def build(
     config: SequencingConfig, infos: Sequence[PackInfo]
 ) -> tuple[SequencingParams, SequencingState]:
@@ -250,7 +268,8 @@ def build(
             if config.zero_load_open
             else math.inf
         ),
-        diode_hold_a=float(config.diode_hold_a),
+        diode_hold_a=diode_hold_a(config, info),
+        zl_dwell_s=float(config.zero_load_dwell_s),
         hold_ratio=float(config.charge_limit_margin),
         reads_slot=np.full(len(READS), -1, np.int64),
         n_batteries=int(n),
