@@ -108,12 +108,24 @@ SOAK_4_OBSERVED = Case(
 def test_soak_4_with_the_observer_trusted_flags_what_r3_forces() -> None:
     """SOAK_4's open defect was an *unflagged* 2.64 A (limit 2.5 A): the -dV/dI estimate
     lowered the prediction to 1.71 A one period after R3. With the observer's R0 the
-    prediction stays above the limit, so the property's R3 exception holds (flagged); the
-    current itself is what R3 forces (battery 4's diode carried 52 A's share: it must close),
-    which only the comparator removes."""
-    res = _check_invariants(SOAK_4_OBSERVED, comparator=False, observer=True, duration_s=90.0)
+    prediction stays above the limit, so the property's R3 exception holds (flagged); without
+    rule 8c (``diode_hold = false``) the current itself is what R3 forces (battery 4's diode
+    carried 52 A's share: it must close)."""
+    res = _check_invariants(
+        SOAK_4_OBSERVED, comparator=False, observer=True, duration_s=90.0, sequencing=NO_8C
+    )
     into = np.maximum(-res.trace.channel("current_a"), 0.0)
     assert float(into.max()) > I_LIM  # the R3-forced period is still there, flagged
+
+
+def test_soak_4_with_the_observer_trusted_holds_the_limit_by_default() -> None:
+    """Issue #28's acceptance on SOAK_4 (observer trusted): with the defaults (rule 8c, the
+    shipped switch's 10 A diode rating) R3 leaves battery 4 on its diode and the loss of the
+    load pushes nothing into any battery above its charge limit, with every other invariant
+    of the closed-loop property held."""
+    res = _check_invariants(SOAK_4_OBSERVED, comparator=False, observer=True, duration_s=90.0)
+    into = np.maximum(-res.trace.channel("current_a"), 0.0)
+    assert float(into.max()) <= I_LIM, float(into.max())
 
 
 # Rule 8c (issue #28, ``diode_hold``): R3 leaves a battery on its charge diode while closing
