@@ -518,7 +518,8 @@ SEQUENCING = [
        "#28 rule 8b (opt-in): an engaged battery the observer predicts above its charge limit "
        "stays engaged after a join (seed 25: 1.40x at the loss)"),
     _m("sequencing", "diode-hold-dropped",
-       "        elif _diode_holds(prm, st, p, k, cur[k], t):\n", "        elif False:\n",
+       "            why = _diode_holds(prm, st, p, k, cur[k], t)\n",
+       "            why = HOLD_NONE\n",
        "#28 rule 8c: R3 closes a lower battery whose diode conducts under a heavy load although "
        "the zero-load prediction puts it above its limit (SOAK_4 observed: 2.64 A > 2.5 A)"),
     _m("sequencing", "diode-hold-no-cap", "    if not cur_a <= prm.diode_hold_a[k]:\n",

@@ -194,9 +194,15 @@ REASONS = (
         "flow into it if it were closed and the load vanished",
         fields("predicted_a", "i_limit_a", "current_a", "_battery:i"),
     ),
+    Reason(
+        "CrossCurrentRisk",
+        "battery {battery}: charge FET held off, its diode carrying {current_a:.2f} A, "
+        "within rule 8b's {dwell_s:.0f} s dwell after it opened it",
+        fields("current_a", "dwell_s", "_battery:i"),
+    ),
 )
 assert [r.kind for r in REASONS][rules.FAULT_CLEARED] == "FaultCleared"
-assert len(REASONS) == rules.DIODE_HOLD + 1
+assert len(REASONS) == rules.DIODE_DWELL + 1
 assert [r.kind for r in REASONS][rules.RISK] == "CrossCurrentRisk"
 
 STATUS = (

@@ -148,9 +148,14 @@ charge limit: its charge FET opened (CrossCurrentRisk, no state change; rule 8b)
 DIODE_HOLD = 15
 """R3 keeps this battery's charge FET off although its diode conducts: with it engaged the
 trusted zero-load prediction would put it above ``hold_ratio`` x its charge limit, and its
-diode carries no more than ``diode_hold_a`` (CrossCurrentRisk, once per episode; rule 8c), or rule
-8b opened it less than ``zl_dwell_s`` ago (the same event: the prediction is that of closing
-it now)."""
+diode carries no more than ``diode_hold_a`` (CrossCurrentRisk, once per episode; rule 8c)."""
+DIODE_DWELL = 16
+"""R3 keeps this battery's charge FET off although its diode conducts: rule 8b opened it less
+than ``zl_dwell_s`` ago and its diode carries at most ``DWELL_SHARE`` x ``diode_hold_a``
+(DiodeHeld, once per episode; rule 8c's dwell)."""
+HOLD_NONE = 0
+HOLD_DWELL = 1
+HOLD_PREDICTED = 2
 
 # Slots of a state-change event: from, to, reason, battery (message only), then the data.
 V_FROM = 0
@@ -708,9 +713,10 @@ def _open_predicted(
 @kernel_inline
 def _diode_holds(
     prm: SequencingParams, st: SequencingState, p: int, k: int, cur_a: float, t: float
-) -> bool:  # fmt: skip
+) -> int:  # fmt: skip
     """Rule 8c (issue #28): must R3 leave battery ``k``'s charge FET off although its diode
-    conducts? Only while the diode carries at most ``diode_hold_a[k]`` (its rating), and then
+    conducts? ``HOLD_DWELL``, ``HOLD_PREDICTED`` (why) or ``HOLD_NONE``. Only while the diode
+    carries at most ``diode_hold_a[k]`` (its rating), and then
     (1) while rule 8b opened ``k`` less than ``zl_dwell_s`` ago, or (2) while the trusted
     zero-load prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its
     charge limit. Otherwise a sibling it would expose is no reason: ``k`` is then the higher
@@ -730,18 +736,19 @@ def _diode_holds(
     R3-forced class of ``bench_zero_load``). On its diode it cannot be charged; the diode
     takes only what exceeds its 0.6 V drop, so its heat is bounded by the cap."""
     if not cur_a <= prm.diode_hold_a[k]:
-        return False
+        return HOLD_NONE
     dwell = t - st.zl_open_s[p, k] < prm.zl_dwell_s - EPS_S  # False when NaN
     if dwell and cur_a <= DWELL_SHARE * prm.diode_hold_a[k]:
-        return True
+        return HOLD_DWELL
     grp = st.grp
     pred = st.pred
     m = _engaged(st.state, st.chg_on, p, grp, k)
     if m < 2 or not _trusted(st.zl_obs, grp, m):
-        return False
+        return HOLD_NONE
     _share(grp, m, st.ez, st.gz, 0.0, pred)
-    above: bool = pred[k] > prm.hold_ratio * st.i_lim[k]
-    return above
+    if pred[k] > prm.hold_ratio * st.i_lim[k]:
+        return HOLD_PREDICTED
+    return HOLD_NONE
 
 
 @kernel_inline
@@ -904,19 +911,28 @@ def _discharge_tick(
             conduct_since_s[p, k] = np.nan
             skip[k] = through
             continue
+        why = HOLD_NONE
+        if through:
+            why = _diode_holds(prm, st, p, k, cur[k], t)
         if not through:
             st.diode_held[p, k] = False
-        elif _diode_holds(prm, st, p, k, cur[k], t):
+        elif why != HOLD_NONE:
             # Rule 8c: on its diode it cannot be charged; the episode's clock runs on.
             if math.isnan(conduct_since_s[p, k]):
                 conduct_since_s[p, k] = t
             if not st.diode_held[p, k]:
                 st.diode_held[p, k] = True
-                r = emit(ev, p, src, DIODE_HOLD, k, t)
-                ev.val[r, 0] = pred[k]
-                ev.val[r, 1] = i_lim[k]
-                ev.val[r, 2] = cur[k]
-                ev.val[r, 3] = k
+                if why == HOLD_DWELL:
+                    r = emit(ev, p, src, DIODE_DWELL, k, t)
+                    ev.val[r, 0] = cur[k]
+                    ev.val[r, 1] = prm.zl_dwell_s
+                    ev.val[r, 2] = k
+                else:
+                    r = emit(ev, p, src, DIODE_HOLD, k, t)
+                    ev.val[r, 0] = pred[k]
+                    ev.val[r, 1] = i_lim[k]
+                    ev.val[r, 2] = cur[k]
+                    ev.val[r, 3] = k
             continue
         if not _diode_rule(prm, state, conduct_since_s, ev, src, p, k, through, t, dt):
             continue
