@@ -28,14 +28,10 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 FLIGHT_S = 1300.0  # the uav_flight profile (1200 s) and the landing, before the dock
 
 
-def _cfg(direct: bool, zero_load_open: bool = False) -> ScenarioConfig:
-    """The demo's flight; ``zero_load_open`` False opts out of rules 8b and 8c (issue #28,
-    on by default since h28def): this file judges the plant's split in co-discharge, which
-    rule 8b interrupts after B's join to hold the charge limit (``test_rule_8b_holds_b_out``)."""
+def _cfg(direct: bool) -> ScenarioConfig:
     cfg = load_config(EXAMPLES / "uav_mission.toml")
     upd: dict[str, object] = {
-        "sim": cfg.sim.model_copy(update={"duration_s": FLIGHT_S, "progress": False}),
-        "sequencing": cfg.sequencing.model_copy(update={"zero_load_open": zero_load_open}),
+        "sim": cfg.sim.model_copy(update={"duration_s": FLIGHT_S, "progress": False})
     }
     if direct:  # every FET on, nothing supervising: the plant alone
         upd.update(controller=[], supervisor=None, limits=None, plausibility=None, soc=None)
@@ -43,22 +39,9 @@ def _cfg(direct: bool, zero_load_open: bool = False) -> ScenarioConfig:
 
 
 @cache
-def _run(direct: bool, zero_load_open: bool = False) -> tuple[ScenarioConfig, Result]:
-    cfg = _cfg(direct, zero_load_open)
+def _run(direct: bool) -> tuple[ScenarioConfig, Result]:
+    cfg = _cfg(direct)
     return cfg, Runner(cfg).run()
-
-
-def test_rule_8b_holds_b_out_after_the_meet_by_default() -> None:
-    """The cost of issue #28's decision on the demo: with the defaults rule 8b opens B at
-    88.8 s (2.33 A would flow into it at a loss, its limit 2.45 A x 0.95) and rule 8c's dwell
-    keeps it on its diode until 208.8 s, so A carries the load at steps after the meet (126.8
-    s) and the share goal is MISSED (1.0), while co-discharge and FET changes stay met."""
-    cfg, res = _run(False, True)
-    fig = Q.sequencing_figures(cfg, res)
-    verdicts = Q.sequencing_verdicts(fig)
-    assert verdicts["peak_share_held"] == "MISSED", (verdicts, fig)
-    assert fig["peak_share_held"] == pytest.approx(1.0)
-    assert verdicts["co_share"] == "met" and verdicts["sw_per_min"] == "met", (verdicts, fig)
 
 
 def _peak_share_from(res: Result, t0: float) -> float:

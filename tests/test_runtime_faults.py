@@ -31,15 +31,7 @@ END_S = 130.0
 
 @pytest.fixture(scope="module")
 def cfg() -> ScenarioConfig:
-    """uav_mission with rules 8b and 8c off (``zero_load_open = false``): with the defaults
-    (issue #28, h28def) rule 8b opens B's charge FET at 88.8 s and rule 8c's dwell holds it on
-    its diode until 208.8 s, so at END_S its charge FET is off for the charge limit, not for
-    the faults these tests inject; their "rejoined" / "obeying again" checks ask for both
-    FETs on."""
-    cfg = load_config(scenario_path(Path("uav_mission")))
-    assert cfg.sequencing is not None
-    seq = cfg.sequencing.model_copy(update={"zero_load_open": False})
-    return cfg.model_copy(update={"sequencing": seq})
+    return load_config(scenario_path(Path("uav_mission")))
 
 
 def during(t: float) -> bool:

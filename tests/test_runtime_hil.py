@@ -38,20 +38,6 @@ def scenario(name: str, duration_s: float) -> ScenarioConfig:
     return cfg.model_copy(update={"sim": cfg.sim.model_copy(update={"duration_s": duration_s})})
 
 
-def without_rule_8b(cfg: ScenarioConfig) -> ScenarioConfig:
-    """``cfg`` with ``[sequencing] zero_load_open = false`` (rules 8b and 8c off, the default
-    before h28def). UNRESOLVED (issue #28, h28def, 2026-11-28): with the new default the
-    uav_mission flight over CAN no longer matches simulate. Over the DBC path every sequencing
-    event matches (B opened by rule 8b at 88.8 s, held on its diode, closed at 208.8 s, the
-    same in both), but equalization's re-plans of battery B move (simulate re-plans it at
-    233.8 s, the CAN run not; 3 BalancingUpdated fewer by 840 s); over DroneCAN (float16
-    voltages) the switch decisions differ (an extra DiodeBypassed of A). These tests pin the
-    runtime path with the configuration they were validated on until that is re-derived."""
-    assert cfg.sequencing is not None
-    seq = cfg.sequencing.model_copy(update={"zero_load_open": False})
-    return cfg.model_copy(update={"sequencing": seq})
-
-
 def key(e: Event) -> tuple[str, int | None]:
     return (e.kind, e.battery)
 
@@ -139,7 +125,7 @@ def assert_same_switching(sim: np.ndarray, can: np.ndarray) -> None:
 @pytest.mark.long(cpu_s=31)
 def test_uav_mission_flight_matches_simulate() -> None:
     """The flight part (20 min of flight and landing) of uav_mission, run over CAN."""
-    cfg = without_rule_8b(scenario("uav_mission", 1250.0))
+    cfg = scenario("uav_mission", 1250.0)
     sim = Runner(cfg, progress=False).run()
     assert sim.trace.load_demand_a.max() > 30  # the flight really flew
     ls = compare(cfg)  # lock-step is deterministic: the compared run is the one to check
@@ -294,7 +280,7 @@ def test_uav_mission_flight_over_dronecan_matches_simulate() -> None:
     """The flight part of uav_mission with both batteries on DroneCAN BatteryInfo +
     BatteryInfoAux: the same safety-relevant events and switch decisions as simulate, the
     differences bounded by float16 (docs/runtime.md, "Batteries on DroneCAN")."""
-    cfg = without_rule_8b(scenario("uav_mission", 1250.0))
+    cfg = scenario("uav_mission", 1250.0)
     runner = Runner(cfg, progress=False)
     sim = runner.run()
     measured: list[np.ndarray] = []  # the BMS's battery currents, period by period

@@ -25,7 +25,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from packpilot.config import parse_config
-from packpilot.config.base import DIODE_CONTINUOUS_A
 from packpilot.contract.record import Result
 from packpilot.control.sequencing import SequencingConfig
 from packpilot.model import loads
@@ -70,7 +69,6 @@ def simulate(
     comparator: bool = False,
     observer: bool = False,
     duration_s: float = DURATION_S,
-    switch: dict[str, float] | None = None,
 ) -> tuple[Result, np.ndarray]:
     """Run the case; also return each battery's open-circuit voltage after every period.
     ``observer``: with ``[soc]`` (the battery observer, whose R0 the zero-load prediction
@@ -94,7 +92,6 @@ def simulate(
                 "on_ohm": 0.0001,
                 "diode_drop_v": 0.6,
                 "reverse_comparator": comparator,
-                **(switch or {}),
             },
             "batteries": bats,
         },
@@ -315,19 +312,9 @@ def test_closed_loop_invariants_known_counterexample(case: Case, comparator: boo
 
 
 def _check_invariants(
-    case: Case,
-    comparator: bool = False,
-    observer: bool = False,
-    duration_s: float = DURATION_S,
-    sequencing: dict[str, float] | None = None,
+    case: Case, comparator: bool = False, observer: bool = False, duration_s: float = DURATION_S
 ) -> Result:
-    res, _ocv = simulate(
-        case,
-        sequencing=sequencing,
-        comparator=comparator,
-        observer=observer,
-        duration_s=duration_s,
-    )
+    res, _ocv = simulate(case, comparator=comparator, observer=observer, duration_s=duration_s)
     tr = res.trace
     n = len(case.ocv0_v)
     cur = tr.channel("current_a")
@@ -364,15 +351,12 @@ def _check_invariants(
                 assert risk[k, j] or (k > 0 and risk[k - 1, j]), (k, j, into[k, j])
 
     # R3 deadline on the plant: a charge diode never conducts for longer than t_on plus one
-    # control period in a row; where rule 8c runs (a trusted observer, rules 8b and 8c on),
-    # a diode carrying at most its rating (the shipped switch's) may be held on (issue #28).
+    # control period in a row.
     limit = math.ceil((CFG.t_on + case.dt_s) / case.dt_s - 1e-9)
-    seq = SequencingConfig(**(sequencing or {}))
-    cap = DIODE_CONTINUOUS_A if observer and seq.zero_load_open and seq.diode_hold else 0.0
     for j in range(n):
         run = 0
         for k in range(len(tr.t_s)):
-            run = run + 1 if chg_diode[k, j] > max(CFG.i_det, cap) else 0
+            run = run + 1 if chg_diode[k, j] > CFG.i_det else 0
             assert run <= limit, (j, k, run)
     return res
 

@@ -49,10 +49,6 @@ DETECT_MAX_A = 20.0
 discharge / charge detection): it must sit above sensor noise and offset (0.5 % of a 1 kA
 sensor is 5 A) and below the currents it tells apart; a larger one switches the rule off in
 every pack PackPilot models (``i_rev = 1e300`` was accepted)."""
-DIODE_CONTINUOUS_A = 10.0
-"""Body-diode continuous forward current of the shipped MOSFET switch as mounted (A; its
-``[pack.switch] diode_continuous_a`` default): how much sequencing's rule 8c may leave on a
-charge FET's diode. Derivation in docs/parallel_discharge.md, rule 8c, "The diode rating"."""
 SPREAD_MAX_V = 100.0
 """Largest voltage *difference* threshold between batteries, or margin above a battery voltage:
 the full-to-empty swing of the highest battery a scenario can hold (64 series groups x 1.7 V
@@ -252,7 +248,6 @@ __all__ = [
     "CELL_V_MAX_V",
     "DETECT_DELAY_MAX_S",
     "DETECT_MAX_A",
-    "DIODE_CONTINUOUS_A",
     "GROUP_DV_MAX_V",
     "MAX_CURRENT_A",
     "MAX_LIST_ITEMS",

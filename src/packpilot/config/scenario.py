@@ -30,7 +30,6 @@ from packpilot.config.base import (
     CELL_V_MAX_V,
     DETECT_DELAY_MAX_S,
     DETECT_MAX_A,
-    DIODE_CONTINUOUS_A,
     MAX_CURRENT_A,
     MAX_LIST_ITEMS,
     MAX_TIME_S,
@@ -83,17 +82,6 @@ class SwitchConfig(_Strict):
         0.6, le=5.0, description="body-diode forward drop (spec: 0.5-0.7 V; at most 5 V)"
     )
     diode_ohm: PosFloat = Field(0.002, le=OHM_MAX, description="body-diode slope resistance")
-    diode_continuous_a: PosFloat = Field(
-        DIODE_CONTINUOUS_A,
-        le=MAX_CURRENT_A,
-        description=(
-            "body-diode continuous forward current rating (A) of the charge FET as mounted "
-            "(its board's dissipation at diode_drop_v, not the datasheet's I_S at a 25 degC "
-            "case): sequencing's rule 8c leaves a battery on this diode only while it carries "
-            "at most this (docs/parallel_discharge.md rule 8c; the default is the shipped "
-            "switch's, derived there)"
-        ),
-    )
     chg_on: bool = Field(True, description="initial charge-path state (relay: closed iff both)")
     dsg_on: bool = Field(True, description="initial discharge-path state")
     welded: bool = Field(False, description="relay contact welded closed (fault)")

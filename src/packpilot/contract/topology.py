@@ -88,10 +88,6 @@ class PackInfo:
     has_balancers: bool = False
     capacity_ah: tuple[float, ...] = ()
     """Nominal capacity of each battery."""
-    diode_continuous_a: tuple[float, ...] = ()
-    """Each battery's charge-FET body-diode continuous current rating as mounted (A; the
-    switch's ``diode_continuous_a``); empty when unknown (a replayed log: the shipped
-    switch's default)."""
     ocv_soc: tuple[float, ...] = ()
     ocv_v: tuple[float, ...] = ()
     """The traction cells' open-circuit voltage curve (SOC -> cell volts, at the reference

@@ -87,9 +87,6 @@ class SimulatedPlant:
             balancer_bidirectional=bool(cfg.balancer.bidirectional),
             balancer_efficiency=float(cfg.balancer.efficiency),
             capacity_ah=tuple(float(pack.capacity_ah[p, pack.cell_string == i].min()) for i in tr),
-            diode_continuous_a=tuple(
-                float((bats[i].switch or cfg.pack.switch).diode_continuous_a) for i in tr
-            ),
             ocv_soc=tuple(float(x) for x in params.ocv_soc),
             ocv_v=tuple(float(x) for x in params.ocv_table_v),
             names=tuple(bats[i].name for i in tr),

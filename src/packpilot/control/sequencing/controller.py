@@ -10,9 +10,8 @@ from typing import overload
 
 import numpy as np
 
-from packpilot.config.base import DIODE_CONTINUOUS_A
 from packpilot.config.sequencing import SequencingConfig
-from packpilot.contract.bms import BatteryMeasurement, SwitchKind
+from packpilot.contract.bms import BatteryMeasurement
 from packpilot.contract.events import Labels, Reason, fields
 from packpilot.contract.topology import PackInfo
 from packpilot.control.method import CompiledController, Method, StatusChannel
@@ -194,15 +193,9 @@ REASONS = (
         "flow into it if it were closed and the load vanished",
         fields("predicted_a", "i_limit_a", "current_a", "_battery:i"),
     ),
-    Reason(
-        "CrossCurrentRisk",
-        "battery {battery}: charge FET held off, its diode carrying {current_a:.2f} A, "
-        "within rule 8b's {dwell_s:.0f} s dwell after it opened it",
-        fields("current_a", "dwell_s", "_battery:i"),
-    ),
 )
 assert [r.kind for r in REASONS][rules.FAULT_CLEARED] == "FaultCleared"
-assert len(REASONS) == rules.DIODE_DWELL + 1
+assert len(REASONS) == rules.DIODE_HOLD + 1
 assert [r.kind for r in REASONS][rules.RISK] == "CrossCurrentRisk"
 
 STATUS = (
@@ -224,23 +217,6 @@ assert STATUS[rules.ST_DIODE].name == "seq_diode_s"
 READS = ("soc_r0_ohm", "soc_observer_ok")
 """The battery observer's channels the zero-load prediction reads (``Method.reads``; the
 ``[soc]`` layer publishes them): each battery's R0 and whether the observer is trusted."""
-
-
-def diode_hold_a(config: SequencingConfig, info: PackInfo) -> F64:
-    """Rule 8c's cap per battery (A): its switch's body-diode continuous rating (the shipped
-    switch's where the pack does not state it, as in a replayed log); 0 (off) for a relay
-    (no diode), or with ``diode_hold`` or ``zero_load_open`` off (rule 8c is rule 8b's
-    complement: without 8b it holds nothing 8a's engage rule would close)."""
-    n = info.n_batteries
-    if not (config.diode_hold and config.zero_load_open):
-        return np.zeros(n)
-    rating = info.diode_continuous_a or (DIODE_CONTINUOUS_A,) * n
-    return np.array(
-        [
-            0.0 if kind == SwitchKind.RELAY else float(a)
-            for kind, a in zip(info.switch_kind, rating, strict=True)
-        ]
-    )
 
 
 def build(
@@ -274,8 +250,7 @@ def build(
             if config.zero_load_open
             else math.inf
         ),
-        diode_hold_a=diode_hold_a(config, info),
-        zl_dwell_s=float(config.zero_load_dwell_s),
+        diode_hold_a=float(config.diode_hold_a),
         hold_ratio=float(config.charge_limit_margin),
         reads_slot=np.full(len(READS), -1, np.int64),
         n_batteries=int(n),

@@ -82,17 +82,9 @@ EPS_S = 1e-9
 """Tolerance for comparing accumulated times, so 0.1 + 0.1 + 0.1 counts as 0.3 s."""
 R3_HOLD_S = 5.0
 """Rule 8b does not open a battery R3 closed less than this long ago (``forced_s``)."""
-ZL_DWELL_S = 120.0
-"""Default of ``[sequencing] zero_load_dwell_s``: a battery rule 8b opened stays open at least
-this long (four RC time constants of the cell sets shipped, uav_5ah's 30 s: its polarisation
-has recovered to 2 %): the engage rule does not close it before, and R3 leaves it on its
-diode while that carries at most ``DWELL_SHARE`` of its rating (rule 8c's dwell)."""
-
-DWELL_SHARE = 0.5
-"""Rule 8c's dwell holds a battery on its diode only up to this share of the diode's rating:
-the rest is left for the hold that keeps a lower battery from being closed into a charge
-above its limit (with the whole rating the dwell let the gap grow until that diode exceeded
-its rating and R3 had to close it: ``bench_zero_load`` seed 230, 1.007x)."""
+ZL_DWELL_S = 30.0
+"""A battery rule 8b opened stays open at least this long (about the RC time constant of the
+cell sets shipped, uav_5ah's 30 s): the engage rule does not close it before."""
 
 # Battery states (the order of ``SeqState``).
 DISCHARGING = 0
@@ -149,13 +141,6 @@ DIODE_HOLD = 15
 """R3 keeps this battery's charge FET off although its diode conducts: with it engaged the
 trusted zero-load prediction would put it above ``hold_ratio`` x its charge limit, and its
 diode carries no more than ``diode_hold_a`` (CrossCurrentRisk, once per episode; rule 8c)."""
-DIODE_DWELL = 16
-"""R3 keeps this battery's charge FET off although its diode conducts: rule 8b opened it less
-than ``zl_dwell_s`` ago and its diode carries at most ``DWELL_SHARE`` x ``diode_hold_a``
-(DiodeHeld, once per episode; rule 8c's dwell)."""
-HOLD_NONE = 0
-HOLD_DWELL = 1
-HOLD_PREDICTED = 2
 
 # Slots of a state-change event: from, to, reason, battery (message only), then the data.
 V_FROM = 0
@@ -219,15 +204,10 @@ class SequencingParams(NamedTuple):
     open_ratio: float
     """Rule 8b: an engaged battery whose trusted zero-load prediction exceeds this fraction of
     its charge limit has its charge FET opened."""
-    diode_hold_a: F64
-    """(B,) Rule 8c: R3 leaves battery k on its charge diode while the diode carries at most
-    ``diode_hold_a[k]`` (A; its switch's ``diode_continuous_a``) and either the trusted
-    zero-load prediction with it engaged puts it above ``hold_ratio`` x its charge limit or
-    rule 8b opened it less than ``zl_dwell_s`` ago; 0 = off (R3 closes on its deadline, as the
-    spec says)."""
-    zl_dwell_s: float
-    """Rule 8b's dwell (s): a battery it opened is closed again neither by the engage rule nor,
-    while its diode carries at most ``diode_hold_a``, by R3 before this has passed."""
+    diode_hold_a: float
+    """Rule 8c: R3 leaves a battery on its charge diode while the diode carries at most this
+    (A) and the trusted zero-load prediction with it engaged puts it above ``hold_ratio`` x its
+    charge limit; 0 = off (R3 closes on its deadline, as the spec says)."""
     hold_ratio: float
     """Rule 8c's threshold, a fraction of the charge limit: ``charge_limit_margin`` (the
     engage rule's), below rule 8b's ``open_ratio``. A held battery R3 closes takes more current
@@ -551,7 +531,7 @@ def _zl_may_engage(
     since = st.zl_open_s[p, k]
     if math.isnan(since):
         return True
-    return t - since >= prm.zl_dwell_s - EPS_S and pred <= prm.risk_clear_ratio * lim
+    return t - since >= ZL_DWELL_S - EPS_S and pred <= prm.risk_clear_ratio * lim
 
 
 @kernel_inline
@@ -712,22 +692,13 @@ def _open_predicted(
 
 @kernel_inline
 def _diode_holds(
-    prm: SequencingParams, st: SequencingState, p: int, k: int, cur_a: float, t: float
-) -> int:  # fmt: skip
+    prm: SequencingParams, st: SequencingState, p: int, k: int, cur_a: float
+) -> bool:  # fmt: skip
     """Rule 8c (issue #28): must R3 leave battery ``k``'s charge FET off although its diode
-    conducts? ``HOLD_DWELL``, ``HOLD_PREDICTED`` (why) or ``HOLD_NONE``. Only while the diode
-    carries at most ``diode_hold_a[k]`` (its rating), and then
-    (1) while rule 8b opened ``k`` less than ``zl_dwell_s`` ago, or (2) while the trusted
-    zero-load prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its
-    charge limit. Otherwise a sibling it would expose is no reason: ``k`` is then the higher
-    one, and the hand-over and rule 8b open the sibling, as the spec's R3 does.
-
-    (1) damps the hand-over cycle: a battery rule 8b took out of co-discharge recovers its
-    polarisation (0.1-0.3 V) while the ones left carrying the load polarise further, so under
-    a heavy load its diode conducts within seconds; R3 closed it, it was then the higher one,
-    rule 8b opened the others, and so on (``bench_zero_load`` seed 10: 17.5 charge-FET changes
-    per minute at 48 A over four batteries). On its diode it feeds the bus and cannot be
-    charged, so the dwell costs diode heat within the rating and no exposure.
+    conducts? Yes while the diode carries at most ``diode_hold_a`` and the trusted zero-load
+    prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its charge limit.
+    A sibling it would expose is no reason: ``k`` is then the higher one, and the hand-over
+    and rule 8b open the sibling, as the spec's R3 does.
 
     Embodiment 5 closes the FET because discharge current means "the battery is the higher
     one, no other battery can charge it". Under a heavy load that premise fails: the bus sags
@@ -735,20 +706,16 @@ def _diode_holds(
     closed it the others push their EMF difference into it the moment the load goes (the
     R3-forced class of ``bench_zero_load``). On its diode it cannot be charged; the diode
     takes only what exceeds its 0.6 V drop, so its heat is bounded by the cap."""
-    if not cur_a <= prm.diode_hold_a[k]:
-        return HOLD_NONE
-    dwell = t - st.zl_open_s[p, k] < prm.zl_dwell_s - EPS_S  # False when NaN
-    if dwell and cur_a <= DWELL_SHARE * prm.diode_hold_a[k]:
-        return HOLD_DWELL
+    if not cur_a <= prm.diode_hold_a:
+        return False
     grp = st.grp
     pred = st.pred
     m = _engaged(st.state, st.chg_on, p, grp, k)
     if m < 2 or not _trusted(st.zl_obs, grp, m):
-        return HOLD_NONE
+        return False
     _share(grp, m, st.ez, st.gz, 0.0, pred)
-    if pred[k] > prm.hold_ratio * st.i_lim[k]:
-        return HOLD_PREDICTED
-    return HOLD_NONE
+    above: bool = pred[k] > prm.hold_ratio * st.i_lim[k]
+    return above
 
 
 @kernel_inline
@@ -911,28 +878,19 @@ def _discharge_tick(
             conduct_since_s[p, k] = np.nan
             skip[k] = through
             continue
-        why = HOLD_NONE
-        if through:
-            why = _diode_holds(prm, st, p, k, cur[k], t)
         if not through:
             st.diode_held[p, k] = False
-        elif why != HOLD_NONE:
+        elif _diode_holds(prm, st, p, k, cur[k]):
             # Rule 8c: on its diode it cannot be charged; the episode's clock runs on.
             if math.isnan(conduct_since_s[p, k]):
                 conduct_since_s[p, k] = t
             if not st.diode_held[p, k]:
                 st.diode_held[p, k] = True
-                if why == HOLD_DWELL:
-                    r = emit(ev, p, src, DIODE_DWELL, k, t)
-                    ev.val[r, 0] = cur[k]
-                    ev.val[r, 1] = prm.zl_dwell_s
-                    ev.val[r, 2] = k
-                else:
-                    r = emit(ev, p, src, DIODE_HOLD, k, t)
-                    ev.val[r, 0] = pred[k]
-                    ev.val[r, 1] = i_lim[k]
-                    ev.val[r, 2] = cur[k]
-                    ev.val[r, 3] = k
+                r = emit(ev, p, src, DIODE_HOLD, k, t)
+                ev.val[r, 0] = pred[k]
+                ev.val[r, 1] = i_lim[k]
+                ev.val[r, 2] = cur[k]
+                ev.val[r, 3] = k
             continue
         if not _diode_rule(prm, state, conduct_since_s, ev, src, p, k, through, t, dt):
             continue
