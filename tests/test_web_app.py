@@ -72,7 +72,11 @@ def strict_loads(text: str) -> Any:
     return json.loads(text, parse_constant=bad)
 
 
-def start(speed: float = SPEED, duration_s: float = DURATION_S) -> tuple[LiveRun, SimThread]:
+def start(
+    speed: float = SPEED, duration_s: float = DURATION_S, *, begin: bool = True
+) -> tuple[LiveRun, SimThread]:
+    """A live run of the test scenario in its thread; ``begin=False`` leaves the thread unstarted,
+    so a caller can attach callbacks before the run can finish."""
     runner = Runner(parse_config(scenario(duration_s)), progress=False)
     live = LiveRun(
         scenario="web_test",
@@ -82,7 +86,8 @@ def start(speed: float = SPEED, duration_s: float = DURATION_S) -> tuple[LiveRun
         battery_names=list(runner.pack.names),
     )
     sim = SimThread(runner, live)
-    sim.start()
+    if begin:
+        sim.start()
     return live, sim
 
 
