@@ -181,3 +181,53 @@ def test_ctrl_c_inside_record_loses_at_most_that_row_and_no_traceback(
     rec.close()
     assert _rows(db) == 3
     assert load_run(db).metrics == {}
+
+
+@pytest.mark.parametrize("inside", ["_store_moved", "_store_rendered"])
+def test_a_real_ctrl_c_inside_a_flush_ends_the_run_interrupted_with_every_row_once(
+    tmp_path: Path, inside: str
+) -> None:
+    """CI caught ``simulate`` answering Ctrl-C with "UNIQUE constraint failed:
+    status_samples..." and a traceback: the signal landed inside a flush, after some status
+    rows were derived and before the bookkeeping that says so, and the run's final flush
+    wrote them again. A real SIGINT is raised at that point now (the handler a terminal gives
+    Python); the flush completes, then the interrupt ends the run as ``interrupted``."""
+    import signal
+    import threading
+
+    from packpilot.config import load_config
+    from packpilot.sim.runner import Runner
+
+    assert threading.current_thread() is threading.main_thread()
+    cfg = load_config(Path(__file__).resolve().parents[1] / "examples" / "uav_mission.toml")
+    cfg = cfg.model_copy(
+        update={"sim": cfg.sim.model_copy(update={"duration_s": 3000.0, "progress": False})}
+    )
+    db = tmp_path / "t.sqlite"
+    rec = SQLiteRecorder(db, flush_every=200, commit_every_s=60.0)
+    original = getattr(rec, inside)
+    calls = [0]
+
+    def with_ctrl_c(*args: object, **kw: object) -> object:
+        calls[0] += 1
+        out = original(*args, **kw)
+        if calls[0] == 3:  # a flush well into the run, after this part of it has run
+            signal.raise_signal(signal.SIGINT)
+        return out
+
+    setattr(rec, inside, with_ctrl_c)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)  # xdist workers ignore it
+    try:
+        runner = Runner(cfg, recorder=rec, progress=False)
+        with pytest.raises(KeyboardInterrupt):
+            runner.run()
+    finally:
+        signal.signal(signal.SIGINT, old)
+    rec.close()
+    assert calls[0] >= 3
+    run = list_runs(db)[0]
+    assert run["status"] == "interrupted"
+    with sqlite3.connect(db) as conn:
+        steps = [r[0] for r in conn.execute("SELECT step FROM pack_samples ORDER BY step")]
+    # every step recorded, once (the step whose recording was interrupted is in, not counted)
+    assert runner.steps_done < 2000 and steps == list(range(runner.steps_done + 1))

@@ -13,9 +13,12 @@ import importlib.metadata
 import math
 import os
 import platform
+import signal
 import sqlite3
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from itertools import chain, repeat
 from pathlib import Path
 from types import TracebackType
@@ -45,6 +48,36 @@ from packpilot.io.telemetry.schema import (
 COMMIT_EVERY_S = 0.5
 """Wall time between commits while a run records (also every ``flush_every`` samples): a killed
 writer loses at most the last ~0.5 s of samples (docs/telemetry.md)."""
+
+
+@contextmanager
+def _ctrl_c_after() -> Iterator[None]:
+    """Hold a Ctrl-C that arrives inside the block until the block has run, then deliver it.
+
+    A flush is bookkeeping in several statements (status rows derived, rows inserted, the
+    buffers cleared after ``COMMIT``). A KeyboardInterrupt between two of them left rows both
+    committed and still buffered, and the final flush of the interrupted run then failed with
+    "UNIQUE constraint failed: status_samples..." and a traceback instead of exit 130 (seen
+    in CI). Only the main thread receives signals; elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[tuple[int, Any]] = []
+    before = signal.getsignal(signal.SIGINT)
+    if before is None or before == signal.SIG_IGN:  # not set from Python, or ignored
+        yield
+        return
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append((signum, frame)))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+    if not held:
+        return
+    if callable(before):
+        before(*held[0])  # the default handler raises KeyboardInterrupt here, after the block
+    else:  # SIG_DFL: the signal's own action, now that the rows are consistent
+        signal.raise_signal(signal.SIGINT)
 
 
 def _open_for_writing(path: Path) -> sqlite3.Connection:
@@ -323,9 +356,10 @@ class SQLiteRecorder:
         self._steps.append(int(step))
         self._pending = k + 1
         if self._num_prev is None:  # the run's first sample: every channel, as record() does
-            self._num_prev = status.copy()
-            self._num_done = self._pending
-            self._record_status(run_id, int(step), layout.render(status))
+            with _ctrl_c_after():  # once per run: all three or none
+                self._num_prev = status.copy()
+                self._num_done = self._pending
+                self._record_status(run_id, int(step), layout.render(status))
         if (
             self._pending >= self.flush_every
             or time.monotonic() - self._last_commit >= self.commit_every_s
@@ -510,7 +544,8 @@ class SQLiteRecorder:
         if not (self._pending or self._event_rows):
             return
         try:
-            self._commit(conn)
+            with _ctrl_c_after():
+                self._commit(conn)
         except sqlite3.OperationalError as err:
             self._drop_buffers()  # they cannot be written; closing must not fail again
             raise InputError(f"{self.path}: {_why(err)}") from None
