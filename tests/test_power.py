@@ -22,12 +22,16 @@ OCV = ([0.0, 1.0], [3.5, 3.5])  # a flat OCV: EMF = 21 V at every SOC
 
 def params(b: int = 2, *, relay: bool = False, ocv: tuple[list[float], list[float]] = OCV,
            v_min: float = 3.0, t_max: float = 60.0, t_min_chg: float = 0.0,
-           horizons: tuple[float, ...] = (2.0, 10.0, 30.0)) -> pw.PowerParams:  # fmt: skip
+           horizons: tuple[float, ...] = (2.0, 10.0, 30.0),
+           iters: int = 30) -> pw.PowerParams:  # fmt: skip
+    """30 bisection steps: these tests check the physics to 1e-6 (the default, 16, is
+    checked for what it promises in test_the_default_bisection_is_within_its_bound_below)."""
     return pw.make_params(
         ocv_soc=ocv[0], ocv_v=ocv[1], series=[N] * b, relay=[relay] * b, on_ohm=[0.0005] * b,
         diode_drop_v=[0.6] * b, diode_ohm=[0.002] * b, cell_v_min=[v_min] * b,
         cell_v_max=[4.2] * b, temp_max_dsg_c=[t_max] * b, temp_max_chg_c=[45.0] * b,
         temp_min_chg_c=[t_min_chg] * b, heat_j_per_k=[1e9] * b, horizons_s=horizons,
+        iters=iters,
     )  # fmt: skip
 
 
@@ -52,6 +56,18 @@ def test_cutoff_limit_is_the_ohms_law_answer() -> None:
     assert list(out.why_dsg[0]) == [pw.WHY_CUTOFF] * 3
     # power: that current at the bus voltage it leaves (n*v_min minus the switch drop)
     assert out.pack_dsg_w[0, 0] == pytest.approx(expect * (N * 3.0 - expect * 0.001), rel=1e-6)
+
+
+def test_the_default_bisection_is_within_its_bound_below() -> None:
+    """The published limit is at most ``2**-iters`` of the bisection's upper bound (here the
+    short-circuit current, E / R) below the exact answer, and never above it."""
+    prm = params(1, iters=pw.make_params.__kwdefaults__["iters"])
+    assert prm.iters == 16
+    out = pw.state_of_power(prm, inputs([0.02]))
+    expect = (N * 3.5 - N * 3.0) / 0.02
+    bound = N * 3.5 / (0.02 + 0.001)  # E over R0 and the two channels in series
+    for got in out.pack_dsg_a[0]:
+        assert expect - bound * 2.0**-16 <= got <= expect
 
 
 def test_a_held_current_is_held_and_a_little_more_is_not() -> None:

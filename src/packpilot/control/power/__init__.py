@@ -53,7 +53,7 @@ def make_params(
     cool_w_per_k: Sequence[float] | None = None,
     horizons_s: Sequence[float] = HORIZONS_S,
     n_sub: int = 30,
-    iters: int = 30,
+    iters: int = 16,
     margin: float = 0.0,
 ) -> PowerParams:
     """The static facts, checked (a bad value raises :class:`ConfigError` naming it)."""

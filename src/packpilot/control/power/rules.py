@@ -92,7 +92,11 @@ class PowerParams(NamedTuple):
     n_sub: int
     """Sub-steps per horizon."""
     iters: int
-    """Bisection steps (the result is within ``2**-iters`` of the upper bound)."""
+    """Bisection steps: the result is within ``2**-iters`` of the upper bound (the sum of the
+    conducting batteries' limits, or their short-circuit currents) below the holdable
+    current, never above it. 16 (the default; 30 before): evtol_charging's 10 s limit reads
+    791.14 A against 791.32 A, 0.02 % low against the 2 % margin taken off anyway, for half
+    the CPU (8.0 against 16.7 ms per publication, measured in one process)."""
     margin: float
     """Share taken off the largest holdable current before it is published (the
     prediction's error against the plant, ``docs/power.md``)."""
