@@ -70,6 +70,23 @@ def test_the_default_bisection_is_within_its_bound_below() -> None:
         assert expect - bound * 2.0**-16 <= got <= expect
 
 
+def test_without_the_batteries_alone_the_packs_limits_are_the_same() -> None:
+    """The runtime asks for the pack's limits only (``alone=False``): the same pack and
+    share figures, each battery's own left NaN (not zeros: "none" is not "unknown")."""
+    prm = params(3)
+    inp = inputs([0.02, 0.03, 0.05], lim_d=80.0, lim_c=30.0)
+    inp.soc[0] = [0.3, 0.5, 0.7]
+    inp.r1_ohm[:] = 0.01
+    inp.tau1_s[:] = 20.0
+    full = pw.state_of_power(prm, inp)
+    pack = pw.state_of_power(prm, inp, alone=False)
+    for name in ("pack_dsg_a", "pack_chg_a", "pack_dsg_w", "pack_chg_w", "share_dsg_a",
+                 "share_chg_a", "why_dsg", "who_dsg", "why_chg", "who_chg"):  # fmt: skip
+        assert np.array_equal(getattr(pack, name), getattr(full, name)), name
+    assert np.isnan(pack.alone_dsg_a).all() and np.isnan(pack.alone_chg_a).all()
+    assert np.isfinite(full.alone_dsg_a).all() and (full.alone_dsg_a > 0).all()
+
+
 def test_a_held_current_is_held_and_a_little_more_is_not() -> None:
     prm = params(2)
     inp = inputs([0.02, 0.03])

@@ -144,7 +144,7 @@ class PowerWorker:
         if inp is None:
             self.result = None  # nothing to predict now: say unknown, not an old figure
         elif self._running is None:
-            self._running = self._pool.submit(state_of_power, prm, inp)
+            self._running = self._pool.submit(state_of_power, prm, inp, alone=False)
         return self.result
 
     def close(self) -> None:
@@ -337,9 +337,10 @@ class Publisher:
 
     def state_of_power(self) -> PowerOut | None:
         """The core's state of power now (:meth:`power_inputs`); None when nothing can be
-        predicted."""
+        predicted. The pack's limits only (what the frames carry): each battery's own are
+        left NaN, 80 % of the searches at 4 batteries."""
         inp = self.power_inputs()
-        return None if inp is None else state_of_power(self.power_prm, inp)
+        return None if inp is None else state_of_power(self.power_prm, inp, alone=False)
 
     def power_inputs(self) -> PowerInputs | None:
         """What the state of power is computed from: the state the core has (:meth:`view`),
@@ -364,7 +365,7 @@ class Publisher:
             voltage_v=self.power_prm.series * v, min_cell_v=np.full(n, v),
             max_cell_v=np.full(n, v), present=yes, chg_on=yes, dsg_on=yes, prm=self.power_prm,
         )  # fmt: skip
-        state_of_power(self.power_prm, inp)
+        state_of_power(self.power_prm, inp, alone=False)
 
     def power_frame(self, t: float) -> can.Message:
         """0x231: the pack's 2 / 10 / 30 s discharge and 10 s charge limits (NaN: unknown)."""

@@ -164,12 +164,14 @@ def _check(prm: PowerParams, inp: PowerInputs) -> None:
         )
 
 
-def state_of_power(prm: PowerParams, inp: PowerInputs) -> PowerOut:
-    """The state of power of every pack of ``inp`` (one compiled call for P packs)."""
+def state_of_power(prm: PowerParams, inp: PowerInputs, *, alone: bool = True) -> PowerOut:
+    """The state of power of every pack of ``inp`` (one compiled call for P packs).
+    ``alone=False`` leaves each battery's own limits (``alone_*``) NaN: the runtime publishes
+    only the pack's, and they are 2B of the 2B + 2 searches (80 % of the CPU at 4 batteries)."""
     _check(prm, inp)
     P, B = inp.soc.shape
     out = new_out(P, B, prm.horizons_s.shape[0])
-    rules.sop_packs(prm, inp, new_work(P, B), out)
+    rules.sop_packs(prm, inp, new_work(P, B), out, bool(alone))
     return out
 
 

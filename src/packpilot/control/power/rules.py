@@ -565,8 +565,11 @@ def largest(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int, only: int
 
 
 @kernel
-def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p: int) -> None:
-    """State of power of pack ``p`` for every horizon, both directions."""
+def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p: int,
+             alone: bool) -> None:  # fmt: skip
+    """State of power of pack ``p`` for every horizon, both directions; with ``alone``, also
+    what each battery could give or take on its own (NaN without: 2B of the 2B + 2 searches,
+    which only the report and the dashboard show)."""
     n = inp.soc.shape[1]
     for k in range(prm.horizons_s.shape[0]):
         t = prm.horizons_s[k]
@@ -591,15 +594,20 @@ def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p
                 for s in range(n):
                     out.share_chg_a[p, s, k] = -wk.peak_neg[p, s]
         for s in range(n):
+            if not alone:
+                out.alone_dsg_a[p, s, k] = math.nan
+                out.alone_chg_a[p, s, k] = math.nan
+                continue
             out.alone_dsg_a[p, s, k] = largest(prm, inp, wk, p, s, t, 1.0) * (1.0 - prm.margin)
             out.alone_chg_a[p, s, k] = largest(prm, inp, wk, p, s, t, -1.0) * (1.0 - prm.margin)
 
 
 @kernel
-def sop_packs(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut) -> None:
+def sop_packs(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut,
+              alone: bool) -> None:  # fmt: skip
     """State of power of every pack (one implementation for P packs)."""
     for p in range(inp.soc.shape[0]):
-        sop_pack(prm, inp, wk, out, p)
+        sop_pack(prm, inp, wk, out, p, alone)
 
 
 # ------------------------------------------------------------------------------ joining
