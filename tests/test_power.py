@@ -85,6 +85,13 @@ def test_without_the_batteries_alone_the_packs_limits_are_the_same() -> None:
         assert np.array_equal(getattr(pack, name), getattr(full, name)), name
     assert np.isnan(pack.alone_dsg_a).all() and np.isnan(pack.alone_chg_a).all()
     assert np.isfinite(full.alone_dsg_a).all() and (full.alone_dsg_a > 0).all()
+    ten = pw.state_of_power(prm, inp, alone=10.0)  # the report's: the 10 s horizon only
+    assert np.array_equal(ten.alone_dsg_a[:, :, 1], full.alone_dsg_a[:, :, 1])
+    assert np.array_equal(ten.alone_chg_a[:, :, 1], full.alone_chg_a[:, :, 1])
+    assert np.isnan(ten.alone_dsg_a[:, :, [0, 2]]).all()
+    assert np.array_equal(ten.pack_dsg_a, full.pack_dsg_a)
+    with pytest.raises(ConfigError, match=r"no horizon of 5\.0 s"):
+        pw.state_of_power(prm, inp, alone=5.0)
 
 
 def test_a_held_current_is_held_and_a_little_more_is_not() -> None:

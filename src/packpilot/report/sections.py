@@ -711,7 +711,8 @@ def power(page: Page) -> str:
             tr.battery[k], at, cols, bus_v=float(tr.bus_v[k]), load_a=float(tr.load_a[k]),
             mode=page.status_at("mode", int(k), cols[0]),
         )  # fmt: skip
-        out = state_of_power_now(cfg, prm, view)
+        # each battery alone at 10 s only, the one horizon shown: a third of the searches
+        out = state_of_power_now(cfg, prm, view, alone=float(prm.horizons_s[h10]))
         if out is None:
             continue
         pack[:, :, k] = (out.pack_dsg_a[0], out.pack_dsg_w[0], out.pack_chg_a[0],

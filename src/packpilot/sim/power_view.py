@@ -104,10 +104,12 @@ def sop_inputs(cfg: ScenarioConfig, prm: PowerParams, view: CoreView) -> PowerIn
     return inp
 
 
-def state_of_power_now(cfg: ScenarioConfig, prm: PowerParams, view: CoreView) -> PowerOut | None:
-    """The pack's state of power from the view (None: nothing can be predicted)."""
+def state_of_power_now(cfg: ScenarioConfig, prm: PowerParams, view: CoreView, *,
+                       alone: bool | float = True) -> PowerOut | None:  # fmt: skip
+    """The pack's state of power from the view (None: nothing can be predicted); ``alone``
+    as :func:`~packpilot.control.power.state_of_power`'s."""
     inp = sop_inputs(cfg, prm, view)
-    return None if inp is None else state_of_power(prm, inp)
+    return None if inp is None else state_of_power(prm, inp, alone=alone)
 
 
 def _dv_max(prm: PowerParams) -> float:

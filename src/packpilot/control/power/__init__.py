@@ -164,15 +164,30 @@ def _check(prm: PowerParams, inp: PowerInputs) -> None:
         )
 
 
-def state_of_power(prm: PowerParams, inp: PowerInputs, *, alone: bool = True) -> PowerOut:
+def state_of_power(prm: PowerParams, inp: PowerInputs, *,
+                   alone: bool | float = True) -> PowerOut:  # fmt: skip
     """The state of power of every pack of ``inp`` (one compiled call for P packs).
-    ``alone=False`` leaves each battery's own limits (``alone_*``) NaN: the runtime publishes
-    only the pack's, and they are 2B of the 2B + 2 searches (80 % of the CPU at 4 batteries)."""
+
+    ``alone``: each battery's own limits (``alone_*``) at every horizon (True), at none
+    (False: the runtime publishes only the pack's) or at the one horizon of that many
+    seconds (the report shows the 10 s one); NaN elsewhere. They are 2B of the 2B + 2
+    searches per horizon: 80 % of the CPU at 4 batteries."""
     _check(prm, inp)
     P, B = inp.soc.shape
     out = new_out(P, B, prm.horizons_s.shape[0])
-    rules.sop_packs(prm, inp, new_work(P, B), out, bool(alone))
+    rules.sop_packs(prm, inp, new_work(P, B), out, _alone_k(prm, alone))
     return out
+
+
+def _alone_k(prm: PowerParams, alone: bool | float) -> int:
+    if alone is True:
+        return rules.ALONE_ALL
+    if alone is False:
+        return rules.ALONE_NONE
+    hits = np.nonzero(np.isclose(prm.horizons_s, float(alone)))[0]
+    if hits.size == 0:
+        raise ConfigError(f"power: no horizon of {alone} s (horizons_s {prm.horizons_s.tolist()})")
+    return int(hits[0])
 
 
 def held_bus_v(prm: PowerParams, inp: PowerInputs, current_a: float, horizon_s: float, *,

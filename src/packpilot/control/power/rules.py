@@ -564,12 +564,19 @@ def largest(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int, only: int
     return lo
 
 
+ALONE_ALL = -1
+"""``alone_k`` for each battery's own limits at every horizon ..."""
+ALONE_NONE = -2
+"""... and at none."""
+
+
 @kernel
 def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p: int,
-             alone: bool) -> None:  # fmt: skip
-    """State of power of pack ``p`` for every horizon, both directions; with ``alone``, also
-    what each battery could give or take on its own (NaN without: 2B of the 2B + 2 searches,
-    which only the report and the dashboard show)."""
+             alone_k: int) -> None:  # fmt: skip
+    """State of power of pack ``p`` for every horizon, both directions; and what each battery
+    could give or take on its own at horizon ``alone_k`` (every horizon: :data:`ALONE_ALL`;
+    none: :data:`ALONE_NONE`; NaN where not computed: they are 2B of the 2B + 2 searches per
+    horizon, which only the report and the dashboard show)."""
     n = inp.soc.shape[1]
     for k in range(prm.horizons_s.shape[0]):
         t = prm.horizons_s[k]
@@ -594,7 +601,7 @@ def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p
                 for s in range(n):
                     out.share_chg_a[p, s, k] = -wk.peak_neg[p, s]
         for s in range(n):
-            if not alone:
+            if alone_k != ALONE_ALL and alone_k != k:
                 out.alone_dsg_a[p, s, k] = math.nan
                 out.alone_chg_a[p, s, k] = math.nan
                 continue
@@ -604,10 +611,10 @@ def sop_pack(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut, p
 
 @kernel
 def sop_packs(prm: PowerParams, inp: PowerInputs, wk: PowerWork, out: PowerOut,
-              alone: bool) -> None:  # fmt: skip
+              alone_k: int) -> None:  # fmt: skip
     """State of power of every pack (one implementation for P packs)."""
     for p in range(inp.soc.shape[0]):
-        sop_pack(prm, inp, wk, out, p, alone)
+        sop_pack(prm, inp, wk, out, p, alone_k)
 
 
 # ------------------------------------------------------------------------------ joining
