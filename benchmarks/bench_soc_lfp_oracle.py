@@ -30,14 +30,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_soc_campaign import FAMILIES, SEED, SPREAD, scenario  # noqa: E402
-
-from packpilot.campaign import draw_run, parse_spreads  # noqa: E402
-from packpilot.campaign.execute import stack_overrides  # noqa: E402
-from packpilot.campaign.soc_accuracy import SETTLE_S  # noqa: E402
-from packpilot.control.soc import observer as ob  # noqa: E402
-from packpilot.sim.loop import ClosedLoop, n_steps  # noqa: E402
-from packpilot.sim.sensors import soc_state, true_soc  # noqa: E402
+from bench_soc_campaign import FAMILIES, SEED, SPREAD, scenario
+from packpilot.campaign import draw_run, parse_spreads
+from packpilot.campaign.execute import stack_overrides
+from packpilot.campaign.soc_accuracy import SETTLE_S
+from packpilot.control.soc import observer as ob
+from packpilot.sim.loop import ClosedLoop, n_steps
+from packpilot.sim.sensors import soc_state, true_soc
 
 VARIANTS = ("default", "cap", "r", "r2", "oracle", "stored")
 PIN = {"cap": (True, False), "r": (False, True), "oracle": (True, True)}
@@ -85,12 +84,15 @@ def _pin(loop: ClosedLoop, variant: str) -> None:
         st.cov[0, 0, :, k] = 0.0
 
 
-def run_one(run: int, variant: str, stored_error: float, trace: bool) -> dict[str, Any]:
+def run_one(
+    run: int, variant: str, stored_error: float, stored_sigma: float, trace: bool
+) -> dict[str, Any]:
     fam = next(f for f in FAMILIES if f.name == "telecom")
     cfg = scenario(fam)
-    if variant == "stored":
+    if variant == "stored":  # the start and the observer's prior both the stored SOC's
         sens = cfg.sensors.model_copy(update={"soc0_error": stored_error})  # type: ignore[union-attr]
-        cfg = cfg.model_copy(update={"sensors": sens})
+        soc = cfg.soc.model_copy(update={"ekf_soc_sigma0": stored_sigma})  # type: ignore[union-attr]
+        cfg = cfg.model_copy(update={"sensors": sens, "soc": soc})
     draw = draw_run(parse_spreads(SPREAD), SEED, run, cfg.pack.ambient_c)
     loop = ClosedLoop.of(cfg, n_packs=1, overrides=stack_overrides([draw]))
     st = soc_state(loop.core)
@@ -110,16 +112,24 @@ def run_one(run: int, variant: str, stored_error: float, trace: bool) -> dict[st
             truth = float(np.clip(true_soc(loop.plant.pack, loop.plant.traction)[0, 0], 0, 1))
             soc_cells, _ = loop.plant.pack.cell_states()
             g = max(int(st.weak_g[0, 0]), 0)
-            rows.append((
-                t, truth, float(np.mean(soc_cells[0, _group_cells(loop, g)])),
-                float(st.shown_soc[0, 0]), float(st.x[0, 0, ob.X_SOC]),
-                math.sqrt(max(float(st.cov[0, 0, ob.X_SOC, ob.X_SOC]), 0.0)),
-                float(st.x[0, 0, ob.X_RSCALE]), float(st.x[0, 0, ob.X_CAP]), g,
-                float(loop.m.bat.current_a[0, 0]), float(loop.m.bat.temp_c[0, 0]),
-                float(np.mean(loop.plant.pack.cell_r_scale[0, _group_cells(loop, g)])),
-                float(np.mean(loop.plant.pack.capacity_ah[0, _group_cells(loop, g)])),
-                float(st.soc[0, 0]),
-            ))
+            rows.append(
+                (
+                    t,
+                    truth,
+                    float(np.mean(soc_cells[0, _group_cells(loop, g)])),
+                    float(st.shown_soc[0, 0]),
+                    float(st.x[0, 0, ob.X_SOC]),
+                    math.sqrt(max(float(st.cov[0, 0, ob.X_SOC, ob.X_SOC]), 0.0)),
+                    float(st.x[0, 0, ob.X_RSCALE]),
+                    float(st.x[0, 0, ob.X_CAP]),
+                    g,
+                    float(loop.m.bat.current_a[0, 0]),
+                    float(loop.m.bat.temp_c[0, 0]),
+                    float(np.mean(loop.plant.pack.cell_r_scale[0, _group_cells(loop, g)])),
+                    float(np.mean(loop.plant.pack.capacity_ah[0, _group_cells(loop, g)])),
+                    float(st.soc[0, 0]),
+                )
+            )
     finally:
         loop.close()
     a = np.array(rows)
@@ -139,7 +149,8 @@ def run_one(run: int, variant: str, stored_error: float, trace: bool) -> dict[st
         "max_vs_read_group": float(np.max(np.abs(err_g))),
         "truth_minus_group_at_300": float(a[after][0, 1] - a[after][0, 2]),
         "inside_2sigma_frac": float(np.mean(np.abs(err_g) <= 2 * sig)),
-        "sigma_at_300": float(sig[0]), "sigma_at_900": float(sig[np.searchsorted(a[after, 0], 900)]),
+        "sigma_at_300": float(sig[0]),
+        "sigma_at_900": float(sig[np.searchsorted(a[after, 0], 900)]),
         "old_rms": float(np.sqrt(np.mean((a[after, 13] - a[after, 1]) ** 2))),
     }  # fmt: skip
     if trace:
@@ -153,13 +164,19 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--first", type=int, default=0)
     ap.add_argument("--variant", action="append", default=[])
     ap.add_argument("--stored-error", type=float, default=0.02)
+    ap.add_argument(
+        "--stored-sigma",
+        type=float,
+        default=0.15,
+        help="the observer's SOC prior (sigma) in 'stored' (shipped: 0.15)",
+    )
     ap.add_argument("--trace", type=int, default=None, help="keep this run's time series")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args(argv)
     res = []
     for v in a.variant or list(VARIANTS):
         for r in range(a.first, a.first + a.runs):
-            row = run_one(r, v, a.stored_error, a.trace == r)
+            row = run_one(r, v, a.stored_error, a.stored_sigma, a.trace == r)
             res.append(row)
             print(json.dumps({k: (round(x, 4) if isinstance(x, float) else x)
                               for k, x in row.items() if k != "trace"}), flush=True)  # fmt: skip
