@@ -435,6 +435,9 @@ SOC = [
     _m("soc", "equalizer-current-ignored",
        "    return float(cur + p_in / v_sum - st.bal_a[p, i, g])\n", "    return cur\n",
        "the observer counts only the battery current, not the equalizers' into its group"),
+    _m("soc", "weak-group-no-hysteresis",
+       "    if prev_v - best_v < WEAK_HYST_V:", "    if prev_v - best_v < 0.0:",
+       "the group the observer reads follows the noise on a flat OCV (h28lfp)"),
 ]
 
 EQUALIZATION = [
@@ -693,7 +696,10 @@ TESTS: dict[str, list[str]] = {
         "_still_empty",
         "tests/test_bmu_supply.py::test_closed_loop_a_browned_out_bmu_logs_no_stage_while_docked",
     ],
-    "soc": ["tests/test_soc_estimator.py", "tests/test_soc_observer.py"],
+    "soc": [
+        "tests/test_soc_estimator.py", "tests/test_soc_observer.py",
+        "tests/test_soc_lfp_plateau.py",
+    ],
     # shared helpers (#26 item 4: generated mutants only): every method's commands and events
     # go through control/commands.py, capacity / conduction through control/battery.py
     "commands": [
