@@ -120,9 +120,7 @@ def _workers_cpu(client: Any) -> float:
     return float(sum(u.ru_utime + u.ru_stime for u in usage.values()))
 
 
-def campaign(
-    fams: tuple[Family, ...], runs: int, workers: int, seed: int = SEED
-) -> dict[str, Any]:
+def campaign(fams: tuple[Family, ...], runs: int, workers: int, seed: int = SEED) -> dict[str, Any]:
     """Every family's campaign on one LocalCluster; rows per family, wall and CPU (``seed``:
     the campaign's draws and each run's sensor noise; another seed checks a change on runs
     not used to choose it)."""

@@ -285,6 +285,7 @@ def bound(x: F64, cov: F64, p: int, i: int, cap_nom: float, r_nom: float,
 
 __all__ = [
     "N_X",
+    "SPREAD_SOC_MAX",
     "X_CAP",
     "X_OFFSET",
     "X_RSCALE",
@@ -292,7 +293,6 @@ __all__ = [
     "X_V1",
     "bound",
     "correct",
-    "SPREAD_SOC_MAX",
     "ocv_at",
     "ocv_over_spread",
     "ocv_temp_at",
