@@ -14,6 +14,7 @@ is fitted to a log.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -66,28 +67,13 @@ def derive_lipo(uav: CellParams) -> CellParams:
         "2.5 / 4.2 V; dU/dT carried over as a function of SoC on a uniform 5 % grid). Built by "
         "derive_lipo_pouch.py; a template for LiPo packs' OCV shape, not a measured cell."
     )
-    return CellParams(
-        name="lipo_pouch",
-        capacity_ah=uav.capacity_ah,
-        ocv_soc=SOC,
-        ocv_table_v=ocv,
-        ocv_ref_temp_c=25.0,
-        dudt_axis="soc",
-        dudt_x=dudt_soc,
-        dudt_temp_c=uav.dudt_temp_c,
-        dudt_v_per_k=dudt,
-        rc_temp_c=uav.rc_temp_c,
-        rc_current_a=uav.rc_current_a,
-        rc_soc=uav.rc_soc,
-        r0_ohm=uav.r0_ohm,
-        r1_ohm=uav.r1_ohm,
-        c1_f=uav.c1_f,
-        thermal=uav.thermal,
-        v_min_v=uav.v_min_v,
-        v_max_v=uav.v_max_v,
-        provenance=provenance,
+    # uav_5ah but for the OCV and dU/dT (and what says so): its capacity, R0/R1/C1 tables,
+    # thermal data and limits as they are
+    return replace(
+        uav, name="lipo_pouch", ocv_soc=SOC, ocv_table_v=ocv, ocv_ref_temp_c=25.0,
+        dudt_axis="soc", dudt_x=dudt_soc, dudt_v_per_k=dudt, provenance=provenance,
         extrapolation="clamp",
-    )
+    )  # fmt: skip
 
 
 def main() -> None:
