@@ -122,6 +122,13 @@ def _voltage_limits(cfg: ScenarioConfig, groups: Sequence[int]) -> tuple[float, 
     return cvl, dvl
 
 
+def pack_limits(prm: PowerParams, inp: PowerInputs) -> PowerOut:
+    """The state of power the runtime publishes: the pack's limits only (what the frames
+    carry); each battery's own are left NaN, 80 % of the searches at 4 batteries. One place,
+    so the worker, the inline call and the warm-up compile and run the same call."""
+    return state_of_power(prm, inp, alone=False)
+
+
 class PowerWorker:
     """The state of power off the BMS period's thread (interpreted runs; see the module's
     docstring): one computation at a time, from the snapshot given at its submission;
@@ -144,7 +151,7 @@ class PowerWorker:
         if inp is None:
             self.result = None  # nothing to predict now: say unknown, not an old figure
         elif self._running is None:
-            self._running = self._pool.submit(state_of_power, prm, inp, alone=False)
+            self._running = self._pool.submit(pack_limits, prm, inp)
         return self.result
 
     def close(self) -> None:
@@ -337,10 +344,9 @@ class Publisher:
 
     def state_of_power(self) -> PowerOut | None:
         """The core's state of power now (:meth:`power_inputs`); None when nothing can be
-        predicted. The pack's limits only (what the frames carry): each battery's own are
-        left NaN, 80 % of the searches at 4 batteries."""
+        predicted. :func:`pack_limits`."""
         inp = self.power_inputs()
-        return None if inp is None else state_of_power(self.power_prm, inp, alone=False)
+        return None if inp is None else pack_limits(self.power_prm, inp)
 
     def power_inputs(self) -> PowerInputs | None:
         """What the state of power is computed from: the state the core has (:meth:`view`),
@@ -365,7 +371,7 @@ class Publisher:
             voltage_v=self.power_prm.series * v, min_cell_v=np.full(n, v),
             max_cell_v=np.full(n, v), present=yes, chg_on=yes, dsg_on=yes, prm=self.power_prm,
         )  # fmt: skip
-        state_of_power(self.power_prm, inp, alone=False)
+        pack_limits(self.power_prm, inp)
 
     def power_frame(self, t: float) -> can.Message:
         """0x231: the pack's 2 / 10 / 30 s discharge and 10 s charge limits (NaN: unknown)."""
