@@ -848,6 +848,15 @@ def fit_cmd(
     train_share: Annotated[
         float, typer.Option(help="share of each log's samples to fit on; the rest tests the fit")
     ] = 0.6,
+    series_ohm: Annotated[
+        float,
+        typer.Option(
+            min=0.0,
+            help="the logged battery's leads, connectors and current shunt up to the logger's "
+            "voltage sensor (Ohm, whole battery; measured): taken out of the fitted R0 as "
+            "series_ohm, which heats no cell. The logs cannot tell it; 0: not split (flagged)",
+        ),
+    ] = 0.0,
     as_json: JsonOpt = False,
 ) -> None:
     """Fit a cell model to flight logs (capacity, initial SOC per log, R0, R1/tau1, a second
@@ -873,7 +882,7 @@ def fit_cmd(
         profiles, notes = profiles_from_logs(list(logs), cells, battery)
         v = fit_and_validate(profiles, base.ocv_soc, base.ocv_table_v, train_share=train_share)
         name = out.stem if out is not None else "fitted"
-        data = cellset_dict(v, name, chemistry)
+        data = cellset_dict(v, name, chemistry, profiles[0].series_cells, series_ohm)
         data["notes"]["logs"] = notes
         if out is not None:
             out.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")

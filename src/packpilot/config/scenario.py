@@ -131,6 +131,20 @@ class BatteryConfig(_Strict):
         "ohmmeter's: 25 degC); at another ambient the cells' resistance follows their set's "
         "temperature law from this value",
     )
+    series_ohm: Annotated[float, Field(ge=0, le=10.0, allow_inf_nan=False)] | None = Field(
+        None,
+        description="resistance between the battery's cells and its load terminal (leads, "
+        "connectors, a current shunt): drops the voltage at the bus, heats no cell, constant in "
+        "temperature; default: the cell set's series_ohm x series_groups / cells_per_group "
+        "(0 for the shipped sets)",
+    )
+    cooling_scale: Annotated[float, Field(gt=0, le=20.0, allow_inf_nan=False)] = Field(
+        1.0,
+        description="multiplier on the cells' heat transfer from their surface to ambient (the "
+        "cell set's jig_air_w_per_k): above 1 for airflow over the battery (prop wash, forward "
+        "flight, a fan: forced convection 25-40 W/(m2 K) against still air's ~12), below 1 "
+        "for an enclosed bay",
+    )
     cell_soc_spread: Annotated[float, Field(ge=0, le=0.2), AfterValidator(plus_zero)] = Field(
         0.0, description="uniform +- spread of cell SOC inside each group"
     )

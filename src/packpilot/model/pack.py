@@ -284,6 +284,15 @@ class Pack:
                 prm, flat.size, soc2.ravel()[flat], self.cell_ambient.ravel()[flat]
             )
             self.banks.append(CellBank(params=prm, idx=flat, state=state))
+        # Leads, connectors and shunt of each battery: in its branch, outside its cells (#27).
+        self.series_ohm = np.array([
+            (b.series_ohm if b.series_ohm is not None
+             else params_of_string[n].series_ohm * b.series_groups / b.cells_per_group)
+            for b, n in zip(bats, set_names, strict=True)
+        ])  # fmt: skip
+        self.cooling_scale = np.array([b.cooling_scale for b in bats])
+        for i in np.flatnonzero(self.cooling_scale != 1.0):
+            self.set_cooling(int(i), 1.0)
         self.v_min_cell = np.empty(C)
         self.v_max_cell = np.empty(C)
         for bank in self.banks:
@@ -373,8 +382,11 @@ class Pack:
         """Scale one battery's heat transfer to ambient (1 = healthy; a cooling failure < 1).
 
         The battery's cells move to a bank of their own whose thermal parameters carry the
-        factor, so the fault touches no other battery that shares the cell set.
+        factor, so the fault touches no other battery that shares the cell set. The factor
+        multiplies the battery's configured ``cooling_scale`` (airflow), so a fault and its end
+        keep it.
         """
+        factor = factor * float(self.cooling_scale[string])
         C = self.n_cells
         banks: list[CellBank] = []
         for bank in self.banks:
@@ -464,7 +476,8 @@ class Pack:
         group_v = o["gv"]
         pack_kernel.pack_electrical(
             self.cell_string, self.cell_group, self.string_cell_starts, self.group_starts,
-            self.string_group_starts, self.sw_kind, self.sw_on_ohm, self.sw_drop_v,
+            self.string_group_starts, self.sw_kind, self.sw_on_ohm, self.series_ohm,
+            self.sw_drop_v,
             self.sw_diode_ohm, self.sw_rev_trip_a, self.is_aux, self.present_from_s,
             -1 if self.aux_index is None else self.aux_index, prm, t, h, kind,
             self.chg_on, self.dsg_on, self.welded, self.fet_shorted, self.balancer_a,
@@ -567,7 +580,7 @@ class Pack:
         e_string = np.add.reduceat(
             self.e_cell - self.r_cell * x_cell, self._string_starts(), axis=1
         )
-        r_string = np.add.reduceat(self.r_cell, self._string_starts(), axis=1)
+        r_string = np.add.reduceat(self.r_cell, self._string_starts(), axis=1) + self.series_ohm
         br = switch_branches(
             self.sw_kind,
             self.sw_on_ohm,

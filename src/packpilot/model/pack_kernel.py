@@ -70,6 +70,7 @@ def pack_electrical(
     string_group_starts: Any,
     sw_kind: Any,
     sw_on_ohm: Any,
+    series_ohm: Any,
     sw_drop_v: Any,
     sw_diode_ohm: Any,
     sw_rev_trip_a: Any,
@@ -180,7 +181,8 @@ def pack_electrical(
         rr = r_cell[p]
         for s in range(S):
             e_s[s] = segment_sum(src, cell_starts, s)
-            r_s[s] = segment_sum(rr, cell_starts, s)
+            # the battery's leads, connectors and shunt: in its branch, heating no cell
+            r_s[s] = segment_sum(rr, cell_starts, s) + series_ohm[s]
             present = present_from_s[s] <= t + 1e-12 and not is_aux[s]
             cg = chg_on[p, s] or welded[s] or fet_shorted[p, s, 0]
             dg = dsg_on[p, s] or welded[s] or fet_shorted[p, s, 1]

@@ -70,7 +70,7 @@ def battery_profile(path: Path, b: BatterySeries, cells: int | None) -> tuple[Pr
     )
     temp = None if b.temp_c is None else hold(np.asarray(b.temp_c, dtype=np.float64))[0]
     try:
-        prof = Profile(label, np.asarray(b.t_s, dtype=np.float64), cur, volt, counter, temp)
+        prof = Profile(label, np.asarray(b.t_s, dtype=np.float64), cur, volt, counter, temp, n)
     except ValueError as err:
         raise InputError(f"{path}: battery {b.name}: {err}") from None
     return prof, notes
@@ -84,7 +84,7 @@ def cycler_profile(path: Path, cells: int | None) -> tuple[Profile, list[str]]:
         raise InputError(f"{path}: the channel's current is 0 throughout: nothing to fit")
     notes = [*c.notes, f"{path.name}: {n} series cell(s)" + ("" if cells else " (no --cells)")]
     try:
-        prof = Profile(path.name, c.t_s, c.current_a, c.voltage_v / n, None, c.temp_c)
+        prof = Profile(path.name, c.t_s, c.current_a, c.voltage_v / n, None, c.temp_c, n)
     except ValueError as err:
         raise InputError(f"{path}: {err}") from None
     return prof, notes

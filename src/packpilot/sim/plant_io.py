@@ -103,12 +103,14 @@ class SimulatedPlant:
         cells (:attr:`PackInfo.charge_path_ohm`): the closed switch's (a relay's contact, a
         MOSFET pair's two channels in series) plus the charger's output slope times the
         number of traction batteries (its drop is the slope times the *total* current; with
-        the current shared equally each battery sees that many times its own share)."""
+        the current shared equally each battery sees that many times its own share), plus the
+        battery's own leads, connectors and shunt (``series_ohm``, 0 unless stated)."""
         pack, cfg = self.pack, self.cfg
         tr = self.topology.traction
         share = float(cfg.charger.r_out_ohm) * len(tr) if cfg.charger.present else 0.0
         return tuple(
             float(pack.sw_on_ohm[i]) * (1.0 if pack.sw_kind[i] == KIND_RELAY else 2.0) + share
+            + float(pack.series_ohm[i])
             for i in tr
         )
 

@@ -84,6 +84,12 @@ class CellParams:
     c2_f: F64 | None = None
     ocv_ref_temp_c: float | None = None
     extrapolation: Literal["clamp", "linear"] = "clamp"
+    series_ohm: float = 0.0
+    """Resistance in series with each cell outside it (its share of the battery's leads,
+    connectors and current shunt): a default for a battery's ``series_ohm`` (x series groups /
+    cells per group). It drops the battery's voltage at the load but heats no cell and does not
+    follow the cell's temperature law; the cell model itself never sees it (the pack puts it in
+    the battery's branch). 0 in every shipped set; ``packpilot fit --series-ohm`` sets it."""
     _packed: _Packed = field(init=False, repr=False, compare=False)
     _thermal_cache: dict[float, F64] = field(
         init=False, repr=False, compare=False, default_factory=dict
@@ -157,6 +163,8 @@ def _validate_scalars(p: CellParams) -> None:
         raise _fail(p.name, "v_min_v", f"must be below v_max_v ({vmin} >= {vmax})")
     if p.ocv_ref_temp_c is not None:
         _scalar(p, "ocv_ref_temp_c")
+    if _scalar(p, "series_ohm") < 0.0:
+        raise _fail(p.name, "series_ohm", f"must be >= 0, got {p.series_ohm!r}")
     if p.extrapolation not in ("clamp", "linear"):
         raise _fail(
             p.name, "extrapolation", f"must be 'clamp' or 'linear', got {p.extrapolation!r}"
@@ -251,7 +259,7 @@ _REQUIRED = (
     "v_max_v",
     "provenance",
 )
-_OPTIONAL = ("r2_ohm", "c2_f", "ocv_ref_temp_c", "extrapolation")
+_OPTIONAL = ("r2_ohm", "c2_f", "ocv_ref_temp_c", "extrapolation", "series_ohm")
 _THERMAL_KEYS = (
     "cell_heat_capacity_j_per_k",
     "jig_heat_capacity_j_per_k",
@@ -308,6 +316,8 @@ def params_to_dict(params: CellParams) -> dict[str, Any]:
             value = value.tolist()
         elif value is None and key in ("r2_ohm", "c2_f"):
             continue
+        elif key == "series_ohm" and value == 0.0:
+            continue  # the shipped sets' files do not carry it
         out[key] = value
     return out
 

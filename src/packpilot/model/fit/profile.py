@@ -60,6 +60,8 @@ class Profile:
     charge_ah: F64 | None = None
     """Charge drawn since the log's start from the autopilot's counter, per cell (Ah)."""
     temp_c: F64 | None = None
+    series_cells: int = 1
+    """Series cells of the battery the voltage was divided by (the pack the log came from)."""
 
     def __post_init__(self) -> None:
         n = len(self.t_s)
@@ -91,7 +93,7 @@ class Profile:
         return Profile(
             self.name, self.t_s[sl], self.current_a[sl], self.voltage_v[sl],
             None if self.charge_ah is None else self.charge_ah[sl],
-            None if self.temp_c is None else self.temp_c[sl],
+            None if self.temp_c is None else self.temp_c[sl], self.series_cells,
         )  # fmt: skip
 
 
