@@ -867,7 +867,7 @@ def fit_cmd(
         import json
 
         from packpilot.model.cell import load_parameter_set
-        from packpilot.model.fit.cellset import cellset_dict
+        from packpilot.model.fit.cellset import cellset_dict, whatif_assumptions
         from packpilot.model.fit.validate import fit_and_validate
         from packpilot.replay.fitlogs import profiles_from_logs
         from packpilot.report.fit_report import write_fit_report
@@ -887,7 +887,10 @@ def fit_cmd(
         if out is not None:
             out.write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
         if report is not None:
-            write_fit_report(v, ", ".join(p.name for p in profiles), report)
+            write_fit_report(
+                v, ", ".join(p.name for p in profiles), report,
+                whatif_assumptions(v, profiles[0].series_cells, series_ohm),
+            )  # fmt: skip
         summary = {k: data["notes"][k] for k in ("verdict", "reasons", "not_identifiable",
                                                  "assumptions", "notes", "validation")}  # fmt: skip
         summary["parameters"] = {

@@ -9,6 +9,7 @@ from __future__ import annotations
 import html
 import io
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -95,14 +96,16 @@ def _params_table(v: Validation) -> str:
     return table(["parameter", "value", "uncertainty (1 sigma)", "identifiable"], rows)
 
 
-def fit_html(v: Validation, title: str) -> str:
+def fit_html(v: Validation, title: str, extra: Sequence[str] = ()) -> str:
+    """The report page; ``extra``: what the written cell set assumes beyond the fit (its
+    thermal data, the wiring share), listed with the fit's assumptions."""
     r = v.result
     w = r.window
     cls = {"usable": "", "low confidence": " low", "refused": " refused"}[v.verdict]
     temp = (
         "not logged" if w.temp_min_c is None else f"{w.temp_min_c:.1f}..{w.temp_max_c:.1f} degC"
     )
-    notes = [*r.assumptions, f"OCV: {r.ocv_note}", *r.notes]
+    notes = [*r.assumptions, f"OCV: {r.ocv_note}", *extra, *r.notes]
     parts = [
         "<!doctype html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>PackPilot fit: {html.escape(title)}</title><style>{CSS}</style></head><body>",
@@ -125,8 +128,8 @@ def fit_html(v: Validation, title: str) -> str:
     return "\n".join(parts)
 
 
-def write_fit_report(v: Validation, title: str, out: Path) -> None:
-    out.write_text(fit_html(v, title), encoding="utf-8")
+def write_fit_report(v: Validation, title: str, out: Path, extra: Sequence[str] = ()) -> None:
+    out.write_text(fit_html(v, title, extra), encoding="utf-8")
 
 
 __all__ = ["fit_html", "write_fit_report"]

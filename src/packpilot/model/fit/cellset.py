@@ -251,6 +251,15 @@ def _series_note(v: Validation, s: float, series_ohm: float) -> str:
     )
 
 
+def whatif_assumptions(
+    v: Validation, series_cells: int | None = None, series_ohm: float = 0.0
+) -> list[str]:
+    """What the written set assumes for a what-if that the fit itself does not: its thermal
+    data and the wiring share of R0 (the report lists them with the fit's assumptions)."""
+    s = series_share(v, series_ohm, series_cells)
+    return [_thermal_assumption(v, series_cells), _series_note(v, s, series_ohm)]
+
+
 def fit_notes(
     v: Validation, chemistry: str, series_cells: int | None = None, series_ohm: float = 0.0
 ) -> dict[str, Any]:
@@ -275,8 +284,7 @@ def fit_notes(
             f"OCV: {r.ocv_note}",
             f"template set for what logs cannot tell: {chemistry}",
             *_law_note(v, chemistry),
-            _thermal_assumption(v, series_cells),
-            _series_note(v, s, series_ohm),
+            *whatif_assumptions(v, series_cells, series_ohm),
             "per series cell: the battery's voltage / series cells (the average cell); "
             "capacity and resistances are those of one series element (its parallel cells "
             "together)",
@@ -310,5 +318,5 @@ def cellset_dict(
 
 __all__ = [
     "cellset_dict", "fit_notes", "fitted_params", "series_share", "temperature_law",
-    "thermal_estimate",
+    "thermal_estimate", "whatif_assumptions",
 ]  # fmt: skip
