@@ -12,6 +12,9 @@ SOC swing and verdict. Series cell counts come from the logs' resting voltage (A
 logs carry none); the autopilot's configured capacity (PARM BATT_CAPACITY) is shown beside the
 fitted one.
 
+Validation both ways (``--validate time`` and ``--validate flights``, leave one flight out):
+the three-flight plant logs and every real log, per held-out part (PyBOP not rerun).
+
 Standalone: ``python benchmarks/bench_fit.py``; in ``make bench`` through run_all.
 """
 
@@ -291,8 +294,82 @@ def _fleet_timing(n: int = 50) -> dict[str, Any]:
             "fleet_add_wall_s": wall, "fleet_add_cpu_s": cpu, "records": len(lines)}  # fmt: skip
 
 
+def _lofo_rows(name: str, prof: Any, uav: Any) -> list[dict[str, Any]]:
+    """One log validated both ways: the 60 / 40 time split and, with >= 3 flights, leave one
+    flight out (each flight's row; the end flights' marked not judged). PyBOP not rerun."""
+    from packpilot.errors import InputError
+    from packpilot.model.fit.profile import flights
+    from packpilot.model.fit.validate import fit_and_validate
+
+    n = len(flights(prof))
+    rows = []
+    for mode in ("time", "flights"):
+        t0 = time.process_time()
+        try:
+            v = fit_and_validate([prof], uav.ocv_soc, uav.ocv_table_v, mode=mode)
+        except InputError as err:
+            rows.append({"case": f"{name}: --validate {mode}", "flights": n,
+                         "verdict": f"refused: {str(err).split(': ', 2)[-1][:90]}"})  # fmt: skip
+            continue
+        cpu = time.process_time() - t0
+        for c in v.checks:
+            held = c.test
+            rows.append({
+                "case": f"{name}: --validate {mode}"
+                + ("" if mode == "time" else ", " + " ".join(c.name.rsplit(" ", 2)[-2:])
+                   + (" (interior)" if c.interior else " (end: not judged)")),
+                "flights": n,
+                "held_out_s": f"{c.t_s[held.start]:.0f}..{c.t_s[held.stop - 1]:.0f}",
+                "heldout_rmse_mV": 1000 * c.rmse_v, "heldout_max_mV": 1000 * c.max_err_v,
+                "noise_floor_mV": 1000 * c.noise_floor_v, "line_rmse_mV": 1000 * c.baseline_rmse_v,
+                "skill": c.skill, "verdict": v.verdict, "fit_cpu_s": cpu,
+            })  # fmt: skip
+    return rows
+
+
+def _lofo() -> list[dict[str, Any]]:
+    """Time split against leave one flight out: three-flight plant logs (1 Hz, 10 mV noise,
+    1 % gain error; R0 and capacity errors), then every real log that fits."""
+    from packpilot.errors import PackPilotError
+    from packpilot.io.cycler import is_cycler_export
+    from packpilot.io.flightlog import read_flight_log
+    from packpilot.model.cell import load_parameter_set
+    from packpilot.model.fit.synthetic import Truth, synthetic_log
+    from packpilot.model.fit.validate import fit_and_validate
+    from packpilot.replay.fitlogs import battery_profile, cycler_profile
+
+    uav = load_parameter_set("uav_5ah")
+    truth = Truth()
+    rows = []
+    for seed in (1, 2):
+        prof = synthetic_log(truth, 1.0, noise_v=NOISE_V, gain=1.01, rest_s=30, seed=seed,
+                             flights=3)  # fmt: skip
+        v = fit_and_validate([prof], uav.ocv_soc, uav.ocv_table_v, mode="flights")
+        p = v.result.params
+        rows.append({
+            "case": f"3-flight plant log, 1 Hz seed {seed}: --validate flights",
+            "r0_err_pct": 100 * (p["r0_ohm"].value / truth.r0_ohm - 1),
+            "capacity_err_pct": 100 * (p["capacity_ah"].value / truth.capacity_ah - 1),
+            "heldout_rmse_over_noise": max(c.rmse_v for c in v.checks) / NOISE_V,
+            "verdict": v.verdict,
+        })  # fmt: skip
+    for path in sorted(REAL.glob("*")):
+        try:
+            if is_cycler_export(path):
+                prof, _ = cycler_profile(path, None)
+            elif path.name in SERIES:
+                log = read_flight_log(path)
+                prof, _ = battery_profile(path, log.batteries[0], SERIES[path.name])
+            else:
+                continue
+        except PackPilotError:
+            continue
+        rows += _lofo_rows(path.name, prof, uav)
+    return rows
+
+
 def run() -> list[dict[str, Any]]:
-    return [*_synthetic(), _fleet_timing(), *_real()]
+    return [*_synthetic(), _fleet_timing(), *_real(), *_lofo()]
 
 
 if __name__ == "__main__":

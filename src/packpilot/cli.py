@@ -848,6 +848,13 @@ def fit_cmd(
     train_share: Annotated[
         float, typer.Option(help="share of each log's samples to fit on; the rest tests the fit")
     ] = 0.6,
+    validate: Annotated[
+        str,
+        typer.Option(
+            help="time: fit on the first part of each log, test on the rest; flights: leave "
+            "one flight out (>= 3 flights in the logs given; docs/fit.md)"
+        ),
+    ] = "time",
     series_ohm: Annotated[
         float,
         typer.Option(
@@ -880,7 +887,8 @@ def fit_cmd(
             _check_outputs(report=report)
         base = load_parameter_set(chemistry)
         profiles, notes = profiles_from_logs(list(logs), cells, battery)
-        v = fit_and_validate(profiles, base.ocv_soc, base.ocv_table_v, train_share=train_share)
+        v = fit_and_validate(profiles, base.ocv_soc, base.ocv_table_v, train_share=train_share,
+                             mode=validate)  # fmt: skip
         name = out.stem if out is not None else "fitted"
         data = cellset_dict(v, name, chemistry, profiles[0].series_cells, series_ohm)
         data["notes"]["logs"] = notes

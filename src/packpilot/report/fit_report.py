@@ -45,7 +45,7 @@ def _figure(c: LogCheck) -> str:
     ax.plot(t, c.predicted_v, color=BATTERY_COLORS[0], lw=1.1, label="fitted model")
     ax.plot(t, c.baseline_v, color=BATTERY_COLORS[1], lw=0.9, ls="--", label="straight line")
     for a in (ax, rx):
-        a.axvspan(c.split_t_s, float(t[-1]), color="#eee", zorder=0)
+        a.axvspan(c.split_t_s, float(t[c.test.stop - 1]), color="#eee", zorder=0)
         a.grid(alpha=0.3)
     ax.set_ylabel("cell voltage (V)")
     ax.legend(loc="best", fontsize=8, title="shaded: held out", title_fontsize=8)
@@ -70,19 +70,34 @@ def _checks_table(v: Validation) -> str:
         cross = "; ".join(
             f"{lv:g} V: measured {_num(m)}, predicted {_num(p)}"
             + (f" (error {p - m:+.1f} s)" if m is not None and p is not None else "")
-            + (" (before the split: fitted)" if m is not None and m < c.split_t_s else "")
+            + (" (outside the held-out part: fitted)"
+               if m is not None and not c.split_t_s <= m <= c.t_s[c.test.stop - 1] else "")
             for lv, (m, p) in c.crossings.items()
         )
         rows.append([
-            c.name, f"{c.split_t_s:.0f}", f"{1000 * c.rmse_v:.1f}", f"{1000 * c.max_err_v:.1f}",
+            c.name, f"{c.split_t_s:.0f}..{c.t_s[c.test.stop - 1]:.0f}"
+            + ("" if v.mode == "time" else " (interior)" if c.interior
+               else " (extrapolation: not judged)"),
+            f"{1000 * c.rmse_v:.1f}", f"{1000 * c.max_err_v:.1f}",
             f"{1000 * c.noise_floor_v:.1f}", f"{1000 * c.baseline_rmse_v:.1f}",
             f"{c.skill:+.2f}", f"{100 * c.soc_swing:.0f} %", cross,
         ])  # fmt: skip
     head = [
-        "log", "held out from (s)", "RMSE (mV/cell)", "max error (mV)", "noise floor (mV)",
+        "log", "held out (s)", "RMSE (mV/cell)", "max error (mV)", "noise floor (mV)",
         "straight line RMSE (mV)", "skill", "SOC swing", "time to 3.5 V / 3.3 V per cell",
     ]  # fmt: skip
     return table(head, rows)
+
+
+def _mode_text(v: Validation) -> str:
+    """How the held-out samples were chosen (shaded in each chart)."""
+    if v.mode == "flights":
+        return ("Leave one flight out: each flight (load between rests) left out of one fit and "
+                "predicted by the fit of the others, its state carried through it; the verdict "
+                "judges the interior flights (SOC window inside the others'); the parameters "
+                "above are fitted on every flight. Shaded: the held-out flight.")  # fmt: skip
+    return ("Time split: the first part of each log trains the fit, the rest (shaded) tests "
+            "it.")  # fmt: skip
 
 
 def _params_table(v: Validation) -> str:
@@ -120,7 +135,9 @@ def fit_html(v: Validation, title: str, extra: Sequence[str] = ()) -> str:
         "<h2>Assumptions and notes</h2><ul id='assumptions'>"
         + "".join(f"<li>{html.escape(x)}</li>" for x in notes)
         + "</ul>",
-        "<h2>Held-out prediction</h2>", _checks_table(v),
+        "<h2>Held-out prediction</h2>",
+        f"<p class='muted' id='validation-mode'>{html.escape(_mode_text(v))}</p>",
+        _checks_table(v),
     ]
     for c in v.checks:
         parts += [f"<h2>{html.escape(c.name)}</h2>", _figure(c)]

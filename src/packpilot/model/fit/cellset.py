@@ -291,7 +291,9 @@ def fit_notes(
         ],
         "notes": r.notes,
         "validation": [
-            {"log": c.name, "split_t_s": c.split_t_s, "heldout_rmse_v": c.rmse_v,
+            {"log": c.name, "mode": v.mode, "split_t_s": c.split_t_s,
+             "held_out_t_s": [c.split_t_s, float(c.t_s[c.test.stop - 1])],
+             "judged": v.mode == "time" or c.interior, "heldout_rmse_v": c.rmse_v,
              "heldout_max_err_v": c.max_err_v, "noise_floor_v": c.noise_floor_v,
              "baseline_rmse_v": c.baseline_rmse_v, "skill": c.skill, "soc_swing": c.soc_swing,
              "time_to_v": {f"{lv:g}": list(mp) for lv, mp in c.crossings.items()}}

@@ -254,6 +254,11 @@ def _with_ocv(lay: _Layout, sh: OcvShape | None) -> None:
         lay.hi += sh.hi
 
 
+def _n_fit(profs: Sequence[Profile]) -> int:
+    """The samples whose voltage the fit sees (a held-out flight's are left out)."""
+    return int(sum(np.count_nonzero(p.fitted) for p in profs))
+
+
 def _noise(profs: Sequence[Profile]) -> float:
     """A robust scale of the sample-to-sample voltage scatter (at least 1 mV)."""
     d = np.concatenate([np.diff(p.voltage_v) for p in profs])
@@ -269,9 +274,10 @@ def _guess_capacity(profiles: Sequence[Profile], ocv_soc: F64, ocv_v: F64) -> fl
     """Charge drawn over the SOC change the voltages suggest (a start, not an answer)."""
     guesses = []
     for p in profiles:
+        last = int(np.flatnonzero(p.fitted)[-1])  # a held-out flight tells the fit nothing
         s0 = _soc_from_ocv(float(p.voltage_v[0]), ocv_soc, ocv_v)
-        s1 = _soc_from_ocv(float(p.voltage_v[-1] + 0.01 * p.current_a[-1]), ocv_soc, ocv_v)
-        drawn = float(p.drawn_ah[-1])
+        s1 = _soc_from_ocv(float(p.voltage_v[last] + 0.01 * p.current_a[last]), ocv_soc, ocv_v)
+        drawn = float(p.drawn_ah[last])
         if drawn > 0 and s0 - s1 > 0.05:
             guesses.append(drawn / (s0 - s1))
         elif drawn > 0:
@@ -283,7 +289,7 @@ def _residuals(x: F64, lay: _Layout, profs: Sequence[Profile], ocv: tuple[F64, F
                t_ref_c: float) -> F64:  # fmt: skip
     vals, soc0 = lay.values(x, t_ref_c)
     table = lay.ocv_table(x, ocv)
-    parts = [predict(p, vals, s, *table)[0] - p.voltage_v
+    parts = [(predict(p, vals, s, *table)[0] - p.voltage_v)[p.fitted]
              for p, s in zip(profs, soc0, strict=True)]  # fmt: skip
     if lay.prior[1] > 0.0:
         parts.append(np.array([lay.prior[1] * (x[0] - lay.prior[0])]))
@@ -406,7 +412,7 @@ def _merge_flags(out: dict[str, FitParam], period_s: float) -> None:
 
 def _rests(p: Profile, capacity_ah: float) -> list[int]:
     """Last sample of each rest (|I| below C/50 for REST_MIN_S or longer)."""
-    quiet = np.abs(p.current_a) < REST_A_PER_AH * capacity_ah
+    quiet = (np.abs(p.current_a) < REST_A_PER_AH * capacity_ah) & p.fitted
     ends = []
     start = None
     for k, q in enumerate(np.append(quiet, False)):
@@ -436,7 +442,7 @@ def _fit_ocv(lay: _Layout, x: F64, profs: Sequence[Profile], ocv: tuple[F64, F64
     knots, corr = np.zeros(0), np.zeros(0)
     for _ in range(KNOT_PASSES):
         vals, soc0 = lay2.values(x2, t_ref)
-        socs = np.concatenate([predict(p, vals, s, *ocv)[1]
+        socs = np.concatenate([predict(p, vals, s, *ocv)[1][p.fitted]
                                for p, s in zip(profs, soc0, strict=True)])  # fmt: skip
         sh = shape(float(socs.min()), float(socs.max()), *ocv)
         if len(knots) and (abs(sh.knots[0] - knots[0]) < KNOT_MOVE_SOC
@@ -477,7 +483,7 @@ def _ocv_step(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequence[Profile]
     """The fit with the OCV correction, kept where the data ask for it (_keep_ocv)."""
     lay2, x2, res2, jac2 = _fit_ocv(lay, x, profs, ocv, t_ref)
     assert lay2.ocv is not None
-    keep, why = _keep_ocv(res, res2, sum(len(p.t_s) for p in profs), lay2.ocv.n)
+    keep, why = _keep_ocv(res, res2, _n_fit(profs), lay2.ocv.n)
     if keep:
         notes.append(f"OCV correction kept: {why}")
         return x2, res2, jac2, lay2, why
@@ -495,14 +501,16 @@ def _ocv_summary(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequence[Profi
 
 def _window(profs: Sequence[Profile], vals: EcmValues, soc0: list[float], ocv: tuple[F64, F64],
             ) -> Window:  # fmt: skip
-    socs = np.concatenate([predict(p, vals, s, *ocv)[1] for p, s in zip(profs, soc0, strict=True)])
-    cur = np.concatenate([p.current_a for p in profs])
+    socs = np.concatenate([predict(p, vals, s, *ocv)[1][p.fitted]
+                           for p, s in zip(profs, soc0, strict=True)])  # fmt: skip
+    cur = np.concatenate([p.current_a[p.fitted] for p in profs])
     temps = [p.temp_c for p in profs if p.temp_c is not None]
     tt = np.concatenate(temps) if temps else None
     return Window(
         float(socs.min()), float(socs.max()), float(cur.min()), float(cur.max()),
         None if tt is None else float(tt.min()), None if tt is None else float(tt.max()),
-        float(sum(p.t_s[-1] - p.t_s[0] for p in profs)), int(sum(len(p.t_s) for p in profs)),
+        float(sum(np.sum(np.diff(p.t_s, prepend=p.t_s[0])[p.fitted]) for p in profs)),
+        _n_fit(profs),
     )  # fmt: skip
 
 
@@ -569,7 +577,8 @@ def fit(
         x, res, jac, lay, n_rc = _maybe_second_rc(lay, x, res, jac, profs, ocv, t_ref, law,
                                                   q_bounds, names, period, notes)  # fmt: skip
     vals, soc0 = lay.values(x, t_ref)
-    swing = max(np.ptp(predict(p, vals, s, *ocv)[1]) for p, s in zip(profs, soc0, strict=True))
+    swing = max(np.ptp(predict(p, vals, s, *ocv)[1][p.fitted])
+                for p, s in zip(profs, soc0, strict=True))  # fmt: skip
     params, soc0p = _params(lay, x, _uncertainty(res, jac), period, float(swing))
     if "heat_c_j_per_k_ah" in params:
         _thermal_per_cell(lay, params, _covariance(res, jac))
@@ -580,7 +589,7 @@ def fit(
         params["capacity_ah"] = FitParam(q.name, q.value, q.unit, q.rel_uncertainty, False, why)
     table = lay.ocv_table(x, ocv)
     ocv_note = f"chemistry default ({ocv_why})" if ocv_fit is None else ocv_fit.note()
-    n_data = sum(len(p.t_s) for p in profs)
+    n_data = _n_fit(profs)
     return FitResult(
         params=params, soc0=soc0p, values=vals, ocv_soc=table[0], ocv_v=table[1],
         ocv_note=ocv_note, rmse_v=float(np.sqrt(np.mean(res[:n_data] ** 2))),
@@ -647,7 +656,7 @@ def _maybe_second_rc(lay: _Layout, x: F64, res: F64, jac: F64, profs: Sequence[P
     - without one, a slow branch and the OCV correction both follow the charge drawn under
       load and trade with each other: the RMSE must fall by SECOND_RC_GAIN and R1, tau1, R2,
       tau2 must each be identified."""
-    n_data = sum(len(p.t_s) for p in profs)
+    n_data = _n_fit(profs)
     rmse1 = math.sqrt(float(res[:n_data] @ res[:n_data]) / n_data)
     floor = max(noise_floor(p) for p in profs)
     if rmse1 <= SECOND_RC_NOISE * floor:

@@ -37,7 +37,7 @@ would be seen). The pack starts at ambient (logs start at rest).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -62,10 +62,14 @@ class Profile:
     temp_c: F64 | None = None
     series_cells: int = 1
     """Series cells of the battery the voltage was divided by (the pack the log came from)."""
+    fit_mask: NDArray[np.bool_] | None = None
+    """Samples whose voltage the fit sees (None: all). A held-out flight stays in the profile,
+    so the state of charge and the RC branches run through it, but its voltages are left out
+    of the residuals (leave one flight out, :mod:`packpilot.model.fit.validate`)."""
 
     def __post_init__(self) -> None:
         n = len(self.t_s)
-        for name in ("current_a", "voltage_v", "charge_ah", "temp_c"):
+        for name in ("current_a", "voltage_v", "charge_ah", "temp_c", "fit_mask"):
             x = getattr(self, name)
             if x is not None and len(x) != n:
                 raise ValueError(f"profile {self.name}: {name} has {len(x)} samples, t_s {n}")
@@ -83,6 +87,11 @@ class Profile:
         return ah
 
     @property
+    def fitted(self) -> NDArray[np.bool_]:
+        """The samples the fit sees (all of them without a mask)."""
+        return np.ones(len(self.t_s), bool) if self.fit_mask is None else self.fit_mask
+
+    @property
     def period_s(self) -> float:
         """The logging period (median interval)."""
         return float(np.median(np.diff(self.t_s)))
@@ -94,7 +103,14 @@ class Profile:
             self.name, self.t_s[sl], self.current_a[sl], self.voltage_v[sl],
             None if self.charge_ah is None else self.charge_ah[sl],
             None if self.temp_c is None else self.temp_c[sl], self.series_cells,
+            None if self.fit_mask is None else self.fit_mask[sl],
         )  # fmt: skip
+
+    def holding_out(self, lo: int, hi: int) -> Profile:
+        """The same profile with samples ``lo:hi`` left out of the fit (kept for the state)."""
+        mask = self.fitted.copy()
+        mask[lo:hi] = False
+        return replace(self, fit_mask=mask)
 
 
 def noise_floor(p: Profile) -> float:
@@ -105,6 +121,54 @@ def noise_floor(p: Profile) -> float:
     calm = di <= max(0.02 * float(np.max(np.abs(p.current_a))), 1e-3)
     d = dv[calm] if calm.sum() >= 10 else dv
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+REST_SHARE = 0.10
+"""A rest between flights: the current below this share of the log's high current (its 95th
+percentile of |I|) ... On the dronekit tlog the aircraft draws 0.43 A on the ground (its
+electronics; 37 mA sample-to-sample scatter), 1.2 A with the motors armed and idling and
+15-25 A in the air (95th percentile 21.0 A): 10 % (2.1 A) puts the ground, armed or not, below
+and every airborne sample above. A multirotor cannot fly on a tenth of its hover current."""
+REST_NOISE = 5.0
+"""... and at least this many times the current's own scatter (the robust sample-to-sample
+scatter between consecutive quiet samples, as the voltage's noise floor), so a noisy sensor's
+zero is not taken for load."""
+REST_GAP_S = 30.0
+"""... held for at least this long. The tlog's landings between its three flights rest 36 s and
+65 s; its two touch-downs inside a flight (motors stopped, 18 s and 14 s) do not split it."""
+MIN_FLIGHT_S = 30.0
+"""A burst of load shorter than this (a motor test, a hop) starts no flight of its own."""
+
+
+def rest_threshold_a(p: Profile) -> float:
+    """The current below which a sample is at rest (REST_SHARE, REST_NOISE)."""
+    i = np.abs(p.current_a)
+    share = REST_SHARE * float(np.percentile(i, 95))
+    quiet = i <= share
+    d = np.diff(p.current_a)[quiet[1:] & quiet[:-1]]
+    scatter = float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0)) if d.size >= 10 \
+        else 0.0  # fmt: skip
+    return max(share, REST_NOISE * scatter, 1e-6)
+
+
+def flights(p: Profile) -> list[tuple[int, int]]:
+    """``(lo, hi)`` sample ranges of the log's flights: load separated by rests of at least
+    REST_GAP_S below :func:`rest_threshold_a`. A flight runs from its first loaded sample to
+    the next flight's first (the rest after it, the voltage relaxing at its final state of
+    charge, is part of it); the samples before the first flight (the rest at the start, where
+    the voltage tells the initial state of charge) belong to none."""
+    load = np.flatnonzero(np.abs(p.current_a) > rest_threshold_a(p))
+    if load.size == 0:
+        return []
+    t = p.t_s
+    # a rest: at least one sample at rest between two loaded ones, REST_GAP_S apart (a cycler
+    # logging a constant current every 48 s has long intervals but no rest)
+    gaps = np.flatnonzero((t[load[1:]] - t[load[:-1]] >= REST_GAP_S) & (np.diff(load) > 1))
+    firsts = np.concatenate([[load[0]], load[gaps + 1]])
+    lasts = np.concatenate([load[gaps], [load[-1]]])
+    starts = [int(a) for a, b in zip(firsts, lasts, strict=True) if t[b] - t[a] >= MIN_FLIGHT_S]
+    ends = [*starts[1:], len(t)]
+    return list(zip(starts, ends, strict=True))
 
 
 @kernel
@@ -205,5 +269,6 @@ def predict(
 
 
 __all__ = [
-    "EcmValues", "Profile", "heated_drop", "noise_floor", "predict", "rc_drop", "temp_scale",
+    "EcmValues", "Profile", "flights", "heated_drop", "noise_floor", "predict", "rc_drop",
+    "rest_threshold_a", "temp_scale",
 ]

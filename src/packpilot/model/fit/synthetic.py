@@ -113,12 +113,18 @@ def synthetic_log(
     seed: int = 1,
     ambient_c: float = 25.0,
     plant: CellParams | None = None,
+    flights: int = 1,
 ) -> Profile:
     """A logged flight: the plant stepped at the logging period (the current held over each
     second), its voltage with Gaussian noise of ``noise_v`` (one sigma), its current times
     ``gain`` and the charge counter integrating that current. ``plant`` replaces the
-    constant-resistance plant of ``truth`` (e.g. :func:`heating_plant_params`)."""
-    per_s = flight_current(truth.capacity_ah, rest_s, seconds, seed)
+    constant-resistance plant of ``truth`` (e.g. :func:`heating_plant_params`). ``flights``
+    > 1: that many flights of ``seconds / flights`` each, every one with its rest before it
+    (``rest_s``) and its landing and 60 s rest after it (leave one flight out's test log)."""
+    per_s = np.concatenate([
+        flight_current(truth.capacity_ah, rest_s, seconds // flights, seed + 100 * k)
+        for k in range(flights)
+    ])  # fmt: skip
     reps = round(rate_hz)
     cur = np.repeat(per_s, reps) if reps > 1 else per_s
     h = 1.0 / rate_hz
