@@ -26,15 +26,15 @@ NOISE_V = 0.010
 
 
 def test_the_real_tlog_splits_into_its_three_flights() -> None:
-    """The dronekit tlog: ground idle 0.43 A, flights at 15-25 A; landings resting 36 s and
-    65 s split it, touch-downs of 18 s and 14 s inside a flight do not."""
+    """The dronekit tlog: ground idle 0.43 A (1.2 A armed), flights at 15-25 A; landings
+    resting 36 s and 65 s split it, touch-downs of 18 s and 14 s inside a flight do not."""
     tlog = REAL / "arducopter_dronekit_flight_battery.tlog"
     prof = profiles_from_logs([tlog], 3, None)[0][0]
     got = [(float(prof.t_s[lo]), float(prof.t_s[hi - 1])) for lo, hi in flights(prof)]
     assert len(got) == 3, got
     starts = [a for a, _ in got]
-    # take-offs at 465 s, 794 s and 924 s (the first loaded sample after each rest)
-    assert starts == pytest.approx([465.0, 794.0, 924.0], abs=3.0)
+    # take-offs at 467 s, 794 s and 924 s (the first loaded sample after each rest)
+    assert starts == pytest.approx([467.0, 794.0, 924.0], abs=3.0)
     assert got[-1][1] == pytest.approx(float(prof.t_s[-1]))
     # the rest before the first take-off belongs to no flight: it is always fitted
     assert flights(prof)[0][0] > 1000
@@ -131,3 +131,17 @@ def test_cli_leave_one_flight_out_report_shows_the_held_out_flights(tmp_path: Pa
     assert "Leave one flight out" in page and page.count("<svg") == 3
     assert len(re.findall(r"\(interior\)", page)) == 2 and "extrapolation: not judged" in page
     assert np.isfinite([x["heldout_rmse_v"] for x in val]).all()
+
+
+def test_a_log_without_a_flight_long_enough_has_none() -> None:
+    """Bursts of load shorter than MIN_FLIGHT_S (a motor test) start no flight; a log of them
+    has no flight at all (and leave one flight out refuses it in one line)."""
+    from packpilot.errors import InputError
+    from packpilot.model.fit.profile import Profile
+
+    t = np.arange(0.0, 300.0)
+    i = np.where((t > 100) & (t < 110), 20.0, 0.3)
+    prof = Profile("bench test", t, i, 4.1 - 0.03 * i)
+    assert flights(prof) == []
+    with pytest.raises(InputError, match=r"at least 3 flights.*found 0"):
+        fit_and_validate([prof], UAV.ocv_soc, UAV.ocv_table_v, mode="flights")

@@ -124,11 +124,12 @@ def noise_floor(p: Profile) -> float:
 
 
 REST_SHARE = 0.10
-"""A rest between flights: the current below this share of the log's high current (its 95th
-percentile of |I|) ... On the dronekit tlog the aircraft draws 0.43 A on the ground (its
+"""A rest between flights: the current below this share of the log's high current (the largest
+median of five consecutive |I| samples: spikes left out, and a log resting most of the time
+keeps its load) ... On the dronekit tlog the aircraft draws 0.43 A on the ground (its
 electronics; 37 mA sample-to-sample scatter), 1.2 A with the motors armed and idling and
-15-25 A in the air (95th percentile 21.0 A): 10 % (2.1 A) puts the ground, armed or not, below
-and every airborne sample above. A multirotor cannot fly on a tenth of its hover current."""
+15-25 A in the air (high current 33.8 A): 10 % (3.4 A) puts the ground, armed or not, below and
+the flights above. A multirotor cannot fly on a tenth of its highest current."""
 REST_NOISE = 5.0
 """... and at least this many times the current's own scatter (the robust sample-to-sample
 scatter between consecutive quiet samples, as the voltage's noise floor), so a noisy sensor's
@@ -140,10 +141,18 @@ MIN_FLIGHT_S = 30.0
 """A burst of load shorter than this (a motor test, a hop) starts no flight of its own."""
 
 
+def _high_current_a(i: F64) -> float:
+    """The log's high current: the largest median of five consecutive samples (a one- or
+    two-sample spike does not count; a log resting most of the time still has its load)."""
+    if i.size < 5:
+        return float(np.max(i))
+    return float(np.max(np.median(np.lib.stride_tricks.sliding_window_view(i, 5), axis=1)))
+
+
 def rest_threshold_a(p: Profile) -> float:
     """The current below which a sample is at rest (REST_SHARE, REST_NOISE)."""
     i = np.abs(p.current_a)
-    share = REST_SHARE * float(np.percentile(i, 95))
+    share = REST_SHARE * _high_current_a(i)
     quiet = i <= share
     d = np.diff(p.current_a)[quiet[1:] & quiet[:-1]]
     scatter = float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0)) if d.size >= 10 \
@@ -167,6 +176,8 @@ def flights(p: Profile) -> list[tuple[int, int]]:
     firsts = np.concatenate([[load[0]], load[gaps + 1]])
     lasts = np.concatenate([load[gaps], [load[-1]]])
     starts = [int(a) for a, b in zip(firsts, lasts, strict=True) if t[b] - t[a] >= MIN_FLIGHT_S]
+    if not starts:
+        return []
     ends = [*starts[1:], len(t)]
     return list(zip(starts, ends, strict=True))
 
