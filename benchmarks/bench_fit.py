@@ -308,8 +308,10 @@ def _lofo_rows(name: str, prof: Any, uav: Any) -> list[dict[str, Any]]:
         try:
             v = fit_and_validate([prof], uav.ocv_soc, uav.ocv_table_v, mode=mode)
         except InputError as err:
+            why = (f"{n} flight(s), needs 3" if "at least 3 flights" in str(err)
+                   else str(err).split(": ", 2)[-1][:90])  # fmt: skip
             rows.append({"case": f"{name}: --validate {mode}", "flights": n,
-                         "verdict": f"refused: {str(err).split(': ', 2)[-1][:90]}"})  # fmt: skip
+                         "verdict": f"refused: {why}"})  # fmt: skip
             continue
         cpu = time.process_time() - t0
         for c in v.checks:
