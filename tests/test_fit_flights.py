@@ -5,6 +5,7 @@ it) and predicted by the fit of the others; the CLI's ``--validate flights``."""
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from packpilot.cli import app
+from packpilot.errors import InputError
 from packpilot.model.cell import load_parameter_set
 from packpilot.model.fit.fit import fit
 from packpilot.model.fit.profile import flights, predict
@@ -136,7 +138,6 @@ def test_cli_leave_one_flight_out_report_shows_the_held_out_flights(tmp_path: Pa
 def test_a_log_without_a_flight_long_enough_has_none() -> None:
     """Bursts of load shorter than MIN_FLIGHT_S (a motor test) start no flight; a log of them
     has no flight at all (and leave one flight out refuses it in one line)."""
-    from packpilot.errors import InputError
     from packpilot.model.fit.profile import Profile
 
     t = np.arange(0.0, 300.0)
@@ -145,3 +146,26 @@ def test_a_log_without_a_flight_long_enough_has_none() -> None:
     assert flights(prof) == []
     with pytest.raises(InputError, match=r"at least 3 flights.*found 0"):
         fit_and_validate([prof], UAV.ocv_soc, UAV.ocv_table_v, mode="flights")
+
+
+def test_flights_are_counted_across_the_logs_given_together() -> None:
+    """A two-flight log and a one-flight log of the same battery: three flights in all, so
+    leave one flight out runs; each log keeps its own initial SOC, and only the flight its own
+    log's training samples bracket is judged (a log's last flight is extrapolation)."""
+    truth = Truth()
+    two = synthetic_log(truth, 1.0, noise_v=NOISE_V, gain=1.01, rest_s=30, seed=3,
+                        seconds=1000, flights=2)  # fmt: skip
+    one = synthetic_log(truth, 1.0, noise_v=NOISE_V, gain=1.01, rest_s=30, seed=4,
+                        seconds=600)  # fmt: skip
+    one = replace(one, name="second log")
+    assert (len(flights(two)), len(flights(one))) == (2, 1)
+    with pytest.raises(InputError, match=r"found 2 \(synthetic_1hz_seed3: 2\)"):
+        fit_and_validate([two], UAV.ocv_soc, UAV.ocv_table_v, mode="flights")
+    v = fit_and_validate([two, one], UAV.ocv_soc, UAV.ocv_table_v, mode="flights")
+    assert [c.name for c in v.checks] == [
+        "synthetic_1hz_seed3 flight 1", "synthetic_1hz_seed3 flight 2", "second log flight 1",
+    ]
+    assert [c.interior for c in v.checks] == [True, False, False]
+    assert set(v.result.soc0) == {"synthetic_1hz_seed3", "second log"}
+    assert v.checks[0].rmse_v < 1.5 * NOISE_V
+    assert v.verdict == "usable", v.reasons
