@@ -423,6 +423,11 @@ SOC = [
            "    s = var_v + 0.0 * lin_var\n",
            "the OCV averaged over the SOC's spread, its curvature not counted as noise",
            file="observer.py"),
+    # issue #28, h28cold2: the point OCV predicted, the curvature's bias counted as noise
+    Mutant("soc", "ocv-spread-mean", "    return f0, slope, max(0.0,",
+           "    return mean, slope, -((mean - f0) ** 2) + max(0.0,",
+           "the spread's mean OCV predicted (a right SOC reads the curvature's bias as news)",
+           file="observer.py"),
     _m("soc", "insertion-keeps-stale-belief",
        "    if st.absent[p, i]:  # inserted: its first reading is open-circuit, it tells its SOC",
        "    if False:  # inserted: its first reading is open-circuit, it tells its SOC",

@@ -22,7 +22,10 @@ convention of the fallback rule): predict with that current, then correct.
 
 Why an EKF and not a sigma-point filter: the only non-linearity is OCV(soc), piecewise linear
 in the table, so the EKF's linearisation is exact within a table segment, and it costs one
-5x5 covariance propagation per battery and step with no square root.
+5x5 covariance propagation per battery and step with no square root. Where the SOC's spread
+covers more than one segment (a wrong or unknown start on a curved stretch), that one term
+is linearised over the spread instead (:func:`ocv_over_spread`: the chord's slope, the
+linearisation's residual as measurement noise, the point value as the prediction).
 
 Arrays: ``x`` (P, B, 5) the state in the order of the ``X_*`` indices, ``cov`` (P, B, 5, 5) its
 covariance; ``fm`` / ``wk`` (P, B, 5, 5) and ``hv`` / ``kv`` (P, B, 5) are scratch (no
