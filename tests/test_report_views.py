@@ -30,6 +30,11 @@ from tests.test_web_power import wrong_start
 
 SHOWN_TOL_PCT = 0.006
 """How closely a page's SOC (4 significant digits: 0.01 % here) must match the core's (%)."""
+SENSORS = {"seed": 28, "cell_v": {"noise_sigma": 0.005},
+           "current": {"gain": 1.01, "offset": 0.2}}  # fmt: skip
+"""The issue's acceptance errors: what the BMS reads is not the plant's truth, so the core's
+SOC keeps a gap to it that a page can show (without them a converged observer came within
+0.007 % of the truth over the whole 70-90 s, below the page's 0.01 %)."""
 TRUSTED_S = 60.0
 """The observer is trusted from 60 s of the run (its window after the start)."""
 
@@ -38,7 +43,7 @@ def _observed_run(duration_s: float) -> tuple[Any, Result]:
     cfg = load_config(EXAMPLES / "sequencing_dual_hover.toml")
     data = cfg.model_dump(mode="json")
     data["sim"].update(duration_s=duration_s, progress=False)
-    data.update(soc={}, limits={})
+    data.update(soc={}, limits={}, sensors=SENSORS)
     cfg = parse_config(data)
     runner = Runner(cfg, progress=False)
     wrong_start(runner)  # the estimator starts ~10 % low: its SOC is not the plant's
@@ -48,12 +53,12 @@ def _observed_run(duration_s: float) -> tuple[Any, Result]:
 def _distinguishable_end_s() -> float:
     """The end the report's run gets: of the whole seconds from 70 s to 90 s (the observer
     trusted for at least 10 s), the one where the core's SOC of both batteries is farthest
-    from the plant's (the smaller of the two gaps). The report shows the SOC at the end, and
-    once the observer has converged it comes within ~0.01 % of the truth, crossing it at
-    times: at a fixed end (75 s) the two were 0.006 % apart with one observer and 0.014 %
-    with another, so a page showing the truth could not be told from one showing the core's
-    SOC. Computed from a run of the same scenario (the simulation is deterministic: the run
-    to the chosen end is this run's beginning)."""
+    from the plant's (the smaller of the two gaps). The report shows the SOC at the end; at a
+    fixed end (75 s) and without sensor errors the two were 0.006 % apart with one observer
+    (h28cold's first) and 0.014 % with another, so a page showing the truth could not be told
+    from one showing the core's SOC. With ``SENSORS`` the gap is 0.3-0.5 % over 62-90 s with
+    main's, this and h28cold's observers. Computed from a run of the same scenario (the
+    simulation is deterministic: the run to the chosen end is this run's beginning)."""
     cfg, probe = _observed_run(90.0)
     est = np.stack([_est(probe, b) for b in (0, 1)], axis=1)
     gap = np.min(np.abs(est - probe.trace.channel("soc")), axis=1)
