@@ -6,6 +6,7 @@ closed-loop run each; every figure checked against the status channel it must co
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -27,17 +28,47 @@ from tests.conftest import EXAMPLES
 from tests.test_power_report import sop_30s_at
 from tests.test_web_power import wrong_start
 
+SHOWN_TOL_PCT = 0.006
+"""How closely a page's SOC (4 significant digits: 0.01 % here) must match the core's (%)."""
+SENSORS = {"seed": 28, "cell_v": {"noise_sigma": 0.005},
+           "current": {"gain": 1.01, "offset": 0.2}}  # fmt: skip
+"""The issue's acceptance errors: what the BMS reads is not the plant's truth, so the core's
+SOC keeps a gap to it that a page can show (without them a converged observer came within
+0.007 % of the truth over the whole 70-90 s, below the page's 0.01 %)."""
+TRUSTED_S = 60.0
+"""The observer is trusted from 60 s of the run (its window after the start)."""
 
-@pytest.fixture(scope="module")
-def observed() -> tuple[Any, Result]:
+
+def _observed_run(duration_s: float) -> tuple[Any, Result]:
     cfg = load_config(EXAMPLES / "sequencing_dual_hover.toml")
     data = cfg.model_dump(mode="json")
-    data["sim"].update(duration_s=75.0, progress=False)
-    data.update(soc={}, limits={})
+    data["sim"].update(duration_s=duration_s, progress=False)
+    data.update(soc={}, limits={}, sensors=SENSORS)
     cfg = parse_config(data)
     runner = Runner(cfg, progress=False)
     wrong_start(runner)  # the estimator starts ~10 % low: its SOC is not the plant's
     return cfg, runner.run()
+
+
+def _distinguishable_end_s() -> float:
+    """The end the report's run gets: of the whole seconds from 70 s to 90 s (the observer
+    trusted for at least 10 s), the one where the core's SOC of both batteries is farthest
+    from the plant's (the smaller of the two gaps). The report shows the SOC at the end; at a
+    fixed end (75 s) and without sensor errors the two were 0.006 % apart with one observer
+    (h28cold's first) and 0.014 % with another, so a page showing the truth could not be told
+    from one showing the core's SOC. With ``SENSORS`` the gap is 0.3-0.5 % over 62-90 s with
+    main's, this and h28cold's observers. Computed from a run of the same scenario (the
+    simulation is deterministic: the run to the chosen end is this run's beginning)."""
+    cfg, probe = _observed_run(90.0)
+    est = np.stack([_est(probe, b) for b in (0, 1)], axis=1)
+    gap = np.min(np.abs(est - probe.trace.channel("soc")), axis=1)
+    # a run of d seconds ends on row d / dt - 1 of this one
+    return float(max(range(70, 91), key=lambda d: float(gap[round(d / cfg.sim.dt_s) - 1])))
+
+
+@pytest.fixture(scope="module")
+def observed() -> tuple[Any, Result]:
+    return _observed_run(_distinguishable_end_s())
 
 
 def _est(result: Result, b: int) -> np.ndarray:
@@ -49,22 +80,26 @@ def test_the_report_shows_the_soc_the_core_used_with_its_source(observed: Any) -
     page = build_html(result, RunInfo.from_config(cfg.model_dump(mode="json"), status="ok"))
     est = [_est(result, b) for b in (0, 1)]
     truth = result.trace.channel("soc")[-1]
-    assert np.all(np.abs(np.array([e[-1] for e in est]) - truth) > 0.0003)  # distinguishable
+    # distinguishable: a page showing the truth would miss the core's SOC by more than the
+    # tolerance below (the end is chosen for it, _distinguishable_end_s)
+    assert np.all(100 * np.abs(np.array([e[-1] for e in est]) - truth) > 2 * SHOWN_TOL_PCT)
     tiles = dict((k, v) for v, k in re.findall(
         r'<div class="kpi[^"]*"><div class="v">([^<]+)</div><div class="k">([^<]+)</div>', page))
     for name, e in zip(("A", "B"), est, strict=True):
         shown = tiles[f"SOC of {name} at the end (observer)"]
-        assert float(shown.rstrip(" %")) == pytest.approx(100 * e[-1], abs=0.006)
+        assert float(shown.rstrip(" %")) == pytest.approx(100 * e[-1], abs=SHOWN_TOL_PCT)
     row = re.search(r"<tr><td>SOC the BMS used at end \(%\)</td><td>([^<]+)</td><td>([^<]+)",
                     page)  # fmt: skip
     assert row is not None
     assert [float(x) for x in row.groups()] == pytest.approx([100 * e[-1] for e in est],
-                                                             abs=0.006)  # fmt: skip
+                                                             abs=SHOWN_TOL_PCT)  # fmt: skip
     # the chart's caption: the fallback for the observer's first 60 s, the observer after
     cap = re.search(r"SOC from: ([^<]+)", page)
     assert cap is not None
     share = dict(re.findall(r"(observer|fallback \(coulomb counter\)) (\d+) %", cap.group(1)))
-    assert 15 <= int(share["observer"]) <= 25  # trusted from 60 s of 75 s
+    end_s = float(result.trace.t_s[-1])
+    trusted = 100 * (end_s - TRUSTED_S) / end_s  # trusted from 60 s of the run
+    assert abs(int(share["observer"]) - trusted) <= 2, (share, end_s)
     assert "observer was not trusted (settling after the start" in page
 
 
@@ -88,7 +123,9 @@ def test_the_reports_state_of_power_is_the_published_prediction(observed: Any) -
     facts = dict(re.findall(r"<tr><td>([^<]+)</td><td>([^<]+)</td></tr>", page))
     lowest = float(facts["lowest 30 s discharge limit (A)"])
     last = sop_30s_at(cfg, result.trace, len(result.trace.t_s) - 1)
-    assert lowest <= last + 1e-6 and lowest == pytest.approx(last, rel=0.05)
+    # the page shows 4 significant digits (fmt_num): the lowest may round up past the last
+    half_digit = 0.5 * 10.0 ** (math.floor(math.log10(abs(last))) - 3)
+    assert lowest <= last + half_digit and lowest == pytest.approx(last, rel=0.05), (lowest, last)
     assert 'class="sop"' in page and 'class="sop-battery"' in page
 
 

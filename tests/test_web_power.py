@@ -27,18 +27,23 @@ from tests.conftest import EXAMPLES
 
 
 class Keep(DashboardRecorder):
-    """The dashboard's recorder, keeping the samples of chosen times for the checks."""
+    """The dashboard's recorder, keeping the samples of chosen times for the checks, and
+    every sample from ``from_s`` on (``later``)."""
 
-    def __init__(self, live: LiveRun, at_s: tuple[float, ...]) -> None:
+    def __init__(self, live: LiveRun, at_s: tuple[float, ...], from_s: float = math.inf) -> None:
         super().__init__(live)
         self.at_s = at_s
         self.kept: dict[float, StepSample] = {}
+        self.from_s = from_s
+        self.later: list[StepSample] = []
 
     def record(self, sample: StepSample) -> None:
         super().record(sample)
         for t in self.at_s:
             if t not in self.kept and sample.t_s >= t:
                 self.kept[t] = sample
+        if sample.t_s >= self.from_s:
+            self.later.append(sample)
 
 
 def _cfg() -> Any:
@@ -54,7 +59,7 @@ def _cfg() -> Any:
 def run() -> tuple[Any, LiveRun, Keep]:
     cfg = _cfg()
     live = LiveRun(scenario="seq", battery_names=["A", "B"])
-    rec = Keep(live, (10.0, 75.0))
+    rec = Keep(live, (10.0, 75.0), from_s=60.0)
     runner = Runner(cfg, recorder=rec, progress=False)
     wrong_start(runner)
     runner.run()
@@ -77,10 +82,29 @@ def _status(s: StepSample) -> Any:
     return at
 
 
+def _gap(s: StepSample) -> float:
+    """How far the core's SOC is from both the plant's truth and what the batteries report,
+    the smaller over the batteries (a fraction of full)."""
+    est = np.array([float(x) for x in s.status["soc_est"]])
+    truth = s.battery[:, BATTERY_CHANNELS.index("soc")]
+    reported = np.array([float(x) for x in s.status["bms_soc"]])
+    return float(min(np.min(np.abs(est - truth)), np.min(np.abs(est - reported))))
+
+
+def _distinguishable(samples: list[StepSample]) -> StepSample:
+    """Of the samples where the observer is trusted, the one where the core's SOC is farthest
+    from the other two sources. Once converged the observer comes within ~0.01 % of the
+    truth and crosses it at times: at a fixed 75 s it was 0.003 % from what battery A reports
+    (0.006 % from the truth with another observer), too close to tell a card showing one
+    from a card showing the other."""
+    trusted = [s for s in samples if all(bool(x) for x in s.status["soc_observer_ok"])]
+    assert trusted
+    return max(trusted, key=_gap)
+
+
 def test_the_cards_and_the_chart_show_the_soc_the_core_uses(run: Any) -> None:
     _, live, rec = run
-    for t, source in ((10.0, "fallback"), (75.0, "observer")):
-        s = rec.kept[t]
+    for s, source in ((rec.kept[10.0], "fallback"), (_distinguishable(rec.later), "observer")):
         est = [float(x) for x in s.status["soc_est"]]
         assert [bool(x) for x in s.status["soc_observer_ok"]] == [source == "observer"] * 2
         got = core_soc(s)
@@ -88,10 +112,13 @@ def test_the_cards_and_the_chart_show_the_soc_the_core_uses(run: Any) -> None:
         truth = s.battery[:, BATTERY_CHANNELS.index("soc")]
         reported = np.array([float(x) for x in s.status["bms_soc"]])
         # the core's estimate is not the plant's truth nor what the battery reports: a card
-        # (or chart) showing either would fail here
-        gap = 0.05 if source == "fallback" else 0.0003
-        assert np.all(np.abs(np.array(est) - truth) > gap)
-        assert np.all(np.abs(np.array(est) - reported) > gap)
+        # (or chart) showing either would fail here. The checks above and below are exact
+        # (==), so any difference beyond float rounding tells them apart; a converged observer
+        # without sensor errors comes within ~0.01 % of the truth (0.009 % at best over
+        # 60-80 s with h28cold's first observer), so 1e-6 (0.0001 %), not 0.03 %.
+        gap = 0.05 if source == "fallback" else 1e-6
+        assert np.all(np.abs(np.array(est) - truth) > gap), (s.t_s, _gap(s))
+        assert np.all(np.abs(np.array(est) - reported) > gap), (s.t_s, _gap(s))
     bats = live.status()["latest"]["batteries"]
     final = live._latest
     assert final is not None
