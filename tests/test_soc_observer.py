@@ -484,7 +484,9 @@ def test_an_inrush_at_the_start_is_not_read_as_soc_or_polarisation() -> None:
     of the plant's (with a 50 mV prior it read the inrush as +7 % SOC, sigma 0.8 %, and 118 mV
     of polarisation within 3 s), and its capacity state within 10 % of the prior over the
     first minute (it fell to 0.62x to undo that)."""
-    from benchmarks.bench_soc_campaign import FAMILIES, SPREAD, scenario as campaign_scenario
+    from benchmarks.bench_soc_campaign import FAMILIES, SPREAD
+    from benchmarks.bench_soc_campaign import scenario as campaign_scenario
+
     from packpilot.campaign import draw_run, parse_spreads
     from packpilot.campaign.execute import stack_overrides
 
