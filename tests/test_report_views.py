@@ -17,6 +17,7 @@ from packpilot.config import load_config, parse_config
 from packpilot.contract.record import Result
 from packpilot.model.cell import load_parameter_set
 from packpilot.model.cell.params import params_to_dict
+from packpilot.report.fmt import fmt_num
 from packpilot.report.html import build_html
 from packpilot.report.info import RunInfo
 from packpilot.report.plots import run_figure
@@ -88,7 +89,9 @@ def test_the_reports_state_of_power_is_the_published_prediction(observed: Any) -
     facts = dict(re.findall(r"<tr><td>([^<]+)</td><td>([^<]+)</td></tr>", page))
     lowest = float(facts["lowest 30 s discharge limit (A)"])
     last = sop_30s_at(cfg, result.trace, len(result.trace.t_s) - 1)
-    assert lowest <= last + 1e-6 and lowest == pytest.approx(last, rel=0.05)
+    # the page shows the value rounded (73.4978 A reads 73.5): never above the prediction as
+    # shown
+    assert lowest <= float(fmt_num(last)) + 1e-6 and lowest == pytest.approx(last, rel=0.05)
     assert 'class="sop"' in page and 'class="sop-battery"' in page
 
 
