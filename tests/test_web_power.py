@@ -88,8 +88,9 @@ def test_the_cards_and_the_chart_show_the_soc_the_core_uses(run: Any) -> None:
         truth = s.battery[:, BATTERY_CHANNELS.index("soc")]
         reported = np.array([float(x) for x in s.status["bms_soc"]])
         # the core's estimate is not the plant's truth nor what the battery reports: a card
-        # (or chart) showing either would fail here
-        gap = 0.05 if source == "fallback" else 0.0003
+        # (or chart) showing either would fail here (the cards equal the estimate exactly, so
+        # any gap tells them apart; the observer's is 0.029 % from the reported at 75 s)
+        gap = 0.05 if source == "fallback" else 1e-5
         assert np.all(np.abs(np.array(est) - truth) > gap)
         assert np.all(np.abs(np.array(est) - reported) > gap)
     bats = live.status()["latest"]["batteries"]
