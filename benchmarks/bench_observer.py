@@ -249,6 +249,8 @@ def capacity_cycle(belief: float, profile_csv: Path) -> dict[str, float]:
     e = np.array(errs)
     out["cap_err_end"] = float(st.capacity_ah[0, 0] / q_true[0] - 1.0)
     out["cap_sigma_rel"] = float(math.sqrt(st.capacity_var_ah2[0, 0]) / q_true[0])
+    out["offset_end_a"] = float(st.offset_a[0, 0])
+    out["offset_sigma_end_a"] = float(math.sqrt(st.offset_var_a2[0, 0]))
     out["soc_rms"] = float(np.sqrt(np.mean(e**2)))
     out["soc_max"] = float(np.max(np.abs(e)))
     out["soc_lowest_true"] = lowest

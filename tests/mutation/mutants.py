@@ -452,6 +452,14 @@ SOC = [
     _m("soc", "weak-group-no-hysteresis",
        "    if prev_v - best_v < WEAK_HYST_V:", "    if prev_v - best_v < 0.0:",
        "the group the observer reads follows the noise on a flat OCV (h28lfp)"),
+    # issue #28, h28mis: the polarisation's prior at an open-circuit start; the offset state
+    _m("soc", "v1-prior-wide-at-ocv-start",
+       "    st.cov[p, i, ob.X_V1, ob.X_V1] = V1_SIGMA0_OCV_V * V1_SIGMA0_OCV_V\n",
+       "    st.cov[p, i, ob.X_V1, ob.X_V1] = 0.05 * 0.05\n",
+       "a start from an OCV reading keeps the 50 mV polarisation prior (an inrush read as SOC)"),
+    Mutant("soc", "offset-not-estimated", "        default=0.3,\n", "        default=0.0,\n",
+           "the current-sensor offset is not estimated by default (the capacity absorbs it)",
+           file="src/packpilot/config/soc.py"),
 ]
 
 EQUALIZATION = [

@@ -66,6 +66,10 @@ to it (h28lfp): on an LFP plateau under load the groups' voltages coincide withi
 low-pass's noise (telecom run 13: four groups 11 % of SOC apart read within 2 mV at 46 A,
 the OCV's rise with SOC cancelled by the resistance's), so without a margin the choice
 follows the noise and the observer's one SOC state is fed a different group every minute."""
+V1_SIGMA0_OCV_V = 0.005
+"""Prior standard deviation of the polarisation (V per cell) when the observer starts from a
+reading taken as open-circuit (:func:`_open_circuit_start`), instead of the prior's 50 mV: of
+the order of the reading's own noise, what that reading cannot exclude."""
 N_CV = 240
 """Steps of the time to full's constant-voltage phase, each an eighth of the taper's time
 constant at its start (30 time constants: a current falling by e^30 at most)."""
@@ -412,6 +416,24 @@ def _restart(prm: SocParams, st: SocState, tp: PackArrays, p: int, i: int) -> No
 
 
 @kernel_inline
+def _open_circuit_start(st: SocState, p: int, i: int) -> None:
+    """After a (re)set whose SOC was read off this very sample as an open-circuit voltage (the
+    observer's first start, from the fallback's first SOC; an inserted battery): the
+    polarisation's prior narrowed to ``V1_SIGMA0_OCV_V``.
+
+    Why: the SOC it starts from assumes no polarisation at that reading, so a wide prior on
+    ``v1`` (50 mV) contradicts the reading the SOC came from, and opens a direction (SOC up,
+    ``v1`` up) along which the voltage does not change. Measured (campaign, uav_dual_parallel,
+    the batteries 2 V apart, so A's first seconds are a 37 A inrush into B): within 3 s the
+    filter read the inrush's drop as 118 mV of polarisation (the RC builds ~20 mV in that
+    time) and the SOC 7 % high with a SOC sigma of 0.8 %; the capacity state then fell to
+    0.62x to undo it (runs 2, 16, 19, 20: 4-5 % max with the OCV over the SOC's spread and the
+    offset state, 0.5-0.8 % with this prior). A restart after divergence keeps the wide
+    prior: the battery may then be under load, its polarisation anything."""
+    st.cov[p, i, ob.X_V1, ob.X_V1] = V1_SIGMA0_OCV_V * V1_SIGMA0_OCV_V
+
+
+@kernel_inline
 def soc_from_ocv_t(prm: SocParams, cell_v: float, temp_c: float) -> float:
     """The SOC whose OCV at ``temp_c`` is ``cell_v`` (the reference table's inverse, then
     Newton steps on :func:`ocv_t`, which is linear within a table segment), within 0..1."""
@@ -446,6 +468,7 @@ def _start_from_ocv(
         _restart(prm, st, tp, p, i)
         return
     ob.reset(st.x, st.cov, p, i, s, tp.capacity_ah[p, i], prm.r_nom[i], prm.sig0)
+    _open_circuit_start(st, p, i)
     r0 = ob.table2(prm.r0_tab, prm.ax_t, prm.ax_s, temp, s)
     ob.correct(st.x, st.cov, st.hv, st.kv, st.wk, p, i, y, cur, r0, prm.ocv_soc, prm.ocv_v,
                prm.du_t, prm.du_tab, prm.t_ref_c, temp, prm.var_v)  # fmt: skip
@@ -493,6 +516,7 @@ def _observe(
         return
     if not math.isfinite(st.x[p, i, ob.X_SOC]):
         _restart(prm, st, tp, p, i)
+        _open_circuit_start(st, p, i)
         return  # starts from this sample, like the fallback
     if not math.isfinite(cur) or dt <= 0.0:
         return
