@@ -348,16 +348,16 @@ FIT_R0_OHM = 0.0456
 """``packpilot fit`` (--validate time) on this log, per cell (45.6 mOhm at the start)."""
 
 
-def setups(cell_json: str | None) -> list[Setup]:
+def setups(cell_json: str | None, r0_ohm: float = FIT_R0_OHM) -> list[Setup]:
     out = [
         Setup("A: uav_5ah as shipped at 2.65 Ah (R0 of its 5 Ah cell)"),
         Setup(
             "B: A + battery resistance_ohm = 3 x the fit's R0 (in-sample)",
-            resistance_ohm=SERIES * FIT_R0_OHM,
+            resistance_ohm=SERIES * r0_ohm,
         ),
         Setup(
             "D: B + ekf_voltage_sigma_v = 2 x the noise floor (sensitivity)",
-            resistance_ohm=SERIES * FIT_R0_OHM,
+            resistance_ohm=SERIES * r0_ohm,
             soc=(("ekf_voltage_sigma_v", 0.0364),),
         ),
     ]
@@ -373,10 +373,12 @@ def setups(cell_json: str | None) -> list[Setup]:
 
 
 def main() -> int:
-    """``--cell PATH``: also run the set ``packpilot fit LOG --cells 3 --out PATH`` wrote."""
+    """``--cell PATH``: also run the set ``packpilot fit LOG --cells 3 --out PATH`` wrote;
+    ``--r0-mohm X``: the per-cell R0 setups B and D are told (default the fit's 45.6)."""
     args = sys.argv[1:]
     cell = args[args.index("--cell") + 1] if "--cell" in args else None
-    for setup in setups(cell):
+    r0 = float(args[args.index("--r0-mohm") + 1]) / 1e3 if "--r0-mohm" in args else FIT_R0_OHM
+    for setup in setups(cell, r0):
         report(setup)
     return 0
 
