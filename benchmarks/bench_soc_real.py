@@ -149,7 +149,7 @@ def _a_priori_v(soc_part: Any, x0: Any, cov0: Any, cur: float, dt: float) -> flo
     return float(ocv - x[0, 0, ob.X_RSCALE] * r0 * ic - x[0, 0, ob.X_V1])
 
 
-def run(setup: Setup) -> dict[str, Any]:
+def run_core(setup: Setup) -> dict[str, Any]:
     log = read_flight_log(LOG)
     bat = log.batteries[0]
     t, v, i = bat.t_s, bat.voltage_v, bat.current_a
@@ -230,7 +230,7 @@ def report(setup: Setup) -> dict[str, float]:
     headline numbers."""
     from packpilot.control.soc.rules import ocv_t, soc_from_ocv_t
 
-    r = run(setup)
+    r = run_core(setup)
     label = setup.label
     t, v, i, out, prm = r["t"], r["v"], r["i"], r["out"], r["prm"]
     vc = v / SERIES
@@ -370,6 +370,28 @@ def setups(cell_json: str | None, r0_ohm: float = FIT_R0_OHM) -> list[Setup]:
             )
         )
     return out
+
+
+def run() -> list[dict[str, Any]]:
+    """``make bench``: fit the log with ``packpilot fit`` (the user's command, default time
+    split) into a temporary cell set, then setups A, B and C; one row of figures each."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cell = str(Path(tmp) / "tlog_set.json")
+        subprocess.run(
+            [sys.executable, "-m", "packpilot.cli", "fit", str(LOG), "--cells", str(SERIES),
+             "--out", cell],
+            check=True, capture_output=True,
+        )  # fmt: skip
+        rows: list[dict[str, Any]] = []
+        for setup in setups(cell)[:2] + setups(cell)[3:]:
+            res = report(setup)
+            rows.append({"setup": setup.label.split(":")[0], **{
+                f"{k}_mV": round(v, 1) for k, v in res.items()
+            }})  # fmt: skip
+        return rows
 
 
 def main() -> int:

@@ -31,7 +31,7 @@ def test_the_log_port_drives_the_core_sample_by_sample() -> None:
     and its coulomb-counting fallback (no rest reaches the 600 s correction) ends where an
     independent count of the log's current over 2.65 Ah ends (2.1 Ah drawn)."""
     b = _bench()
-    r = b.run(b.Setup("A"))
+    r = b.run_core(b.Setup("A"))
     out, prm, t, i = r["out"], r["prm"], r["t"], r["i"]
     first = float(out["soc_est"][0])
     # within the 0.53 A x R0 (1 mV) the start corrects for: 0.001 of SOC near full
