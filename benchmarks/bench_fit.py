@@ -263,17 +263,9 @@ def _real() -> list[dict[str, Any]]:
 
 def _ulog(path: Path, prof: Any) -> None:
     """A synthetic flight as PX4 would log it (one cell: cell_count 1)."""
-    from packpilot.io.flightlog.ulog import write_ulog
+    from packpilot.io.flightlog.ulog import write_battery_ulog
 
-    samples = [
-        {"timestamp": round(t * 1e6), "voltage_v": float(v), "current_a": float(i),
-         "current_average_a": float(i), "discharged_mah": 1000.0 * float(q),
-         "remaining": 0.5, "temperature": float("nan"), "voltage_cell_v": [0.0] * 14,
-         "cell_count": 1, "connected": True, "id": 0, "warning": 0}
-        for t, v, i, q in zip(prof.t_s, prof.voltage_v, prof.current_a, prof.charge_ah,
-                              strict=True)
-    ]  # fmt: skip
-    write_ulog(path, [samples], start_us=0)
+    write_battery_ulog(path, prof.t_s, prof.voltage_v, prof.current_a, prof.charge_ah)
 
 
 def _fleet_timing(n: int = 50) -> dict[str, Any]:

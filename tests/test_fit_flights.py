@@ -102,21 +102,13 @@ def test_cli_refuses_an_unknown_validation_mode() -> None:
 def test_cli_leave_one_flight_out_report_shows_the_held_out_flights(tmp_path: Path) -> None:
     """A three-flight PX4 log through the CLI: the verdict, one chart per flight with its
     held-out span shaded, and the written set saying which samples each check held out."""
-    from packpilot.io.flightlog.ulog import write_ulog
+    from packpilot.io.flightlog.ulog import write_battery_ulog
 
     prof = synthetic_log(Truth(), 1.0, noise_v=NOISE_V, gain=1.01, rest_s=30, seed=1,
                          flights=3)  # fmt: skip
     assert prof.charge_ah is not None
-    samples = [
-        {"timestamp": round(t * 1e6), "voltage_v": float(v), "current_a": float(i),
-         "current_average_a": float(i), "discharged_mah": 1000.0 * float(q),
-         "remaining": 0.5, "temperature": float("nan"), "voltage_cell_v": [0.0] * 14,
-         "cell_count": 1, "connected": True, "id": 0, "warning": 0}
-        for t, v, i, q in zip(prof.t_s, prof.voltage_v, prof.current_a, prof.charge_ah,
-                              strict=True)
-    ]  # fmt: skip
     log = tmp_path / "three.ulg"
-    write_ulog(log, [samples], start_us=0)
+    write_battery_ulog(log, prof.t_s, prof.voltage_v, prof.current_a, prof.charge_ah)
     out, rep = tmp_path / "cell.json", tmp_path / "fit.html"
     res = RUNNER.invoke(app, ["fit", str(log), "--validate", "flights", "--out", str(out),
                               "--report", str(rep), "--json"])  # fmt: skip

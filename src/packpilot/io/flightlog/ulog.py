@@ -248,3 +248,20 @@ def write_ulog(
 
 
 __all__ = ["BATTERY_STATUS_FIELDS", "TOPIC", "read_ulog", "write_ulog"]
+
+
+def write_battery_ulog(
+    path: Path, t_s: Sequence[float], voltage_v: Sequence[float], current_a: Sequence[float],
+    charge_ah: Sequence[float],
+) -> None:
+    """One battery's sampled flight as PX4 logs it when the battery reports no cells
+    (``cell_count`` 1, no temperature, ``remaining`` not meaningful): what the fit's tests and
+    benchmarks feed ``packpilot fit`` from a synthetic profile. Time starts at 0."""
+    samples = [
+        {"timestamp": round(t * 1e6), "voltage_v": float(v), "current_a": float(i),
+         "current_average_a": float(i), "discharged_mah": 1000.0 * float(q),
+         "remaining": 0.5, "temperature": float("nan"), "voltage_cell_v": [0.0] * 14,
+         "cell_count": 1, "connected": True, "id": 0, "warning": 0}
+        for t, v, i, q in zip(t_s, voltage_v, current_a, charge_ah, strict=True)
+    ]  # fmt: skip
+    write_ulog(path, [samples], start_us=0)
