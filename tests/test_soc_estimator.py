@@ -244,24 +244,31 @@ def test_a_bad_tick_length_counts_no_charge(dt_s: float) -> None:
     assert e.soc == (0.5, 0.5)
 
 
-def test_a_reinserted_battery_rests_a_full_period_from_its_return() -> None:
-    """Removal resets the rest clock and its next correction time: a battery back after a swap
-    is corrected rest_time_s after its return, not at the schedule of its earlier rest
-    (generated mutants 59d73c3db6, 2ae4277705)."""
+def test_a_reinserted_battery_is_read_afresh_and_rests_a_full_period_from_its_return() -> None:
+    """A battery back in its slot may not be the one that left (a swap), so the estimator
+    reads it as at power-up: its first present sample's OCV, not the slot's old SOC. Removal
+    resets the rest clock and its next correction time: it is corrected rest_time_s after that
+    first sample, not at the schedule of its earlier rest (generated mutants 59d73c3db6,
+    2ae4277705)."""
     e = est(soc0=(0.2, 0.2), blend=0.5)
     rest = healthy(current_a=0.0, min_cell_v=3.95, max_cell_v=3.95)  # OCV: SOC 0.75
     gone = healthy(current_a=0.0, min_cell_v=3.95, max_cell_v=3.95, present=False)
+    back = healthy(current_a=0.0, min_cell_v=3.56, max_cell_v=3.56)  # OCV: SOC 0.4
+    relaxed = healthy(current_a=0.0, min_cell_v=3.63, max_cell_v=3.63)  # OCV: SOC 0.45
     for k in range(60):
         e.update(meas(k + 1.0, rest, rest), 1.0)
     assert e.soc[0] == pytest.approx(0.475)  # one correction; the next one was due at 120 s
     e.update(meas(61.0, gone, rest), 1.0)
+    assert e.soc[0] == pytest.approx(0.475)  # absent: held
+    e.update(meas(62.0, back, rest), 1.0)
+    assert e.soc[0] == pytest.approx(0.4)  # read afresh, not the slot's 0.475
     events = []
     for k in range(59):
-        _, ev = e.update(meas(62.0 + k, rest, rest), 1.0)
+        _, ev = e.update(meas(63.0 + k, relaxed, rest), 1.0)
         events += [x for x in ev if x.battery == 0]
-    assert e.soc[0] == pytest.approx(0.475) and not events  # (mutant 2ae4277705: after 1 s)
-    _, ev = e.update(meas(121.0, rest, rest), 1.0)
-    assert e.soc[0] == pytest.approx(0.6125)  # corrected 60 s after its return
+    assert e.soc[0] == pytest.approx(0.4) and not events  # (mutant 2ae4277705: after 1 s)
+    _, ev = e.update(meas(122.0, relaxed, rest), 1.0)
+    assert e.soc[0] == pytest.approx(0.425)  # corrected 60 s after its first sample back
     assert [x.battery for x in ev if x.battery == 0] == [0]
 
 

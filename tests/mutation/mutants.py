@@ -324,11 +324,11 @@ SUPERVISOR = [
 
 SOC = [
     _m("soc", "no-clamp",
-       "fmin(1.0, fmax(0.0, st.soc[p, i] - cur * dt / (3600.0 * tp.capacity_ah[p, i])))",
-       "st.soc[p, i] - cur * dt / (3600.0 * tp.capacity_ah[p, i])",
+       "st.soc[p, i] = fmin(1.0, fmax(0.0, st.soc[p, i] + counted))",
+       "st.soc[p, i] = st.soc[p, i] + counted",
        "coulomb counting leaves 0..1"),
-    _m("soc", "sign-flipped", "st.soc[p, i] - cur * dt / (3600.0",
-       "st.soc[p, i] + cur * dt / (3600.0", "discharge raises the SOC"),
+    _m("soc", "sign-flipped", "    counted = -cur * dt / (3600.0",
+       "    counted = cur * dt / (3600.0", "discharge raises the SOC"),
     _m("soc", "no-rest-reset", "    if abs(cur) >= prm.rest_current_a:\n",
        "    if False:\n", "load does not restart the rest clock"),
     _m("soc", "nan-current-counted",
@@ -460,6 +460,15 @@ SOC = [
     Mutant("soc", "offset-not-estimated", "        default=0.3,\n", "        default=0.0,\n",
            "the current-sensor offset is not estimated by default (the capacity absorbs it)",
            file="src/packpilot/config/soc.py"),
+    # issue #28, eighth session: trusted and wrong on a real log; a reinserted battery's counter
+    _m("soc", "consistency-unchecked",
+       "    elif prm.consistency_sigma > 0.0 and z > prm.consistency_sigma:\n",
+       "    elif False:\n",
+       "an observer far outside the coulomb counter's reach stays trusted (its model is wrong)"),
+    _m("soc", "fallback-stale-after-insertion",
+       "        st.fb_absent[p, i] = False\n        st.soc[p, i] = math.nan\n",
+       "        st.fb_absent[p, i] = False\n",
+       "a reinserted battery's coulomb counter keeps the slot's old SOC"),
 ]
 
 EQUALIZATION = [
@@ -720,7 +729,7 @@ TESTS: dict[str, list[str]] = {
     ],
     "soc": [
         "tests/test_soc_estimator.py", "tests/test_soc_observer.py",
-        "tests/test_soc_lfp_plateau.py",
+        "tests/test_soc_lfp_plateau.py", "tests/test_soc_real_log.py",
     ],
     # shared helpers (#26 item 4: generated mutants only): every method's commands and events
     # go through control/commands.py, capacity / conduction through control/battery.py

@@ -103,6 +103,14 @@ class SocConfig(Strict):
         description="The observer has diverged when that average exceeds this (> 0; a "
         "consistent filter averages about 1).",
     )
+    consistency_sigma: float = Field(
+        default=3.0,
+        description="The observer is rejected (SocObserverInconsistent, the coulomb counter "
+        "shown, the observer restarted) when its SOC is more than this many standard "
+        "deviations from the counter's, the counter's own uncertainty grown from its last "
+        "OCV reading by the capacity's and the current offset's priors (0: not checked). "
+        "Catches a filter whose cell model is wrong yet whose innovations look consistent.",
+    )
 
     load_avg_s: float = Field(
         default=180.0,
@@ -176,6 +184,10 @@ class SocConfig(Strict):
             )
         if not (_finite(self.rest_time_s) and 0.0 < self.rest_time_s <= MAX_TIME_S):
             raise ValueError(f"rest_time_s must be > 0 s, got {self.rest_time_s}")
+        if not (_finite(self.consistency_sigma) and 0.0 <= self.consistency_sigma <= 100.0):
+            raise ValueError(
+                f"consistency_sigma must be within 0..100, got {self.consistency_sigma}"
+            )
         if not (_finite(self.blend) and 0.0 <= self.blend <= 1.0):
             raise ValueError(f"blend must be within 0..1, got {self.blend}")
         return self

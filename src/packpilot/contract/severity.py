@@ -72,6 +72,10 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "ReserveEngaged": KindRow(Severity.WARNING, "reserve"),
         # the SOC observer failed its innovation test: the coulomb counter is shown (#28)
         "SocObserverDiverged": KindRow(Severity.WARNING, "estimator", "SocObserverResumed"),
+        # ... or its SOC left what the coulomb counter can be wrong by (its model is wrong)
+        "SocObserverInconsistent": KindRow(
+            Severity.WARNING, "estimator", "SocObserverResumed"
+        ),
         # the CAN runtime's own detections (issue #26): telemetry not trusted, a dock contact
         # contradicted by the measurements, a switch node that opened on its command timeout
         "TelemetrySuspect": KindRow(Severity.WARNING, "telemetry", "TelemetryTrusted"),

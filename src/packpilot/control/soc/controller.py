@@ -39,6 +39,13 @@ REASONS = (
         "{soc:.3f} from the observer",
         fields("nis", "soc"),
     ),
+    Reason(
+        "SocObserverInconsistent",
+        "SOC observer {observer:.3f} is {z:.1f} sigma from the coulomb counter's {fallback:.3f} "
+        "(the counter uncertain by {fallback_sigma:.3f}): SOC from the counter, observer "
+        "restarted; its cell model may not describe this battery",
+        fields("observer", "fallback", "fallback_sigma", "z"),
+    ),
 )
 STATUS = (
     StatusChannel("soc_est"),
@@ -159,6 +166,10 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
         load_age_s=np.zeros(shape),
         v_res_avg_v=np.zeros(shape),
         load_exc_a=np.zeros(shape),
+        fb_var0=nan.copy(),
+        fb_net=np.zeros(shape),
+        fb_age_s=np.zeros(shape),
+        fb_absent=np.zeros(shape, np.bool_),
         **{name: nan.copy() for name in _OUTPUTS},
     )
     return prm, st
@@ -222,6 +233,7 @@ def _observer_params(config: SocConfig, info: PackInfo) -> dict[str, Any]:
         ),
         "predict_every_s": 1.0,
         "cutoff_tau_s": CUTOFF_TAU_S,
+        "consistency_sigma": float(config.consistency_sigma),
         **_full(config, info),
     }
 
