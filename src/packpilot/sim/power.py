@@ -40,7 +40,7 @@ from packpilot.control.power import (
 from packpilot.errors import ConfigError
 from packpilot.model.cell import model as cellmod
 from packpilot.model.cell.params import CellParams
-from packpilot.model.pack import Pack, _load_cell_set
+from packpilot.model.pack import Pack, _load_cell_set, battery_series_ohm
 
 F64 = NDArray[np.float64]
 
@@ -140,7 +140,9 @@ def params_of(
     margin: float = MARGIN,
 ) -> PowerParams:
     """The static facts of the pack's traction batteries: the pack cell set's OCV curve,
-    series counts, switches, and the limits a battery must not cross: the cut-off is the
+    series counts, switches, each battery's leads, connectors and shunt (its ``series_ohm``,
+    :func:`~packpilot.model.pack.battery_series_ohm`, as the plant's branch has it: the one
+    place it enters the prediction), and the limits a battery must not cross: the cut-off is the
     highest of the cell set's minimum voltage and the limits table's ``cell_v_min`` trips,
     the maximum the lowest of its maximum and the ``cell_v_max`` trips, the temperature limits
     the lowest ``temp_max_c`` trip of each path and the highest ``temp_min_c`` trip (none without
@@ -160,6 +162,7 @@ def params_of(
         series=[float(b.n_cells) for b in bats],
         relay=[s.kind == "relay" for s in sw], on_ohm=[s.on_ohm for s in sw],
         diode_drop_v=[s.diode_drop_v for s in sw], diode_ohm=[s.diode_ohm for s in sw],
+        series_ohm=[battery_series_ohm(b, c) for b, c in zip(bats, sets, strict=True)],
         cell_v_min=[max([c.v_min_v, *lo]) for c in sets],
         cell_v_max=[min([c.v_max_v, *hi]) for c in sets],
         temp_max_dsg_c=[min(hot_d, default=math.inf) for _ in bats],
@@ -412,12 +415,13 @@ def join_table(
 
 
 def _loop_ohm(prm: PowerParams, inp: PowerInputs, j: int) -> float:
-    """Battery ``j`` with its switch, in series with the others in parallel (both FETs /
-    the relay closed): the resistance a dV drives the first instant's current through."""
+    """Battery ``j`` with its leads and switch, in series with the others in parallel (both
+    FETs / the relay closed): the resistance a dV drives the first instant's current
+    through."""
 
     def arm(s: int) -> float:
         sw = prm.on_ohm[s] if prm.relay[s] else 2.0 * prm.on_ohm[s]
-        return float(inp.r0_ohm[0, s] + sw)
+        return float(inp.r0_ohm[0, s] + prm.series_ohm[s] + sw)
 
     others = sum(1.0 / arm(s) for s in range(prm.series.shape[0]) if s != j)
     return arm(j) + (1.0 / others if others > 0 else math.inf)
