@@ -1,5 +1,6 @@
-"""A battery's leads, connectors and shunt (``series_ohm``, issue #27) in the state of power and
-the join planner (issue #28 items 3-4), on the real plant.
+"""A battery's resistance in the state of power and the join planner (issue #28 items 3-4) as
+the real plant has it: its leads, connectors and shunt (``series_ohm``, issue #27), and its
+stated ``resistance_ohm`` away from the temperature it is stated at.
 
 The plant puts ``series_ohm`` in the battery's branch, outside its cells: the bus sits
 ``I x series_ohm`` lower, the split between batteries moves towards the one with less of it,
@@ -26,7 +27,7 @@ from packpilot.config import ScenarioConfig
 from packpilot.config.scenario import parse_config
 from packpilot.control import power as pw
 from packpilot.model.pack import Pack
-from packpilot.sim.power import current_limits, inputs_from_plant, params_of
+from packpilot.sim.power import current_limits, inputs_from_core, inputs_from_plant, params_of
 from tests.conftest import EXAMPLES
 
 LEADS_OHM = 0.02
@@ -120,6 +121,30 @@ def test_the_10s_limit_with_leads_holds_on_the_plant_and_reaches_90_percent() ->
     assert not crossed[0], f"{limit:.1f} A ({why}): lowest cell {low[0]:.3f} V, over {over[0]}"
     assert crossed[1], f"{drawn[1]:.1f} A crosses nothing: the limit is under 90 % of it"
     assert (why, int(out.who_dsg[0, H10])) == ("cell voltage", 1)  # the aged battery's cells
+
+
+@pytest.mark.parametrize("ambient_c", [5.0, 25.0, 40.0])
+def test_the_cell_set_inputs_have_the_plants_resistance_away_from_25_degc(
+    ambient_c: float,
+) -> None:
+    """Without a trusted observer R0 the core's inputs take R0 from the cell set, scaled to a
+    battery's stated ``resistance_ohm`` as the plant scales it: stated at ``resistance_temp_c``
+    (25 degC), the cells' temperature law from there. Until 2026-11-29 the scale was taken at
+    the ambient: at 5 degC R0 came out 1.8 x below the plant's (a limit too high)."""
+    cfg = _cfg([
+        {"name": "A", "cells_per_group": 6, "soc0": 0.3, "resistance_ohm": 0.02},
+        {"name": "B", "cells_per_group": 6, "ocv0_v": 22.2, "resistance_ohm": 0.036},
+    ], ambient_c=ambient_c)  # fmt: skip
+    pack = Pack(cfg)
+    truth = inputs_from_plant(cfg, pack)
+    n = 2
+    v = np.array([float(pack.e_cell[0, :6].sum()), float(pack.e_cell[0, 6:].sum())])
+    core = inputs_from_core(
+        cfg, soc=truth.soc[0], temp_c=np.full(n, ambient_c), current_a=np.zeros(n),
+        voltage_v=v, min_cell_v=v / 6, max_cell_v=v / 6, present=np.ones(n, bool),
+        chg_on=np.ones(n, bool), dsg_on=np.ones(n, bool),
+    )  # fmt: skip
+    assert core.r0_ohm[0] == pytest.approx(truth.r0_ohm[0], rel=1e-6)
 
 
 def test_plan_join_counts_the_leads_in_the_loop(tmp_path: Path) -> None:

@@ -40,7 +40,7 @@ from packpilot.control.power import (
 from packpilot.errors import ConfigError
 from packpilot.model.cell import model as cellmod
 from packpilot.model.cell.params import CellParams
-from packpilot.model.pack import Pack, _load_cell_set, battery_series_ohm
+from packpilot.model.pack import Pack, _load_cell_set, battery_series_ohm, soc_from_ocv
 
 F64 = NDArray[np.float64]
 
@@ -108,13 +108,23 @@ def cell_rc(params: CellParams, soc: float, temp_c: float, current_a: float = 0.
 
 
 def resistance_scale(cfg: ScenarioConfig, b: BatteryConfig) -> float:
-    """The factor the plant puts on this battery's cell resistances (its stated
-    ``resistance_ohm`` over the cell set's at its initial state, as ``model/pack.py``)."""
+    """The factor the plant puts on this battery's cell resistances (``model/pack.py``): its
+    stated ``resistance_ohm`` over the cell set's R0 at ``resistance_temp_c`` (a datasheet's or
+    an ohmmeter's temperature, 25 degC by default) and its initial SOC (``soc0``, or its
+    ``ocv0_v`` read through the OCV at the ambient), no current. Until 2026-11-29 this took the
+    R0 at the battery's ambient instead, so away from 25 degC the core's inputs had the stated
+    resistance at the ambient while the plant's cells followed their temperature law from
+    25 degC: at 5 degC uav_5ah's R0 is 1.8 x its 25 degC value, and the cell-set inputs
+    (``inputs_from_core`` without a trusted observer R0) had R0 1.8 x too low."""
     if b.resistance_ohm is None:
         return 1.0
     prm = cell_set(cfg, b)
-    soc = 0.5 if b.soc0 is None else float(b.soc0)
-    r0 = cell_rc(prm, soc, cfg.pack.ambient_c + b.ambient_offset_c, 0.0).r0_ohm
+    if b.ocv0_v is not None:
+        at = np.array([cfg.pack.ambient_c])
+        soc = float(soc_from_ocv(prm, np.array([b.ocv0_v / b.n_cells]), at)[0])
+    else:
+        soc = 0.5 if b.soc0 is None else float(b.soc0)
+    r0 = cell_rc(prm, min(max(soc, 0.0), 1.0), b.resistance_temp_c, 0.0).r0_ohm
     return b.resistance_ohm / (b.n_cells * r0)
 
 
