@@ -15,8 +15,15 @@ battery's SOC), its resistance (1x, 2x, 4x) and the switch type (relay; MOSFET p
 both FETs closing). The predicted peak current through the switch is compared with the
 plant's largest current in the 2 s after the switch closes (within 15 %).
 
-``python benchmarks/bench_power.py [--append]``; ``--append`` adds a dated section at the end
-of ``benchmarks/RESULTS.md`` (``make bench`` does).
+**Leads, connectors and shunt** (``--series-ohm X[,Y...]``, issue #27's ``series_ohm``): every
+case again with that resistance in each battery's branch (A, B, C in order; the last value
+repeats), outside its cells: the plant's bus sits ``I x series_ohm`` lower while the cells'
+voltages and heat are unchanged, so only the split between batteries, the bus voltage (the
+limit's power) and a join's loop resistance move.
+
+``python benchmarks/bench_power.py [--series-ohm X[,Y...]] [--append]``; ``--append`` adds a
+dated section at the end of ``benchmarks/RESULTS.md`` (``make bench`` does, without series
+resistance).
 """
 
 from __future__ import annotations
@@ -68,7 +75,19 @@ SOC_SHIFT = (-0.3, 0.0, 0.3)
 AMBIENT_C = (5.0, 25.0, 40.0)
 
 
-def scenario(bats: list[dict[str, Any]], kind: str = "mosfet_pair") -> ScenarioConfig:
+def with_series(bats: list[dict[str, Any]], series_ohm: tuple[float, ...]) -> list[dict[str, Any]]:
+    """The batteries with ``series_ohm`` in their branches (by position; the last repeats;
+    none for an empty tuple)."""
+    if not series_ohm:
+        return bats
+    return [
+        {**b, "series_ohm": series_ohm[min(k, len(series_ohm) - 1)]} for k, b in enumerate(bats)
+    ]
+
+
+def scenario(bats: list[dict[str, Any]], kind: str = "mosfet_pair",
+             series_ohm: tuple[float, ...] = ()) -> ScenarioConfig:  # fmt: skip
+    bats = with_series(bats, series_ohm)
     return parse_config({
         "pack": {"name": "sop", "cell": "uav_5ah", "ambient_c": 25.0,
                  "switch": {"kind": kind, "on_ohm": 0.0005}, "batteries": bats},
@@ -96,17 +115,20 @@ def _plant(cfg: ScenarioConfig, preload: bool = False) -> Pack:
 
 
 def crossed(cfg: ScenarioConfig, current_a: np.ndarray, hold_s: float = HOLD_S,
-            preload: bool = False) -> np.ndarray:  # fmt: skip
+            preload: bool = False, bus: bool = False) -> Any:  # fmt: skip
     """Per pack: which limit the plant crossed drawing ``current_a`` for ``hold_s`` (0 none,
-    else ``WHY_*``)."""
+    else ``WHY_*``); with ``bus``, also the lowest bus voltage on the way (what the limit's
+    power is that current times)."""
     prm = params_of(cfg)
     pack = _plant(cfg, preload)
     strings = [k for k, b in enumerate(cfg.pack.batteries) if b.role != "aux"]
     caps = np.array([b.capacity_ah or 5.0 for b in traction(cfg)])
     lim_d, _ = current_limits(cfg, caps)
     why = np.zeros(pack.n_packs, np.int64)
+    bus_min = np.full(pack.n_packs, np.inf)
     for _ in range(round(hold_s / DT_S)):
         iv = pack.step(DT_S, "current", current_a)
+        bus_min = np.minimum(bus_min, iv.bus_v)
         _soc, temp = pack.cell_states()
         for i, k in enumerate(strings):
             c0 = pack.string_cell_starts[k]
@@ -119,7 +141,7 @@ def crossed(cfg: ScenarioConfig, current_a: np.ndarray, hold_s: float = HOLD_S,
             why = np.where((why == 0) & cut, pw.WHY_CUTOFF, why)
             why = np.where((why == 0) & hot, pw.WHY_TEMP, why)
         why = np.where((why == 0) & ~iv.supplied, pw.WHY_SUPPLY, why)
-    return why
+    return (why, bus_min) if bus else why
 
 
 def true_limit(cfg: ScenarioConfig, hi: np.ndarray, iters: int = 16,
@@ -136,10 +158,10 @@ def true_limit(cfg: ScenarioConfig, hi: np.ndarray, iters: int = 16,
     return np.where(ok_top, top, lo)
 
 
-def sop_sweep() -> list[dict[str, Any]]:
+def sop_sweep(series_ohm: tuple[float, ...] = ()) -> list[dict[str, Any]]:
     rows = []
     for name, bats in SPREADS.items():
-        cfg = scenario(bats)
+        cfg = scenario(bats, series_ohm=series_ohm)
         prm = params_of(cfg)
         inp = inputs_from_plant(cfg, _plant(cfg))
         pw.state_of_power(prm, inp)  # compiled (or loaded) before timing
@@ -147,7 +169,7 @@ def sop_sweep() -> list[dict[str, Any]]:
         out = pw.state_of_power(prm, inp)
         cpu = time.process_time() - t0
         pred = out.pack_dsg_a[:, H10].copy()
-        why_pred = crossed(cfg, pred)
+        why_pred, bus_min = crossed(cfg, pred, bus=True)
         upper = np.sum(inp.limit_dsg_a, axis=1) * 1.2
         truth = true_limit(cfg, upper)
         aged = out.alone_dsg_a[:, -1, H10]
@@ -160,6 +182,9 @@ def sop_sweep() -> list[dict[str, Any]]:
                 "ratio": round(float(pred[p] / truth[p]), 4) if truth[p] > 0 else float("nan"),
                 "crossed": pw.WHY_NAMES[int(why_pred[p])],
                 "binding": pw.WHY_NAMES[int(out.why_dsg[p, H10])],
+                "bus_pred_v": round(float(out.pack_dsg_w[p, H10] / pred[p]), 3)
+                if pred[p] > 0 else float("nan"),
+                "bus_plant_v": round(float(bus_min[p]), 3),
                 "weakest_alone_a": round(float(aged[p]), 2),
                 "cpu_ms_per_pack": round(1e3 * cpu / pred.size, 2),
             })  # fmt: skip
@@ -191,10 +216,10 @@ def _core_inputs(cfg: ScenarioConfig, pack: Pack, p: int) -> Any:
     )  # fmt: skip
 
 
-def preload_sweep() -> list[dict[str, Any]]:
+def preload_sweep(series_ohm: tuple[float, ...] = ()) -> list[dict[str, Any]]:
     """After 60 s at 60 A: the prediction from the plant's truth (polarisation known, what an
     observer gives) and from what the core has today (no polarisation)."""
-    cfg = scenario(SPREADS["fresh+aged"])
+    cfg = scenario(SPREADS["fresh+aged"], series_ohm=series_ohm)
     prm = params_of(cfg)
     pack = _plant(cfg, preload=True)
     truth = pw.state_of_power(prm, inputs_from_plant(cfg, pack)).pack_dsg_a[:, H10]
@@ -220,13 +245,14 @@ def preload_sweep() -> list[dict[str, Any]]:
     return rows
 
 
-def _join_case(kind: str, dsoc: float, r_mult: float, preload: bool) -> dict[str, Any]:
+def _join_case(kind: str, dsoc: float, r_mult: float, preload: bool,
+               series_ohm: tuple[float, ...] = ()) -> dict[str, Any]:  # fmt: skip
     bats = [
         {"name": "A", "cells_per_group": 6, "soc0": 0.5, "resistance_ohm": 0.02},
         {"name": "B", "cells_per_group": 6, "soc0": 0.5 + dsoc, "resistance_ohm": 0.02 * r_mult,
          "switch": {"kind": kind, "on_ohm": 0.0005, "chg_on": False, "dsg_on": False}},
     ]  # fmt: skip
-    cfg = scenario(bats, kind)
+    cfg = scenario(bats, kind, series_ohm)
     pack = Pack(cfg, n_packs=1)
     load = np.array([20.0 if preload else 0.0])
     for _ in range(round(60.0 / DT_S)):
@@ -255,13 +281,13 @@ def _join_case(kind: str, dsoc: float, r_mult: float, preload: bool) -> dict[str
     }
 
 
-def join_sweep() -> list[dict[str, Any]]:
+def join_sweep(series_ohm: tuple[float, ...] = ()) -> list[dict[str, Any]]:
     rows = []
     for kind in ("relay", "mosfet_pair"):
         for dsoc in (-0.3, -0.1, 0.05, 0.2):
             for r_mult in (1.0, 2.0, 4.0):
                 for preload in (False, True):
-                    rows.append(_join_case(kind, dsoc, r_mult, preload))
+                    rows.append(_join_case(kind, dsoc, r_mult, preload, series_ohm))
     return rows
 
 
@@ -272,10 +298,10 @@ def _table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(out)
 
 
-def run() -> dict[str, Any]:
-    sop = sop_sweep()
-    pre = preload_sweep()
-    join = join_sweep()
+def run(series_ohm: tuple[float, ...] = ()) -> dict[str, Any]:
+    sop = sop_sweep(series_ohm)
+    pre = preload_sweep(series_ohm)
+    join = join_sweep(series_ohm)
     ratios = [r["ratio"] for r in sop]
     errors = [abs(r["error"]) for r in join]
     pre_ratio = [r["from_truth_a"] / r["true_a"] for r in pre if r["true_a"] > 0]
@@ -287,6 +313,8 @@ def run() -> dict[str, Any]:
         "sop_crossings": sum(r["crossed"] != "none" for r in sop),
         "sop_min_ratio": min(ratios), "sop_n": len(sop),
         "join_max_error": max(errors), "join_n": len(join),
+        "bus_max_over_v": float(np.nanmax([r["bus_pred_v"] - r["bus_plant_v"] for r in sop])),
+        "series_ohm": series_ohm,
     }  # fmt: skip
 
 
@@ -294,7 +322,8 @@ def section(res: dict[str, Any]) -> str:
     now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     return (
         f"\n## State of power and join planner (issue #28 items 3-4), {now}\n\n"
-        "Command: `python benchmarks/bench_power.py --append` (`make bench`). Plant: "
+        f"Command: `python benchmarks/bench_power.py{_series_arg(res)} --append` "
+        f"(`make bench`: without series resistance).{_series_note(res)} Plant: "
         "uav_5ah cells, 6S batteries behind MOSFET pairs, default `[limits]` (cut-off 2.7 V, "
         "20 C discharge trip, 60 degC), dt 0.1 s. Predictions from the plant's true state "
         "(`sim/power.py:inputs_from_plant`); published = prediction x (1 - 0.02), the "
@@ -311,15 +340,40 @@ def section(res: dict[str, Any]) -> str:
         f"{res['pre_min_ratio']:.3f} | 0; >= 0.90 |\n"
         f"| SOP 10 s after 60 s at 60 A, from what the core has today (no polarisation "
         f"estimate): crossings | {res['pre_core_crossings']} of {res['pre_n']} | stated "
-        f"(the observer's inputs fix it) |\n\n"
+        f"(the observer's inputs fix it) |\n"
+        f"| SOP 10 s: predicted lowest bus voltage (the power's) above the plant's, worst | "
+        f"{res['bus_max_over_v']:+.3f} V | <= 0 (stated) |\n\n"
         "State of power, every case:\n\n" + _table(res["sop"]) + "\n\n"
         "After 60 s at 60 A (fresh + aged), every case:\n\n" + _table(res["pre"]) + "\n\n"
         "Join planner, every case:\n\n" + _table(res["join"]) + "\n"
     )
 
 
+def _series_arg(res: dict[str, Any]) -> str:
+    s = res["series_ohm"]
+    return f" --series-ohm {','.join(f'{x:g}' for x in s)}" if s else ""
+
+
+def _series_note(res: dict[str, Any]) -> str:
+    s = res["series_ohm"]
+    if not s:
+        return ""
+    return (
+        f" Every battery with `series_ohm` {', '.join(f'{1e3 * x:g}' for x in s)} mOhm "
+        "(A, B, C; the last repeats) in its branch, outside its cells."
+    )
+
+
+def series_arg(argv: list[str]) -> tuple[float, ...]:
+    """``--series-ohm X[,Y...]``: the batteries' series resistances (empty: none)."""
+    if "--series-ohm" not in argv:
+        return ()
+    k = argv.index("--series-ohm")
+    return tuple(float(x) for x in argv[k + 1].split(","))
+
+
 def main() -> int:
-    res = run()
+    res = run(series_arg(sys.argv[1:]))
     text = section(res)
     print(text)
     if "--append" in sys.argv[1:]:

@@ -38,8 +38,11 @@ def test_admissible_dv_is_the_limit_times_the_loop_resistance() -> None:
         # the supervisor's fixed 3 V would drive 3 V / R_loop: far beyond 15 A
         assert r["peak_at_fixed_a"] == pytest.approx(3.0 / r["r_loop_ohm"], rel=1e-6)
         assert r["peak_at_fixed_a"] > 60.0
-        # two 20 mOhm batteries at 25 degC and 50 % SOC plus two FET pairs of 0.1 mOhm each
-        assert r["r_loop_ohm"] == pytest.approx(0.0404, abs=2e-3)
+        # two batteries stated 20 mOhm at 25 degC and their initial SOC (A 0.90, B 0.61 from
+        # their ocv0_v), which the plant scales its cells to: at 50 % SOC 16.7 and 19.7 mOhm
+        # (model.pack.Pack's nominal_r_scale), plus two FET pairs of 0.2 mOhm each. Until
+        # 2026-11-29 the prediction held 20 mOhm at SOC 0.5 (40.4 mOhm), not the plant's
+        assert r["r_loop_ohm"] == pytest.approx(0.0368, abs=3e-4)
 
 
 def test_a_switch_rating_and_the_cold_tighten_or_loosen_it(tmp_path: Path) -> None:

@@ -51,6 +51,16 @@ def _load_cell_set(name: str) -> cellmod.CellParams:
     return cellmod.load_parameter_set(name)
 
 
+def battery_series_ohm(b: BatteryConfig, params: cellmod.CellParams) -> float:
+    """A battery's leads, connectors and shunt (issue #27): its stated ``series_ohm``, else its
+    cell set's per series cell x series groups / cells per group. The one definition: the
+    plant's branch and the state of power / join planner (``sim/power.py:params_of``) read it
+    here, so a prediction cannot leave out what the plant puts in."""
+    if b.series_ohm is not None:
+        return float(b.series_ohm)
+    return float(params.series_ohm) * b.series_groups / b.cells_per_group
+
+
 def soc_from_ocv(params: cellmod.CellParams, ocv_v: Array, temp_c: Array) -> Array:
     """Invert the (monotone) OCV curve by bisection, clamped to SOC 0..1."""
     lo = np.zeros_like(ocv_v)
@@ -286,9 +296,7 @@ class Pack:
             self.banks.append(CellBank(params=prm, idx=flat, state=state))
         # Leads, connectors and shunt of each battery: in its branch, outside its cells (#27).
         self.series_ohm = np.array([
-            (b.series_ohm if b.series_ohm is not None
-             else params_of_string[n].series_ohm * b.series_groups / b.cells_per_group)
-            for b, n in zip(bats, set_names, strict=True)
+            battery_series_ohm(b, params_of_string[n]) for b, n in zip(bats, set_names, strict=True)
         ])  # fmt: skip
         self.cooling_scale = np.array([b.cooling_scale for b in bats])
         for i in np.flatnonzero(self.cooling_scale != 1.0):

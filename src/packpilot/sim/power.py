@@ -40,7 +40,7 @@ from packpilot.control.power import (
 from packpilot.errors import ConfigError
 from packpilot.model.cell import model as cellmod
 from packpilot.model.cell.params import CellParams
-from packpilot.model.pack import Pack, _load_cell_set
+from packpilot.model.pack import Pack, _load_cell_set, battery_series_ohm, soc_from_ocv
 
 F64 = NDArray[np.float64]
 
@@ -108,13 +108,23 @@ def cell_rc(params: CellParams, soc: float, temp_c: float, current_a: float = 0.
 
 
 def resistance_scale(cfg: ScenarioConfig, b: BatteryConfig) -> float:
-    """The factor the plant puts on this battery's cell resistances (its stated
-    ``resistance_ohm`` over the cell set's at its initial state, as ``model/pack.py``)."""
+    """The factor the plant puts on this battery's cell resistances (``model/pack.py``): its
+    stated ``resistance_ohm`` over the cell set's R0 at ``resistance_temp_c`` (a datasheet's or
+    an ohmmeter's temperature, 25 degC by default) and its initial SOC (``soc0``, or its
+    ``ocv0_v`` read through the OCV at the ambient), no current. Until 2026-11-29 this took the
+    R0 at the battery's ambient instead, so away from 25 degC the core's inputs had the stated
+    resistance at the ambient while the plant's cells followed their temperature law from
+    25 degC: at 5 degC uav_5ah's R0 is 1.8 x its 25 degC value, and the cell-set inputs
+    (``inputs_from_core`` without a trusted observer R0) had R0 1.8 x too low."""
     if b.resistance_ohm is None:
         return 1.0
     prm = cell_set(cfg, b)
-    soc = 0.5 if b.soc0 is None else float(b.soc0)
-    r0 = cell_rc(prm, soc, cfg.pack.ambient_c + b.ambient_offset_c, 0.0).r0_ohm
+    if b.ocv0_v is not None:
+        at = np.array([cfg.pack.ambient_c])
+        soc = float(soc_from_ocv(prm, np.array([b.ocv0_v / b.n_cells]), at)[0])
+    else:
+        soc = 0.5 if b.soc0 is None else float(b.soc0)
+    r0 = cell_rc(prm, min(max(soc, 0.0), 1.0), b.resistance_temp_c, 0.0).r0_ohm
     return b.resistance_ohm / (b.n_cells * r0)
 
 
@@ -140,7 +150,9 @@ def params_of(
     margin: float = MARGIN,
 ) -> PowerParams:
     """The static facts of the pack's traction batteries: the pack cell set's OCV curve,
-    series counts, switches, and the limits a battery must not cross: the cut-off is the
+    series counts, switches, each battery's leads, connectors and shunt (its ``series_ohm``,
+    :func:`~packpilot.model.pack.battery_series_ohm`, as the plant's branch has it: the one
+    place it enters the prediction), and the limits a battery must not cross: the cut-off is the
     highest of the cell set's minimum voltage and the limits table's ``cell_v_min`` trips,
     the maximum the lowest of its maximum and the ``cell_v_max`` trips, the temperature limits
     the lowest ``temp_max_c`` trip of each path and the highest ``temp_min_c`` trip (none without
@@ -160,6 +172,7 @@ def params_of(
         series=[float(b.n_cells) for b in bats],
         relay=[s.kind == "relay" for s in sw], on_ohm=[s.on_ohm for s in sw],
         diode_drop_v=[s.diode_drop_v for s in sw], diode_ohm=[s.diode_ohm for s in sw],
+        series_ohm=[battery_series_ohm(b, c) for b, c in zip(bats, sets, strict=True)],
         cell_v_min=[max([c.v_min_v, *lo]) for c in sets],
         cell_v_max=[min([c.v_max_v, *hi]) for c in sets],
         temp_max_dsg_c=[min(hot_d, default=math.inf) for _ in bats],
@@ -412,12 +425,13 @@ def join_table(
 
 
 def _loop_ohm(prm: PowerParams, inp: PowerInputs, j: int) -> float:
-    """Battery ``j`` with its switch, in series with the others in parallel (both FETs /
-    the relay closed): the resistance a dV drives the first instant's current through."""
+    """Battery ``j`` with its leads and switch, in series with the others in parallel (both
+    FETs / the relay closed): the resistance a dV drives the first instant's current
+    through."""
 
     def arm(s: int) -> float:
         sw = prm.on_ohm[s] if prm.relay[s] else 2.0 * prm.on_ohm[s]
-        return float(inp.r0_ohm[0, s] + sw)
+        return float(inp.r0_ohm[0, s] + prm.series_ohm[s] + sw)
 
     others = sum(1.0 / arm(s) for s in range(prm.series.shape[0]) if s != j)
     return arm(j) + (1.0 / others if others > 0 else math.inf)

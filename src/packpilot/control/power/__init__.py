@@ -43,6 +43,7 @@ def make_params(
     on_ohm: Sequence[float],
     diode_drop_v: Sequence[float],
     diode_ohm: Sequence[float],
+    series_ohm: Sequence[float] | None = None,
     cell_v_min: Sequence[float],
     cell_v_max: Sequence[float],
     temp_max_dsg_c: Sequence[float],
@@ -66,9 +67,11 @@ def make_params(
     temp_min_dsg_c = cold if temp_min_dsg_c is None else temp_min_dsg_c
     temp_min_chg_c = cold if temp_min_chg_c is None else temp_min_chg_c
     cool_w_per_k = [0.0] * n if cool_w_per_k is None else cool_w_per_k
+    series_ohm = [0.0] * n if series_ohm is None else series_ohm
     per = {
         "series": series, "relay": relay, "on_ohm": on_ohm, "diode_drop_v": diode_drop_v,
-        "diode_ohm": diode_ohm, "cell_v_min": cell_v_min, "cell_v_max": cell_v_max,
+        "diode_ohm": diode_ohm, "series_ohm": series_ohm, "cell_v_min": cell_v_min,
+        "cell_v_max": cell_v_max,
         "temp_max_dsg_c": temp_max_dsg_c,
         "temp_max_chg_c": temp_max_chg_c, "temp_min_dsg_c": temp_min_dsg_c,
         "temp_min_chg_c": temp_min_chg_c, "heat_j_per_k": heat_j_per_k,
@@ -79,6 +82,8 @@ def make_params(
             raise ConfigError(f"power: {name} has {len(v)} entries, need {n}")
     if not all(s > 0 for s in series):
         raise ConfigError("power: series must be > 0 for every battery")
+    if not all(math.isfinite(r) and r >= 0 for r in series_ohm):
+        raise ConfigError(f"power: series_ohm must be finite and >= 0, got {list(series_ohm)}")
     if not (horizons_s and all(math.isfinite(h) and h > 0 for h in horizons_s)):
         raise ConfigError(f"power: horizons_s must be positive, got {tuple(horizons_s)}")
     if n_sub < 1 or iters < 1:
@@ -92,9 +97,9 @@ def make_params(
     return PowerParams(
         ocv_soc=xs, ocv_v=ys, series=f(series), relay=np.asarray(relay, np.bool_),
         on_ohm=f(on_ohm), diode_drop_v=f(diode_drop_v), diode_ohm=f(diode_ohm),
-        cell_v_min=f(cell_v_min), cell_v_max=f(cell_v_max), temp_max_dsg_c=f(temp_max_dsg_c),
-        temp_max_chg_c=f(temp_max_chg_c), temp_min_dsg_c=f(temp_min_dsg_c),
-        temp_min_chg_c=f(temp_min_chg_c),
+        series_ohm=f(series_ohm), cell_v_min=f(cell_v_min), cell_v_max=f(cell_v_max),
+        temp_max_dsg_c=f(temp_max_dsg_c), temp_max_chg_c=f(temp_max_chg_c),
+        temp_min_dsg_c=f(temp_min_dsg_c), temp_min_chg_c=f(temp_min_chg_c),
         heat_j_per_k=f(heat_j_per_k), cool_w_per_k=f(cool_w_per_k), horizons_s=f(horizons_s),
         n_sub=int(n_sub), margin=float(margin),
         iters=int(iters),

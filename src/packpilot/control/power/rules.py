@@ -70,6 +70,11 @@ class PowerParams(NamedTuple):
     """(B,) relay contact, or one FET's channel resistance."""
     diode_drop_v: F64
     diode_ohm: F64
+    series_ohm: F64
+    """(B,) the battery's leads, connectors and current shunt (``series_ohm``, issue #27): in
+    its branch with the switch, outside its cells, as the plant has it. It lowers the bus and
+    shifts the split, but the cells' voltage (the cut-off), their heat and the RC branches do
+    not see it, and it does not follow the cells' temperature, SOC or current laws."""
     cell_v_min: F64
     """(B,) cut-off cell voltage (the lowest cell of a discharging battery must stay above)."""
     cell_v_max: F64
@@ -115,7 +120,9 @@ class PowerInputs(NamedTuple):
     capacity_ah: F64
     temp_c: F64
     r0_ohm: F64
-    """The battery's ohmic resistance (cells only; the switch comes from the params)."""
+    """The battery's ohmic resistance (cells only: the switch and the leads, connectors and
+    shunt, ``PowerParams.series_ohm``, come from the params). An observer's R0 belongs here
+    only if its voltage is read at the cells (the plant's is: the cell taps' sum)."""
     r1_ohm: F64
     tau1_s: F64
     v1_v: F64
@@ -229,12 +236,13 @@ def cell_ocv(prm: PowerParams, soc: float) -> float:
 @kernel
 def branches(prm: PowerParams, inp: PowerInputs, wk: PowerWork, p: int, only: int) -> None:
     """Each battery's two conduction branches, as ``model/switches.py:switch_branches``
-    builds them for the plant (``only`` >= 0: that battery alone on the bus)."""
+    builds them for the plant (``only`` >= 0: that battery alone on the bus): its cells' R0
+    plus its leads, connectors and shunt (``pack_kernel``'s ``r_s``), then the switch."""
     for s in range(inp.present.shape[1]):
         on = bool(inp.present[p, s]) and (only < 0 or only == s)
         chg = bool(inp.chg_on[p, s])
         dsg = bool(inp.dsg_on[p, s])
-        r = wk.r0[p, s]
+        r = wk.r0[p, s] + prm.series_ohm[s]
         if prm.relay[s]:
             closed = chg and dsg
             wk.dok[p, s] = on and closed
