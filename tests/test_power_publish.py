@@ -5,6 +5,7 @@ platform and the aircraft of the twin over a real python-can bus (lock-step)."""
 from __future__ import annotations
 
 import math
+import time
 
 import pytest
 
@@ -35,6 +36,11 @@ def test_the_wire_carries_the_state_of_power_and_ccl_dcl_follow_it() -> None:
         for _ in range(12):
             ls.step(0.2)
         pub = ls.bms.publisher
+        # the state of power is computed on a worker thread and published once finished: wait
+        # for it in wall time (interpreted, as the mutation runner runs it, it takes seconds)
+        deadline = time.monotonic() + 120.0
+        while pub.sop is None and time.monotonic() < deadline:
+            ls.step(0.2)
         sop = pub.sop
         assert sop is not None
         # the platform frame: 2 / 10 / 30 s discharge, 10 s charge, 0.1 A counts
