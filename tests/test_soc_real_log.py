@@ -63,3 +63,23 @@ def test_an_observer_whose_model_is_wrong_is_not_trusted_beyond_the_counters_rea
     after = ok & (np.arange(len(t)) > takeoff)
     assert after.any()  # trusted in places: the check does not simply switch it off
     assert float(out["soc_est"][after].max()) <= float(out["soc_est"][takeoff]) + 1e-3
+
+
+def test_a_cell_set_far_from_the_battery_is_named_at_take_off_and_not_trusted() -> None:
+    """The real log told the shipped ``uav_5ah`` set (R0 1.9 mOhm per cell): the take-off's
+    current steps read 40-50 mOhm per cell directly (the voltage's change over the current's
+    within one sample). The core says so once, at take-off (``SocCellSetMismatch``, with the
+    step's resistance and the set's), and since that is beyond the observer's 10x reach its SOC
+    is not trusted from then on (the counter is shown). The set fitted to the log (setup B's R0)
+    raises no such event."""
+    b = _bench()
+    r = b.run_core(b.Setup("A"))
+    t, out = r["t"], r["out"]
+    when = [tt for tt, kind in r["kinds"] if kind == "SocCellSetMismatch"]
+    takeoff = float(t[int(np.argmax(np.abs(r["i"]) > 10.0))])
+    assert len(when) == 1 and abs(when[0] - takeoff) < 2.0, (when, takeoff)
+    after = t > when[0] + 1.0
+    assert not (out["soc_observer_ok"][after] > 0.5).any()
+    assert (out["soc_observer_ok"][~after] > 0.5).any()  # trusted before: nothing said otherwise
+    told = b.run_core(b.Setup("B", resistance_ohm=3 * b.FIT_R0_OHM))
+    assert not any(kind == "SocCellSetMismatch" for _, kind in told["kinds"])

@@ -485,6 +485,11 @@ SOC = [
        "        st.fb_absent[p, i] = False\n        st.soc[p, i] = math.nan\n",
        "        st.fb_absent[p, i] = False\n",
        "a reinserted battery's coulomb counter keeps the slot's old SOC"),
+    _m("soc", "cell-set-mismatch-not-gated",
+       "    elif st.misfit[p, i] > ob.R_SCALE_MAX:", "    elif False:",
+       "an observer whose cell set's R0 is beyond its reach is trusted"),
+    _m("soc", "cell-set-mismatch-never-read", "    if not (r > STEP_RATIO * r_set):",
+       "    if True:", "a battery far from its cell set is never named"),
 ]
 
 EQUALIZATION = [

@@ -76,6 +76,8 @@ EVENT_SEVERITY: Mapping[str, KindRow] = MappingProxyType(
         "SocObserverInconsistent": KindRow(
             Severity.WARNING, "estimator", "SocObserverResumed"
         ),
+        # the battery's step resistance is far from its cell set's: fit it (packpilot fit)
+        "SocCellSetMismatch": KindRow(Severity.WARNING, "estimator"),
         # the CAN runtime's own detections (issue #26): telemetry not trusted, a dock contact
         # contradicted by the measurements, a switch node that opened on its command timeout
         "TelemetrySuspect": KindRow(Severity.WARNING, "telemetry", "TelemetryTrusted"),

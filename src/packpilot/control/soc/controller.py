@@ -46,6 +46,13 @@ REASONS = (
         "restarted; its cell model may not describe this battery",
         fields("observer", "fallback", "fallback_sigma", "z"),
     ),
+    Reason(
+        "SocCellSetMismatch",
+        "battery resistance at current steps {step_ohm:.4f} ohm per cell, {ratio:.1f}x the cell "
+        "set's {set_ohm:.4f}: the cell set does not describe this battery (fit its logs: "
+        "packpilot fit); beyond 10x the observer is not trusted",
+        fields("step_ohm", "set_ohm", "ratio", "step_a"),
+    ),
 )
 STATUS = (
     StatusChannel("soc_est"),
@@ -170,6 +177,10 @@ def build(config: SocConfig, infos: Sequence[PackInfo]) -> tuple[SocParams, SocS
         fb_net=np.zeros(shape),
         fb_age_s=np.zeros(shape),
         fb_absent=np.zeros(shape, np.bool_),
+        prev_i_a=nan.copy(),
+        prev_v=nan.copy(),
+        step_hi_n=np.zeros(shape, np.int64),
+        misfit=np.zeros(shape),
         **{name: nan.copy() for name in _OUTPUTS},
     )
     return prm, st
@@ -298,7 +309,7 @@ METHOD = Method(
     reasons=REASONS,
     status=STATUS,
     labels=_labels,
-    max_events=lambda info: 2 * info.n_batteries,
+    max_events=lambda info: 3 * info.n_batteries,
     after=rules.note_balancer_packs,
 )
 

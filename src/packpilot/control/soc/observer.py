@@ -44,6 +44,8 @@ from packpilot.jit import kernel_inline
 F64 = NDArray[np.float64]
 
 N_X = 5
+R_SCALE_MAX = 10.0
+"""The resistance scale's reach: within 1/10..10x the battery's nominal (:func:`bound`)."""
 X_SOC = 0
 X_V1 = 1
 """Polarisation (RC) voltage of one cell, V (positive while discharging)."""
@@ -292,7 +294,7 @@ def bound(x: F64, cov: F64, p: int, i: int, cap_nom: float, r_nom: float,
     its nominal, the capacity within 0.5..1.5x, the offset within +-``offset_max``; a
     variance never below zero."""
     x[p, i, X_SOC] = min(1.1, max(-0.1, x[p, i, X_SOC]))
-    x[p, i, X_RSCALE] = min(10.0 * r_nom, max(0.1 * r_nom, x[p, i, X_RSCALE]))
+    x[p, i, X_RSCALE] = min(R_SCALE_MAX * r_nom, max(r_nom / R_SCALE_MAX, x[p, i, X_RSCALE]))
     x[p, i, X_CAP] = min(1.5 * cap_nom, max(0.5 * cap_nom, x[p, i, X_CAP]))
     x[p, i, X_OFFSET] = min(offset_max, max(-offset_max, x[p, i, X_OFFSET]))
     for r in range(N_X):
@@ -302,6 +304,7 @@ def bound(x: F64, cov: F64, p: int, i: int, cap_nom: float, r_nom: float,
 
 __all__ = [
     "N_X",
+    "R_SCALE_MAX",
     "SPREAD_SOC_MAX",
     "X_CAP",
     "X_OFFSET",
