@@ -171,12 +171,20 @@ def run_case(
     last_chg = None
     changes = 0
     exposed_s = 0.0
+    exposed_r3_s = 0.0
+    exposed_cap_s = 0.0
+    cap_a = float((extra or {}).get("diode_hold_a", 0.0))
+    closure_a = np.full(len(lim), np.nan)
+    diode_a = np.zeros(len(lim))
     pack = loop.plant.pack
     diode_w = 0.0
     for k in range(n_steps):
         j0 = pack.chg_diode_j[0, tr].copy()
         t0 = loop.plant.t_s
-        loop.step(k, DT_S)
+        rec = loop.step(k, DT_S)
+        # what each charge diode carried in the period R3 measured when it closed the FET
+        closure_a = np.where(seq.st.forced_s[0] == t0, diode_a, closure_a)
+        diode_a = rec.iv.chg_diode_a[0, tr].copy()
         into = np.maximum(-loop.plant.pack.string_a[0, tr], 0.0) / lim
         first_off = t0 >= t_off - 1e-9 and np.isnan(at_loss[0])
         if first_off:  # the period in which the load vanished
@@ -201,6 +209,15 @@ def run_case(
             # limit into some engaged battery (the observer's prediction, within ~7 %).
             pred_now = loop.core.status[0][:, s_pred] / lim
             exposed_s += DT_S if float(np.max(pred_now)) > 1.0 else 0.0
+            # ... of which by a battery R3 closed less than R3_HOLD_S ago (rule 8b's hold)
+            # and, of those, with the observer trusted (rule 8b may act) by one whose diode
+            # carried at most diode_hold_a there (rule 8c could have held it on the diode:
+            # the window rule 8b's hold left open)
+            in_hold = (t0 - seq.st.forced_s[0] < R3_HOLD_S) & (pred_now > 1.0)
+            exposed_r3_s += DT_S if bool(np.any(in_hold)) else 0.0
+            trusted = bool(np.all(loop.core.status[0][:, s_ok] > 0.5))
+            within = in_hold & (closure_a <= cap_a) & trusted
+            exposed_cap_s += DT_S if bool(np.any(within)) else 0.0
         last_chg = chg
     j = at["battery"]
     return {
@@ -217,6 +234,8 @@ def run_case(
         "unsupplied": unsupplied,
         "fet_changes_per_min": changes / (case.hold_s / 60.0),
         "exposed_share": exposed_s / case.hold_s,
+        "exposed_r3_share": exposed_r3_s / case.hold_s,
+        "exposed_cap_share": exposed_cap_s / case.hold_s,
         "diode_s": float(np.max(pack.chg_diode_s[0, tr])),
         "diode_j": float(np.max(pack.chg_diode_j[0, tr])),
         "diode_w": diode_w,
@@ -257,6 +276,14 @@ def campaign(
     return out
 
 
+def _share(rows: list[dict[str, Any]], key: str) -> str:
+    """How many holds have a positive ``key`` share, its median and its largest value."""
+    x = [r[key] for r in rows]
+    return "{} / {:.1%} / {:.1%}".format(
+        sum(1 for v in x if v > 0.0), float(np.median(x)), max(x)
+    )
+
+
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     w = np.array([r["worst"] for r in rows])
     bad = [r for r in rows if r["worst"] > 1.0]
@@ -279,6 +306,13 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 float(np.median([r["exposed_share"] for r in rows])),
                 max(r["exposed_share"] for r in rows),
             )
+        ),
+        "of it within R3_HOLD_S of an R3 closure (cases / median / max share)": _share(
+            rows, "exposed_r3_share"
+        ),
+        "... trusted, of a closure whose diode carried <= diode_hold_a (cases / median / max)":
+        _share(
+            rows, "exposed_cap_share"
         ),
         "load unsupplied": sum(1 for r in rows if r["unsupplied"]),
         "charge-diode s / J per case (median / max)": "{:.0f} / {:.0f} s, {:.0f} / {:.0f} J".format(
@@ -327,6 +361,8 @@ def main(argv: list[str]) -> int:
                 f"{'R' if res[h][i]['r3_forced'] else ''}"
                 f" fpm{res[h][i]['fet_changes_per_min']:.1f}"
                 f" x{100 * res[h][i]['exposed_share']:.0f}%"
+                f"/{100 * res[h][i]['exposed_r3_share']:.0f}%"
+                f"/{100 * res[h][i]['exposed_cap_share']:.0f}%"
                 f" d{res[h][i]['diode_s']:.0f}s/{res[h][i]['diode_j']:.0f}J"
                 f"/{res[h][i]['diode_w']:.1f}W"
                 for h in hooks

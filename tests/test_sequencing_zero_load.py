@@ -8,11 +8,12 @@ comparator off; the benchmark runs 500 of them, this file a seeded subset that f
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
-from benchmarks.bench_zero_load import draw, run_case
+from benchmarks.bench_zero_load import REST_S, draw, run_case
 
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
@@ -180,3 +181,33 @@ def test_rules_8b_and_8c_together_hold_the_charge_limit_where_r3_forced_it(seed:
     res = run_case(draw(seed), hook=True, open_=True, extra=HOLD_10)
     assert not res["unsupplied"], res
     assert res["worst"] <= 1.0, res
+
+
+# Seed 230 of the generator (five batteries, 56.8 A) with the load lost at every period from
+# 70 s to 90 s instead of at 126 s: rules 8b and 8c hand the load over between batteries 3
+# and 4 every ~9 s, and R3 closes each of them at 0.77-0.88x its limit (below rule 8c's 0.9,
+# its diode carrying 8-11 A's share within the 10 A cap), after which its prediction passes
+# 1.0x within ~1-2 s. Before rule 8b could open a battery R3 closed within the cap at once,
+# it waited R3_HOLD_S (5 s), and a loss in that window pushed up to 1.62x into battery 4
+# (loss at 76.5 s; 1.59x at 86.5 s; 18 of these 41 instants above the limit).
+WINDOW_SEED = 230
+WINDOW_LOSSES_S = tuple(70.0 + 0.5 * i for i in range(41))
+
+
+def test_a_load_loss_just_after_r3_closes_a_battery_within_the_cap_stays_in_the_limit() -> None:
+    """The charge limit holds wherever the loss lands in the hand-over cycle, including the
+    seconds after R3 closed a battery whose diode carried at most ``diode_hold_a``: rule 8b
+    opens it as soon as its prediction passes ``open_ratio`` (rule 8c then holds it on its
+    diode), instead of waiting ``R3_HOLD_S``. The losses do land in R3's hold (the worst
+    battery was closed by R3 less than ``R3_HOLD_S`` before the loss in some of them)."""
+    case0 = draw(WINDOW_SEED)
+    worst: list[tuple[float, float]] = []
+    forced = 0
+    for t_off in WINDOW_LOSSES_S:
+        case = dataclasses.replace(case0, hold_s=t_off - REST_S)
+        res = run_case(case, hook=True, open_=True, extra=HOLD_10)
+        assert not res["unsupplied"], res
+        worst.append((res["worst"], t_off))
+        forced += bool(res["r3_forced"])
+    assert forced >= 5, forced
+    assert max(w for w, _ in worst) <= 1.0, sorted(worst)[-5:]
