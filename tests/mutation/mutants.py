@@ -599,6 +599,12 @@ SEQUENCING = [
            "#28 rule 8c: R3 closes a held battery at rule 8b's 0.95 x the limit, not the engage "
            "rule's 0.9: no room for its polarisation after the closure (seed 230: 1.13x)",
            file="controller.py"),
+    _m("sequencing", "r3-hold-ignores-diode-hold",
+       "    within: bool = prm.diode_hold_a > 0.0 and st.forced_a[p, k] <= prm.diode_hold_a\n",
+       "    within: bool = False\n",
+       "#28 rules 8b/8c: 8b waits R3_HOLD_S before opening a battery R3 closed within "
+       "diode_hold_a, whose prediction passes its limit within ~2 s of the closure (seed 230, "
+       "loss at 76.5 s: 1.62x)"),
 ]
 
 
@@ -707,6 +713,8 @@ TESTS: dict[str, list[str]] = {
         "_closed_on_r3s_deadline",
         "tests/test_sequencing_zero_load.py::test_rules_8b_and_8c_together_hold_the_charge_limit"
         "_where_r3_forced_it",
+        "tests/test_sequencing_zero_load.py::test_a_load_loss_just_after_r3_closes_a_battery"
+        "_within_the_cap_stays_in_the_limit",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],
