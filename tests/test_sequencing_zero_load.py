@@ -211,3 +211,24 @@ def test_a_load_loss_just_after_r3_closes_a_battery_within_the_cap_stays_in_the_
         forced += bool(res["r3_forced"])
     assert forced >= 5, forced
     assert max(w for w, _ in worst) <= 1.0, sorted(worst)[-5:]
+
+
+# Seed 75 (five batteries, 40.9 A): at 100.5 s, 274.5 s and 289.5 s R3 closes two batteries in
+# one period (8b had opened them; their diodes carried 1-5 A). Rule 8c judged the first
+# against the batteries engaged before it, and the second's closure put it above its limit:
+# a loss in that period pushed 1.04x, 1.27x and 1.01x into it while 8b skipped a battery R3
+# closed in the period.
+SAME_PERIOD_SEED = 75
+SAME_PERIOD_LOSSES_S = (100.5, 274.5, 289.5)
+
+
+def test_a_load_loss_in_the_period_r3_closes_two_batteries_stays_in_the_limit() -> None:
+    """Rule 8b looks, in the same period, at a battery R3 closed within ``diode_hold_a`` (rule
+    8c then holds it on its diode); the loss lands in the period of R3's closure."""
+    case0 = draw(SAME_PERIOD_SEED)
+    for t_off in SAME_PERIOD_LOSSES_S:
+        case = dataclasses.replace(case0, hold_s=t_off - REST_S)
+        res = run_case(case, hook=True, open_=True, extra=HOLD_10)
+        assert not res["unsupplied"], res
+        assert res["r3_forced"], res  # the worst battery was closed by R3 within R3_HOLD_S
+        assert res["worst"] <= 1.0, (t_off, res)

@@ -605,6 +605,12 @@ SEQUENCING = [
        "#28 rules 8b/8c: 8b waits R3_HOLD_S before opening a battery R3 closed within "
        "diode_hold_a, whose prediction passes its limit within ~2 s of the closure (seed 230, "
        "loss at 76.5 s: 1.62x)"),
+    _m("sequencing", "r3-closed-now-skipped",
+       "    now: bool = st.forced_s[p, k] == t and not _r3_holds_off(prm, st, p, k, t)\n",
+       "    now: bool = False\n",
+       "#28 rules 8b/8c: 8b skips a battery R3 closed within diode_hold_a in this period, which "
+       "another closure in the same period put above its limit (seed 75, loss at 274.5 s: "
+       "1.27x)"),
 ]
 
 
@@ -715,6 +721,8 @@ TESTS: dict[str, list[str]] = {
         "_where_r3_forced_it",
         "tests/test_sequencing_zero_load.py::test_a_load_loss_just_after_r3_closes_a_battery"
         "_within_the_cap_stays_in_the_limit",
+        "tests/test_sequencing_zero_load.py::test_a_load_loss_in_the_period_r3_closes_two"
+        "_batteries_stays_in_the_limit",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],

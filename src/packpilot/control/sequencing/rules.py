@@ -619,6 +619,19 @@ def _r3_holds_off(
 
 
 @kernel_inline
+def _r3_closed_now_within_cap(
+    prm: SequencingParams, st: SequencingState, p: int, k: int, t: float
+) -> bool:  # fmt: skip
+    """Did R3 close battery ``k`` in this very period, its diode carrying at most
+    ``diode_hold_a`` with rule 8c on? Rule 8c judged it against the batteries engaged before
+    it; when R3 closes several in one period, the later ones can put an earlier one above its
+    limit (``bench_zero_load`` seed 75: 1.27x at a loss at 274.5 s), so rule 8b looks at it in
+    the same period (opened, rule 8c holds it on its diode from the next period)."""
+    now: bool = st.forced_s[p, k] == t and not _r3_holds_off(prm, st, p, k, t)
+    return now
+
+
+@kernel_inline
 def _open_worst(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, load_a: float,
     t: float, zero_load: bool,
@@ -657,7 +670,7 @@ def _open_worst(
             x = grp[q]
             if top < 0 or ef[x] > ef[top]:
                 top = x
-            if skip[x]:
+            if skip[x] and not (zero_load and _r3_closed_now_within_cap(prm, st, p, x, t)):
                 continue
             if zero_load:
                 held_r3 = _r3_holds_off(prm, st, p, x, t)
