@@ -734,8 +734,9 @@ def _diode_holds(
     """Rule 8c (issue #28): must R3 leave battery ``k``'s charge FET off although its diode
     conducts? Yes while the diode carries at most ``diode_hold_a`` and the trusted zero-load
     prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its charge limit
-    (``risk_clear_ratio`` for a battery rule 8b opened). A sibling it would expose is no reason: ``k`` is then the higher one, and the hand-over
-    and rule 8b open the sibling, as the spec's R3 does.
+    (``risk_clear_ratio`` for a battery rule 8b opened). A sibling it would expose is no
+    reason: ``k`` is then the higher one, and the hand-over and rule 8b open the sibling, as
+    the spec's R3 does.
 
     Embodiment 5 closes the FET because discharge current means "the battery is the higher
     one, no other battery can charge it". Under a heavy load that premise fails: the bus sags
