@@ -135,6 +135,34 @@ def _loop(case: Case, cfg: ScenarioConfig) -> ClosedLoop:
     return loop
 
 
+class _Exposure:
+    """Periods of the hold in which a loss of the load would push more than the charge limit
+    into some engaged battery (the observer's prediction, within ~7 %): ``any_s``; of them,
+    by a battery R3 closed less than ``R3_HOLD_S`` ago (rule 8b's hold): ``r3_s``; and of
+    those, with the observer trusted (rule 8b may act), by one whose diode carried at most
+    ``diode_hold_a`` when R3 closed it (rule 8c could hold it on the diode): ``cap_s``, the
+    window rule 8b's hold left open before h28look."""
+
+    def __init__(self, n: int, cap_a: float) -> None:
+        self.cap_a = cap_a
+        self.closure_a = np.full(n, np.nan)
+        """What each charge diode carried in the period R3 measured when it closed the FET."""
+        self._diode_a = np.zeros(n)
+        self.any_s = self.r3_s = self.cap_s = 0.0
+
+    def closures(self, forced_s: np.ndarray, t0: float, diode_a: np.ndarray) -> None:
+        self.closure_a = np.where(forced_s == t0, self._diode_a, self.closure_a)
+        self._diode_a = diode_a.copy()
+
+    def add(self, t0: float, pred: np.ndarray, forced_s: np.ndarray, trusted: bool) -> None:
+        above = pred > 1.0
+        in_hold = (t0 - forced_s < R3_HOLD_S) & above
+        self.any_s += DT_S if bool(np.any(above)) else 0.0
+        self.r3_s += DT_S if bool(np.any(in_hold)) else 0.0
+        within = in_hold & (self.closure_a <= self.cap_a) & trusted
+        self.cap_s += DT_S if bool(np.any(within)) else 0.0
+
+
 def run_case(
     case: Case,
     hook: bool,
@@ -148,7 +176,6 @@ def run_case(
     largest power in one period: the cost of rule 8c)."""
     loop = _loop(case, scenario(case, hook, sensors, open_, extra))
     t_off = REST_S + case.hold_s
-    end = duration_s(case)
     slots = {ch.name: s for s, ch, _ in loop.core.status_channels()}
     s_pred, s_risk, s_ok = (
         slots["seq_zero_load_into_a"],
@@ -157,7 +184,7 @@ def run_case(
     )
     tr = np.array(loop.plant.topology.traction)
     lim = 0.5 * np.array(case.capacity_ah)
-    n_steps = round(end / DT_S)
+    n_steps = round(duration_s(case) / DT_S)
     worst = 0.0
     at: dict[str, Any] = {"t_s": math.nan, "battery": -1}
     pred_before = np.zeros(len(lim))
@@ -170,13 +197,14 @@ def run_case(
     s_chg = slots["seq_chg_on"]
     last_chg = None
     changes = 0
-    exposed_s = 0.0
+    exp = _Exposure(len(lim), float((extra or {}).get("diode_hold_a", 0.0)))
     pack = loop.plant.pack
     diode_w = 0.0
     for k in range(n_steps):
         j0 = pack.chg_diode_j[0, tr].copy()
         t0 = loop.plant.t_s
-        loop.step(k, DT_S)
+        rec = loop.step(k, DT_S)
+        exp.closures(seq.st.forced_s[0], t0, rec.iv.chg_diode_a[0, tr])
         into = np.maximum(-loop.plant.pack.string_a[0, tr], 0.0) / lim
         first_off = t0 >= t_off - 1e-9 and np.isnan(at_loss[0])
         if first_off:  # the period in which the load vanished
@@ -197,10 +225,8 @@ def run_case(
         chg = loop.core.status[0][:, s_chg] > 0.5
         if last_chg is not None and REST_S <= t0 < t_off - 1e-9:
             changes += int(np.sum(chg != last_chg))
-            # Exposed: a loss of the load in this period would push more than the charge
-            # limit into some engaged battery (the observer's prediction, within ~7 %).
-            pred_now = loop.core.status[0][:, s_pred] / lim
-            exposed_s += DT_S if float(np.max(pred_now)) > 1.0 else 0.0
+            st = loop.core.status[0]
+            exp.add(t0, st[:, s_pred] / lim, seq.st.forced_s[0], bool(np.all(st[:, s_ok] > 0.5)))
         last_chg = chg
     j = at["battery"]
     return {
@@ -216,7 +242,9 @@ def run_case(
         "observer_ok": bool(ok_before.all()),
         "unsupplied": unsupplied,
         "fet_changes_per_min": changes / (case.hold_s / 60.0),
-        "exposed_share": exposed_s / case.hold_s,
+        "exposed_share": exp.any_s / case.hold_s,
+        "exposed_r3_share": exp.r3_s / case.hold_s,
+        "exposed_cap_share": exp.cap_s / case.hold_s,
         "diode_s": float(np.max(pack.chg_diode_s[0, tr])),
         "diode_j": float(np.max(pack.chg_diode_j[0, tr])),
         "diode_w": diode_w,
@@ -257,6 +285,12 @@ def campaign(
     return out
 
 
+def _share(rows: list[dict[str, Any]], key: str) -> str:
+    """How many holds have a positive ``key`` share, its median and its largest value."""
+    x = [r[key] for r in rows]
+    return f"{sum(1 for v in x if v > 0.0)} / {float(np.median(x)):.1%} / {max(x):.1%}"
+
+
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     w = np.array([r["worst"] for r in rows])
     bad = [r for r in rows if r["worst"] > 1.0]
@@ -279,6 +313,12 @@ def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
                 float(np.median([r["exposed_share"] for r in rows])),
                 max(r["exposed_share"] for r in rows),
             )
+        ),
+        "of it within R3_HOLD_S of an R3 closure (cases / median / max share)": _share(
+            rows, "exposed_r3_share"
+        ),
+        "... trusted, diode <= diode_hold_a at that closure (cases / median / max)": _share(
+            rows, "exposed_cap_share"
         ),
         "load unsupplied": sum(1 for r in rows if r["unsupplied"]),
         "charge-diode s / J per case (median / max)": "{:.0f} / {:.0f} s, {:.0f} / {:.0f} J".format(
@@ -327,6 +367,8 @@ def main(argv: list[str]) -> int:
                 f"{'R' if res[h][i]['r3_forced'] else ''}"
                 f" fpm{res[h][i]['fet_changes_per_min']:.1f}"
                 f" x{100 * res[h][i]['exposed_share']:.0f}%"
+                f"/{100 * res[h][i]['exposed_r3_share']:.0f}%"
+                f"/{100 * res[h][i]['exposed_cap_share']:.0f}%"
                 f" d{res[h][i]['diode_s']:.0f}s/{res[h][i]['diode_j']:.0f}J"
                 f"/{res[h][i]['diode_w']:.1f}W"
                 for h in hooks

@@ -8,11 +8,12 @@ comparator off; the benchmark runs 500 of them, this file a seeded subset that f
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
-from benchmarks.bench_zero_load import draw, run_case
+from benchmarks.bench_zero_load import REST_S, draw, run_case
 
 from packpilot.contract.bms import Event
 from packpilot.contract.record import Result
@@ -180,3 +181,66 @@ def test_rules_8b_and_8c_together_hold_the_charge_limit_where_r3_forced_it(seed:
     res = run_case(draw(seed), hook=True, open_=True, extra=HOLD_10)
     assert not res["unsupplied"], res
     assert res["worst"] <= 1.0, res
+
+
+# Seed 230 of the generator (five batteries, 56.8 A) with the load lost at every period from
+# 71 s to 77 s instead of at 126 s: rules 8b and 8c hand the load over between batteries 3
+# and 4, and R3 closed battery 3 at 67.5 s and battery 4 at 72 s at 0.83x and 0.77x their
+# limits (below rule 8c's 0.9, their diodes carrying 9 and 3 A, within the 10 A cap), after
+# which the prediction passed 1.0x within 1-1.5 s. Rule 8b waited R3_HOLD_S (5 s) before it
+# could open them, and a loss in that window pushed up to 1.62x into battery 4 (loss at
+# 76.5 s; 9 of these 13 instants above the limit; over 70-90 s, 18 of 41).
+WINDOW_SEED = 230
+WINDOW_LOSSES_S = tuple(71.0 + 0.5 * i for i in range(13))
+
+
+def test_a_load_loss_just_after_r3_closes_a_battery_within_the_cap_stays_in_the_limit() -> None:
+    """The charge limit holds wherever the loss lands in the hand-over cycle, including the
+    seconds after R3 closed a battery whose diode carried at most ``diode_hold_a``: rule 8b
+    opens it as soon as its prediction passes ``open_ratio`` (rule 8c then holds it on its
+    diode), instead of waiting ``R3_HOLD_S``. The losses do land in R3's hold (the worst
+    battery was closed by R3 less than ``R3_HOLD_S`` before the loss in some of them)."""
+    case0 = draw(WINDOW_SEED)
+    worst: list[tuple[float, float]] = []
+    forced = 0
+    for t_off in WINDOW_LOSSES_S:
+        case = dataclasses.replace(case0, hold_s=t_off - REST_S)
+        res = run_case(case, hook=True, open_=True, extra=HOLD_10)
+        assert not res["unsupplied"], res
+        worst.append((res["worst"], t_off))
+        forced += bool(res["r3_forced"])
+    assert forced >= 5, forced
+    assert max(w for w, _ in worst) <= 1.0, sorted(worst)[-5:]
+
+
+# Seed 75 (five batteries, 40.9 A): at 116.5 s and 149 s R3 closes batteries 3 and 4 in one
+# period (8b had opened them; their diodes carried 2-6 A). Rule 8c judged battery 3 against
+# the batteries engaged before it, and battery 4's closure put it above its limit: a loss in
+# that period pushed 1.20x and 1.65x into it while rule 8b skipped a battery R3 closed in the
+# period (mutant r3-closed-now-skipped).
+SAME_PERIOD_SEED = 75
+SAME_PERIOD_LOSSES_S = (116.5, 149.0)
+
+
+def test_a_load_loss_in_the_period_r3_closes_two_batteries_stays_in_the_limit() -> None:
+    """Rule 8b looks, in the same period, at a battery R3 closed within ``diode_hold_a`` (rule
+    8c then holds it on its diode); the loss lands in the period of R3's closures."""
+    case0 = draw(SAME_PERIOD_SEED)
+    for t_off in SAME_PERIOD_LOSSES_S:
+        case = dataclasses.replace(case0, hold_s=t_off - REST_S)
+        res = run_case(case, hook=True, open_=True, extra=HOLD_10)
+        assert not res["unsupplied"], res
+        assert res["worst"] <= 1.0, (t_off, res)
+
+
+def test_r3_recloses_a_battery_rule_8b_opened_only_below_the_clear_ratio() -> None:
+    """Seed 230 as generated (loss at 126 s). Once rule 8b may open a battery R3 closed within
+    the cap at once, R3 re-closed battery 3 one period after 8b opened it: on its diode its
+    prediction was 0.83x (below rule 8c's 0.9), closed again 0.94x at once (the prediction
+    moves with the current by I x R0's error, as the engage rule's re-close does), a 1.5 s
+    hand-over cycle, 48 charge-FET changes per minute of hold. Rule 8c holds a battery 8b
+    opened down to ``risk_clear_ratio`` (0.8), the engage rule's criterion for it: 33 (16
+    while 8b waited ``R3_HOLD_S`` and left the window above open)."""
+    res = run_case(draw(WINDOW_SEED), hook=True, open_=True, extra=HOLD_10)
+    assert res["worst"] <= 1.0, res
+    assert res["fet_changes_per_min"] <= 40.0, res

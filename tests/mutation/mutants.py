@@ -629,6 +629,24 @@ SEQUENCING = [
            "#28 rule 8c: R3 closes a held battery at rule 8b's 0.95 x the limit, not the engage "
            "rule's 0.9: no room for its polarisation after the closure (seed 230: 1.13x)",
            file="controller.py"),
+    _m("sequencing", "r3-hold-ignores-diode-hold",
+       "    within: bool = prm.diode_hold_a > 0.0 and st.forced_a[p, k] <= prm.diode_hold_a\n",
+       "    within: bool = False\n",
+       "#28 rules 8b/8c: 8b waits R3_HOLD_S before opening a battery R3 closed within "
+       "diode_hold_a, whose prediction passes its limit within ~2 s of the closure (seed 230, "
+       "loss at 76.5 s: 1.62x)"),
+    _m("sequencing", "r3-closed-now-skipped",
+       "    now: bool = st.forced_s[p, k] == t and not _r3_holds_off(prm, st, p, k, t)\n",
+       "    now: bool = False\n",
+       "#28 rules 8b/8c: 8b skips a battery R3 closed within diode_hold_a in this period, which "
+       "another closure in the same period put above its limit (seed 75, loss at 149 s: "
+       "1.65x)"),
+    _m("sequencing", "diode-hold-8b-opened-at-margin",
+       "    ratio = prm.hold_ratio if math.isnan(st.zl_open_s[p, k]) else prm.risk_clear_ratio\n",
+       "    ratio = prm.hold_ratio\n",
+       "#28 rule 8c: R3 re-closes a battery rule 8b opened at the engage rule's 0.9, not the "
+       "0.8 the engage rule asks of it; its prediction jumps back with the current (seed 230: "
+       "a 1.5 s hand-over cycle, 48 changes per minute)"),
 ]
 
 
@@ -738,6 +756,12 @@ TESTS: dict[str, list[str]] = {
         "_closed_on_r3s_deadline",
         "tests/test_sequencing_zero_load.py::test_rules_8b_and_8c_together_hold_the_charge_limit"
         "_where_r3_forced_it",
+        "tests/test_sequencing_zero_load.py::test_a_load_loss_just_after_r3_closes_a_battery"
+        "_within_the_cap_stays_in_the_limit",
+        "tests/test_sequencing_zero_load.py::test_a_load_loss_in_the_period_r3_closes_two"
+        "_batteries_stays_in_the_limit",
+        "tests/test_sequencing_zero_load.py::test_r3_recloses_a_battery_rule_8b_opened_only"
+        "_below_the_clear_ratio",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],

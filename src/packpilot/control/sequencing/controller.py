@@ -287,6 +287,7 @@ def build(
         zero_load_valid=no((P,)),
         fault=fault,
         forced_s=nan(pb),
+        forced_a=nan(pb),
         zl_open_s=nan(pb),
         diode_held=no(pb),
         held=no(pb),

@@ -81,7 +81,8 @@ B1 = NDArray[np.bool_]
 EPS_S = 1e-9
 """Tolerance for comparing accumulated times, so 0.1 + 0.1 + 0.1 counts as 0.3 s."""
 R3_HOLD_S = 5.0
-"""Rule 8b does not open a battery R3 closed less than this long ago (``forced_s``)."""
+"""Rule 8b does not open a battery R3 closed less than this long ago (``forced_s``), unless
+rule 8c would hold it on its diode once opened (:func:`_r3_holds_off`)."""
 ZL_DWELL_S = 30.0
 """A battery rule 8b opened stays open at least this long (about the RC time constant of the
 cell sets shipped, uav_5ah's 30 s): the engage rule does not close it before."""
@@ -263,6 +264,10 @@ class SequencingState(NamedTuple):
     not since it was engaged): rule 8b leaves it engaged for ``R3_HOLD_S`` after that
     (opening it at once could put the current back on the diode, R3 would close it again
     in the next period: chatter)."""
+    forced_a: F64
+    """(P, B) the current its diode carried in the period R3 closed it (valid with
+    ``forced_s``): within ``diode_hold_a`` rule 8c would hold it on the diode if it were opened
+    again, so rule 8b need not wait ``R3_HOLD_S`` (:func:`_r3_holds_off`)."""
     zl_open_s: F64
     """(P, B) when rule 8b opened this battery's charge FET (NaN: it has been engaged since,
     or never): the engage rule closes it again only ``ZL_DWELL_S`` later and with its own
@@ -595,6 +600,38 @@ def _trusted(zl: B1, grp: I64, m: int) -> bool:
 
 
 @kernel_inline
+def _r3_holds_off(
+    prm: SequencingParams, st: SequencingState, p: int, k: int, t: float
+) -> bool:  # fmt: skip
+    """Does R3's closure keep rule 8b from opening engaged battery ``k`` now? For
+    ``R3_HOLD_S`` after R3 closed it (its diode carried current: opened at once, the diode
+    would carry it again and R3 would close it in the next period, chatter) - except where
+    rule 8c is on and that diode current was within ``diode_hold_a``: opened on 8b's
+    prediction (> ``open_ratio`` > ``hold_ratio`` x its limit), 8c then holds it on the diode,
+    so nothing chatters. Why (issue #28): R3 closes a battery whose prediction is below 8c's
+    ``hold_ratio``; the closed battery then takes more current and polarises, and its
+    prediction passed its limit within ~1-2 s and kept rising (``bench_zero_load`` seed 230:
+    0.77x at the closure, 1.74x 4.5 s later, 1.62x flowed at a loss there) while 8b waited."""
+    if not t - st.forced_s[p, k] < R3_HOLD_S - EPS_S:  # also when NaN
+        return False
+    within: bool = prm.diode_hold_a > 0.0 and st.forced_a[p, k] <= prm.diode_hold_a
+    return not within
+
+
+@kernel_inline
+def _r3_closed_now_within_cap(
+    prm: SequencingParams, st: SequencingState, p: int, k: int, t: float
+) -> bool:  # fmt: skip
+    """Did R3 close battery ``k`` in this very period, its diode carrying at most
+    ``diode_hold_a`` with rule 8c on? Rule 8c judged it against the batteries engaged before
+    it; when R3 closes several in one period, the later ones can put an earlier one above its
+    limit (``bench_zero_load`` seed 75: 1.65x at a loss at 149 s), so rule 8b looks at it in
+    the same period (opened, rule 8c holds it on its diode from the next period)."""
+    now: bool = st.forced_s[p, k] == t and not _r3_holds_off(prm, st, p, k, t)
+    return now
+
+
+@kernel_inline
 def _open_worst(
     prm: SequencingParams, st: SequencingState, ev: EventBuf, src: int, p: int, load_a: float,
     t: float, zero_load: bool,
@@ -608,7 +645,8 @@ def _open_worst(
       rule 0's sources, more than ``i_rev`` into it (ranked by amperes);
     * ``zero_load`` True (rule 8b): at zero load with the observer's sources (only while every
       engaged battery's are trusted), more than ``open_ratio`` x its charge limit (ranked
-      relative to the limit), and not a battery R3 closed less than ``R3_HOLD_S`` ago."""
+      relative to the limit), and not a battery R3 closed less than ``R3_HOLD_S`` ago
+      unless rule 8c would hold it on its diode (:func:`_r3_holds_off`)."""
     state = st.state
     chg_on = st.chg_on
     ef = st.ef
@@ -616,7 +654,6 @@ def _open_worst(
     grp = st.grp
     skip = st.skip
     i_lim = st.i_lim
-    forced_s = st.forced_s
     while True:
         m = _engaged(state, chg_on, p, grp, -1)
         if m < 2:
@@ -633,10 +670,10 @@ def _open_worst(
             x = grp[q]
             if top < 0 or ef[x] > ef[top]:
                 top = x
-            if skip[x]:
+            if skip[x] and not (zero_load and _r3_closed_now_within_cap(prm, st, p, x, t)):
                 continue
             if zero_load:
-                held_r3 = t - forced_s[p, x] < R3_HOLD_S - EPS_S  # False when NaN
+                held_r3 = _r3_holds_off(prm, st, p, x, t)
                 if held_r3 or not pred[x] > prm.open_ratio * i_lim[x]:
                     continue
                 if j < 0 or pred[x] / i_lim[x] > pred[j] / i_lim[j]:
@@ -696,9 +733,10 @@ def _diode_holds(
 ) -> bool:  # fmt: skip
     """Rule 8c (issue #28): must R3 leave battery ``k``'s charge FET off although its diode
     conducts? Yes while the diode carries at most ``diode_hold_a`` and the trusted zero-load
-    prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its charge limit.
-    A sibling it would expose is no reason: ``k`` is then the higher one, and the hand-over
-    and rule 8b open the sibling, as the spec's R3 does.
+    prediction with ``k`` engaged puts ``k`` itself above ``hold_ratio`` x its charge limit
+    (``risk_clear_ratio`` for a battery rule 8b opened). A sibling it would expose is no
+    reason: ``k`` is then the higher one, and the hand-over and rule 8b open the sibling, as
+    the spec's R3 does.
 
     Embodiment 5 closes the FET because discharge current means "the battery is the higher
     one, no other battery can charge it". Under a heavy load that premise fails: the bus sags
@@ -714,7 +752,11 @@ def _diode_holds(
     if m < 2 or not _trusted(st.zl_obs, grp, m):
         return False
     _share(grp, m, st.ez, st.gz, 0.0, pred)
-    above: bool = pred[k] > prm.hold_ratio * st.i_lim[k]
+    # A battery rule 8b opened is held down to risk_clear_ratio, as the engage rule asks of
+    # it: on its diode it carries less, and its prediction rises again by I x R0's error the
+    # period it is closed (0.83x -> 0.94x, then 8b opened it again: a 1.5 s cycle, seed 230).
+    ratio = prm.hold_ratio if math.isnan(st.zl_open_s[p, k]) else prm.risk_clear_ratio
+    above: bool = pred[k] > ratio * st.i_lim[k]
     return above
 
 
@@ -904,6 +946,7 @@ def _discharge_tick(
             chg_on[p, k] = True
         skip[k] = True
         st.forced_s[p, k] = t
+        st.forced_a[p, k] = cur[k]
         any_r3 = True
     # Hand-over: if the batteries R3 closed, now engaged, would charge an engaged sibling by
     # more than i_rev at the present load, they are the higher ones (embodiment 5: discharge
