@@ -247,10 +247,10 @@ def test_r3_recloses_a_battery_rule_8b_opened_only_below_the_clear_ratio() -> No
 
 
 # Seed 2928 (five batteries, 46.5 A for 514 s): battery 0 stands on its charge diode (7.4 A,
-# within the 10 A cap) while the trusted prediction with it engaged falls through 0.93x its
-# limit at 333.5 s and 0.79x at 334 s. Rule 8c's margin is the engage rule's 0.9: R3 closes
-# it at 334 s, and a loss then pushes 0.785x into it. At rule 8b's 0.95 (mutant
-# diode-hold-at-open-ratio) R3 closed it at 333.5 s at 0.93x predicted, and a loss in that
+# within the 10 A cap, never opened by rule 8b) while the trusted prediction with it engaged
+# is 0.93x its limit at 333.5 s. Rule 8c's margin is the engage rule's 0.9: it stays on its
+# diode then and is closed at 334 s at 0.80x predicted; a loss then pushes 0.785x into it. At
+# rule 8b's 0.95 (mutant diode-hold-at-open-ratio) R3 closed it at 333.5 s, and a loss in that
 # period pushed 0.981x (the prediction 5 % low, which the 0.95 leaves no room for): rule 8b
 # cannot act on a battery before R3 has closed it, so since it may open one R3 closed within the
 # cap at once (h28look), the period of the closure is what this margin still covers.
