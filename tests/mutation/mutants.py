@@ -627,7 +627,8 @@ SEQUENCING = [
            "        hold_ratio=float(config.charge_limit_margin),\n",
            "        hold_ratio=max(float(config.zero_load_open_ratio), 0.9),\n",
            "#28 rule 8c: R3 closes a held battery at rule 8b's 0.95 x the limit, not the engage "
-           "rule's 0.9: no room for its polarisation after the closure (seed 230: 1.13x)",
+           "rule's 0.9: no room for the prediction's error in the period of the closure "
+           "(seed 2928, loss at 333.5 s: 0.98x instead of 0)",
            file="controller.py"),
     _m("sequencing", "r3-hold-ignores-diode-hold",
        "    within: bool = prm.diode_hold_a > 0.0 and st.forced_a[p, k] <= prm.diode_hold_a\n",
@@ -762,6 +763,8 @@ TESTS: dict[str, list[str]] = {
         "_batteries_stays_in_the_limit",
         "tests/test_sequencing_zero_load.py::test_r3_recloses_a_battery_rule_8b_opened_only"
         "_below_the_clear_ratio",
+        "tests/test_sequencing_zero_load.py::test_r3_closes_a_battery_held_on_its_diode_only"
+        "_within_the_charge_limit_margin",
     ],
     "can": ["tests/test_runtime_fault_suite.py"],
     "supervisor": ["tests/test_supervisor.py"],
