@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -194,19 +195,28 @@ WINDOW_SEED = 230
 WINDOW_LOSSES_S = tuple(71.0 + 0.5 * i for i in range(13))
 
 
+def _losses_at(seed: int, losses_s: tuple[float, ...]) -> list[tuple[float, dict[str, Any]]]:
+    """Case ``seed`` (rules 8a+8b+8c, ``diode_hold_a`` 10 A) with its load lost at each of
+    ``losses_s`` instead: (the instant, its result) each, the load supplied throughout."""
+    case0 = draw(seed)
+    out = []
+    for t_off in losses_s:
+        res = run_case(dataclasses.replace(case0, hold_s=t_off - REST_S), hook=True, open_=True,
+                       extra=HOLD_10)  # fmt: skip
+        assert not res["unsupplied"], (t_off, res)
+        out.append((t_off, res))
+    return out
+
+
 def test_a_load_loss_just_after_r3_closes_a_battery_within_the_cap_stays_in_the_limit() -> None:
     """The charge limit holds wherever the loss lands in the hand-over cycle, including the
     seconds after R3 closed a battery whose diode carried at most ``diode_hold_a``: rule 8b
     opens it as soon as its prediction passes ``open_ratio`` (rule 8c then holds it on its
     diode), instead of waiting ``R3_HOLD_S``. The losses do land in R3's hold (the worst
     battery was closed by R3 less than ``R3_HOLD_S`` before the loss in some of them)."""
-    case0 = draw(WINDOW_SEED)
     worst: list[tuple[float, float]] = []
     forced = 0
-    for t_off in WINDOW_LOSSES_S:
-        case = dataclasses.replace(case0, hold_s=t_off - REST_S)
-        res = run_case(case, hook=True, open_=True, extra=HOLD_10)
-        assert not res["unsupplied"], res
+    for t_off, res in _losses_at(WINDOW_SEED, WINDOW_LOSSES_S):
         worst.append((res["worst"], t_off))
         forced += bool(res["r3_forced"])
     assert forced >= 5, forced
@@ -225,11 +235,7 @@ SAME_PERIOD_LOSSES_S = (116.5, 149.0)
 def test_a_load_loss_in_the_period_r3_closes_two_batteries_stays_in_the_limit() -> None:
     """Rule 8b looks, in the same period, at a battery R3 closed within ``diode_hold_a`` (rule
     8c then holds it on its diode); the loss lands in the period of R3's closures."""
-    case0 = draw(SAME_PERIOD_SEED)
-    for t_off in SAME_PERIOD_LOSSES_S:
-        case = dataclasses.replace(case0, hold_s=t_off - REST_S)
-        res = run_case(case, hook=True, open_=True, extra=HOLD_10)
-        assert not res["unsupplied"], res
+    for t_off, res in _losses_at(SAME_PERIOD_SEED, SAME_PERIOD_LOSSES_S):
         assert res["worst"] <= 1.0, (t_off, res)
 
 
@@ -262,9 +268,5 @@ def test_r3_closes_a_battery_held_on_its_diode_only_within_the_charge_limit_marg
     """A loss in the period R3 closes a battery rule 8c held (within the cap, observer
     trusted, one rule 8b never opened) pushes at most ``charge_limit_margin`` (0.9) x its
     limit: 8c lets R3 close it only once its prediction is that far within the limit."""
-    case0 = draw(MARGIN_SEED)
-    for t_off in MARGIN_LOSSES_S:
-        case = dataclasses.replace(case0, hold_s=t_off - REST_S)
-        res = run_case(case, hook=True, open_=True, extra=HOLD_10)
-        assert not res["unsupplied"], res
+    for t_off, res in _losses_at(MARGIN_SEED, MARGIN_LOSSES_S):
         assert res["worst"] <= 0.9, (t_off, res)
