@@ -73,6 +73,17 @@ def soc_from_ocv(params: cellmod.CellParams, ocv_v: Array, temp_c: Array) -> Arr
     return 0.5 * (lo + hi)
 
 
+def battery_base_soc(b: BatteryConfig, params: cellmod.CellParams, ambient_c: float) -> float:
+    """A battery's initial SOC as configured, before any per-group or per-cell spread: its
+    ``ocv0_v`` read through the OCV at the ambient, else its ``soc0``, else 0.5. The one
+    definition: the plant starts its cells there, and the state of power's stated-resistance
+    scale (``sim/power.py:resistance_scale``) reads R0 there."""
+    if b.ocv0_v is not None:
+        return float(soc_from_ocv(params, np.array([b.ocv0_v / b.n_cells]),
+                                  np.array([ambient_c]))[0])  # fmt: skip
+    return 0.5 if b.soc0 is None else float(b.soc0)
+
+
 @dataclass
 class CellBank:
     """Cells sharing one parameter set; ``idx`` maps them into the pack's flat cell axis."""
@@ -261,12 +272,7 @@ class Pack:
                 np.array(b.group_soc0 if b.group_soc0 is not None else [np.nan] * b.series_groups),
                 b.cells_per_group,
             )
-            if b.ocv0_v is not None:
-                base = soc_from_ocv(
-                    prm, np.array([b.ocv0_v / b.n_cells]), np.array([pc.ambient_c])
-                )[0]
-            else:
-                base = 0.5 if b.soc0 is None else b.soc0
+            base = battery_base_soc(b, prm, pc.ambient_c)
             soc_spread = rng.uniform(-b.cell_soc_spread, b.cell_soc_spread, b.n_cells)
             soc[sl] = np.where(np.isnan(gsoc), base, gsoc) + soc_spread
             if b.resistance_ohm is not None:

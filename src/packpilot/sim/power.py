@@ -40,7 +40,7 @@ from packpilot.control.power import (
 from packpilot.errors import ConfigError
 from packpilot.model.cell import model as cellmod
 from packpilot.model.cell.params import CellParams
-from packpilot.model.pack import Pack, _load_cell_set, battery_series_ohm, soc_from_ocv
+from packpilot.model.pack import Pack, _load_cell_set, battery_base_soc, battery_series_ohm
 
 F64 = NDArray[np.float64]
 
@@ -119,11 +119,7 @@ def resistance_scale(cfg: ScenarioConfig, b: BatteryConfig) -> float:
     if b.resistance_ohm is None:
         return 1.0
     prm = cell_set(cfg, b)
-    if b.ocv0_v is not None:
-        at = np.array([cfg.pack.ambient_c])
-        soc = float(soc_from_ocv(prm, np.array([b.ocv0_v / b.n_cells]), at)[0])
-    else:
-        soc = 0.5 if b.soc0 is None else float(b.soc0)
+    soc = battery_base_soc(b, prm, cfg.pack.ambient_c)
     r0 = cell_rc(prm, min(max(soc, 0.0), 1.0), b.resistance_temp_c, 0.0).r0_ohm
     return b.resistance_ohm / (b.n_cells * r0)
 
